@@ -1,0 +1,1 @@
+"""Benchmarks, runnable as `quatrack bench NAME`; figures go into bench/RESULTS.md."""

@@ -1,0 +1,5 @@
+import sys
+
+from quatrack.cli import main
+
+sys.exit(main())

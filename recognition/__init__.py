@@ -1,0 +1,1 @@
+"""quatrack.recognition — not yet implemented (see the open issues)."""

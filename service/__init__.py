@@ -1,0 +1,1 @@
+"""quatrack.service — not yet implemented (see the open issues)."""

@@ -1,0 +1,200 @@
+"""Property tests of the quaternion and rotation algebra (Ude 1999, eqs. 3–10, 18–21, A.1–A.2)."""
+
+import cv2
+import numpy as np
+import pytest
+from scipy.integrate import simpson
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+
+from quatrack.tracking import quaternion as quat
+from quatrack.tracking.rotation import left_jacobian, left_jacobian_inv, rodrigues, skew
+
+finite = st.floats(-1.0, 1.0, allow_nan=False, allow_infinity=False)
+vec3 = arrays(np.float64, 3, elements=finite)
+
+
+@st.composite
+def unit_quaternions(draw):
+    v = draw(arrays(np.float64, 4, elements=finite))
+    n = np.linalg.norm(v)
+    if n < 1e-3:
+        v, n = np.array([1.0, 0.0, 0.0, 0.0]), 1.0
+    return v / n
+
+
+@st.composite
+def tangent_vectors(draw, max_norm=np.pi - 1e-3):
+    """Vectors of norm < max_norm, including tiny ones (small-angle branches)."""
+    direction = draw(vec3)
+    n = np.linalg.norm(direction)
+    if n < 1e-6:
+        direction, n = np.array([1.0, 0.0, 0.0]), 1.0
+    scale = draw(st.one_of(st.floats(0.0, max_norm), st.floats(0.0, 1e-7)))
+    return direction / n * scale
+
+
+@given(tangent_vectors())
+def test_log_inverts_exp_inside_pi(r):
+    np.testing.assert_allclose(quat.log(quat.exp(r)), r, atol=1e-12)
+
+
+@given(tangent_vectors())
+def test_exp_is_unit_and_rotates_by_twice_the_norm(r):
+    q = quat.exp(r)
+    assert abs(quat.norm(q) - 1.0) < 1e-15
+    # eq. 7: exp(θ/2 n) is the rotation by θ about n
+    np.testing.assert_allclose(quat.to_matrix(q), rodrigues(2.0 * r), atol=1e-12)
+
+
+@given(unit_quaternions())
+def test_exp_inverts_log(q):
+    if q[0] < -1 + 1e-6:  # log is undefined at -1
+        return
+    np.testing.assert_allclose(quat.exp(quat.log(q)), q, atol=1e-12)
+
+
+@given(unit_quaternions(), unit_quaternions(), unit_quaternions())
+def test_product_is_associative_and_matches_matrices(a, b, c):
+    np.testing.assert_allclose(quat.multiply(quat.multiply(a, b), c), quat.multiply(a, quat.multiply(b, c)), atol=1e-14)
+    np.testing.assert_allclose(quat.to_matrix(quat.multiply(a, b)), quat.to_matrix(a) @ quat.to_matrix(b), atol=1e-13)
+    np.testing.assert_allclose(quat.multiply(a, quat.conjugate(a)), quat.IDENTITY, atol=1e-15)
+
+
+@given(unit_quaternions(), vec3)
+def test_rotate_is_q_v_qbar_and_the_matrix(q, v):
+    pure = np.concatenate([[0.0], v])
+    sandwich = quat.multiply(quat.multiply(q, pure), quat.conjugate(q))  # eq. 5
+    np.testing.assert_allclose(quat.rotate(q, v), sandwich[1:], atol=1e-14)
+    np.testing.assert_allclose(quat.rotate(q, v), quat.to_matrix(q) @ v, atol=1e-14)
+    assert abs(sandwich[0]) < 1e-14
+
+
+@given(unit_quaternions())
+def test_matrix_round_trip_is_canonical(q):
+    R = quat.to_matrix(q)
+    np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-14)
+    assert np.linalg.det(R) == pytest.approx(1.0)
+    back = quat.from_matrix(R)
+    assert back[0] >= 0.0
+    if abs(q[0]) > 1e-9:
+        np.testing.assert_allclose(back, quat.canonical(q), atol=1e-12)
+    else:  # a half-turn: w is 0 up to rounding, so only the rotation is defined
+        assert min(np.abs(back - q).max(), np.abs(back + q).max()) < 1e-12
+
+
+@given(tangent_vectors())
+def test_rotvec_matches_opencv_rodrigues(phi):
+    phi = 2.0 * phi  # full rotation vectors up to 2π
+    R_cv, _ = cv2.Rodrigues(phi)
+    np.testing.assert_allclose(quat.to_matrix(quat.from_rotvec(phi)), R_cv, atol=1e-12)
+    np.testing.assert_allclose(rodrigues(phi), R_cv, atol=1e-12)
+    # to_rotvec returns the shortest equivalent rotation vector
+    np.testing.assert_allclose(rodrigues(quat.to_rotvec(quat.from_rotvec(phi))), R_cv, atol=1e-12)
+    assert np.linalg.norm(quat.to_rotvec(quat.from_rotvec(phi))) <= np.pi + 1e-12
+
+
+@given(unit_quaternions(), vec3)
+def test_exp_q_moves_along_the_tangent_space(q, r):
+    # r * q is a tangent vector at q (orthogonal to q), and eq. 8 maps it to exp(r) * q
+    r_q = quat.multiply(np.concatenate([[0.0], r]), q)
+    assert abs(np.dot(r_q, q)) < 1e-14
+    np.testing.assert_allclose(quat.exp_q(q, r_q), quat.multiply(quat.exp(r), q), atol=1e-14)
+    # the geodesic starts at q with velocity r_q
+    h = 1e-7
+    velocity = (quat.exp_q(q, h * r_q) - quat.exp_q(q, -h * r_q)) / (2 * h)
+    np.testing.assert_allclose(velocity, r_q, atol=1e-7)
+
+
+@given(unit_quaternions(), unit_quaternions(), unit_quaternions())
+def test_angular_metric(a, b, c):
+    assert quat.distance(a, a) == pytest.approx(0.0, abs=1e-7)
+    assert quat.distance(a, b) == pytest.approx(quat.distance(b, a), abs=1e-12)
+    assert quat.distance(a, c) <= quat.distance(a, b) + quat.distance(b, c) + 1e-9
+    assert quat.distance(a, -a) == pytest.approx(2 * np.pi)  # eq. 10, antipodal
+    assert quat.angle_between(a, -a) == pytest.approx(0.0, abs=1e-7)  # one rotation
+    # angle_between is the angle of the relative rotation matrix
+    Rrel = quat.to_matrix(a) @ quat.to_matrix(b).T
+    cos = np.clip((np.trace(Rrel) - 1) / 2, -1, 1)
+    assert quat.angle_between(a, b) == pytest.approx(np.arccos(cos), abs=1e-6)
+
+
+def test_distance_of_a_known_rotation():
+    q = quat.from_rotvec([0.0, 0.0, np.radians(30)])
+    assert np.degrees(quat.distance(q, quat.IDENTITY)) == pytest.approx(30.0)
+
+
+@given(unit_quaternions())
+@settings(max_examples=60)
+def test_dlog_matches_finite_differences(q):
+    if q[0] < -0.95:  # log's derivative blows up near -1
+        return
+    h = 1e-7
+    num = np.column_stack([(quat.log(q + h * e) - quat.log(q - h * e)) / (2 * h) for e in np.eye(4)])
+    np.testing.assert_allclose(quat.dlog(q), num, atol=2e-6)
+
+
+def test_dlog_at_identity_is_eq_A2():
+    np.testing.assert_array_equal(quat.dlog(quat.IDENTITY), np.hstack([np.zeros((3, 1)), np.eye(3)]))
+    # and continuous next to it
+    near = quat.exp(np.array([1e-9, -2e-9, 0.5e-9]))
+    np.testing.assert_allclose(quat.dlog(near), np.hstack([np.zeros((3, 1)), np.eye(3)]), atol=1e-8)
+
+
+@given(tangent_vectors())
+@settings(max_examples=60)
+def test_dexp_matches_finite_differences(r):
+    h = 1e-7
+    num = np.column_stack([(quat.exp(r + h * e) - quat.exp(r - h * e)) / (2 * h) for e in np.eye(3)])
+    np.testing.assert_allclose(quat.dexp(r), num, atol=2e-7)
+
+
+@given(unit_quaternions())
+@settings(max_examples=60)
+def test_dlog_chain_is_the_inverse_left_jacobian(q):
+    """d/dδθ 2 log(exp(δθ/2) * q) through A.1 equals J_l⁻¹(2 log q): the prior term's Jacobian."""
+    q = quat.canonical(q)
+    via_A1 = quat.dlog(q) @ quat.right_matrix(q)[:, 1:]
+    np.testing.assert_allclose(via_A1, left_jacobian_inv(2 * quat.log(q)), atol=1e-9)
+
+
+@given(tangent_vectors(), vec3)
+@settings(max_examples=60)
+def test_left_jacobian_linearises_exp(phi, d):
+    phi = 2 * phi
+    h = 1e-6
+    lhs = rodrigues(phi + h * d) @ rodrigues(phi).T  # ≈ Exp(h J_l d)
+    rhs = rodrigues(h * left_jacobian(phi) @ d)
+    np.testing.assert_allclose(lhs, rhs, atol=1e-10)
+    np.testing.assert_allclose(left_jacobian(phi) @ left_jacobian_inv(phi), np.eye(3), atol=1e-9)
+
+
+@given(vec3, st.floats(1e-3, 0.5))
+@settings(max_examples=40)
+def test_G_is_the_integral_of_R(omega, dt):
+    """Eq. 20–21: G = ∫_0^Δt R(t ω) dt, with Ude's closed form (s, c, n)."""
+    omega = 5.0 * omega
+    ts = np.linspace(0.0, dt, 2001)
+    integral = simpson(rodrigues(ts[:, None] * omega), x=ts, axis=0)
+    G = dt * left_jacobian(dt * omega)
+    np.testing.assert_allclose(G, integral, atol=1e-8)
+    th = dt * np.linalg.norm(omega)
+    if th > 1e-6:
+        n = omega / np.linalg.norm(omega)
+        s = 2.0 / th * np.sin(th / 2) ** 2
+        c = 2.0 / th * np.sin(th / 2) * np.cos(th / 2)
+        ude = dt * ((1 - c) * np.outer(n, n) + c * np.eye(3) + s * skew(n))
+        np.testing.assert_allclose(G, ude, atol=1e-12)
+
+
+def test_functions_are_vectorised():
+    rng = np.random.default_rng(1)
+    r = rng.normal(size=(5, 7, 3))
+    q = quat.exp(r)
+    assert q.shape == (5, 7, 4)
+    assert quat.to_matrix(q).shape == (5, 7, 3, 3)
+    np.testing.assert_allclose(quat.from_matrix(quat.to_matrix(q)), quat.canonical(q), atol=1e-12)
+    assert quat.dlog(q).shape == (5, 7, 3, 4)
+    for i in range(5):
+        np.testing.assert_allclose(quat.log(q[i]), np.stack([quat.log(x) for x in q[i]]))

@@ -1,0 +1,4 @@
+"""tracking: rotations, measurement models, motion models and the quaternion pose filter of Ude (1999).
+
+Pure numpy/scipy: no I/O, no OpenCV, no HTTP.
+"""

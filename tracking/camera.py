@@ -1,0 +1,115 @@
+"""Pinhole camera with OpenCV's lens distortion: projection and its Jacobian.
+
+Camera frame as in OpenCV (x right, y down, z forward); pixel coordinates are continuous with
+the centre of the top-left pixel at (0, 0), as ``cv2.projectPoints`` gives them. Distortion
+coefficients are OpenCV's ``(k1, k2, p1, p2[, k3[, k4, k5, k6]])``.
+
+A camera may sit anywhere in a rig: ``R_rig, t_rig`` map the *reference* camera frame (the frame
+in which the filter's pose is expressed) into this camera, ``X_this = R_rig X_ref + t_rig``.
+That is the sum over cameras ``j`` in Ude's eq. 24.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+_MAX_DIST = 8  # k1 k2 p1 p2 k3 k4 k5 k6 (thin-prism and tilt terms are not supported)
+
+
+@dataclass(frozen=True)
+class PinholeCamera:
+    """Intrinsics (pixels), distortion, image size (pixels) and rig extrinsics of one camera."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    dist_coeffs: np.ndarray = field(default_factory=lambda: np.zeros(5))
+    width: int | None = None
+    height: int | None = None
+    R_rig: np.ndarray = field(default_factory=lambda: np.eye(3))
+    t_rig: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+    def __post_init__(self) -> None:
+        d = np.asarray(self.dist_coeffs, dtype=float).ravel()
+        if d.size > _MAX_DIST:
+            if np.any(d[_MAX_DIST:] != 0.0):
+                raise ValueError("only OpenCV distortion terms k1..k6, p1, p2 are supported")
+            d = d[:_MAX_DIST]
+        if not (np.isfinite(self.fx) and np.isfinite(self.fy) and self.fx > 0 and self.fy > 0):
+            raise ValueError(f"focal lengths must be positive, got fx={self.fx}, fy={self.fy}")
+        object.__setattr__(self, "dist_coeffs", d)
+        object.__setattr__(self, "R_rig", np.asarray(self.R_rig, dtype=float).reshape(3, 3))
+        object.__setattr__(self, "t_rig", np.asarray(self.t_rig, dtype=float).reshape(3))
+
+    @property
+    def matrix(self) -> np.ndarray:
+        """The 3×3 camera matrix ``K``."""
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    @property
+    def has_distortion(self) -> bool:
+        return bool(np.any(self.dist_coeffs != 0.0))
+
+    @property
+    def is_reference(self) -> bool:
+        """True when this camera *is* the reference frame (no rig transform to apply)."""
+        return bool(np.array_equal(self.R_rig, np.eye(3)) and not np.any(self.t_rig))
+
+    def project(self, X_cam: np.ndarray) -> np.ndarray:
+        """Pixel coordinates (n, 2) of points (n, 3) given in *this* camera's frame."""
+        return self.project_with_jacobian(X_cam, jacobian=False)[0]
+
+    def project_with_jacobian(
+        self, X_cam: np.ndarray, jacobian: bool = True
+    ) -> tuple[np.ndarray, np.ndarray | None]:
+        """Pixels (n, 2) and, if asked, ``∂uv/∂X_cam`` (n, 2, 3) for points in this camera's frame."""
+        X = np.asarray(X_cam, dtype=float).reshape(-1, 3)
+        iz = 1.0 / X[:, 2]
+        x = X[:, 0] * iz
+        y = X[:, 1] * iz
+        if not self.has_distortion:
+            uv = np.stack([self.fx * x + self.cx, self.fy * y + self.cy], axis=-1)
+            if not jacobian:
+                return uv, None
+            J = np.zeros((X.shape[0], 2, 3))
+            J[:, 0, 0] = self.fx * iz
+            J[:, 0, 2] = -self.fx * x * iz
+            J[:, 1, 1] = self.fy * iz
+            J[:, 1, 2] = -self.fy * y * iz
+            return uv, J
+        return self._project_distorted(x, y, iz, jacobian)
+
+    def _project_distorted(self, x, y, iz, jacobian: bool):
+        d = np.zeros(_MAX_DIST)
+        d[: self.dist_coeffs.size] = self.dist_coeffs
+        k1, k2, p1, p2, k3, k4, k5, k6 = d
+        r2 = x * x + y * y
+        num = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        den = 1.0 + r2 * (k4 + r2 * (k5 + r2 * k6))
+        radial = num / den
+        xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+        yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+        uv = np.stack([self.fx * xd + self.cx, self.fy * yd + self.cy], axis=-1)
+        if not jacobian:
+            return uv, None
+        dnum = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)  # d num / d r2
+        dden = k4 + r2 * (2.0 * k5 + 3.0 * k6 * r2)
+        dradial = (dnum * den - num * dden) / (den * den)  # d radial / d r2
+        # ∂(xd, yd)/∂(x, y), with ∂r2/∂x = 2x, ∂r2/∂y = 2y
+        dxd_dx = radial + x * dradial * 2 * x + 2 * p1 * y + p2 * 6 * x
+        dxd_dy = x * dradial * 2 * y + 2 * p1 * x + p2 * 2 * y
+        dyd_dx = y * dradial * 2 * x + p1 * 2 * x + 2 * p2 * y
+        dyd_dy = radial + y * dradial * 2 * y + p1 * 6 * y + 2 * p2 * x
+        n = x.shape[0]
+        J = np.empty((n, 2, 3))
+        # ∂(x, y)/∂X = iz [[1, 0, -x], [0, 1, -y]]
+        J[:, 0, 0] = self.fx * dxd_dx * iz
+        J[:, 0, 1] = self.fx * dxd_dy * iz
+        J[:, 0, 2] = -self.fx * (dxd_dx * x + dxd_dy * y) * iz
+        J[:, 1, 0] = self.fy * dyd_dx * iz
+        J[:, 1, 1] = self.fy * dyd_dy * iz
+        J[:, 1, 2] = -self.fy * (dyd_dx * x + dyd_dy * y) * iz
+        return uv, J

@@ -1,0 +1,67 @@
+"""The pose filter: predict and adjust kept apart (in the manner of filterpy).
+
+    f = PoseFilter(UdeConstantVelocity(a=2.0, alpha=2e-4))
+    f.initialize(t0, p, q, pose_covariance)       # velocities unknown: variance 1e8
+    for t, blocks in frames:
+        f.predict(t)                                # eqs. 11–14 and 22–23 (or another model)
+        result = f.update(blocks)                   # eqs. 24–30
+
+The pure functions underneath are ``model.predict(state, dt)`` and
+:func:`tracking.adjust.adjust`; this class only keeps the current state and the last prior.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+
+from .adjust import AdjustOptions, AdjustResult, adjust
+from .measurements import MeasurementBlock
+from .motion import MotionModel
+from .state import FilterState, initial_state
+
+
+class PoseFilter:
+    """Quaternion pose filter with a pluggable motion model and measurement blocks."""
+
+    def __init__(self, motion: MotionModel, options: AdjustOptions = AdjustOptions()) -> None:
+        self.motion = motion
+        self.options = options
+        self.state: FilterState | None = None
+        self.prior: FilterState | None = None  # the last prediction
+
+    def initialize(
+        self,
+        t: float,
+        p: np.ndarray,
+        q: np.ndarray,
+        pose_covariance: np.ndarray,
+        velocity_variance: float = 1e8,
+    ) -> FilterState:
+        """Start from a pose estimate; velocities zero (and not estimated by zeroth-order models)."""
+        state = initial_state(t, p, q, pose_covariance, velocity_variance=velocity_variance)
+        if not self.motion.estimates_velocity:
+            state.covariance[6:, 6:] = 0.0
+        self.state, self.prior = state, None
+        return state
+
+    def _require_state(self) -> FilterState:
+        if self.state is None:
+            raise RuntimeError("the filter has no state: call initialize() first")
+        return self.state
+
+    def predict(self, t: float) -> FilterState:
+        """Predict the state at time ``t`` (s); it becomes the prior of the next :meth:`update`."""
+        state = self._require_state()
+        self.prior = self.motion.predict(state, t - state.t)
+        self.state = self.prior
+        return self.prior
+
+    def update(self, blocks: Sequence[MeasurementBlock]) -> AdjustResult:
+        """Adjust the last prediction to the measurements (eq. 24) and keep the result."""
+        if self.prior is None:
+            raise RuntimeError("update() needs a prediction: call predict(t) first")
+        result = adjust(self.prior, blocks, self.options, self.motion.estimates_velocity)
+        self.state = result.state
+        return result

@@ -1,0 +1,1 @@
+"""quatrack.viewsets — not yet implemented (see the open issues)."""
