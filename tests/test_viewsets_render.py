@@ -1,0 +1,90 @@
+"""Z-buffer rendering, ray casting and keypoint lifting against independent geometry."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from quatrack.tracking.camera import PinholeCamera
+from quatrack.viewsets.mesh import make_mesh, planar_groups
+from quatrack.viewsets.render import cast_rays, lift_keypoints, render, undistort_pixels
+from quatrack.viewsets.spec import Pose
+
+
+def box_mesh(sx=18.9, sy=25.8, sz=7.5):
+    V = np.array([[x, y, z] for x in (0, sx) for y in (0, sy) for z in (0, sz)], float)
+    hull = __import__("scipy.spatial", fromlist=["ConvexHull"]).ConvexHull(V)
+    return make_mesh(V, hull.simplices)
+
+
+def pose_looking_at(centre, rvec, distance):
+    R = cv2.Rodrigues(np.asarray(rvec, float))[0]
+    t = np.array([0.0, 0.0, distance]) - R @ np.asarray(centre, float)
+    return Pose(R, t)
+
+
+CAM = PinholeCamera(700.0, 690.0, 322.0, 241.0, width=640, height=480)
+CAM_DIST = PinholeCamera(700.0, 690.0, 322.0, 241.0, np.array([-0.2, 0.08, 0.001, -0.0015, 0.0]), width=640, height=480)
+
+
+def test_box_groups_into_six_planes():
+    g = planar_groups(box_mesh())
+    assert len(np.unique(g)) == 6 and np.all(np.bincount(g) == 2)
+
+
+def test_mask_matches_convex_hull_of_projected_corners():
+    mesh = box_mesh()
+    pose = pose_looking_at(mesh.centre, [0.5, -0.4, 0.3], 80.0)
+    buf = render(mesh, CAM, pose)
+    uv = CAM.project(pose.transform(mesh.vertices))
+    ref = np.zeros((480, 640), np.uint8)
+    cv2.fillConvexPoly(ref, np.round(cv2.convexHull(uv.astype(np.float32))[:, 0] * 16).astype(np.int32), 255,
+                       lineType=cv2.LINE_8, shift=4)
+    a, b = buf.mask > 0, ref > 0
+    iou = (a & b).sum() / (a | b).sum()
+    assert iou > 0.98
+
+
+@pytest.mark.parametrize("camera", [CAM, CAM_DIST], ids=["pinhole", "distorted"])
+def test_depth_buffer_agrees_with_ray_casting(camera):
+    mesh = box_mesh()
+    pose = pose_looking_at(mesh.centre, [2.0, -0.8, 0.3], 90.0)
+    buf = render(mesh, camera, pose)
+    rng = np.random.default_rng(0)
+    vs, us = np.nonzero(buf.face >= 0)
+    pick = rng.choice(len(us), 300, replace=False)
+    uv = np.stack([us[pick], vs[pick]], 1).astype(float)
+    X, f, _ = cast_rays(mesh, pose, undistort_pixels(camera, uv))
+    assert np.all(f >= 0)
+    z = pose.transform(X)[:, 2]
+    np.testing.assert_allclose(z, buf.depth[vs[pick], us[pick]], rtol=1e-6)
+
+
+@pytest.mark.parametrize("camera", [CAM, CAM_DIST], ids=["pinhole", "distorted"])
+def test_lifted_points_reproject_onto_their_keypoints(camera):
+    mesh = box_mesh()
+    pose = pose_looking_at(mesh.centre, [2.0, -0.8, 0.3], 55.0)
+    buf = render(mesh, camera, pose)
+    rng = np.random.default_rng(3)
+    uv = rng.uniform([0, 0], [639, 479], (3000, 2))
+    X, keep = lift_keypoints(mesh, camera, pose, uv, buffers=buf)
+    assert keep.sum() > 300
+    err = np.linalg.norm(camera.project(pose.transform(X[keep])) - uv[keep], axis=1)
+    assert err.max() < 1e-3
+    # points outside the object (or within 3 px of its silhouette) were dropped
+    vi, ui = np.rint(uv[keep, 1]).astype(int), np.rint(uv[keep, 0]).astype(int)
+    inner = cv2.erode(buf.mask, np.ones((5, 5), np.uint8))
+    assert np.all(inner[vi, ui] > 0)
+
+
+def test_grazing_points_are_dropped():
+    mesh = box_mesh()
+    # look almost edge-on at the x = 0 face (normal −x): rotate 80° about the y axis
+    pose = pose_looking_at(mesh.centre, [0.0, np.radians(80), 0.0], 120.0)
+    uv = np.stack(np.meshgrid(np.arange(0, 640, 4.0), np.arange(0, 480, 4.0)), -1).reshape(-1, 2)
+    X, f, cos = cast_rays(mesh, pose, undistort_pixels(CAM, uv))
+    _, keep = lift_keypoints(mesh, CAM, pose, uv, min_cos=0.2)
+    assert np.any((f >= 0) & (cos < 0.2))
+    assert not np.any(keep & (cos < 0.2))
+    assert np.any(keep)

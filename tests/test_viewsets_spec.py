@@ -1,0 +1,138 @@
+"""Parsing of camera files and object specs: good input round-trips, bad input names its culprit."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from quatrack.tracking import quaternion as quat
+from quatrack.viewsets.camera import camera_to_dict, load_camera
+from quatrack.viewsets.errors import SpecError
+from quatrack.viewsets.spec import load_spec, parse_pose
+
+EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "cookie-box"
+
+
+def test_example_spec_parses_with_paths_relative_to_spec():
+    spec = load_spec(EXAMPLE / "object.json")
+    assert spec.name == "cookie-box"
+    assert spec.mesh_path == (EXAMPLE / "box.ply").resolve()
+    assert spec.views[0].image_path.is_file()
+    assert spec.views[0].camera.width == 718 and spec.views[0].camera.fx > 1000
+    assert len(spec.checksum) == 64
+
+
+def test_three_pose_forms_agree():
+    rng = np.random.default_rng(1)
+    rvec = rng.normal(size=3)
+    t = [1.0, -2.0, 40.0]
+    R = cv2.Rodrigues(rvec)[0]
+    q = quat.from_rotvec(rvec)
+    poses = [
+        parse_pose({"rvec": rvec.tolist(), "tvec": t}),
+        parse_pose({"R": R.tolist(), "t": t}),
+        parse_pose({"q_wxyz": (q * 3.0).tolist(), "t": t}),  # not normalised on purpose
+    ]
+    for p in poses:
+        np.testing.assert_allclose(p.R, R, atol=1e-9)
+        np.testing.assert_allclose(p.t, t)
+
+
+@pytest.mark.parametrize(
+    "pose, words",
+    [
+        ({"euler": [0, 0, 0], "t": [0, 0, 1]}, ["unknown pose format"]),
+        ({"rvec": [0, 0], "tvec": [0, 0, 1]}, ["rvec"]),
+        ({"R": [[1, 0, 0], [0, 1, 0], [0, 0, 2]], "t": [0, 0, 1]}, ["not a rotation"]),
+        ({"q_wxyz": [0, 0, 0, 0], "t": [0, 0, 1]}, ["q_wxyz"]),
+    ],
+)
+def test_bad_poses_are_named(pose, words):
+    with pytest.raises(SpecError) as info:
+        parse_pose(pose, "view 3: pose")
+    for w in ["view 3", *words]:
+        assert w in str(info.value)
+
+
+def test_camera_json_and_yaml(tmp_path):
+    cam = {"width": 640, "height": 480, "fx": 600.0, "fy": 610.0, "cx": 320.5, "cy": 239.5,
+           "dist_coeffs": [0.1, -0.05, 0.001, 0.002, 0.0]}
+    (tmp_path / "c.json").write_text(json.dumps(cam))
+    c1 = load_camera(tmp_path / "c.json")
+    assert camera_to_dict(c1) == cam
+    fs = cv2.FileStorage(str(tmp_path / "c.yml"), cv2.FILE_STORAGE_WRITE)
+    fs.write("image_width", 640)
+    fs.write("image_height", 480)
+    fs.write("camera_matrix", c1.matrix)
+    fs.write("distortion_coefficients", np.array(cam["dist_coeffs"]).reshape(1, 5))
+    fs.release()
+    c2 = load_camera(tmp_path / "c.yml")
+    d2 = camera_to_dict(c2)
+    assert d2.pop("dist_coeffs") == pytest.approx(cam["dist_coeffs"])
+    assert d2 == pytest.approx({k: v for k, v in cam.items() if k != "dist_coeffs"})
+
+
+@pytest.mark.parametrize(
+    "change, words",
+    [
+        ({"fx": -5.0}, ["fx=-5"]),
+        ({"fy": 0}, ["positive"]),
+        ({"width": 0}, ["width"]),
+        ({"cx": "a"}, ["cx"]),
+        ({"dist_coeffs": [1, 2, 3]}, ["dist_coeffs"]),
+    ],
+)
+def test_bad_cameras_are_named(tmp_path, change, words):
+    cam = {"width": 640, "height": 480, "fx": 600.0, "fy": 610.0, "cx": 320.0, "cy": 240.0}
+    cam.update(change)
+    (tmp_path / "bad.json").write_text(json.dumps(cam))
+    with pytest.raises(SpecError) as info:
+        load_camera(tmp_path / "bad.json")
+    assert "bad.json" in str(info.value)
+    for w in words:
+        assert w in str(info.value)
+
+
+def _spec(tmp_path, **changes):
+    data = json.loads((EXAMPLE / "object.json").read_text())
+    data["mesh"] = str(EXAMPLE / "box.ply")
+    data["views"][0]["image"] = str(EXAMPLE / "resized_IMG_3875.JPG")
+    for k, v in changes.items():
+        if k.startswith("view_"):
+            data["views"][0][k[5:]] = v
+        else:
+            data[k] = v
+    p = tmp_path / "spec.json"
+    p.write_text(json.dumps(data))
+    return p
+
+
+@pytest.mark.parametrize(
+    "changes, words",
+    [
+        ({"name": "../escape"}, ["name"]),
+        ({"views": []}, ["views"]),
+        ({"view_pose": {"foo": 1}}, ["view 0", "unknown pose format"]),
+        ({"view_camera": "missing_camera.json"}, ["missing_camera.json"]),
+        ({"view_camera": {"width": 718, "height": 480, "fx": 0, "fy": 1, "cx": 1, "cy": 1}}, ["view 0", "positive"]),
+    ],
+)
+def test_bad_specs_are_named(tmp_path, changes, words):
+    with pytest.raises(SpecError) as info:
+        load_spec(_spec(tmp_path, **changes))
+    for w in words:
+        assert w in str(info.value)
+
+
+def test_camera_path_and_mask_resolved_relative_to_spec(tmp_path):
+    (tmp_path / "sub").mkdir()
+    (tmp_path / "sub" / "cam.json").write_text(json.dumps(
+        {"width": 718, "height": 480, "fx": 1770.0, "fy": 1771.0, "cx": 359.0, "cy": 240.0}))
+    p = _spec(tmp_path, view_camera="sub/cam.json", view_mask="sub/m.png")
+    spec = load_spec(p)
+    assert spec.views[0].camera.fx == 1770.0
+    assert spec.views[0].mask_path == (tmp_path / "sub" / "m.png").resolve()

@@ -1,0 +1,105 @@
+"""Triangle meshes (PLY/OBJ via trimesh) and the planar groups used to texture novel views."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .errors import SpecError
+
+
+@dataclass(frozen=True)
+class Mesh:
+    """Vertices (n, 3) float64 in mesh units and triangles (m, 3) int32 (indices into vertices)."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+
+    @property
+    def triangles(self) -> np.ndarray:
+        """(m, 3, 3): the corners of each triangle."""
+        return self.vertices[self.faces]
+
+    @property
+    def face_normals(self) -> np.ndarray:
+        """(m, 3) unit normals (right-hand order of the corners)."""
+        tri = self.triangles
+        n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        return n / np.linalg.norm(n, axis=1, keepdims=True)
+
+    @property
+    def centre(self) -> np.ndarray:
+        """Centre of the bounding box: novel views rotate about it."""
+        return 0.5 * (self.vertices.min(axis=0) + self.vertices.max(axis=0))
+
+    @property
+    def extent(self) -> float:
+        """Diagonal of the bounding box, the mesh's length scale."""
+        return float(np.linalg.norm(self.vertices.max(axis=0) - self.vertices.min(axis=0)))
+
+
+def make_mesh(vertices: np.ndarray, faces: np.ndarray, where: str = "mesh") -> Mesh:
+    """Check and wrap arrays: finite vertices, valid indices, no zero-area triangles."""
+    V = np.asarray(vertices, dtype=float).reshape(-1, 3)
+    F = np.asarray(faces).reshape(-1, 3)
+    if F.size == 0:
+        raise SpecError(f"{where}: the mesh has no faces (a point cloud cannot be rendered)")
+    if not np.all(np.isfinite(V)):
+        raise SpecError(f"{where}: the mesh has non-finite vertex coordinates")
+    if F.min() < 0 or F.max() >= len(V):
+        raise SpecError(f"{where}: face indices out of range")
+    F = F.astype(np.int32)
+    tri = V[F]
+    area2 = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    scale = max(float(np.ptp(V, axis=0).max()), 1e-12)
+    keep = area2 > 1e-12 * scale * scale
+    if not np.any(keep):
+        raise SpecError(f"{where}: every face of the mesh has zero area")
+    return Mesh(V, F[keep])
+
+
+def load_mesh(path: str | Path) -> Mesh:
+    """Load a PLY or OBJ mesh (polygons are triangulated by trimesh); faces are required."""
+    import trimesh
+
+    path = Path(path)
+    if not path.is_file():
+        raise SpecError(f"{path}: mesh file not found")
+    try:
+        loaded = trimesh.load(str(path), process=False, force="mesh")
+    except Exception as exc:  # trimesh raises many types on malformed files
+        raise SpecError(f"{path}: cannot read mesh ({exc.__class__.__name__}: {exc})") from None
+    faces = getattr(loaded, "faces", None)
+    vertices = getattr(loaded, "vertices", None)
+    if vertices is None or len(vertices) == 0:
+        raise SpecError(f"{path}: the mesh has no vertices")
+    if faces is None or len(faces) == 0:
+        raise SpecError(f"{path}: the mesh has no faces (a point cloud cannot be rendered)")
+    return make_mesh(np.asarray(vertices), np.asarray(faces), str(path))
+
+
+def planar_groups(mesh: Mesh, angle_tol_deg: float = 1.0, offset_tol: float = 1e-3) -> np.ndarray:
+    """Group id (m,) per triangle: triangles on one plane (normal and offset agree) share an id.
+
+    A planar group is textured in a novel view by one plane-induced homography. ``offset_tol``
+    is relative to the mesh's extent.
+    """
+    n = mesh.face_normals
+    d = np.einsum("ij,ij->i", n, mesh.triangles[:, 0])
+    # a plane is (n, d) or (−n, −d): pick the sign with the first non-zero normal component positive
+    lead = n[np.arange(len(n)), np.argmax(np.abs(n) > 1e-6, axis=1)]
+    sign = np.where(lead < 0, -1.0, 1.0)
+    n, d = n * sign[:, None], d * sign
+    cos_tol = np.cos(np.radians(angle_tol_deg))
+    tol = offset_tol * mesh.extent
+    groups = np.full(len(n), -1, dtype=np.int32)
+    next_id = 0
+    for i in range(len(n)):
+        if groups[i] >= 0:
+            continue
+        same = (groups < 0) & (n @ n[i] >= cos_tol) & (np.abs(d - d[i]) <= tol)
+        groups[same] = next_id
+        next_id += 1
+    return groups

@@ -1,0 +1,210 @@
+"""Projecting a mesh into a camera: z-buffer (depth, face ids, mask), ray casting, keypoint lifting.
+
+Pixels are tested by their *undistorted* ray, so lens distortion is handled exactly: straight
+triangle edges stay straight in normalised coordinates, whatever the lens does to them.
+Pixel centres are at integer coordinates, as in OpenCV.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+
+import cv2
+import numpy as np
+
+from quatrack.tracking.camera import PinholeCamera
+
+from .mesh import Mesh
+from .spec import Pose
+
+_NEAR = 1e-6
+
+
+@dataclass(frozen=True)
+class RenderBuffers:
+    """Per-pixel result of rendering: camera-frame depth z (inf = background), triangle id (-1)."""
+
+    depth: np.ndarray
+    face: np.ndarray
+
+    @property
+    def mask(self) -> np.ndarray:
+        """uint8 mask, 255 where the object is visible."""
+        return np.where(self.face >= 0, 255, 0).astype(np.uint8)
+
+
+def undistort_pixels(camera: PinholeCamera, uv: np.ndarray) -> np.ndarray:
+    """Normalised image coordinates (n, 2) of pixels (n, 2): the direction (x, y, 1) of their rays."""
+    uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+    if not camera.has_distortion:
+        return np.stack([(uv[:, 0] - camera.cx) / camera.fx, (uv[:, 1] - camera.cy) / camera.fy], axis=1)
+    pts = cv2.undistortPoints(
+        uv.reshape(-1, 1, 2), camera.matrix, camera.dist_coeffs, None, None, None,
+        (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12),
+    )
+    return pts.reshape(-1, 2)
+
+
+@lru_cache(maxsize=8)
+def _pixel_rays_cached(key: tuple) -> np.ndarray:
+    fx, fy, cx, cy, dist, w, h = key
+    cam = PinholeCamera(fx, fy, cx, cy, np.asarray(dist), width=w, height=h)
+    u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+    xy = undistort_pixels(cam, np.stack([u.ravel(), v.ravel()], axis=1))
+    out = xy.reshape(h, w, 2)
+    out.setflags(write=False)
+    return out
+
+
+def pixel_rays(camera: PinholeCamera) -> np.ndarray:
+    """(H, W, 2) normalised ray coordinates of every pixel centre (cached per camera)."""
+    if camera.width is None or camera.height is None:
+        raise ValueError("the camera needs an image size to render")
+    key = (camera.fx, camera.fy, camera.cx, camera.cy, tuple(float(x) for x in camera.dist_coeffs),
+           int(camera.width), int(camera.height))
+    return _pixel_rays_cached(key)
+
+
+def _pixel_bbox(camera: PinholeCamera, tri_cam: np.ndarray, w: int, h: int):
+    """Pixel bounding box of a triangle (edges sampled, so distortion's bending is covered)."""
+    if camera.has_distortion:
+        s = np.linspace(0.0, 1.0, 9)[:, None]
+        pts = np.concatenate([tri_cam[a] * (1 - s) + tri_cam[b] * s for a, b in ((0, 1), (1, 2), (2, 0))])
+    else:
+        pts = tri_cam
+    uv = camera.project(pts)
+    x0, y0 = np.floor(uv.min(axis=0)) - 1
+    x1, y1 = np.ceil(uv.max(axis=0)) + 1
+    return max(int(x0), 0), max(int(y0), 0), min(int(x1), w - 1), min(int(y1), h - 1)
+
+
+def render(mesh: Mesh, camera: PinholeCamera, pose: Pose) -> RenderBuffers:
+    """Z-buffer rendering of the mesh: exact ray/plane depth per pixel, nearest triangle wins.
+
+    Triangles with a corner at or behind the camera plane are skipped (callers check that the
+    object lies in front of the camera).
+    """
+    w, h = int(camera.width), int(camera.height)
+    rays = pixel_rays(camera)
+    depth = np.full((h, w), np.inf, dtype=np.float64)
+    face = np.full((h, w), -1, dtype=np.int32)
+    tris = pose.transform(mesh.vertices)[mesh.faces]  # (m, 3, 3) camera frame
+    normals = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
+    offsets = np.einsum("ij,ij->i", normals, tris[:, 0])
+    for i in range(len(tris)):
+        tri = tris[i]
+        if np.any(tri[:, 2] <= _NEAR) or offsets[i] == 0.0:
+            continue  # behind the camera, or seen exactly edge-on
+        x0, y0, x1, y1 = _pixel_bbox(camera, tri, w, h)
+        if x0 > x1 or y0 > y1:
+            continue
+        p = tri[:, :2] / tri[:, 2:3]
+        r = rays[y0 : y1 + 1, x0 : x1 + 1]
+        rx, ry = r[..., 0], r[..., 1]
+        e = []
+        for a, b in ((0, 1), (1, 2), (2, 0)):
+            e.append((p[b, 0] - p[a, 0]) * (ry - p[a, 1]) - (p[b, 1] - p[a, 1]) * (rx - p[a, 0]))
+        inside = ((e[0] >= 0) & (e[1] >= 0) & (e[2] >= 0)) | ((e[0] <= 0) & (e[1] <= 0) & (e[2] <= 0))
+        if not np.any(inside):
+            continue
+        n = normals[i]
+        denom = n[0] * rx + n[1] * ry + n[2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            z = offsets[i] / denom
+        dsub = depth[y0 : y1 + 1, x0 : x1 + 1]
+        closer = inside & (z > _NEAR) & (z < dsub)
+        dsub[closer] = z[closer]
+        face[y0 : y1 + 1, x0 : x1 + 1][closer] = i
+    return RenderBuffers(depth, face)
+
+
+def cast_rays(mesh: Mesh, pose: Pose, rays_xy: np.ndarray, chunk: int = 4096):
+    """Nearest intersection of camera rays (x, y, 1) with the mesh (Möller–Trumbore).
+
+    Returns ``(X_obj (n, 3), face (n,) or -1, cos_view (n,))``, where ``cos_view`` is the
+    |cosine| between the ray and the hit triangle's normal (0 = grazing).
+    """
+    xy = np.asarray(rays_xy, dtype=float).reshape(-1, 2)
+    n = len(xy)
+    R, t = pose.R, pose.t
+    origin = -R.T @ t  # camera centre in the object frame
+    dirs = np.column_stack([xy, np.ones(n)]) @ R  # R^T d, row-wise
+    tri = mesh.triangles
+    v0 = tri[:, 0]
+    e1 = tri[:, 1] - v0
+    e2 = tri[:, 2] - v0
+    normals = mesh.face_normals
+    best_s = np.full(n, np.inf)
+    best_f = np.full(n, -1, dtype=np.int64)
+    eps = 1e-12
+    for s0 in range(0, n, max(1, chunk // max(1, len(tri) // 64 + 1))):
+        d = dirs[s0 : s0 + chunk][:, None, :]  # (c, 1, 3)
+        pvec = np.cross(d, e2[None])  # (c, m, 3)
+        det = np.einsum("mj,cmj->cm", e1, pvec)
+        ok = np.abs(det) > eps
+        inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+        tvec = origin - v0  # (m, 3)
+        u = np.einsum("mj,cmj->cm", tvec, pvec) * inv
+        qvec = np.cross(tvec, e1)  # (m, 3)
+        v = np.einsum("cj,mj->cm", d[:, 0], qvec) * inv
+        s = np.einsum("mj,mj->m", e2, qvec)[None] * inv
+        tol = 1e-9
+        hit = ok & (u >= -tol) & (v >= -tol) & (u + v <= 1 + tol) & (s > _NEAR)
+        s = np.where(hit, s, np.inf)
+        j = np.argmin(s, axis=1)
+        sj = s[np.arange(len(j)), j]
+        sl = slice(s0, s0 + len(j))
+        better = sj < best_s[sl]
+        best_s[sl] = np.where(better, sj, best_s[sl])
+        best_f[sl] = np.where(better, j, best_f[sl])
+    found = np.isfinite(best_s)
+    X = np.full((n, 3), np.nan)
+    X[found] = origin + dirs[found] * best_s[found, None]
+    cos = np.zeros(n)
+    unit = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
+    cos[found] = np.abs(np.einsum("ij,ij->i", unit[found], normals[best_f[found]]))
+    return X, np.where(found, best_f, -1), cos
+
+
+def depth_edges(buffers: RenderBuffers, rel_jump: float = 0.05) -> np.ndarray:
+    """Boolean map of self-occlusion boundaries: the depth jumps by > ``rel_jump`` within 3×3."""
+    d = np.where(np.isfinite(buffers.depth), buffers.depth, 0.0).astype(np.float32)
+    obj = (buffers.face >= 0).astype(np.uint8)
+    k = np.ones((3, 3), np.uint8)
+    big = np.where(obj > 0, d, 0).astype(np.float32)
+    small = np.where(obj > 0, d, np.float32(np.finfo(np.float32).max))
+    hi = cv2.dilate(big, k)
+    lo = cv2.erode(small, k)
+    return (obj > 0) & (cv2.erode(obj, k) > 0) & ((hi - lo) > rel_jump * d)
+
+
+def lift_keypoints(
+    mesh: Mesh,
+    camera: PinholeCamera,
+    pose: Pose,
+    uv: np.ndarray,
+    min_cos: float = 0.2,
+    buffers: RenderBuffers | None = None,
+    edge_margin_px: int = 3,
+) -> tuple[np.ndarray, np.ndarray]:
+    """3-D model points (n, 3) of 2-D keypoints (n, 2) and a keep mask (n,).
+
+    Each keypoint is undistorted, its ray cast onto the mesh at ``pose``; points that miss,
+    hit at a grazing angle (|cos| < ``min_cos``), or lie within ``edge_margin_px`` of a
+    silhouette or self-occlusion boundary (when ``buffers`` are given) are dropped.
+    """
+    uv = np.asarray(uv, dtype=float).reshape(-1, 2)
+    X, f, cos = cast_rays(mesh, pose, undistort_pixels(camera, uv))
+    keep = (f >= 0) & (cos >= min_cos)
+    if buffers is not None and len(uv):
+        obj = buffers.face >= 0
+        bad = (~obj) | depth_edges(buffers)
+        if edge_margin_px > 0:
+            k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * edge_margin_px + 1,) * 2)
+            bad = cv2.dilate(bad.astype(np.uint8), k) > 0
+        h, w = bad.shape
+        ui = np.clip(np.rint(uv[:, 0]).astype(int), 0, w - 1)
+        vi = np.clip(np.rint(uv[:, 1]).astype(int), 0, h - 1)
+        keep &= ~bad[vi, ui]
+    return X, keep

@@ -1,0 +1,158 @@
+"""Object spec (JSON) → dataclasses, with every path resolved relative to the spec file.
+
+Nothing here reads images or meshes: only the spec's structure, cameras and poses are checked,
+so a bad spec fails fast with a message naming the file, the view and the field.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from quatrack.tracking import quaternion as quat
+from quatrack.tracking.camera import PinholeCamera
+
+from .camera import camera_from_dict, load_camera
+from .errors import SpecError, StoreError
+from .names import check_object_name
+
+
+@dataclass(frozen=True)
+class Pose:
+    """Object → camera: ``X_cam = R @ X_obj + t``; ``t`` in mesh units."""
+
+    R: np.ndarray
+    t: np.ndarray
+
+    @property
+    def q_wxyz(self) -> np.ndarray:
+        return quat.canonical(quat.from_matrix(self.R))
+
+    @property
+    def rvec(self) -> np.ndarray:
+        return cv2.Rodrigues(self.R)[0].ravel()
+
+    def transform(self, X: np.ndarray) -> np.ndarray:
+        """Points (n, 3) from the object frame into the camera frame."""
+        return np.asarray(X, float) @ self.R.T + self.t
+
+
+@dataclass(frozen=True)
+class ViewSpec:
+    """One registered training view: the photo, its camera, the object's pose, an optional mask."""
+
+    index: int
+    image_path: Path
+    camera: PinholeCamera
+    pose: Pose
+    mask_path: Path | None = None
+
+
+@dataclass(frozen=True)
+class ObjectSpec:
+    """A parsed object spec; ``checksum`` is the SHA-256 of the spec file's bytes."""
+
+    name: str
+    path: Path
+    mesh_path: Path
+    views: tuple[ViewSpec, ...]
+    checksum: str
+
+
+def _vector(value: Any, n: int, where: str, field: str) -> np.ndarray:
+    if not isinstance(value, list) or len(value) != n:
+        raise SpecError(f"{where}: field {field!r} must be a list of {n} numbers")
+    if not all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in value):
+        raise SpecError(f"{where}: field {field!r} must contain finite numbers only")
+    return np.asarray(value, dtype=float)
+
+
+def parse_pose(data: Any, where: str = "pose") -> Pose:
+    """A pose from ``{"rvec","tvec"}``, ``{"R","t"}`` (3×3 rows) or ``{"q_wxyz","t"}``."""
+    if not isinstance(data, dict):
+        raise SpecError(f"{where}: a pose must be a JSON object")
+    keys = set(data)
+    if {"rvec", "tvec"} <= keys:
+        rvec = _vector(data["rvec"], 3, where, "rvec")
+        R = cv2.Rodrigues(rvec.reshape(3, 1))[0]
+        t = _vector(data["tvec"], 3, where, "tvec")
+    elif {"R", "t"} <= keys:
+        rows = data["R"]
+        if not isinstance(rows, list) or len(rows) != 3:
+            raise SpecError(f"{where}: field 'R' must be 3 rows of 3 numbers")
+        R = np.stack([_vector(r, 3, where, "R") for r in rows])
+        if not np.allclose(R @ R.T, np.eye(3), atol=1e-3) or np.linalg.det(R) <= 0:
+            raise SpecError(f"{where}: field 'R' is not a rotation matrix (orthonormal, det +1)")
+        U, _, Vt = np.linalg.svd(R)
+        R = U @ Vt
+        t = _vector(data["t"], 3, where, "t")
+    elif {"q_wxyz", "t"} <= keys:
+        q = _vector(data["q_wxyz"], 4, where, "q_wxyz")
+        n = float(np.linalg.norm(q))
+        if n < 1e-9:
+            raise SpecError(f"{where}: field 'q_wxyz' must not be zero")
+        R = quat.to_matrix(q / n)
+        t = _vector(data["t"], 3, where, "t")
+    else:
+        raise SpecError(
+            f"{where}: unknown pose format with keys {sorted(keys)}; use {{rvec, tvec}}, {{R, t}} or {{q_wxyz, t}}"
+        )
+    return Pose(np.asarray(R, float), np.asarray(t, float))
+
+
+def _path(base: Path, value: Any, where: str, field: str) -> Path:
+    if not isinstance(value, str) or not value:
+        raise SpecError(f"{where}: field {field!r} must be a non-empty path string")
+    return (base / value).resolve()
+
+
+def load_spec(path: str | Path) -> ObjectSpec:
+    """Parse and check an object spec file; cameras given as paths are loaded too."""
+    path = Path(path)
+    try:
+        raw = path.read_bytes()
+    except OSError as exc:
+        raise SpecError(f"{path}: cannot read spec ({exc.strerror or exc})") from None
+    try:
+        data = json.loads(raw.decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise SpecError(f"{path}: not valid JSON ({exc})") from None
+    if not isinstance(data, dict):
+        raise SpecError(f"{path}: the spec must be a JSON object")
+    base = path.resolve().parent
+    for key in ("name", "mesh", "views"):
+        if key not in data:
+            raise SpecError(f"{path}: missing field {key!r}")
+    try:
+        name = check_object_name(data["name"])
+    except StoreError as exc:
+        raise SpecError(f"{path}: field 'name': {exc}") from None
+    mesh_path = _path(base, data["mesh"], str(path), "mesh")
+    views_data = data["views"]
+    if not isinstance(views_data, list) or not views_data:
+        raise SpecError(f"{path}: field 'views' must be a non-empty list")
+    views = []
+    for i, v in enumerate(views_data):
+        where = f"{path}: view {i}"
+        if not isinstance(v, dict):
+            raise SpecError(f"{where}: must be a JSON object")
+        for key in ("image", "camera", "pose"):
+            if key not in v:
+                raise SpecError(f"{where}: missing field {key!r}")
+        image = _path(base, v["image"], where, "image")
+        cam = v["camera"]
+        if isinstance(cam, str):
+            camera = load_camera(_path(base, cam, where, "camera"))
+        else:
+            camera = camera_from_dict(cam, f"{where}: camera")
+        pose = parse_pose(v["pose"], f"{where}: pose")
+        mask = _path(base, v["mask"], where, "mask") if v.get("mask") is not None else None
+        views.append(ViewSpec(i, image, camera, pose, mask))
+    return ObjectSpec(name, path.resolve(), mesh_path, tuple(views), hashlib.sha256(raw).hexdigest())
