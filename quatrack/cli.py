@@ -9,8 +9,11 @@ message on stderr with exit status 2 — never a traceback.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 from typing import Callable
+
+import numpy as np
 
 
 class UserError(Exception):
@@ -27,6 +30,12 @@ def _add_bench(parser: argparse.ArgumentParser) -> None:
     ude.add_argument("--seeds", type=int, default=20, help="Monte-Carlo runs (default 20)")
     ude.add_argument("--first-seed", type=int, default=0, help="first random seed (default 0)")
     ude.add_argument("--table-frame", type=int, default=90, help="frame whose iterations are printed as Table 1 (default 90, t = 3 s)")
+    ude.add_argument(
+        "--variant",
+        default="paper",
+        choices=["paper", "half-angle", "isotropic-noise", "silhouette-edges"],
+        help="a reading of the paper to test (default: paper, as printed); see bench/RESULTS.md",
+    )
     ude.add_argument("--json", action="store_true", help="print one JSON object instead of the report")
 
 
@@ -38,12 +47,159 @@ def _run_bench(args: argparse.Namespace) -> int:
             raise UserError("--seeds must be at least 2")
         if not 1 <= args.table_frame <= 180:
             raise UserError("--table-frame must be between 1 and 180")
-        return ude_cube.main(args.seeds, args.first_seed, args.table_frame, args.json)
+        return ude_cube.main(args.seeds, args.first_seed, args.table_frame, args.json, args.variant)
     raise UserError(f"unknown benchmark {args.benchmark!r}")
+
+
+def _floats(text: str, option: str) -> tuple[float, ...]:
+    """A comma-separated list of numbers; "none" (or empty) is the empty list."""
+    if text.strip().lower() in ("", "none", "0"):
+        return ()
+    try:
+        values = tuple(float(x) for x in text.split(","))
+    except ValueError:
+        raise UserError(f"{option}: expected comma-separated numbers or 'none', got {text!r}") from None
+    if any(not (v == v) or v in (float("inf"), float("-inf")) for v in values):
+        raise UserError(f"{option}: numbers must be finite")
+    return values
+
+
+def _add_train(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("spec", metavar="SPEC.json", help="object spec (see docs/contract.md)")
+    parser.add_argument("--store", metavar="DIR", help="model store (default: $QUATRACK_STORE or the user data directory)")
+    parser.add_argument("--jobs", type=int, default=2, metavar="N", help="views built in parallel (default 2)")
+    parser.add_argument("--no-overwrite", action="store_true", help="refuse to replace an existing model of that name")
+    parser.add_argument("--novel-views", default="20,40", metavar="DEG,...",
+                        help="rotations (degrees, both signs) about each object axis for synthetic views; 'none' to disable (default 20,40)")
+    parser.add_argument("--novel-axes", default="xyz", metavar="AXES", help="object axes to rotate about (default xyz)")
+    parser.add_argument("--novel-scales", default="0.6,1.4", metavar="S,...",
+                        help="apparent-size factors for synthetic views; 'none' to disable (default 0.6,1.4)")
+    parser.add_argument("--max-features", type=int, default=1500, metavar="N", help="SIFT keypoints per view (default 1500)")
+    parser.add_argument("--root-sift", action="store_true", help="store RootSIFT descriptors instead of SIFT")
+    parser.add_argument("--rfch-clusters", type=int, default=None, metavar="N", help="RFCH cluster centres")
+    parser.add_argument("--rfch-distance", type=int, default=None, metavar="PX", help="RFCH pair distance in pixels")
+    parser.add_argument("--rfch-scales", default=None, metavar="S,...", help="RFCH Gaussian scales in pixels")
+
+
+def _train_params(args: argparse.Namespace):
+    from quatrack.viewsets.novel import NovelViewParams
+    from quatrack.viewsets.rfch import RFCHParams
+    from quatrack.viewsets.train import TrainParams
+    from quatrack.viewsets.viewset import ViewsetParams
+
+    if args.jobs < 1:
+        raise UserError("--jobs must be at least 1")
+    if args.max_features < 1:
+        raise UserError("--max-features must be at least 1")
+    angles = _floats(args.novel_views, "--novel-views")
+    scales = _floats(args.novel_scales, "--novel-scales")
+    if any(s <= 0 for s in scales):
+        raise UserError("--novel-scales: factors must be positive")
+    if any(not 0 < abs(a) < 90 for a in angles):
+        raise UserError("--novel-views: angles must be between 0 and 90 degrees")
+    if not args.novel_axes or set(args.novel_axes) - set("xyz"):
+        raise UserError("--novel-axes: use letters among x, y, z")
+    novel = NovelViewParams(angles, args.novel_axes, scales) if (angles or scales) else None
+    rfch = RFCHParams()
+    if args.rfch_clusters is not None:
+        if not 2 <= args.rfch_clusters <= 256:
+            raise UserError("--rfch-clusters must be between 2 and 256")
+        rfch = dataclasses.replace(rfch, n_clusters=args.rfch_clusters)
+    if args.rfch_distance is not None:
+        if not 1 <= args.rfch_distance <= 100:
+            raise UserError("--rfch-distance must be between 1 and 100 pixels")
+        rfch = dataclasses.replace(rfch, distance=args.rfch_distance)
+    if args.rfch_scales is not None:
+        rs = _floats(args.rfch_scales, "--rfch-scales")
+        if not rs or any(s <= 0 for s in rs):
+            raise UserError("--rfch-scales: give one or more positive scales")
+        rfch = dataclasses.replace(rfch, scales=rs)
+    vs = ViewsetParams(max_features=args.max_features, root_sift=args.root_sift)
+    return TrainParams(rfch=rfch, viewsets=vs, novel=novel, jobs=args.jobs)
+
+
+def _run_train(args: argparse.Namespace) -> int:
+    import time
+
+    from tqdm import tqdm
+
+    from quatrack.viewsets.spec import load_spec
+    from quatrack.viewsets.store import model_path, resolve_store, save_model
+    from quatrack.viewsets.train import train_object
+
+    t0 = time.perf_counter()
+    params = _train_params(args)
+    store = resolve_store(args.store)
+    if store.exists() and not store.is_dir():
+        raise UserError(f"--store {store}: not a directory")
+    spec = load_spec(args.spec)
+    if args.no_overwrite and model_path(store, spec.name).exists():
+        raise UserError(f"object {spec.name!r} already exists in {store} (and --no-overwrite was given)")
+    bar = tqdm(total=0, desc=f"training {spec.name}", unit="view", file=sys.stderr, disable=None, leave=False)
+
+    def set_total(n: int) -> None:
+        bar.total = n
+        bar.refresh()
+
+    def warn(msg: str) -> None:
+        bar.write(f"quatrack train: warning: {msg}", file=sys.stderr)
+
+    try:
+        model = train_object(spec, params, progress=bar.update, warn=warn, on_total=set_total)
+    finally:
+        bar.close()
+    path = save_model(store, model, overwrite=not args.no_overwrite)
+    s = model.manifest["training_summary"]
+    counts = list(s["keypoints_per_viewset"].values())
+    print(f"trained {spec.name!r} -> {path}")
+    print(f"  views: {s['views']} registered, {s['synthetic_viewsets']} synthetic viewsets ({s['viewsets']} in all)")
+    print(f"  keypoints per viewset: min {min(counts)}, median {int(np.median(counts))}, max {max(counts)}")
+    print(f"  3-D points kept: {s['points3d_total']}")
+    r = model.rfch
+    print(f"  RFCH: {r.n_clusters} clusters, {r.histogram.size} bins, d = {r.distance} px, scales {list(r.scales)}")
+    print(f"  time: {time.perf_counter() - t0:.1f} s")
+    return 0
+
+
+def _add_models(parser: argparse.ArgumentParser) -> None:
+    sub = parser.add_subparsers(dest="action", required=True, metavar="ACTION")
+    for name, help_text in (("list", "list the trained objects"), ("show", "print a model's manifest"),
+                            ("delete", "delete a trained object")):
+        p = sub.add_parser(name, help=help_text, description=help_text)
+        if name != "list":
+            p.add_argument("name", metavar="NAME")
+        p.add_argument("--store", metavar="DIR", help="model store (default: $QUATRACK_STORE or the user data directory)")
+
+
+def _run_models(args: argparse.Namespace) -> int:
+    import json
+
+    from quatrack.viewsets.store import delete_model, list_models, load_manifest, resolve_store
+
+    store = resolve_store(args.store)
+    if args.action == "list":
+        for name in list_models(store):
+            try:
+                m = load_manifest(store, name)
+                s = m.get("training_summary", {})
+                print(f"{name}\t{s.get('viewsets', '?')} viewsets\t{s.get('points3d_total', '?')} points\t{m.get('created', '?')}")
+            except ValueError:
+                print(f"{name}\t(unreadable manifest)")
+        return 0
+    if args.action == "show":
+        print(json.dumps(load_manifest(store, args.name), indent=1))
+        return 0
+    if args.action == "delete":
+        delete_model(store, args.name)
+        print(f"deleted {args.name!r} from {store}")
+        return 0
+    raise UserError(f"unknown action {args.action!r}")
 
 
 COMMANDS: dict[str, tuple[str, Callable[[argparse.ArgumentParser], None], Callable[[argparse.Namespace], int]]] = {
     "bench": ("run a benchmark and print its figures", _add_bench, _run_bench),
+    "train": ("train an object's model (RFCH + SIFT viewsets) from its spec into the model store", _add_train, _run_train),
+    "models": ("list, show or delete the trained objects in the model store", _add_models, _run_models),
 }
 
 

@@ -1,0 +1,132 @@
+"""Novel (synthetic) views of a registered object: new poses, textured by plane-induced homographies.
+
+Each planar face group seen well in the registered photo is warped into the novel view by the
+homography that its plane induces between the two cameras, so recognition can learn viewpoints
+the photo does not show head-on. Faces the photo shows badly (or not at all) stay untextured and
+get no keypoints.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from quatrack.tracking.camera import PinholeCamera
+
+from .mesh import Mesh
+from .render import RenderBuffers, pixel_rays, render
+from .spec import Pose
+
+BACKGROUND = 127  # neutral grey: keypoints are taken only well inside the textured mask anyway
+
+
+@dataclass(frozen=True)
+class NovelViewParams:
+    """Viewpoints around each registered view: rotations (degrees) about the object's own axes
+    through its centre, and scale changes (apparent size ×s, i.e. distance ÷s)."""
+
+    angles_deg: tuple[float, ...] = (20.0, 40.0)
+    axes: str = "xyz"
+    scales: tuple[float, ...] = (0.6, 1.4)
+    min_source_cos: float = 0.3
+
+
+def rotate_about_centre(pose: Pose, centre: np.ndarray, rvec_obj: np.ndarray) -> Pose:
+    """The pose of the object turned by ``rvec_obj`` (object frame) about its point ``centre``."""
+    Rd = cv2.Rodrigues(np.asarray(rvec_obj, float).reshape(3, 1))[0]
+    R = pose.R @ Rd
+    t = pose.R @ centre - R @ centre + pose.t
+    return Pose(R, t)
+
+
+def scale_pose(pose: Pose, centre: np.ndarray, scale: float) -> Pose:
+    """Move the object along its line of sight so it appears ``scale`` times larger."""
+    p = pose.R @ centre + pose.t
+    return Pose(pose.R, pose.t + p / scale - p)
+
+
+def novel_poses(mesh: Mesh, pose: Pose, params: NovelViewParams) -> list[tuple[str, Pose]]:
+    """Labelled novel poses around ``pose`` (the registered pose itself is not included)."""
+    c = mesh.centre
+    out = []
+    for axis in params.axes:
+        e = np.zeros(3)
+        e["xyz".index(axis)] = 1.0
+        for a in params.angles_deg:
+            for sgn in (1, -1):
+                out.append((f"rot{axis}{sgn * a:+g}", rotate_about_centre(pose, c, e * np.radians(sgn * a))))
+    for s in params.scales:
+        out.append((f"scale{s:g}", scale_pose(pose, c, s)))
+    return out
+
+
+def plane_homography(
+    plane_n: np.ndarray, plane_d: float, pose_from: Pose, pose_to: Pose
+) -> np.ndarray:
+    """3×3 map of normalised rays (x, y, 1) of camera *from* to camera *to* for points on the object
+    plane ``n·X = d`` (object frame): ``H = R_rel + t_rel n_cᵀ / d_c`` with the plane in *from*."""
+    R_rel = pose_to.R @ pose_from.R.T
+    t_rel = pose_to.t - R_rel @ pose_from.t
+    n_c = pose_from.R @ plane_n
+    d_c = plane_d + n_c @ pose_from.t
+    return R_rel + np.outer(t_rel, n_c) / d_c
+
+
+def render_textured_view(
+    mesh: Mesh,
+    groups: np.ndarray,
+    src_image: np.ndarray,
+    src_camera: PinholeCamera,
+    src_pose: Pose,
+    src_buffers: RenderBuffers,
+    camera: PinholeCamera,
+    pose: Pose,
+    min_source_cos: float = 0.3,
+) -> tuple[np.ndarray, np.ndarray, RenderBuffers]:
+    """Render the object at ``pose`` in ``camera``, textured from the registered photo.
+
+    Returns the image (background grey), the mask of textured pixels, and the z-buffer of the
+    novel view. A pixel is textured only if its face is seen at |cos| ≥ ``min_source_cos`` in
+    the photo and the photo shows that same plane there (not occluded).
+    """
+    buf = render(mesh, camera, pose)
+    h, w = buf.face.shape
+    rays = pixel_rays(camera)
+    normals = mesh.face_normals
+    offsets = np.einsum("ij,ij->i", normals, mesh.triangles[:, 0])
+    src_group = np.where(src_buffers.face >= 0, groups[np.maximum(src_buffers.face, 0)], -1)
+    src_centre = -src_pose.R.T @ src_pose.t
+    map_x = np.full((h, w), -1.0, np.float32)
+    map_y = np.full((h, w), -1.0, np.float32)
+    textured = np.zeros((h, w), bool)
+    pix_group = np.where(buf.face >= 0, groups[np.maximum(buf.face, 0)], -1)
+    sh, sw = src_buffers.face.shape
+    for g in np.unique(pix_group[pix_group >= 0]):
+        f0 = int(np.nonzero(groups == g)[0][0])
+        n, d = normals[f0], offsets[f0]
+        # how well the photo sees this plane: cosine between its normal and the ray to its centroid
+        centroid = mesh.triangles[groups == g].reshape(-1, 3).mean(axis=0)
+        ray = centroid - src_centre
+        cos_src = abs(n @ ray) / np.linalg.norm(ray)
+        if cos_src < min_source_cos:
+            continue
+        vs, us = np.nonzero(pix_group == g)
+        H = plane_homography(n, d, pose, src_pose)
+        r = rays[vs, us]
+        Xs = np.column_stack([r, np.ones(len(r))]) @ H.T  # direction in the source camera
+        front = Xs[:, 2] > 0
+        uv = np.full((len(r), 2), -1.0)
+        uv[front] = src_camera.project(Xs[front])
+        ui, vi = np.rint(uv[:, 0]).astype(int), np.rint(uv[:, 1]).astype(int)
+        inside = front & (ui >= 0) & (vi >= 0) & (ui < sw) & (vi < sh)
+        seen = np.zeros(len(r), bool)
+        seen[inside] = src_group[vi[inside], ui[inside]] == g
+        map_x[vs[seen], us[seen]] = uv[seen, 0]
+        map_y[vs[seen], us[seen]] = uv[seen, 1]
+        textured[vs[seen], us[seen]] = True
+    img = cv2.remap(src_image, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                    borderValue=(BACKGROUND,) * 3)
+    img[~textured] = BACKGROUND
+    return img, textured.astype(np.uint8) * 255, buf

@@ -1,0 +1,198 @@
+"""Offline training: object spec → RFCH model + SIFT viewsets (registered and novel views).
+
+Every input is checked before any work is stored; the model reaches the store only through
+:func:`quatrack.viewsets.store.save_model`, which is atomic.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import platform
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from typing import Callable
+
+import cv2
+import numpy as np
+
+from .errors import SpecError
+from .mesh import Mesh, load_mesh, planar_groups
+from .novel import NovelViewParams, novel_poses, render_textured_view
+from .render import RenderBuffers, render
+from .rfch import RFCHParams, train_rfch
+from .spec import ObjectSpec, Pose, ViewSpec
+from .store import ObjectModel
+from .viewset import Viewset, ViewsetParams, build_viewset
+
+
+@dataclass(frozen=True)
+class TrainParams:
+    """All training options; ``novel=None`` trains on the registered views only."""
+
+    rfch: RFCHParams = field(default_factory=RFCHParams)
+    viewsets: ViewsetParams = field(default_factory=ViewsetParams)
+    novel: NovelViewParams | None = field(default_factory=NovelViewParams)
+    jobs: int = 1
+    min_keypoints: int = 20
+
+
+@dataclass(frozen=True)
+class _View:
+    spec: ViewSpec
+    image: np.ndarray
+    mask: np.ndarray  # uint8 0/255: object pixels (user mask, else the projected mesh)
+    buffers: RenderBuffers
+
+
+def _read_image(view: ViewSpec) -> np.ndarray:
+    where = f"view {view.index}: image {view.image_path}"
+    if not view.image_path.is_file():
+        raise SpecError(f"{where}: file not found")
+    img = cv2.imread(str(view.image_path), cv2.IMREAD_COLOR)
+    if img is None:
+        raise SpecError(f"{where}: unreadable image")
+    cam = view.camera
+    if (img.shape[1], img.shape[0]) != (cam.width, cam.height):
+        raise SpecError(
+            f"{where}: image is {img.shape[1]}×{img.shape[0]} but the view's camera is {cam.width}×{cam.height}"
+        )
+    return img
+
+
+def check_pose(mesh: Mesh, view: ViewSpec, buffers: RenderBuffers | None = None, min_inside: float = 0.5) -> RenderBuffers:
+    """Refuse poses that put the object behind the camera or (mostly) outside the image."""
+    X = view.pose.transform(mesh.vertices)
+    if np.any(X[:, 2] <= 0):
+        raise SpecError(f"view {view.index}: pose puts the object (partly) behind the camera (min z = {X[:, 2].min():.3g})")
+    buffers = buffers or render(mesh, view.camera, view.pose)
+    uv = view.camera.project(X).astype(np.float32)
+    hull_area = cv2.contourArea(cv2.convexHull(uv))
+    seen = float(np.count_nonzero(buffers.face >= 0))
+    if seen < 64 or seen < min_inside * hull_area:
+        raise SpecError(
+            f"view {view.index}: pose puts the object outside the image "
+            f"({seen:.0f} of ~{hull_area:.0f} silhouette pixels inside)"
+        )
+    return buffers
+
+
+def _prepare_view(mesh: Mesh, view: ViewSpec) -> _View:
+    image = _read_image(view)
+    buffers = check_pose(mesh, view)
+    mask = buffers.mask
+    if view.mask_path is not None:
+        m = cv2.imread(str(view.mask_path), cv2.IMREAD_GRAYSCALE)
+        if m is None:
+            raise SpecError(f"view {view.index}: mask {view.mask_path}: missing or unreadable image")
+        if m.shape != mask.shape:
+            raise SpecError(f"view {view.index}: mask {view.mask_path}: size {m.shape[::-1]} differs from the image's")
+        mask = np.where(m > 0, 255, 0).astype(np.uint8)
+        if not np.any(mask):
+            raise SpecError(f"view {view.index}: mask {view.mask_path}: empty (no non-zero pixel)")
+    return _View(view, image, mask, buffers)
+
+
+def _tasks(mesh: Mesh, views: list[_View], novel: NovelViewParams | None):
+    """(label, view, pose or None): None = the registered view itself."""
+    out = []
+    for v in views:
+        out.append((f"view{v.spec.index}", v, None))
+        if novel is not None:
+            for label, pose in novel_poses(mesh, v.spec.pose, novel):
+                out.append((f"view{v.spec.index}-{label}", v, pose))
+    return out
+
+
+def _run_task(mesh: Mesh, groups: np.ndarray, params: TrainParams, task) -> Viewset:
+    label, v, pose = task
+    if pose is None:
+        feature_mask = cv2.bitwise_and(v.mask, v.buffers.mask)
+        return build_viewset(label, v.spec.index, False, v.image, feature_mask, v.spec.camera, v.spec.pose,
+                             mesh, v.buffers, params.viewsets)
+    cam = dataclasses.replace(v.spec.camera, dist_coeffs=np.zeros(5))  # novel views: ideal pinhole
+    min_cos = params.novel.min_source_cos if params.novel else 0.3
+    img, textured, buf = render_textured_view(mesh, groups, v.image, v.spec.camera, v.spec.pose, v.buffers,
+                                              cam, pose, min_cos)
+    return build_viewset(label, v.spec.index, True, img, textured, cam, pose, mesh, buf, params.viewsets)
+
+
+def _versions() -> dict:
+    import trimesh
+
+    from quatrack import __version__
+
+    return {"quatrack": __version__, "numpy": np.__version__, "opencv": cv2.__version__,
+            "trimesh": trimesh.__version__, "python": platform.python_version()}
+
+
+def train_object(
+    spec: ObjectSpec,
+    params: TrainParams = TrainParams(),
+    progress: Callable[[int], None] | None = None,
+    warn: Callable[[str], None] | None = None,
+    on_total: Callable[[int], None] | None = None,
+) -> ObjectModel:
+    """Train the object of ``spec``; raises :class:`SpecError` (naming the culprit) on bad input.
+
+    ``on_total(n)`` is told the number of viewsets to build and ``progress(1)`` is called after
+    each one (for a progress bar); ``warn`` receives non-fatal problems (a view with few keypoints).
+    """
+    t0 = time.perf_counter()
+    mesh = load_mesh(spec.mesh_path)
+    views = [_prepare_view(mesh, v) for v in spec.views]
+    groups = planar_groups(mesh)
+    tasks = _tasks(mesh, views, params.novel)
+    if on_total:
+        on_total(len(tasks) + 1)
+    jobs = max(1, int(params.jobs))
+
+    def run(task):
+        vs = _run_task(mesh, groups, params, task)
+        if progress:
+            progress(1)
+        return vs
+
+    if jobs == 1:
+        viewsets = [run(t) for t in tasks]
+    else:
+        with ThreadPoolExecutor(max_workers=jobs) as pool:
+            viewsets = list(pool.map(run, tasks))
+    for vs in viewsets:
+        if len(vs) < params.min_keypoints and warn:
+            warn(f"viewset {vs.label}: only {len(vs)} keypoints with 3-D points (fewer than {params.min_keypoints})")
+    if not any(len(vs) for vs in viewsets if not vs.synthetic):
+        raise SpecError("no keypoints in any registered view: is the object textured, and the pose right?")
+    viewsets = [vs for vs in viewsets if len(vs) > 0]
+    rfch = train_rfch([v.image for v in views], [v.mask for v in views], params.rfch)
+    sizes = np.array([vs.bbox[2:] for vs in viewsets])
+    rfch = dataclasses.replace(rfch, size_min=tuple(int(x) for x in sizes.min(0)),
+                               size_max=tuple(int(x) for x in sizes.max(0)))
+    if progress:
+        progress(1)
+    elapsed = time.perf_counter() - t0
+    summary = {
+        "views": len(views),
+        "viewsets": len(viewsets),
+        "synthetic_viewsets": sum(vs.synthetic for vs in viewsets),
+        "keypoints_per_viewset": {vs.label: len(vs) for vs in viewsets},
+        "points3d_total": int(sum(len(vs) for vs in viewsets)),
+        "histogram_bins": int(rfch.histogram.size),
+        "train_seconds": round(elapsed, 3),
+    }
+    manifest = {
+        "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "spec": {"path": str(spec.path), "sha256": spec.checksum},
+        "parameters": {
+            "rfch": dataclasses.asdict(params.rfch),
+            "viewsets": dataclasses.asdict(params.viewsets),
+            "novel_views": dataclasses.asdict(params.novel) if params.novel else None,
+            "jobs": jobs,
+        },
+        "rfch": {"size_min": list(rfch.size_min), "size_max": list(rfch.size_max)},
+        "library_versions": _versions(),
+        "training_summary": summary,
+        "mesh": {"path": str(spec.mesh_path), "vertices": len(mesh.vertices), "faces": len(mesh.faces)},
+    }
+    return ObjectModel(spec.name, rfch, viewsets, mesh, manifest)

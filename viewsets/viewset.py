@@ -1,0 +1,80 @@
+"""Viewsets (Kragic & Kyrki, Sec. 2): the SIFT keypoints of one view of the object, each with
+its 3-D point on the model, so that matching a query to a viewset gives 2-D/3-D pairs for PnP."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from quatrack.tracking.camera import PinholeCamera
+
+from .features import extract_features
+from .mesh import Mesh
+from .render import RenderBuffers, lift_keypoints
+from .spec import Pose
+
+
+@dataclass(frozen=True)
+class ViewsetParams:
+    """SIFT and lifting parameters; stored in the manifest so queries use the same ones."""
+
+    max_features: int = 1500
+    erode_px: int = 4
+    root_sift: bool = False
+    contrast_threshold: float = 0.04
+    min_cos: float = 0.2
+    edge_margin_px: int = 3
+
+
+@dataclass(frozen=True)
+class Viewset:
+    """One view's model points. ``keypoints`` (n, 2) px in that view, ``descriptors`` (n, 128)
+    float32, ``points3d`` (n, 3) in mesh units (object frame); ``pose`` is object → camera of the
+    view; ``bbox`` = (x, y, w, h) of the object's silhouette in the view, pixels."""
+
+    label: str
+    source_view: int
+    synthetic: bool
+    camera: PinholeCamera
+    pose: Pose
+    keypoints: np.ndarray
+    descriptors: np.ndarray
+    points3d: np.ndarray
+    bbox: tuple[int, int, int, int]
+
+    def __len__(self) -> int:
+        return len(self.keypoints)
+
+
+def silhouette_bbox(mask: np.ndarray) -> tuple[int, int, int, int]:
+    """(x, y, w, h) of the non-zero pixels; zeros if there are none."""
+    ys, xs = np.nonzero(mask)
+    if len(xs) == 0:
+        return (0, 0, 0, 0)
+    return (int(xs.min()), int(ys.min()), int(xs.max() - xs.min() + 1), int(ys.max() - ys.min() + 1))
+
+
+def build_viewset(
+    label: str,
+    source_view: int,
+    synthetic: bool,
+    image: np.ndarray,
+    feature_mask: np.ndarray,
+    camera: PinholeCamera,
+    pose: Pose,
+    mesh: Mesh,
+    buffers: RenderBuffers,
+    params: ViewsetParams,
+) -> Viewset:
+    """Extract SIFT inside ``feature_mask`` and keep the keypoints whose rays hit the mesh well."""
+    feats = extract_features(
+        image, feature_mask, max_features=params.max_features, erode_px=params.erode_px,
+        use_root_sift=params.root_sift, contrast_threshold=params.contrast_threshold,
+    )
+    X, keep = lift_keypoints(mesh, camera, pose, feats.keypoints, params.min_cos, buffers, params.edge_margin_px)
+    return Viewset(
+        label, source_view, synthetic, camera, pose,
+        feats.keypoints[keep].astype(np.float32), feats.descriptors[keep].astype(np.float32),
+        X[keep], silhouette_bbox(buffers.face >= 0),
+    )
