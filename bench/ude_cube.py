@@ -27,8 +27,8 @@ from quatrack.tracking.adjust import AdjustOptions, adjust, estimate_pose, spd_i
 from quatrack.tracking.camera import PinholeCamera
 from quatrack.tracking.measurements import SegmentMeasurements, project_model_points
 from quatrack.tracking.motion import UdeConstantVelocity
-from quatrack.tracking.propagation import plant_noise, transition_jacobian
-from quatrack.tracking.state import initial_state
+from quatrack.tracking.propagation import plant_noise, predict_mean, transition_jacobian
+from quatrack.tracking.state import FilterState, initial_state
 
 # --- the experiment, as printed -------------------------------------------------------------
 WIDTH, HEIGHT = 640, 480
@@ -39,6 +39,14 @@ SIGMA_ALONG_PX, SIGMA_ACROSS_PX = 7.0, 1.0
 A_MM2_S3, ALPHA_RAD2_S3 = 2.0, 0.0002
 VELOCITY_VARIANCE = 1e8
 WINDOW = (3.0, 6.0)  # errors are averaged over 3 ≤ t ≤ 6
+
+# Readings of the paper tried to explain where our figures and the paper's differ:
+VARIANTS = {
+    "paper": "the experiment as printed, in consistent full-angle units (the default)",
+    "half-angle": "Ude's J_i and plant noise applied to his half-angle error u^q of eq. 16, literally",
+    "isotropic-noise": "the filter assumes 7 px end-point noise in every direction (truth unchanged)",
+    "silhouette-edges": "only the cube's outline edges are features, not its inner visible edges",
+}
 
 P0 = np.array([-300 * np.sqrt(3), 300 * np.sqrt(3), 2800.0])
 V_TRUE = 100 * np.sqrt(3) * np.array([1.0, -1.0, 1.0])  # ‖v‖ = 300 mm/s
@@ -63,6 +71,22 @@ _BLOCKS = {
     "predicted_position_mm": (slice(0, 3), True, 1.0),
     "predicted_orientation_deg": (slice(3, 6), True, np.degrees(1.0)),
 }
+
+
+@dataclass(frozen=True)
+class HalfAngleReading(UdeConstantVelocity):
+    """Eqs. 22–23 applied, as printed, to a covariance kept in half-angle units ``r = δθ/2``
+    (Ude's eq. 16). In full-angle units that doubles ``G`` and the α-terms' couplings: a
+    deliberately literal reading, only to test whether it explains the paper's figures."""
+
+    def predict(self, state, dt):
+        p, q, v, w = predict_mean(state.p, state.q, state.v, state.omega, dt)
+        T = np.diag([1.0, 1, 1, 2, 2, 2, 1, 1, 1, 1, 1, 1])  # r → δθ
+        Ti = np.linalg.inv(T)
+        J = transition_jacobian(state.omega, dt)
+        S_half = J @ (Ti @ state.covariance @ Ti) @ J.T + plant_noise(dt, self.a, self.alpha)
+        S = T @ S_half @ T
+        return FilterState(state.t + dt, p, q, v, w, 0.5 * (S + S.T))
 
 
 def camera() -> PinholeCamera:
@@ -91,14 +115,15 @@ def truth(t: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
     return P0 + t[..., None] * V_TRUE, quat.multiply(quat.exp(0.5 * t[..., None] * OMEGA_TRUE), Q0)
 
 
-def visible_edges(p: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """Indices of edges on at least one face turned towards the camera."""
+def visible_edges(p: np.ndarray, q: np.ndarray, outline_only: bool = False) -> np.ndarray:
+    """Indices of edges on at least one face turned towards the camera (or, with
+    ``outline_only``, on exactly one: the silhouette)."""
     _, _, normals = cube()
     R = quat.to_matrix(q)
     n_cam = normals @ R.T
     centre = n_cam * (EDGE_MM / 2) + p  # a point on each face, camera frame
     facing = np.einsum("kij,kij->ki", n_cam, centre) < 0
-    return np.flatnonzero(facing.any(axis=1))
+    return np.flatnonzero(facing.sum(axis=1) == 1 if outline_only else facing.any(axis=1))
 
 
 @dataclass
@@ -108,11 +133,11 @@ class Frame:
     model_segments: np.ndarray  # (n, 2, 3)
 
 
-def simulate_frame(rng: np.random.Generator, t: float, cam: PinholeCamera) -> Frame:
+def simulate_frame(rng: np.random.Generator, t: float, cam: PinholeCamera, variant: str = "paper") -> Frame:
     """Noisy, digitised image segments of the visible cube edges at time ``t``."""
     V, edges, _ = cube()
     p, q = truth(t)
-    idx = visible_edges(p, q)
+    idx = visible_edges(p, q, outline_only=variant == "silhouette-edges")
     segs = V[edges[idx]]  # (n, 2, 3)
     uv = cam.project(segs.reshape(-1, 3) @ quat.to_matrix(q).T + p).reshape(-1, 2, 2)
     d = uv[:, 1] - uv[:, 0]
@@ -122,7 +147,8 @@ def simulate_frame(rng: np.random.Generator, t: float, cam: PinholeCamera) -> Fr
     noise_c = rng.normal(0.0, SIGMA_ACROSS_PX, size=(len(idx), 2, 1))
     noisy = uv + noise_a * along[:, None, :] + noise_c * across[:, None, :]
     digitised = np.round(noisy)
-    meas = SegmentMeasurements.from_endpoints(cam, segs, digitised, SIGMA_ALONG_PX, SIGMA_ACROSS_PX)
+    assumed_across = SIGMA_ALONG_PX if variant == "isotropic-noise" else SIGMA_ACROSS_PX
+    meas = SegmentMeasurements.from_endpoints(cam, segs, digitised, SIGMA_ALONG_PX, assumed_across)
     return Frame(meas, digitised, segs)
 
 
@@ -153,14 +179,19 @@ def frame_times() -> np.ndarray:
     return np.arange(int(round(DURATION_S * RATE_HZ)) + 1) / RATE_HZ
 
 
-def run_seed(seed: int, table_frame: int | None = None, options: AdjustOptions | None = None) -> SeedRun:
+def run_seed(
+    seed: int, table_frame: int | None = None, options: AdjustOptions | None = None, variant: str = "paper"
+) -> SeedRun:
     """One Monte-Carlo run of the experiment."""
+    if variant not in VARIANTS:
+        raise ValueError(f"unknown variant {variant!r}; expected one of {sorted(VARIANTS)}")
     rng = np.random.default_rng(seed)
     cam = camera()
     times = frame_times()
-    model = UdeConstantVelocity(a=A_MM2_S3, alpha=ALPHA_RAD2_S3)
+    model_cls = HalfAngleReading if variant == "half-angle" else UdeConstantVelocity
+    model = model_cls(a=A_MM2_S3, alpha=ALPHA_RAD2_S3)
     options = options or AdjustOptions()
-    first = simulate_frame(rng, times[0], cam)
+    first = simulate_frame(rng, times[0], cam, variant)
     est = initial_pose(first, cam)
     state = initial_state(times[0], est.p, est.q, est.covariance, velocity_variance=VELOCITY_VARIANCE)
     in_window = (times >= WINDOW[0] - 1e-9) & (times <= WINDOW[1] + 1e-9)
@@ -170,7 +201,7 @@ def run_seed(seed: int, table_frame: int | None = None, options: AdjustOptions |
     adjust_s, predict_s, iters, gsq = [], [], [], []
     table = ()
     for k in range(1, len(times)):
-        frame = simulate_frame(rng, times[k], cam)
+        frame = simulate_frame(rng, times[k], cam, variant)
         t0 = time.perf_counter()
         prior = model.predict(state, times[k] - state.t)
         t1 = time.perf_counter()
@@ -213,41 +244,49 @@ def run_seed(seed: int, table_frame: int | None = None, options: AdjustOptions |
     )
 
 
-def _whitened_jacobian(cam: PinholeCamera, t: float) -> tuple[np.ndarray, np.ndarray]:
-    """Measurement Jacobian ``H`` (m, 12) at the true pose, whitened by the filter's nominal
-    covariance, and the true measurement covariance in the same whitened units (m, m)."""
+@dataclass
+class _Linearised:
+    """One frame's measurement model at the true pose."""
+
+    H_true: np.ndarray  # (m, 12), whitened by the true nominal noise: HᵀH is the Fisher information
+    H_filter: np.ndarray  # (m, 12), whitened by the noise the filter assumes
+    R_filter: np.ndarray  # (m, m), the true noise (with digitisation) in the filter's whitened units
+
+
+def _linearise(cam: PinholeCamera, t: float, variant: str) -> _Linearised:
     V, edges, _ = cube()
     p, q = truth(t)
     R = quat.to_matrix(q)
-    segs = V[edges[visible_edges(p, q)]]
+    segs = V[edges[visible_edges(p, q, outline_only=variant == "silhouette-edges")]]
     uv, _ = project_model_points(cam, segs.reshape(-1, 3), p, R, jacobian=False)
     uv = uv.reshape(-1, 2, 2)
-    meas = SegmentMeasurements.from_endpoints(cam, segs, uv, SIGMA_ALONG_PX, SIGMA_ACROSS_PX)
-    lin = meas.linearize(p, R)
-    n = len(meas)
-    H = np.zeros((3 * n, 12))
-    H[:, :6] = lin.jacobian.reshape(-1, 6)
-    # True noise: the nominal end-point noise plus digitisation (uniform, 1/12 px² per axis),
-    # carried to [x_m, y_m, θ] to first order, then whitened like the filter does.
+    assumed_across = SIGMA_ALONG_PX if variant == "isotropic-noise" else SIGMA_ACROSS_PX
+    H = []
+    for across in (SIGMA_ACROSS_PX, assumed_across):
+        meas = SegmentMeasurements.from_endpoints(cam, segs, uv, SIGMA_ALONG_PX, across)
+        J = np.zeros((3 * len(meas), 12))
+        J[:, :6] = meas.linearize(p, R).jacobian.reshape(-1, 6)
+        H.append(J)
+    # True noise: the stated end-point noise plus digitisation (uniform, 1/12 px² per axis),
+    # carried to [x_m, y_m, θ] to first order, then whitened as the filter does.
     d = uv[:, 1] - uv[:, 0]
     length = np.linalg.norm(d, axis=-1)
     al = d / length[:, None]
     ac = np.stack([-al[:, 1], al[:, 0]], -1)
-    C_end = (SIGMA_ALONG_PX**2) * al[:, :, None] * al[:, None, :] + (SIGMA_ACROSS_PX**2) * ac[:, :, None] * ac[:, None, :]
+    C_end = SIGMA_ALONG_PX**2 * al[:, :, None] * al[:, None, :] + SIGMA_ACROSS_PX**2 * ac[:, :, None] * ac[:, None, :]
     C_end = C_end + np.eye(2) / 12.0
-    Rw = np.zeros((3 * n, 3 * n))
+    n = len(segs)
+    Rf = np.zeros((3 * n, 3 * n))
     for i in range(n):
-        # y = [ (u1+u2)/2 ; atan2(d) ], ∂y/∂[u1, u2]
-        Jy = np.zeros((3, 4))
+        Jy = np.zeros((3, 4))  # ∂[x_m, y_m, θ]/∂[u1, u2]
         Jy[:2, :2] = Jy[:2, 2:] = 0.5 * np.eye(2)
         g = np.array([-d[i, 1], d[i, 0]]) / length[i] ** 2
         Jy[2, :2], Jy[2, 2:] = -g, g
         C = np.zeros((4, 4))
         C[:2, :2] = C[2:, 2:] = C_end[i]
-        Cy = Jy @ C @ Jy.T
         W = meas.sqrt_info[i]
-        Rw[3 * i : 3 * i + 3, 3 * i : 3 * i + 3] = W @ Cy @ W.T
-    return H, Rw
+        Rf[3 * i : 3 * i + 3, 3 * i : 3 * i + 3] = W @ Jy @ C @ Jy.T @ W.T
+    return _Linearised(H[0], H[1], Rf)
 
 
 @dataclass
@@ -262,47 +301,59 @@ class Bounds:
     actual_msq_pred: np.ndarray
 
 
-def bounds() -> Bounds:
+def bounds(variant: str = "paper") -> Bounds:
     """PCRB with and without plant noise, and the filter's linearised actual-error prediction.
 
-    Both bounds start, like the filter, from the Fisher information of the first image about
-    the pose, and 1e-8 about the velocities. In information form the Tichavský recursion for
-    additive Gaussian noise reads ``P⁻ = F P Fᵀ + Q``, ``P = (P⁻⁻¹ + Hᵀ H)⁻¹``; with ``Q = 0`` it
-    is the information of a deterministic trajectory (the simulated truth).
+    The bounds start from the Fisher information of the first image about the pose, and 1e-8
+    about the velocities (the filter's start). In covariance form the Tichavský recursion for
+    additive Gaussian noise reads ``P⁻ = F P Fᵀ + Q``, ``P = (P⁻⁻¹ + HᵀH)⁻¹``; with ``Q = 0`` it is
+    the information about a deterministic trajectory (the simulated truth). The bounds use the
+    true noise; the filter's recursion uses what the variant's filter assumes, and its actual
+    error is carried with the true dynamics (no plant noise) and the true measurement noise.
     """
     cam = camera()
     times = frame_times()
-    H0, Rw0 = _whitened_jacobian(cam, times[0])
+    T = np.diag([1.0, 1, 1, 2, 2, 2, 1, 1, 1, 1, 1, 1])  # half-angle r → δθ, for that variant
+
+    def filter_transition(F: np.ndarray, Q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        if variant == "half-angle":
+            return T @ F @ np.linalg.inv(T), T @ Q @ T
+        return F, Q
+
+    lin0 = _linearise(cam, times[0], variant)
     P0 = np.zeros((12, 12))
-    P0[:6, :6] = spd_inverse(H0[:, :6].T @ H0[:, :6])
+    P0[:6, :6] = spd_inverse(lin0.H_true[:, :6].T @ lin0.H_true[:, :6])
     P0[6:, 6:] = VELOCITY_VARIANCE * np.eye(6)
-    out = {k: [] for k in ("crb", "crb_pred", "crb_free", "crb_free_pred", "actual", "actual_pred")}
     P, Pf = P0.copy(), P0.copy()
-    # actual error of the filter: mean m (the initial velocity guess 0 is off by the truth) and
-    # covariance Pa; the initial pose error is the first image's estimate error.
+    Pfil = P0.copy()
+    Pfil[:6, :6] = spd_inverse(lin0.H_filter[:, :6].T @ lin0.H_filter[:, :6])
+    # the filter's actual error: mean m (the initial velocity guess 0 is off by the truth) and
+    # covariance Pa; the initial pose error is that of the first image's estimate.
     m = np.concatenate([np.zeros(6), -V_TRUE, -OMEGA_TRUE])
-    K0 = P0[:6, :6] @ H0[:, :6].T
+    K0 = Pfil[:6, :6] @ lin0.H_filter[:, :6].T
     Pa = np.zeros((12, 12))
-    Pa[:6, :6] = K0 @ Rw0 @ K0.T
+    Pa[:6, :6] = K0 @ lin0.R_filter @ K0.T
+    out = {k: [] for k in ("crb", "crb_pred", "crb_free", "crb_free_pred", "actual", "actual_pred")}
     for k in range(1, len(times)):
         dt = times[k] - times[k - 1]
         F = transition_jacobian(OMEGA_TRUE, dt)
         Q = plant_noise(dt, A_MM2_S3, ALPHA_RAD2_S3)
-        H, Rw = _whitened_jacobian(cam, times[k])
-        info = H.T @ H
-        # with plant noise: this is also the filter's own covariance recursion, linearised at the truth
-        P_pred = F @ P @ F.T + Q
+        lin = _linearise(cam, times[k], variant)
+        info = lin.H_true.T @ lin.H_true
+        P_pred = F @ P @ F.T + Q  # with plant noise
         P = spd_inverse(spd_inverse(P_pred) + info)
-        K = P @ H.T
-        # no plant noise
-        Pf_pred = F @ Pf @ F.T
+        Pf_pred = F @ Pf @ F.T  # without
         Pf = spd_inverse(spd_inverse(Pf_pred) + info)
-        # actual error: e⁻ = F e (truth has no plant noise); e = (I - K H) e⁻ + K n, n ~ (0, Rw)
+        # the filter's covariance recursion, linearised at the truth, gives its gain
+        F_fil, Q_fil = filter_transition(F, Q)
+        Pfil = spd_inverse(spd_inverse(F_fil @ Pfil @ F_fil.T + Q_fil) + lin.H_filter.T @ lin.H_filter)
+        K = Pfil @ lin.H_filter.T
+        # actual error: e⁻ = F e (the truth has no plant noise); e = (I - K H) e⁻ + K n
         m_pred = F @ m
         Pa_pred = F @ Pa @ F.T
-        IKH = np.eye(12) - K @ H
+        IKH = np.eye(12) - K @ lin.H_filter
         m = IKH @ m_pred
-        Pa = IKH @ Pa_pred @ IKH.T + K @ Rw @ K.T
+        Pa = IKH @ Pa_pred @ IKH.T + K @ lin.R_filter @ K.T
         out["crb"].append(P)
         out["crb_pred"].append(P_pred)
         out["crb_free"].append(Pf)
@@ -319,19 +370,24 @@ def _rms_of(covs: np.ndarray, key: str, window: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.trace(covs[window][:, sl, sl], axis1=1, axis2=2))) * scale)
 
 
-def run(seeds: int = 20, first_seed: int = 0, table_frame: int = 90, progress: bool = True) -> dict:
-    """The whole benchmark: ``seeds`` runs, bounds, timings. Returns a JSON-ready summary."""
+def run(
+    seeds: int = 20, first_seed: int = 0, table_frame: int = 90, progress: bool = True, variant: str = "paper"
+) -> dict:
+    """The whole benchmark: ``seeds`` runs, bounds, timings. Returns a JSON-ready summary.
+
+    The bounds follow the variant's features and true noise; the linearised prediction follows
+    the variant's filter."""
     from tqdm import tqdm
 
     if seeds < 2:
         raise ValueError("need at least 2 seeds for a spread")
     runs = []
     for s in tqdm(range(first_seed, first_seed + seeds), desc="ude-cube seeds", disable=not progress, unit="seed"):
-        runs.append(run_seed(s, table_frame=table_frame if s == first_seed else None))
-    b = bounds()
+        runs.append(run_seed(s, table_frame=table_frame if s == first_seed else None, variant=variant))
+    b = bounds(variant)
     times = frame_times()[1:]
     window = (times >= WINDOW[0] - 1e-9) & (times <= WINDOW[1] + 1e-9)
-    summary: dict = {"seeds": seeds, "frames": int(len(times) + 1)}
+    summary: dict = {"seeds": seeds, "frames": int(len(times) + 1), "variant": variant}
     crb, crb_free, per_seed, filt, actual = {}, {}, {}, {}, {}
     for key in KEYS:
         predicted = _BLOCKS[key][1]
@@ -396,6 +452,7 @@ def format_report(s: dict) -> str:
     """A human-readable report of :func:`run`'s summary."""
     lines = [
         f"Ude (1999) cube experiment, {s['seeds']} seeds x {s['frames']} frames; errors averaged over 3 <= t <= 6 s",
+        f"variant: {s['variant']} ({VARIANTS[s['variant']]})",
         "",
         f"{'':24s}{'mean ± sd (seeds)':>22s}{'paper':>8s}{'paper pct':>10s}"
         f"{'/PCRB':>8s}{'/PCRB0':>8s}{'/filter':>9s}{'/lin.pred':>10s}",
@@ -429,7 +486,7 @@ def format_report(s: dict) -> str:
     return "\n".join(lines)
 
 
-def main(seeds: int, first_seed: int, table_frame: int, as_json: bool) -> int:
-    summary = run(seeds=seeds, first_seed=first_seed, table_frame=table_frame, progress=not as_json)
+def main(seeds: int, first_seed: int, table_frame: int, as_json: bool, variant: str = "paper") -> int:
+    summary = run(seeds=seeds, first_seed=first_seed, table_frame=table_frame, progress=not as_json, variant=variant)
     print(json.dumps(summary) if as_json else format_report(summary))
     return 0

@@ -105,23 +105,31 @@ def _scaled(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return s, A * s[:, None] * s[None, :]
 
 
-def spd_inverse(A: np.ndarray) -> np.ndarray:
-    """Inverse of a symmetric positive-definite matrix, solved in Jacobi-scaled form."""
+_MIN_PIVOT = 1e-12  # smallest Cholesky pivot² of the scaled matrix still called full rank
+
+
+def _factor(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Scaling and scaled matrix of an SPD ``A``, after checking it has full rank."""
     s, C = _scaled(A)
     try:
-        Ci = np.linalg.inv(C)
+        L = np.linalg.cholesky(C)
     except np.linalg.LinAlgError as exc:
         raise SingularProblemError("the measurements do not constrain every estimated parameter") from exc
-    out = Ci * s[:, None] * s[None, :]
+    if np.min(np.diagonal(L)) ** 2 < _MIN_PIVOT:
+        raise SingularProblemError("the measurements do not constrain every estimated parameter")
+    return s, C
+
+
+def spd_inverse(A: np.ndarray) -> np.ndarray:
+    """Inverse of a symmetric positive-definite matrix, solved in Jacobi-scaled form."""
+    s, C = _factor(A)
+    out = np.linalg.inv(C) * s[:, None] * s[None, :]
     return 0.5 * (out + out.T)
 
 
 def _spd_solve(A: np.ndarray, b: np.ndarray) -> np.ndarray:
-    s, C = _scaled(A)
-    try:
-        return s * np.linalg.solve(C, s * b)
-    except np.linalg.LinAlgError as exc:
-        raise SingularProblemError("the measurements do not constrain every estimated parameter") from exc
+    s, C = _factor(A)
+    return s * np.linalg.solve(C, s * b)
 
 
 class _Problem:

@@ -31,6 +31,9 @@ class PinholeCamera:
     height: int | None = None
     R_rig: np.ndarray = field(default_factory=lambda: np.eye(3))
     t_rig: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    # derived once: they are asked on every projection
+    has_distortion: bool = field(init=False, repr=False, compare=False)
+    is_reference: bool = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         d = np.asarray(self.dist_coeffs, dtype=float).ravel()
@@ -43,20 +46,17 @@ class PinholeCamera:
         object.__setattr__(self, "dist_coeffs", d)
         object.__setattr__(self, "R_rig", np.asarray(self.R_rig, dtype=float).reshape(3, 3))
         object.__setattr__(self, "t_rig", np.asarray(self.t_rig, dtype=float).reshape(3))
+        # True when there are distortion terms to apply
+        object.__setattr__(self, "has_distortion", bool(np.any(d != 0.0)))
+        # True when this camera *is* the reference frame (no rig transform to apply)
+        object.__setattr__(
+            self, "is_reference", bool(np.array_equal(self.R_rig, np.eye(3)) and not np.any(self.t_rig))
+        )
 
     @property
     def matrix(self) -> np.ndarray:
         """The 3×3 camera matrix ``K``."""
         return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
-
-    @property
-    def has_distortion(self) -> bool:
-        return bool(np.any(self.dist_coeffs != 0.0))
-
-    @property
-    def is_reference(self) -> bool:
-        """True when this camera *is* the reference frame (no rig transform to apply)."""
-        return bool(np.array_equal(self.R_rig, np.eye(3)) and not np.any(self.t_rig))
 
     def project(self, X_cam: np.ndarray) -> np.ndarray:
         """Pixel coordinates (n, 2) of points (n, 3) given in *this* camera's frame."""

@@ -18,6 +18,7 @@ from typing import Protocol
 import numpy as np
 
 from .camera import PinholeCamera
+from .rotation import cross
 
 
 @dataclass(frozen=True)
@@ -56,7 +57,7 @@ def project_model_points(
     J = np.empty(Jx.shape[:-1] + (6,))
     J[..., :3] = Jx
     # row · (-X(a)) == a × row, for each of the two rows
-    J[..., 3:] = np.cross(RX[:, None, :], Jx)
+    J[..., 3:] = cross(RX[:, None, :], Jx)
     return uv, J
 
 

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .rotation import skew
+from .rotation import cross, skew
 
 _SMALL = 1e-8  # below this ‖u‖ (or ‖r‖) series expansions replace the closed forms
 IDENTITY = np.array([1.0, 0.0, 0.0, 0.0])
@@ -33,8 +33,10 @@ def multiply(q1: np.ndarray, q2: np.ndarray) -> np.ndarray:
     w1, u1 = q1[..., :1], q1[..., 1:]
     w2, u2 = q2[..., :1], q2[..., 1:]
     w = w1 * w2 - np.sum(u1 * u2, axis=-1, keepdims=True)
-    u = w1 * u2 + w2 * u1 + np.cross(u1, u2)
-    return np.concatenate([w, u], axis=-1)
+    out = np.empty(np.broadcast_shapes(q1.shape, q2.shape))
+    out[..., :1] = w
+    out[..., 1:] = w1 * u2 + w2 * u1 + cross(u1, u2)
+    return out
 
 
 def conjugate(q: np.ndarray) -> np.ndarray:
@@ -65,8 +67,8 @@ def rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
     """``q * v * conj(q)`` (eq. 5), computed as ``v + 2w (u × v) + 2 u × (u × v)``."""
     q, v = _f(q), _f(v)
     w, u = q[..., :1], q[..., 1:]
-    uv = np.cross(u, v)
-    return v + 2.0 * w * uv + 2.0 * np.cross(u, uv)
+    uv = cross(u, v)
+    return v + 2.0 * w * uv + 2.0 * cross(u, uv)
 
 
 def exp(r: np.ndarray) -> np.ndarray:
@@ -138,14 +140,17 @@ def to_matrix(q: np.ndarray) -> np.ndarray:
     """Rotation matrix ``R(q)`` with ``R(q) v = q * v * conj(q)``. Shape (..., 3, 3)."""
     q = _f(q)
     w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    return np.stack(
-        [
-            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-        ],
-        -2,
-    )
+    out = np.empty(q.shape[:-1] + (3, 3))
+    out[..., 0, 0] = 1 - 2 * (y * y + z * z)
+    out[..., 0, 1] = 2 * (x * y - w * z)
+    out[..., 0, 2] = 2 * (x * z + w * y)
+    out[..., 1, 0] = 2 * (x * y + w * z)
+    out[..., 1, 1] = 1 - 2 * (x * x + z * z)
+    out[..., 1, 2] = 2 * (y * z - w * x)
+    out[..., 2, 0] = 2 * (x * z - w * y)
+    out[..., 2, 1] = 2 * (y * z + w * x)
+    out[..., 2, 2] = 1 - 2 * (x * x + y * y)
+    return out
 
 
 def from_matrix(R: np.ndarray) -> np.ndarray:

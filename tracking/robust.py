@@ -13,7 +13,6 @@ from functools import lru_cache
 from typing import Literal
 
 import numpy as np
-from scipy.stats import chi2
 
 RobustLoss = Literal["none", "huber", "cauchy", "tukey"]
 LOSSES: tuple[str, ...] = ("none", "huber", "cauchy", "tukey")
@@ -22,6 +21,8 @@ LOSSES: tuple[str, ...] = ("none", "huber", "cauchy", "tukey")
 @lru_cache(maxsize=64)
 def default_scale(loss: str, dim: int) -> float:
     """Threshold (Mahalanobis distance) for a residual of ``dim`` rows."""
+    from scipy.stats import chi2  # imported here: scipy.stats takes ~1 s to import
+
     return float(np.sqrt(chi2.ppf(0.999 if loss == "tukey" else 0.95, dim)))
 
 
