@@ -78,14 +78,13 @@ def left_jacobian_inv(phi: np.ndarray) -> np.ndarray:
     """``J_l(phi)⁻¹``: how ``Log(Exp(d) Exp(phi))`` moves with a small left increment ``d``.
 
     ``J_l⁻¹ = I - X(phi)/2 + (1/θ² - (1 + cos θ)/(2 θ sin θ)) X(phi)²``; valid for ``θ < 2π``.
+    ``(1 + cos θ)/sin θ`` is computed as ``cot(θ/2)``, which stays exact at the half-turn.
     """
     phi = np.asarray(phi, dtype=float)
     theta = np.linalg.norm(phi, axis=-1)
     small = theta < _SMALL
     t = np.where(small, 1.0, theta)
-    coeff = np.where(
-        small, 1.0 / 12.0 + theta**2 / 720.0, 1.0 / t**2 - (1.0 + np.cos(t)) / (2.0 * t * np.sin(t))
-    )
+    coeff = np.where(small, 1.0 / 12.0 + theta**2 / 720.0, 1.0 / t**2 - 1.0 / (2.0 * t * np.tan(0.5 * t)))
     K = skew(phi)
     eye = np.broadcast_to(np.eye(3), K.shape)
     return eye - 0.5 * K + coeff[..., None, None] * (K @ K)
