@@ -68,7 +68,9 @@ def load_mesh(path: str | Path) -> Mesh:
     if not path.is_file():
         raise SpecError(f"{path}: mesh file not found")
     try:
-        loaded = trimesh.load(str(path), process=False, force="mesh")
+        loaded = trimesh.load(str(path), process=False)
+        if isinstance(loaded, trimesh.Scene):  # e.g. an OBJ with several objects: merge them
+            loaded = trimesh.load(str(path), process=False, force="mesh")
     except Exception as exc:  # trimesh raises many types on malformed files
         raise SpecError(f"{path}: cannot read mesh ({exc.__class__.__name__}: {exc})") from None
     faces = getattr(loaded, "faces", None)

@@ -159,11 +159,11 @@ def train_object(
     else:
         with ThreadPoolExecutor(max_workers=jobs) as pool:
             viewsets = list(pool.map(run, tasks))
+    if not any(len(vs) for vs in viewsets if not vs.synthetic):
+        raise SpecError("no keypoints in any registered view: is the object textured, and the pose right?")
     for vs in viewsets:
         if len(vs) < params.min_keypoints and warn:
             warn(f"viewset {vs.label}: only {len(vs)} keypoints with 3-D points (fewer than {params.min_keypoints})")
-    if not any(len(vs) for vs in viewsets if not vs.synthetic):
-        raise SpecError("no keypoints in any registered view: is the object textured, and the pose right?")
     viewsets = [vs for vs in viewsets if len(vs) > 0]
     rfch = train_rfch([v.image for v in views], [v.mask for v in views], params.rfch)
     sizes = np.array([vs.bbox[2:] for vs in viewsets])

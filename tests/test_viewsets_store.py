@@ -1,0 +1,240 @@
+"""The model store: atomic writes, name checks, and bad training input leaving the store untouched."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+import quatrack.viewsets.store as store_mod
+import quatrack.viewsets.viewset as viewset_mod
+from quatrack.cli import main
+from quatrack.viewsets.errors import StoreError
+from quatrack.viewsets.spec import load_spec
+from quatrack.viewsets.store import default_store, delete_model, list_models, load_model, model_path, save_model
+from quatrack.viewsets.train import TrainParams, train_object
+
+EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "cookie-box"
+FAST = ["--novel-views", "none", "--novel-scales", "none"]
+
+
+def snapshot(root: Path) -> dict[str, bytes]:
+    """Every file (and folder) under root with its bytes: equal snapshots = untouched store."""
+    out = {}
+    for p in sorted(root.rglob("*")):
+        out[str(p.relative_to(root))] = p.read_bytes() if p.is_file() else b"<dir>"
+    return out
+
+
+@pytest.fixture(scope="module")
+def base_store(tmp_path_factory):
+    store = tmp_path_factory.mktemp("base")
+    assert main(["train", str(EXAMPLE / "object.json"), "--store", str(store), *FAST]) == 0
+    return store
+
+
+@pytest.fixture
+def store(base_store, tmp_path):
+    import shutil
+
+    s = tmp_path / "store"
+    shutil.copytree(base_store, s)
+    return s
+
+
+def make_spec(tmp_path: Path, **view_changes) -> Path:
+    data = json.loads((EXAMPLE / "object.json").read_text())
+    data["mesh"] = str(EXAMPLE / "box.ply")
+    data["views"][0]["image"] = str(EXAMPLE / "resized_IMG_3875.JPG")
+    mesh = view_changes.pop("mesh", None)
+    if mesh is not None:
+        data["mesh"] = mesh
+    data["views"][0].update(view_changes)
+    p = tmp_path / "spec.json"
+    p.write_text(json.dumps(data))
+    return p
+
+
+def test_store_roundtrip_is_exact(base_store):
+    m = load_model(base_store, "cookie-box")
+    tmp = base_store.parent / "roundtrip"
+    save_model(tmp, m)
+    m2 = load_model(tmp, "cookie-box")
+    for a, b in zip(m.viewsets, m2.viewsets):
+        assert a.label == b.label and a.bbox == b.bbox
+        np.testing.assert_array_equal(a.descriptors, b.descriptors)
+        np.testing.assert_array_equal(a.points3d, b.points3d)
+        np.testing.assert_array_equal(a.pose.R, b.pose.R)
+        assert a.camera.fx == b.camera.fx and a.camera.width == b.camera.width
+    np.testing.assert_array_equal(m.rfch.histogram, m2.rfch.histogram)
+    np.testing.assert_array_equal(m.mesh.faces, m2.mesh.faces)
+
+
+def test_default_store_honours_env(monkeypatch, tmp_path):
+    monkeypatch.delenv("QUATRACK_STORE", raising=False)
+    monkeypatch.setenv("XDG_DATA_HOME", str(tmp_path / "xdg"))
+    assert default_store() == tmp_path / "xdg" / "quatrack" / "models"
+    monkeypatch.setenv("QUATRACK_STORE", str(tmp_path / "env"))
+    assert default_store() == tmp_path / "env"
+
+
+def test_cli_uses_quatrack_store_env(monkeypatch, tmp_path):
+    monkeypatch.setenv("QUATRACK_STORE", str(tmp_path / "envstore"))
+    assert main(["train", str(EXAMPLE / "object.json"), *FAST]) == 0
+    assert list_models(tmp_path / "envstore") == ["cookie-box"]
+
+
+@pytest.mark.parametrize("name", ["../x", "..", ".hidden", "a/b", "", "x" * 65, "a b"])
+def test_bad_names_cannot_escape(store, name):
+    with pytest.raises(StoreError):
+        model_path(store, name)
+    before = snapshot(store)
+    assert main(["models", "delete", name, "--store", str(store)]) == 2
+    assert snapshot(store) == before
+
+
+def test_failure_while_writing_leaves_old_model_intact(store, monkeypatch):
+    before = snapshot(store)
+    model = load_model(store, "cookie-box")
+    model.manifest["marker"] = "new"
+
+    def broken_savez(f, **arrays):
+        f.write(b"PK partial")
+        raise OSError("disk full (simulated)")
+
+    monkeypatch.setattr(store_mod.np, "savez_compressed", broken_savez)
+    with pytest.raises(OSError):
+        save_model(store, model)
+    assert snapshot(store) == before  # no partial model, no temporary folder left
+
+
+def test_failure_at_the_final_rename_restores_old_model(store, monkeypatch):
+    before = snapshot(store)
+    model = load_model(store, "cookie-box")
+    real_replace = os.replace
+    calls = []
+
+    def flaky_replace(a, b):
+        calls.append((a, b))
+        if len(calls) == 2:  # the swap of the new folder into place
+            raise OSError("rename failed (simulated)")
+        return real_replace(a, b)
+
+    monkeypatch.setattr(store_mod.os, "replace", flaky_replace)
+    with pytest.raises(OSError):
+        save_model(store, model)
+    assert snapshot(store) == before
+
+
+def test_failure_mid_training_leaves_store_untouched(store, monkeypatch, capsys):
+    before = snapshot(store)
+    calls = []
+    real = viewset_mod.extract_features
+
+    def failing(*a, **k):
+        calls.append(1)
+        if len(calls) == 3:
+            raise OSError("simulated crash in the middle of training")
+        return real(*a, **k)
+
+    monkeypatch.setattr(viewset_mod, "extract_features", failing)
+    assert main(["train", str(EXAMPLE / "object.json"), "--store", str(store), "--jobs", "1"]) == 2
+    assert len(calls) == 3
+    assert snapshot(store) == before
+    assert "simulated crash" in capsys.readouterr().err
+
+
+def test_retraining_replaces_model(store):
+    old = (store / "cookie-box" / "manifest.json").read_bytes()
+    assert main(["train", str(EXAMPLE / "object.json"), "--store", str(store), *FAST, "--max-features", "300"]) == 0
+    assert (store / "cookie-box" / "manifest.json").read_bytes() != old
+    assert all(len(v) <= 300 for v in load_model(store, "cookie-box").viewsets)
+    assert [p.name for p in store.iterdir()] == ["cookie-box"]
+
+
+def test_delete(store):
+    assert main(["models", "delete", "cookie-box", "--store", str(store)]) == 0
+    assert list_models(store) == [] and list(store.iterdir()) == []
+    assert main(["models", "delete", "cookie-box", "--store", str(store)]) == 2
+
+
+def _bad_inputs(tmp_path: Path) -> dict[str, tuple[Path, list[str], list[str]]]:
+    """name → (spec, extra CLI args, words the one-line error must contain)."""
+    garbage = tmp_path / "garbage.JPG"
+    garbage.write_bytes(b"not a jpeg at all")
+    pointcloud = tmp_path / "points.ply"
+    pointcloud.write_text("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+                          "property float z\nend_header\n0 0 0\n1 0 0\n0 1 0\n")
+    grey = tmp_path / "grey.png"
+    cv2.imwrite(str(grey), np.full((480, 718, 3), 128, np.uint8))
+    cases = {}
+    d = tmp_path
+    for key, changes, words in [
+        ("missing image", {"image": str(d / "nope.jpg")}, ["view 0", "nope.jpg", "not found"]),
+        ("unreadable image", {"image": str(garbage)}, ["view 0", "garbage.JPG", "unreadable"]),
+        ("mesh without faces", {"mesh": str(pointcloud)}, ["points.ply", "no faces"]),
+        ("non-positive focal", {"camera": {"width": 718, "height": 480, "fx": -1770.0, "fy": 1771.0, "cx": 359.0, "cy": 240.0}},
+         ["view 0", "focal"]),
+        ("behind camera", {"pose": {"rvec": [2.0269, -0.785, 0.3385], "tvec": [-0.6, 11.4, -116.5]}}, ["view 0", "behind the camera"]),
+        ("outside image", {"pose": {"rvec": [2.0269, -0.785, 0.3385], "tvec": [300.0, 11.4, 116.5]}}, ["view 0", "outside the image"]),
+        ("unknown pose format", {"pose": {"euler": [1, 2, 3], "position": [0, 0, 1]}}, ["view 0", "unknown pose format"]),
+        ("no keypoints anywhere", {"image": str(grey)}, ["no keypoints"]),
+    ]:
+        sub = d / key.replace(" ", "_")
+        sub.mkdir()
+        cases[key] = (make_spec(sub, **changes), [], words)
+    return cases
+
+
+CASES = ["missing image", "unreadable image", "mesh without faces", "non-positive focal", "behind camera",
+         "outside image", "unknown pose format", "no keypoints anywhere"]
+
+
+@pytest.mark.parametrize("case", CASES)
+def test_bad_input_refused_store_unchanged(store, tmp_path, capsys, case):
+    spec, extra, words = _bad_inputs(tmp_path)[case]
+    before = snapshot(store)
+    code = main(["train", str(spec), "--store", str(store), *FAST, *extra])
+    err = capsys.readouterr().err
+    assert code != 0
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("quatrack train: error:"), err
+    assert "Traceback" not in err
+    for w in words:
+        assert w in lines[0], (w, lines[0])
+    assert snapshot(store) == before
+
+
+def test_duplicate_name_with_no_overwrite(store, capsys):
+    before = snapshot(store)
+    assert main(["train", str(EXAMPLE / "object.json"), "--store", str(store), "--no-overwrite", *FAST]) == 2
+    assert "already exists" in capsys.readouterr().err
+    assert snapshot(store) == before
+
+
+def test_view_with_too_few_keypoints_warns_but_trains(tmp_path, capsys):
+    grey = tmp_path / "grey.png"
+    cv2.imwrite(str(grey), np.full((480, 718, 3), 128, np.uint8))
+    data = json.loads((EXAMPLE / "object.json").read_text())
+    data["mesh"] = str(EXAMPLE / "box.ply")
+    data["views"][0]["image"] = str(EXAMPLE / "resized_IMG_3875.JPG")
+    data["views"].append(dict(data["views"][0], image=str(grey)))
+    (tmp_path / "two.json").write_text(json.dumps(data))
+    assert main(["train", str(tmp_path / "two.json"), "--store", str(tmp_path / "s"), *FAST]) == 0
+    err = capsys.readouterr().err
+    assert "warning" in err and "view1" in err
+    model = load_model(tmp_path / "s", "cookie-box")
+    assert [v.label for v in model.viewsets] == ["view0"]  # the empty view left no viewset
+
+
+def test_training_is_deterministic():
+    spec = load_spec(EXAMPLE / "object.json")
+    a = train_object(spec, TrainParams(novel=None))
+    b = train_object(spec, TrainParams(novel=None, jobs=2))
+    np.testing.assert_array_equal(a.viewsets[0].descriptors, b.viewsets[0].descriptors)
+    np.testing.assert_array_equal(a.rfch.centres, b.rfch.centres)
+    np.testing.assert_array_equal(a.rfch.histogram, b.rfch.histogram)

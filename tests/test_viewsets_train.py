@@ -1,0 +1,180 @@
+"""Training end to end: viewsets' 3-D points, synthetic views on the right surfaces, the CLI."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from quatrack.cli import main
+from quatrack.tracking.camera import PinholeCamera
+from quatrack.viewsets.mesh import make_mesh, planar_groups
+from quatrack.viewsets.novel import render_textured_view
+from quatrack.viewsets.render import cast_rays, render, undistort_pixels
+from quatrack.viewsets.spec import Pose, load_spec
+from quatrack.viewsets.store import list_models, load_model
+from quatrack.viewsets.train import TrainParams, train_object
+from quatrack.viewsets.novel import NovelViewParams
+
+EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "cookie-box"
+
+
+@pytest.fixture(scope="module")
+def trained_store(tmp_path_factory):
+    store = tmp_path_factory.mktemp("store")
+    assert main(["train", str(EXAMPLE / "object.json"), "--store", str(store), "--jobs", "2"]) == 0
+    return store
+
+
+def test_cli_train_end_to_end(trained_store, capsys):
+    assert list_models(trained_store) == ["cookie-box"]
+    model = load_model(trained_store, "cookie-box")
+    real = [v for v in model.viewsets if not v.synthetic]
+    synthetic = [v for v in model.viewsets if v.synthetic]
+    assert len(real) == 1 and len(synthetic) >= 8
+    assert len(real[0]) >= 200  # a textured photo gives hundreds of lifted keypoints
+    m = model.manifest
+    assert m["schema_version"] == 1 and m["spec"]["sha256"] == load_spec(EXAMPLE / "object.json").checksum
+    assert m["training_summary"]["points3d_total"] == sum(len(v) for v in model.viewsets)
+    assert abs(model.rfch.histogram.sum() - 1.0) < 1e-9
+    assert model.rfch.size_min[0] <= model.rfch.size_max[0]
+    assert main(["models", "list", "--store", str(trained_store)]) == 0
+    assert "cookie-box" in capsys.readouterr().out
+    assert main(["models", "show", "cookie-box", "--store", str(trained_store)]) == 0
+    assert json.loads(capsys.readouterr().out)["name"] == "cookie-box"
+
+
+def test_every_stored_point_reprojects_onto_its_keypoint(trained_store):
+    model = load_model(trained_store, "cookie-box")
+    for vs in model.viewsets:
+        assert vs.descriptors.dtype == np.float32 and vs.descriptors.shape == (len(vs), 128)
+        uv = vs.camera.project(vs.pose.transform(vs.points3d))
+        err = np.linalg.norm(uv - vs.keypoints, axis=1)
+        assert err.max() < 1.0, vs.label
+        # and every point lies on the box's surface (cm)
+        lo, hi = model.mesh.vertices.min(0), model.mesh.vertices.max(0)
+        P = vs.points3d
+        assert np.all((P >= lo - 1e-6) & (P <= hi + 1e-6))
+        assert np.all(np.min(np.minimum(np.abs(P - lo), np.abs(P - hi)), axis=1) < 1e-6)
+
+
+def test_real_viewset_matches_the_photo():
+    """Keypoints of the registered view are where SIFT finds them in the photo (not invented)."""
+    spec = load_spec(EXAMPLE / "object.json")
+    model = train_object(spec, TrainParams(novel=None))
+    vs = model.viewsets[0]
+    img = cv2.imread(str(spec.views[0].image_path), cv2.IMREAD_GRAYSCALE)
+    kps, _ = cv2.SIFT_create().detectAndCompute(img, None)
+    ref = np.array([k.pt for k in kps])
+    d = np.min(np.linalg.norm(vs.keypoints[:, None, :].astype(float) - ref[None], axis=2), axis=1)
+    assert np.median(d) < 0.5
+
+
+# --- a second object of our own: a box with a procedural texture known at every 3-D point ---
+
+FREQ = np.random.default_rng(7).normal(0.0, 1.6, size=(3, 4, 3))  # channel × wave × xyz, rad/cm
+PHASE = np.random.default_rng(8).uniform(0, 2 * np.pi, size=(3, 4))
+
+
+def texture(X: np.ndarray) -> np.ndarray:
+    """BGR colour (n, 3) of the surface at object points X (n, 3)."""
+    waves = np.sin(np.einsum("cwk,nk->ncw", FREQ, X) + PHASE[None])
+    return np.clip(128 + 110 * np.tanh(1.5 * waves.sum(axis=2)), 0, 255)
+
+
+def box(sx, sy, sz):
+    from scipy.spatial import ConvexHull
+
+    V = np.array([[x, y, z] for x in (0, sx) for y in (0, sy) for z in (0, sz)], float)
+    return make_mesh(V, ConvexHull(V).simplices)
+
+
+def write_ply(path, mesh):
+    lines = ["ply", "format ascii 1.0", f"element vertex {len(mesh.vertices)}",
+             "property float x", "property float y", "property float z",
+             f"element face {len(mesh.faces)}", "property list uchar int vertex_indices", "end_header"]
+    lines += [" ".join(f"{c:g}" for c in v) for v in mesh.vertices]
+    lines += ["3 " + " ".join(str(i) for i in f) for f in mesh.faces]
+    path.write_text("\n".join(lines) + "\n")
+
+
+def photograph(mesh, camera, pose):
+    h, w = camera.height, camera.width
+    u, v = np.meshgrid(np.arange(w, dtype=float), np.arange(h, dtype=float))
+    uv = np.stack([u.ravel(), v.ravel()], 1)
+    X, f, _ = cast_rays(mesh, pose, undistort_pixels(camera, uv))
+    img = np.full((h * w, 3), 90.0)
+    img[f >= 0] = texture(X[f >= 0])
+    return img.reshape(h, w, 3).astype(np.uint8)
+
+
+@pytest.fixture(scope="module")
+def textured_box(tmp_path_factory):
+    d = tmp_path_factory.mktemp("tbox")
+    mesh = box(12.0, 9.0, 6.0)
+    camera = PinholeCamera(600.0, 600.0, 200.0, 150.0, width=400, height=300)
+    rvec = np.array([2.1, -0.6, 0.3])
+    R = cv2.Rodrigues(rvec)[0]
+    t = np.array([0.0, 0.0, 45.0]) - R @ mesh.centre
+    img = photograph(mesh, camera, Pose(R, t))
+    cv2.imwrite(str(d / "photo.png"), img)
+    write_ply(d / "box.ply", mesh)
+    spec = {"name": "tbox", "mesh": "box.ply", "views": [{
+        "image": "photo.png",
+        "camera": {"width": 400, "height": 300, "fx": 600.0, "fy": 600.0, "cx": 200.0, "cy": 150.0},
+        "pose": {"rvec": rvec.tolist(), "tvec": t.tolist()}}]}
+    (d / "spec.json").write_text(json.dumps(spec))
+    return d, mesh
+
+
+def test_synthetic_viewsets_land_on_the_right_surfaces(textured_box):
+    d, mesh = textured_box
+    spec = load_spec(d / "spec.json")
+    params = TrainParams(novel=NovelViewParams(angles_deg=(25.0,), axes="xy", scales=(0.7,)), jobs=2)
+    model = train_object(spec, params)
+    src = spec.views[0]
+    photo = cv2.imread(str(src.image_path))
+    src_buf = render(mesh, src.camera, src.pose)
+    groups = planar_groups(mesh)
+    synthetic = [v for v in model.viewsets if v.synthetic]
+    assert len(synthetic) >= 4
+    checked = 0
+    for vs in synthetic:
+        if len(vs) == 0:
+            continue
+        # the synthetic image (warped from the photo) must show, at each keypoint, the colour the
+        # procedural texture has at the keypoint's stored 3-D point
+        synth, textured, _ = render_textured_view(mesh, groups, photo, src.camera, src.pose, src_buf, vs.camera, vs.pose)
+        ui = np.rint(vs.keypoints[:, 0]).astype(int)
+        vi = np.rint(vs.keypoints[:, 1]).astype(int)
+        err = np.abs(synth[vi, ui].astype(float) - texture(vs.points3d)).max(axis=1)
+        assert np.median(err) < 25, vs.label
+        assert np.mean(err < 60) > 0.9, vs.label
+        # and the whole synthetic image agrees with an independent ray-cast rendering of the texture
+        truth = photograph(mesh, vs.camera, vs.pose).astype(float)
+        diff = np.abs(synth.astype(float) - truth).max(axis=2)[textured > 0]
+        assert np.median(diff) < 15, vs.label
+        uv = vs.camera.project(vs.pose.transform(vs.points3d))
+        assert np.linalg.norm(uv - vs.keypoints, axis=1).max() < 1.0
+        checked += len(vs)
+    assert checked > 150
+
+
+def test_keypoints_come_from_the_texture_not_the_background(textured_box):
+    """Points of a synthetic viewset are textured-surface points: none on untextured faces."""
+    d, mesh = textured_box
+    spec = load_spec(d / "spec.json")
+    model = train_object(spec, TrainParams(novel=NovelViewParams(angles_deg=(40.0,), axes="x", scales=())))
+    src = spec.views[0].pose
+    centre = -src.R.T @ src.t
+    normals = mesh.face_normals
+    for vs in model.viewsets:
+        _, f, _ = cast_rays(mesh, vs.pose, undistort_pixels(vs.camera, vs.keypoints))
+        assert np.all(f >= 0)
+        # every hit face is one the photo sees from its front (a face hidden in the photo has no texture)
+        to_cam = centre - mesh.triangles[f].mean(axis=1)
+        assert np.all(np.einsum("ij,ij->i", normals[f], to_cam) * np.sign(
+            np.einsum("ij,ij->i", normals[f], mesh.triangles[f].mean(axis=1) - mesh.centre)) > 0)
