@@ -59,7 +59,7 @@ def test_model_histogram_normalised_and_deterministic(photo_and_mask):
     img, mask = photo_and_mask
     m1 = train_rfch([img], [mask], RFCHParams())
     m2 = train_rfch([img.copy()], [mask.copy()], RFCHParams())
-    assert m1.histogram.shape == (24, 24) and m1.histogram.sum() == pytest.approx(1.0)
+    assert m1.histogram.shape == (m1.n_clusters, m1.n_clusters) and m1.n_clusters == RFCHParams().n_clusters and m1.histogram.sum() == pytest.approx(1.0)
     assert np.all(m1.histogram >= 0)
     np.testing.assert_array_equal(m1.centres, m2.centres)
     np.testing.assert_array_equal(m1.histogram, m2.histogram)

@@ -20,8 +20,8 @@ class RFCHParams:
     """``n_clusters`` N, pair ``distance`` d (px), Gaussian ``scales`` (px) of the derivative
     channels, pixels sampled for k-means, and its seed (for determinism)."""
 
-    n_clusters: int = 24
-    distance: int = 10
+    n_clusters: int = 32  # defaults from bench/rfch_study.py (bench/RESULTS.md, 'RFCH defaults')
+    distance: int = 8
     scales: tuple[float, ...] = (1.0, 2.0)
     max_samples: int = 20000
     seed: int = 0
