@@ -1,1 +1,9 @@
-"""quatrack.viewsets — not yet implemented (see the open issues)."""
+"""quatrack.viewsets — the object model: spec and camera parsing, mesh, rendering, SIFT viewsets,
+RFCH, novel views, the atomic model store and the training logic.
+
+Public entry points used by recognition (issue 4):
+- ``store.load_model(store, name) -> ObjectModel`` (``store.resolve_store(arg)`` for ``--store``);
+- ``features.extract_features(image, mask, **manifest['parameters']['viewsets'] options)``;
+- ``rfch.label_image(image, model.rfch)``, ``rfch.cooccurrence(labels, mask, n, d)``, ``rfch.chi2``;
+- ``camera.load_camera(path)`` / ``camera.camera_from_dict(obj)``, ``spec.parse_pose(obj)``.
+"""
