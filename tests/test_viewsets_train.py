@@ -178,3 +178,20 @@ def test_keypoints_come_from_the_texture_not_the_background(textured_box):
         to_cam = centre - mesh.triangles[f].mean(axis=1)
         assert np.all(np.einsum("ij,ij->i", normals[f], to_cam) * np.sign(
             np.einsum("ij,ij->i", normals[f], mesh.triangles[f].mean(axis=1) - mesh.centre)) > 0)
+
+
+def test_query_features_describe_like_training(trained_store):
+    from quatrack.viewsets.viewset import extract_query_features, params_from_manifest
+
+    model = load_model(trained_store, "cookie-box")
+    params = params_from_manifest(model.manifest)
+    img = cv2.imread(str(EXAMPLE / "resized_IMG_3875.JPG"))
+    q = extract_query_features(img, None, params)
+    vs = [v for v in model.viewsets if not v.synthetic][0]
+    # every stored keypoint of the photo's viewset is found again, with the same descriptor
+    d = np.linalg.norm(vs.keypoints[:, None, :] - q.keypoints[None], axis=2)
+    j = np.argmin(d, axis=1)
+    close = d[np.arange(len(j)), j] < 0.5
+    assert close.mean() > 0.8
+    desc_err = np.linalg.norm(vs.descriptors[close] - q.descriptors[j[close]], axis=1)
+    assert np.median(desc_err) < 0.1 * np.median(np.linalg.norm(vs.descriptors, axis=1))

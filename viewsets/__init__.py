@@ -3,7 +3,7 @@ RFCH, novel views, the atomic model store and the training logic.
 
 Public entry points used by recognition (issue 4):
 - ``store.load_model(store, name) -> ObjectModel`` (``store.resolve_store(arg)`` for ``--store``);
-- ``features.extract_features(image, mask, **manifest['parameters']['viewsets'] options)``;
+- ``viewset.extract_query_features(image, mask, viewset.params_from_manifest(model.manifest))``;
 - ``rfch.label_image(image, model.rfch)``, ``rfch.cooccurrence(labels, mask, n, d)``, ``rfch.chi2``;
 - ``camera.load_camera(path)`` / ``camera.camera_from_dict(obj)``, ``spec.parse_pose(obj)``.
 """

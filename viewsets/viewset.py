@@ -78,3 +78,14 @@ def build_viewset(
         feats.keypoints[keep].astype(np.float32), feats.descriptors[keep].astype(np.float32),
         X[keep], silhouette_bbox(buffers.face >= 0),
     )
+
+
+def params_from_manifest(manifest: dict) -> ViewsetParams:
+    """The SIFT parameters a model was trained with (so a query is described the same way)."""
+    return ViewsetParams(**manifest["parameters"]["viewsets"])
+
+
+def extract_query_features(image: np.ndarray, mask: np.ndarray | None, params: ViewsetParams):
+    """SIFT on a query image exactly as training did (no erosion: a query window is not a silhouette)."""
+    return extract_features(image, mask, max_features=params.max_features, erode_px=0,
+                            use_root_sift=params.root_sift, contrast_threshold=params.contrast_threshold)
