@@ -196,10 +196,62 @@ def _run_models(args: argparse.Namespace) -> int:
     raise UserError(f"unknown action {args.action!r}")
 
 
+def _add_locate(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("images", nargs="+", metavar="IMAGE", help="image files (JPEG, PNG, WebP, TIFF, ...)")
+    parser.add_argument("--object", required=True, metavar="NAME", help="a trained object (see `quatrack models list`)")
+    parser.add_argument("--camera", required=True, metavar="CAMERA", help="camera file of the images (JSON, or OpenCV YAML)")
+    parser.add_argument("--store", metavar="DIR", help="model store (default: $QUATRACK_STORE or the user data directory)")
+    parser.add_argument("--json", action="store_true", help="one JSON object per line, per image")
+    parser.add_argument("--whole-image", action="store_true", help="skip the RFCH window: match SIFT in the whole image")
+    parser.add_argument("--max-pixels", type=int, default=4_000_000, metavar="N",
+                        help="larger images are downscaled to this many pixels (default 4000000)")
+
+
+def _run_locate(args: argparse.Namespace) -> int:
+    """Recognition + initial pose per image. A bad image is reported on its own line (``error``
+    in JSON) and the others still run; the exit status is 1 if any image failed."""
+    import json
+
+    from quatrack.recognition.images import ImageError, read_image
+    from quatrack.recognition.locate import LocateParams, locate
+    from quatrack.recognition.match import index_for
+    from quatrack.viewsets.camera import load_camera
+    from quatrack.viewsets.store import load_model, resolve_store
+
+    if args.max_pixels < 32 * 32:
+        raise UserError("--max-pixels must be at least 1024")
+    camera = load_camera(args.camera)
+    model = load_model(resolve_store(args.store), args.object)
+    index = index_for(model)
+    params = LocateParams(use_window=not args.whole_image, max_pixels=args.max_pixels)
+    failed = False
+    for path in args.images:
+        try:
+            result = locate(read_image(path), camera, model, params, index=index)
+        except ImageError as exc:
+            failed = True
+            if args.json:
+                print(json.dumps({"image": path, "found": False, "error": str(exc)}), flush=True)
+            else:
+                print(f"{path}: error: {exc}", file=sys.stderr)
+            continue
+        if args.json:
+            print(json.dumps({"image": path, **result.to_json()}), flush=True)
+        elif result.found:
+            t = ", ".join(f"{v:.2f}" for v in result.t)
+            q = ", ".join(f"{v:.4f}" for v in result.q_wxyz)
+            print(f"{path}: found  t = [{t}]  q_wxyz = [{q}]  inliers {result.inliers}/{result.matches}  "
+                  f"rms {result.reprojection_rms_px:.2f} px  viewset {result.viewset}  {result.time_ms['total']:.0f} ms")
+        else:
+            print(f"{path}: not found ({result.reason})  {result.time_ms['total']:.0f} ms")
+    return 1 if failed else 0
+
+
 COMMANDS: dict[str, tuple[str, Callable[[argparse.ArgumentParser], None], Callable[[argparse.Namespace], int]]] = {
     "bench": ("run a benchmark and print its figures", _add_bench, _run_bench),
     "train": ("train an object's model (RFCH + SIFT viewsets) from its spec into the model store", _add_train, _run_train),
     "models": ("list, show or delete the trained objects in the model store", _add_models, _run_models),
+    "locate": ("find a trained object in images and estimate its initial pose", _add_locate, _run_locate),
 }
 
 

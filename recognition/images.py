@@ -1,0 +1,117 @@
+"""Input images: decode, check and normalise what users send, before any vision runs.
+
+Everything downstream sees one kind of image: 8-bit BGR, at most ``max_pixels`` pixels. A
+larger image is downscaled (the camera is scaled with it, so poses stay in the original camera's
+frame); anything that cannot be a photo of the object is refused with :class:`ImageError`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import cv2
+import numpy as np
+
+from quatrack.tracking.camera import PinholeCamera
+
+MIN_SIDE = 32
+DEFAULT_MAX_PIXELS = 4_000_000  # beyond this an image is downscaled (e.g. 8000×6000 → 2309×1732)
+MAX_DECODE_PIXELS = 100_000_000  # refuse to even decode images larger than this
+
+
+class ImageError(ValueError):
+    """The image cannot be used: unreadable, empty, too small, or not matching its camera."""
+
+
+@dataclass(frozen=True)
+class PreparedImage:
+    """An 8-bit BGR image ready for recognition, with the camera that fits it.
+
+    ``scale`` maps pixels of the original image to this one (``uv_here = scale·(uv + ½) − ½``).
+    """
+
+    image: np.ndarray
+    camera: PinholeCamera
+    scale: float
+
+
+def decode_image(data: bytes) -> np.ndarray:
+    """Decode JPEG/PNG/WebP/... bytes (any bit depth, any channels) to an array."""
+    if not data:
+        raise ImageError("the image is empty (0 bytes)")
+    buf = np.frombuffer(data, dtype=np.uint8)
+    img = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED)
+    if img is None or img.size == 0:
+        raise ImageError("the image cannot be decoded (not an image, or truncated)")
+    return img
+
+
+def read_image(path: str) -> np.ndarray:
+    """Read an image file with the same checks as :func:`decode_image`."""
+    try:
+        with open(path, "rb") as f:
+            data = f.read()
+    except OSError as exc:
+        raise ImageError(f"cannot read image {path}: {exc.strerror or exc}") from None
+    try:
+        return decode_image(data)
+    except ImageError as exc:
+        raise ImageError(f"{path}: {exc}") from None
+
+
+def to_bgr8(image: np.ndarray) -> np.ndarray:
+    """8-bit, 3-channel BGR from grey, BGRA, 16-bit or float images."""
+    img = np.asarray(image)
+    if img.ndim == 3 and img.shape[2] == 1:
+        img = img[..., 0]
+    if img.ndim not in (2, 3) or (img.ndim == 3 and img.shape[2] not in (3, 4)):
+        raise ImageError(f"unsupported image shape {img.shape}: expected grey, BGR or BGRA")
+    if img.dtype == np.uint16:
+        img = (img >> 8).astype(np.uint8)
+    elif img.dtype in (np.float32, np.float64):
+        finite = np.nan_to_num(img, nan=0.0, posinf=1.0, neginf=0.0)
+        img = np.clip(finite * 255.0 if finite.max() <= 1.0 else finite, 0, 255).astype(np.uint8)
+    elif img.dtype != np.uint8:
+        raise ImageError(f"unsupported pixel type {img.dtype}")
+    if img.ndim == 2:
+        return cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
+    if img.shape[2] == 4:
+        return cv2.cvtColor(img, cv2.COLOR_BGRA2BGR)
+    return np.ascontiguousarray(img)
+
+
+def scale_camera(camera: PinholeCamera, s: float, width: int, height: int) -> PinholeCamera:
+    """The camera of an image resized by ``s`` (pixel centres: ``u' = s(u + ½) − ½``)."""
+    return replace(
+        camera,
+        fx=camera.fx * s,
+        fy=camera.fy * s,
+        cx=s * (camera.cx + 0.5) - 0.5,
+        cy=s * (camera.cy + 0.5) - 0.5,
+        width=width,
+        height=height,
+    )
+
+
+def prepare_image(image: np.ndarray, camera: PinholeCamera, max_pixels: int = DEFAULT_MAX_PIXELS) -> PreparedImage:
+    """Check ``image`` against ``camera`` and bring it to 8-bit BGR within ``max_pixels``.
+
+    The camera must describe this image: if it states a size, the image must have it.
+    """
+    img = to_bgr8(image)
+    h, w = img.shape[:2]
+    if min(h, w) < MIN_SIDE:
+        raise ImageError(f"the image is too small ({w}×{h} px; at least {MIN_SIDE} px a side)")
+    if w * h > MAX_DECODE_PIXELS:
+        raise ImageError(f"the image is too large ({w}×{h} px; at most {MAX_DECODE_PIXELS} pixels)")
+    if camera.width is not None and camera.height is not None and (camera.width, camera.height) != (w, h):
+        raise ImageError(
+            f"the camera is for {camera.width}×{camera.height} px images but the image is {w}×{h} px"
+        )
+    cam = replace(camera, width=w, height=h)
+    if w * h <= max_pixels:
+        return PreparedImage(img, cam, 1.0)
+    s = float(np.sqrt(max_pixels / (w * h)))
+    nw, nh = max(MIN_SIDE, int(w * s)), max(MIN_SIDE, int(h * s))
+    small = cv2.resize(img, (nw, nh), interpolation=cv2.INTER_AREA)
+    return PreparedImage(small, scale_camera(cam, nw / w, nw, nh), nw / w)
