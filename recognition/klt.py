@@ -1,0 +1,67 @@
+"""Pyramidal Lucas–Kanade point tracking with a forward–backward check (Kalal et al. 2010).
+
+A point is kept only if tracking it forward and then back lands within ``fb_max_px`` of where it
+started: that rejects points that slid along an edge, left the view, or changed appearance.
+(OpenCV 5's Python binding no longer takes prebuilt pyramids, so LK builds them per call.)
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+
+@dataclass(frozen=True)
+class KLTParams:
+    win: int = 21  # window side, pixels
+    levels: int = 3  # pyramid levels above the image
+    fb_max_px: float = 1.0  # forward–backward error tolerated
+    max_iterations: int = 20
+    epsilon: float = 0.03
+
+
+@dataclass(frozen=True)
+class Frame:
+    """A grey 8-bit frame and its size (w, h)."""
+
+    gray: np.ndarray
+    size: tuple[int, int]
+
+
+def make_frame(gray: np.ndarray) -> Frame:
+    return Frame(np.ascontiguousarray(gray), (gray.shape[1], gray.shape[0]))
+
+
+def track_points(
+    prev: Frame, cur: Frame, points: np.ndarray, guess: np.ndarray | None = None,
+    params: KLTParams = KLTParams(),
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Track ``points`` (n, 2) from ``prev`` to ``cur``; ``guess`` (n, 2) is where they are expected
+    (e.g. projected at the predicted pose), so fast but predictable motion stays within reach.
+
+    Returns ``(new_points (n, 2), ok (n,), fb_error (n,))``.
+    """
+    n = len(points)
+    if n == 0:
+        return np.zeros((0, 2)), np.zeros(0, bool), np.zeros(0)
+    p0 = np.ascontiguousarray(points, np.float32).reshape(-1, 1, 2)
+    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, params.max_iterations, params.epsilon)
+    win = (params.win, params.win)
+    flags = 0
+    p1 = None
+    if guess is not None:
+        p1 = np.ascontiguousarray(guess, np.float32).reshape(-1, 1, 2).copy()
+        flags = cv2.OPTFLOW_USE_INITIAL_FLOW
+    p1, st1, _ = cv2.calcOpticalFlowPyrLK(prev.gray, cur.gray, p0, p1, winSize=win,
+                                          maxLevel=params.levels, criteria=crit, flags=flags)
+    back = p0.copy()
+    p0b, st2, _ = cv2.calcOpticalFlowPyrLK(cur.gray, prev.gray, p1, back, winSize=win,
+                                           maxLevel=params.levels, criteria=crit, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+    p1 = p1.reshape(-1, 2).astype(float)
+    fb = np.linalg.norm(p0b.reshape(-1, 2) - p0.reshape(-1, 2), axis=1)
+    w, h = cur.size
+    inside = (p1[:, 0] >= 0) & (p1[:, 1] >= 0) & (p1[:, 0] <= w - 1) & (p1[:, 1] <= h - 1)
+    ok = (st1.ravel() == 1) & (st2.ravel() == 1) & (fb < params.fb_max_px) & inside & np.isfinite(fb)
+    return p1, ok, fb
