@@ -1,0 +1,172 @@
+"""The application factory: ``create_app(settings)`` wires models, pool, limits and routes.
+
+One app per process normally; tests build several, so nothing here is global except OpenCV's
+thread count (a process-wide setting by nature).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import os
+import threading
+import time
+import uuid
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import asynccontextmanager
+
+import cv2
+from fastapi import FastAPI
+from fastapi.middleware.cors import CORSMiddleware
+
+from quatrack import __version__
+
+from . import errors
+from .errors import ApiError, error_body
+from .metrics import Metrics
+from .models import ModelRegistry
+from .routes import ServiceState, api, health, ops, sockets
+from .sessions import SessionLimiter
+from .settings import Settings
+
+log = logging.getLogger("quatrack.service")
+
+DESCRIPTION = """Find a trained object in an image and estimate its 6-DoF pose (`POST /v1/objects/{name}/pose`),
+or track it through a video stream over the WebSocket `/v1/objects/{name}/track`.
+
+Pose = object → camera (`X_cam = R(q) X_obj + t`, `t` in mesh units, `q_wxyz` scalar first, `w ≥ 0`);
+covariances are 6×6 over `[p, δθ]`, row-major. Errors are `{"error": {"code", "message"}}` with a 4xx status.
+
+**WebSocket protocol**: send the camera JSON as the first text message; then binary frames (JPEG/PNG/WebP),
+optionally each preceded by `{"type": "frame", "time_s": t}`; also `{"type": "reset"}` and
+`{"type": "init", "pose": {"q_wxyz": [...], "t": [...]}}`. The server answers `{"type": "ready", ...}` to the camera,
+then one `{"type": "pose", "frame", "time_s", "status", "pose", "velocity", "covariance", "inliers", "latency_ms",
+"skipped"}` per processed frame, and `{"type": "error", "error": {...}}` for bad input (the session stays open).
+"""
+
+
+class BodyLimit:
+    """Refuse request bodies above ``limit`` bytes with 413, by header or while streaming."""
+
+    def __init__(self, app, limit: int) -> None:
+        self.app, self.limit = app, limit
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] != "http":
+            return await self.app(scope, receive, send)
+        length = dict(scope.get("headers") or []).get(b"content-length")
+        if length is not None and (not length.isdigit() or int(length) > self.limit):
+            return await _send_json(send, 413, error_body("too_large", f"the body may have at most {self.limit} bytes"))
+        seen = 0
+
+        async def limited():
+            nonlocal seen
+            msg = await receive()
+            if msg["type"] == "http.request":
+                seen += len(msg.get("body", b""))
+                if seen > self.limit:
+                    raise ApiError(413, "too_large", f"the body may have at most {self.limit} bytes")
+            return msg
+
+        await self.app(scope, limited, send)
+
+
+async def _send_json(send, status: int, body: dict, headers: list | None = None) -> None:
+    data = json.dumps(body).encode()
+    await send({"type": "http.response.start", "status": status,
+                "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(data)).encode()),
+                            *(headers or [])]})
+    await send({"type": "http.response.body", "body": data})
+
+
+class RequestLog:
+    """A request id (``X-Request-ID``, the client's if sane), one log line and metrics per request."""
+
+    def __init__(self, app, metrics: Metrics) -> None:
+        self.app, self.metrics = app, metrics
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] != "http":
+            return await self.app(scope, receive, send)
+        given = dict(scope.get("headers") or []).get(b"x-request-id", b"").decode("latin-1")
+        rid = given if 0 < len(given) <= 64 and given.replace("-", "").isalnum() else uuid.uuid4().hex[:16]
+        status = 500
+        t0 = time.perf_counter()
+
+        async def send_with_id(msg):
+            nonlocal status
+            if msg["type"] == "http.response.start":
+                status = msg["status"]
+                msg = {**msg, "headers": [*msg.get("headers", []), (b"x-request-id", rid.encode())]}
+            await send(msg)
+
+        try:
+            await self.app(scope, receive, send_with_id)
+        finally:
+            dt = time.perf_counter() - t0
+            route = getattr(scope.get("route"), "path", None) or "unmatched"
+            self.metrics.requests.inc(scope["method"], route, str(status))
+            self.metrics.latency.observe(dt, route)
+            log.info("request", extra={"request_id": rid, "method": scope["method"], "route": route,
+                                       "path": scope["path"], "status": status, "ms": round(dt * 1e3, 1)})
+
+
+def _warm(state: ServiceState) -> None:
+    """Load the store's models, then build each worker thread's matcher (a barrier puts one
+    warming job on every thread), so the first real request pays neither cost."""
+    state.registry.load_all()
+    n = state.settings.workers
+    barrier = threading.Barrier(n)
+
+    def one():
+        try:
+            barrier.wait(timeout=30)
+        except threading.BrokenBarrierError:
+            pass
+        state.registry.warm()
+
+    futures = [state.executor.submit(one) for _ in range(n)]
+    for f in futures:
+        f.result()
+    log.info("ready: %d object(s) loaded from %s", len(state.registry.loaded()), state.registry.store)
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    settings = (settings or Settings.from_env()).checked()
+    cores = os.cpu_count() or 1
+    cv2.setNumThreads(max(1, cores // settings.workers))  # workers × OpenCV threads ≈ cores
+    metrics = Metrics()
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI):
+        executor = ThreadPoolExecutor(settings.workers, thread_name_prefix="quatrack-cpu")
+        state = ServiceState(settings, ModelRegistry(settings.store), executor, metrics, SessionLimiter(settings.max_sessions))
+        app.state.quatrack = state
+        loop = asyncio.get_running_loop()
+        if settings.preload:
+            warm = loop.run_in_executor(None, _warm, state)  # readyz says 503 until done
+        else:
+            state.registry.ready = True
+            warm = None
+        try:
+            yield
+        finally:
+            if warm is not None and not warm.done():
+                warm.cancel()
+            executor.shutdown(wait=False, cancel_futures=True)
+
+    app = FastAPI(title="quatrack", version=__version__, description=DESCRIPTION, lifespan=lifespan,
+                  docs_url="/docs", redoc_url=None)
+    errors.install(app)
+    app.include_router(health)
+    app.include_router(ops)
+    app.include_router(api)
+    app.include_router(sockets)
+    app.add_middleware(BodyLimit, limit=settings.max_body_bytes)
+    if settings.cors_origins:
+        app.add_middleware(CORSMiddleware, allow_origins=list(settings.cors_origins), allow_methods=["GET", "POST"],
+                           allow_headers=["Authorization", "Content-Type", "X-Request-ID"], expose_headers=["X-Request-ID"])
+    app.add_middleware(RequestLog, metrics=metrics)
+    app.state.settings = settings
+    return app

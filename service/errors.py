@@ -1,0 +1,65 @@
+"""The contract's error body ``{"error": {"code", "message"}}`` for every failure, REST and WebSocket.
+
+:class:`ApiError` subclasses Starlette's ``HTTPException`` on purpose: FastAPI re-raises
+``HTTPException`` untouched from body parsing, so a limit hit while the body is still streaming
+keeps its own status and code instead of becoming a generic 400. Anything unexpected is logged
+with its traceback and answered as a 500 *without* details — bad input never gets there.
+"""
+
+from __future__ import annotations
+
+import logging
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+log = logging.getLogger("quatrack.service")
+
+_CODES = {400: "bad_request", 401: "unauthorized", 403: "forbidden", 404: "not_found", 405: "method_not_allowed",
+          406: "not_acceptable", 411: "length_required", 413: "too_large", 415: "unsupported_media_type",
+          422: "invalid_input", 429: "too_many_requests", 503: "unavailable"}
+
+
+class ApiError(StarletteHTTPException):
+    """A client-visible error: HTTP status, a stable machine-readable ``code`` and a message."""
+
+    def __init__(self, status: int, code: str, message: str, headers: dict[str, str] | None = None) -> None:
+        super().__init__(status_code=status, detail=message, headers=headers)
+        self.code = code
+        self.message = message
+
+
+def error_body(code: str, message: str) -> dict:
+    return {"error": {"code": code, "message": message}}
+
+
+def _json(status: int, code: str, message: str, headers=None) -> JSONResponse:
+    return JSONResponse(error_body(code, message), status_code=status, headers=headers)
+
+
+async def _on_http(request: Request, exc: StarletteHTTPException) -> JSONResponse:
+    code = getattr(exc, "code", None) or _CODES.get(exc.status_code, "error")
+    message = exc.detail if isinstance(exc.detail, str) else str(exc.detail)
+    return _json(exc.status_code, code, message, getattr(exc, "headers", None))
+
+
+async def _on_validation(request: Request, exc: RequestValidationError) -> JSONResponse:
+    parts = []
+    for e in exc.errors()[:5]:
+        where = ".".join(str(x) for x in e.get("loc", ()) if x != "body") or "request"
+        parts.append(f"{where}: {e.get('msg', 'invalid')}")
+    return _json(422, "invalid_input", "; ".join(parts) or "invalid request")
+
+
+async def _on_unexpected(request: Request, exc: Exception) -> JSONResponse:
+    log.exception("unexpected error on %s %s", request.method, request.url.path)
+    return _json(500, "internal", "internal error (logged on the server)")
+
+
+def install(app: FastAPI) -> None:
+    """Register the handlers that turn every error into the contract's JSON body."""
+    app.add_exception_handler(StarletteHTTPException, _on_http)
+    app.add_exception_handler(RequestValidationError, _on_validation)
+    app.add_exception_handler(Exception, _on_unexpected)

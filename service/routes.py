@@ -1,0 +1,276 @@
+"""HTTP and WebSocket endpoints. Thin: parse at the edge, then call recognition in the pool.
+
+Dependencies are injected the FastAPI way (``Depends``): the shared :class:`ServiceState` and
+the bearer-token check. CPU-bound work (decoding, recognition, tracking) never runs on the
+event loop, so health checks and other sessions stay responsive under load.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import hmac
+import json
+from concurrent.futures import Executor
+from dataclasses import dataclass
+from typing import Annotated
+
+from fastapi import APIRouter, Depends, Query, Request, WebSocket
+from fastapi.responses import JSONResponse, PlainTextResponse
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from pydantic import ValidationError
+
+from quatrack.recognition.images import ImageError
+from quatrack.recognition.locate import LocateParams, locate
+
+from .errors import ApiError, error_body
+from .imagein import decode_upload
+from .metrics import Metrics
+from .models import ModelRegistry
+from .schemas import CameraIn, ErrorResponse, Health, LocateOut, ObjectDetail, ObjectList, ObjectSummary, Ready
+from .sessions import SessionLimiter, TrackSession
+from .settings import Settings
+from .tracker import TRACKER_KIND
+
+
+@dataclass
+class ServiceState:
+    """What every request shares: read-only models, the worker pool, limits and metrics."""
+
+    settings: Settings
+    registry: ModelRegistry
+    executor: Executor
+    metrics: Metrics
+    sessions: SessionLimiter
+    pending: int = 0  # REST pose requests in flight
+
+
+def get_state(request: Request) -> ServiceState:
+    return request.app.state.quatrack
+
+
+def get_ws_state(websocket: WebSocket) -> ServiceState:
+    return websocket.app.state.quatrack
+
+
+_bearer = HTTPBearer(auto_error=False, description="`Authorization: Bearer $QUATRACK_API_TOKEN` when the server sets one")
+
+
+def _token_ok(expected: str | None, given: str | None) -> bool:
+    return expected is None or (given is not None and hmac.compare_digest(given.encode(), expected.encode()))
+
+
+def require_token(
+    state: Annotated[ServiceState, Depends(get_state)],
+    creds: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
+) -> None:
+    if not _token_ok(state.settings.api_token, creds.credentials if creds else None):
+        raise ApiError(401, "unauthorized", "a valid bearer token is required", {"WWW-Authenticate": "Bearer"})
+
+
+State = Annotated[ServiceState, Depends(get_state)]
+ERRORS = {code: {"model": ErrorResponse} for code in (400, 401, 404, 413, 415, 422, 503)}
+
+health = APIRouter(tags=["health"])
+api = APIRouter(prefix="/v1", tags=["objects"], dependencies=[Depends(require_token)], responses=ERRORS)
+ops = APIRouter(tags=["operations"], dependencies=[Depends(require_token)])
+sockets = APIRouter(prefix="/v1")  # authenticated inside: HTTPBearer needs an HTTP request
+
+
+@health.get("/healthz", response_model=Health, summary="the process is alive")
+async def healthz() -> Health:
+    return Health()
+
+
+@health.get("/readyz", response_model=Ready, summary="models are loaded", responses={503: {"model": Ready}})
+async def readyz(state: State):
+    body = Ready(ready=state.registry.ready, models=state.registry.loaded(), tracker=TRACKER_KIND)
+    return JSONResponse(body.model_dump(), status_code=200 if body.ready else 503)
+
+
+@ops.get("/metrics", response_class=PlainTextResponse, summary="Prometheus metrics (text format 0.0.4)")
+async def metrics(state: State) -> PlainTextResponse:
+    state.metrics.sessions_active.set(len(state.sessions.open))
+    state.metrics.models.set(len(state.registry.loaded()))
+    return PlainTextResponse(state.metrics.render(), media_type="text/plain; version=0.0.4")
+
+
+@api.get("/objects", response_model=ObjectList, summary="the trained objects")
+async def list_objects(state: State) -> ObjectList:
+    loaded = set(state.registry.loaded())
+    out = []
+    for name in state.registry.names():
+        try:
+            m = state.registry.manifest(name)
+        except ApiError:
+            continue
+        s = m.get("training_summary", {})
+        out.append(ObjectSummary(name=name, created=m.get("created"), viewsets=s.get("viewsets"),
+                                 points3d=s.get("points3d_total"), loaded=name in loaded))
+    return ObjectList(objects=out)
+
+
+@api.get("/objects/{name}", response_model=ObjectDetail, summary="one object's training summary")
+async def get_object(name: str, state: State) -> ObjectDetail:
+    m = state.registry.manifest(name)
+    return ObjectDetail(name=name, created=m.get("created"), training_summary=m.get("training_summary", {}),
+                        parameters=m.get("parameters"))
+
+
+_POSE_BODY = {
+    "requestBody": {
+        "required": True,
+        "description": "The image: a multipart form (`image` file + optional `camera` JSON), or the raw image bytes.",
+        "content": {
+            "multipart/form-data": {"schema": {
+                "type": "object", "required": ["image"],
+                "properties": {"image": {"type": "string", "format": "binary", "description": "JPEG, PNG or WebP"},
+                               "camera": {"type": "string", "description": "camera JSON (contract format)",
+                                          "example": json.dumps({"width": 640, "height": 480, "fx": 669.7, "fy": 667.8,
+                                                                 "cx": 320.0, "cy": 240.0})}}}},
+            "image/jpeg": {"schema": {"type": "string", "format": "binary"}},
+            "image/png": {"schema": {"type": "string", "format": "binary"}},
+            "image/webp": {"schema": {"type": "string", "format": "binary"}},
+        },
+    }
+}
+
+
+def _camera_from_query(fx, fy, cx, cy, width, height, dist) -> CameraIn | None:
+    given = [v is not None for v in (fx, fy, cx, cy)]
+    if not any(given):
+        return None
+    if not all(given):
+        raise ApiError(422, "bad_camera", "query parameters fx, fy, cx and cy go together")
+    coeffs = None
+    if dist:
+        try:
+            coeffs = [float(x) for x in dist.split(",")]
+        except ValueError:
+            raise ApiError(422, "bad_camera", "dist: comma-separated numbers (OpenCV order k1,k2,p1,p2[,k3])") from None
+    try:
+        return CameraIn(fx=fx, fy=fy, cx=cx, cy=cy, width=width, height=height, dist_coeffs=coeffs)
+    except ValidationError as exc:
+        e = exc.errors()[0]
+        raise ApiError(422, "bad_camera", f"{'.'.join(map(str, e['loc']))}: {e['msg']}") from None
+
+
+def _camera_from_json(text: str) -> CameraIn:
+    try:
+        return CameraIn.model_validate_json(text)
+    except ValidationError as exc:
+        e = exc.errors()[0]
+        where = ".".join(map(str, e["loc"]))
+        raise ApiError(422, "bad_camera", f"camera{'.' + where if where else ''}: {e['msg']}") from None
+
+
+@api.post("/objects/{name}/pose", response_model=LocateOut, openapi_extra=_POSE_BODY,
+          summary="recognise the object in one image and estimate its pose (as `quatrack locate --json`)")
+async def pose(
+    name: str, request: Request, state: State,
+    fx: Annotated[float | None, Query(description="focal length x, px (when no `camera` form field)")] = None,
+    fy: Annotated[float | None, Query(description="focal length y, px")] = None,
+    cx: Annotated[float | None, Query(description="principal point x, px")] = None,
+    cy: Annotated[float | None, Query(description="principal point y, px")] = None,
+    width: Annotated[int | None, Query(gt=0, description="image width the camera is for (default: the image's)")] = None,
+    height: Annotated[int | None, Query(gt=0, description="image height the camera is for")] = None,
+    dist: Annotated[str | None, Query(description="distortion k1,k2,p1,p2[,k3], comma-separated")] = None,
+) -> dict:
+    registry = state.registry
+    registry.check_name(name)
+    if not registry.is_known(name):
+        raise ApiError(404, "unknown_object", f"no object named {name!r} in the store")
+    ctype = request.headers.get("content-type", "").split(";")[0].strip().lower()
+    camera = _camera_from_query(fx, fy, cx, cy, width, height, dist)
+    if ctype == "multipart/form-data":
+        try:
+            form = await request.form(max_files=2, max_fields=8)
+        except ApiError:
+            raise
+        except Exception as exc:  # malformed multipart
+            raise ApiError(400, "bad_request", f"malformed multipart body ({exc.__class__.__name__})") from None
+        upload = form.get("image")
+        if upload is None or isinstance(upload, str):
+            raise ApiError(422, "missing_image", "multipart field 'image' (a file) is required")
+        data = await upload.read()
+        cam_field = form.get("camera")
+        if cam_field is not None:
+            if not isinstance(cam_field, str):
+                cam_field = (await cam_field.read()).decode("utf-8", "replace")
+            camera = _camera_from_json(cam_field)
+    elif ctype.startswith("image/") or ctype == "application/octet-stream":
+        data = await request.body()
+    else:
+        raise ApiError(415, "unsupported_media_type",
+                       "send multipart/form-data (fields image, camera) or the raw image with an image/* content type")
+    if camera is None:
+        raise ApiError(422, "bad_camera", "a camera is required: multipart field 'camera' or query parameters fx, fy, cx, cy")
+    if state.pending >= state.settings.max_pending_requests:
+        raise ApiError(503, "busy", "too many pose requests in progress; retry later",
+                       {"Retry-After": str(state.settings.retry_after_s)})
+    state.pending += 1
+    try:
+        return await asyncio.get_running_loop().run_in_executor(state.executor, _locate, state, name, data, camera)
+    finally:
+        state.pending -= 1
+
+
+def _locate(state: ServiceState, name: str, data: bytes, camera: CameraIn) -> dict:
+    """Worker thread: decode, check the camera against the image, recognise."""
+    image = decode_upload(data, state.settings.max_image_pixels)
+    h, w = image.shape[:2]
+    cam = camera.to_camera((w, h))
+    model, index = state.registry.get(name)
+    try:
+        result = locate(image, cam, model, LocateParams(max_pixels=state.settings.locate_max_pixels), index=index)
+    except ImageError as exc:
+        raise ApiError(422, "bad_image", str(exc)) from None
+    return result.to_json()
+
+
+@sockets.websocket("/objects/{name}/track")
+async def track(websocket: WebSocket, name: str) -> None:
+    """Camera JSON first, then binary frames; one JSON message per processed frame (see the README)."""
+    state = get_ws_state(websocket)
+    token = None
+    auth = websocket.headers.get("authorization", "")
+    if auth.lower().startswith("bearer "):
+        token = auth[7:].strip()
+    token = token or websocket.query_params.get("token")
+    if not _token_ok(state.settings.api_token, token):
+        return await _deny(websocket, 401, "unauthorized", "a valid bearer token is required (header or ?token=)", 1008)
+    try:
+        state.registry.check_name(name)
+    except ApiError as exc:
+        return await _deny(websocket, exc.status_code, exc.code, exc.message, 1008)
+    if not state.registry.is_known(name):
+        return await _deny(websocket, 404, "unknown_object", f"no object named {name!r} in the store", 1008)
+    sid = state.sessions.try_open()
+    if sid is None:
+        return await _deny(websocket, 503, "too_many_sessions",
+                           f"{state.settings.max_sessions} tracking sessions are open; retry later", 1013,
+                           {"Retry-After": str(state.settings.retry_after_s)})
+    m = state.metrics
+    m.sessions_active.set(len(state.sessions.open))
+    outcome = "error"
+    try:
+        await asyncio.get_running_loop().run_in_executor(state.executor, state.registry.get, name)
+        await websocket.accept()
+        session = TrackSession(websocket, sid, name, state.registry, state.settings, state.executor, m)
+        outcome = await session.run()
+    finally:
+        state.sessions.close(sid)
+        m.sessions.inc(outcome)
+        m.sessions_active.set(len(state.sessions.open))
+
+
+async def _deny(ws: WebSocket, status: int, code: str, message: str, close_code: int, headers=None) -> None:
+    """Refuse a WebSocket with an HTTP error response where the server supports it, else accept,
+    send the error message and close (1008 policy / 1013 try again later)."""
+    try:
+        await ws.send_denial_response(JSONResponse(error_body(code, message), status_code=status, headers=headers))
+        return
+    except RuntimeError:
+        pass
+    await ws.accept()
+    await ws.send_text(json.dumps({"type": "error", **error_body(code, message)}))
+    await ws.close(close_code)

@@ -1,0 +1,153 @@
+"""Pydantic models at the service's edge: what clients send and get, with OpenAPI examples.
+
+Units and conventions are the contract's: pose object → camera, ``t`` in mesh units,
+``q_wxyz`` scalar first with ``w ≥ 0``, covariances 6×6 over ``[p, δθ]`` row-major.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+from quatrack.tracking.camera import PinholeCamera
+from quatrack.viewsets.camera import camera_from_dict
+from quatrack.viewsets.errors import SpecError
+
+from .errors import ApiError
+
+Vec3 = list[float]
+CAMERA_EXAMPLE = {"width": 640, "height": 480, "fx": 669.7, "fy": 667.8, "cx": 320.0, "cy": 240.0,
+                  "dist_coeffs": [0, 0, 0, 0, 0]}
+
+
+class ErrorDetail(BaseModel):
+    code: str = Field(description="stable machine-readable code, e.g. bad_image, unknown_object")
+    message: str = Field(description="what is wrong, for a human")
+
+
+class ErrorResponse(BaseModel):
+    """Every 4xx/5xx body, REST and WebSocket alike."""
+
+    error: ErrorDetail
+    model_config = ConfigDict(json_schema_extra={"examples": [
+        {"error": {"code": "unknown_object", "message": "no object named 'mug' in the store"}}]})
+
+
+class CameraIn(BaseModel):
+    """A camera as in the contract's camera file. ``width``/``height`` may be left out on the
+    REST endpoint (the image's size is used); ``dist_coeffs`` is OpenCV's order."""
+
+    width: int | None = Field(None, gt=0, le=100_000)
+    height: int | None = Field(None, gt=0, le=100_000)
+    fx: float = Field(gt=0)
+    fy: float = Field(gt=0)
+    cx: float
+    cy: float
+    dist_coeffs: list[float] | None = None
+    model_config = ConfigDict(extra="ignore", json_schema_extra={"examples": [CAMERA_EXAMPLE]})
+
+    @field_validator("fx", "fy", "cx", "cy")
+    @classmethod
+    def _finite(cls, v: float) -> float:
+        if not math.isfinite(v):
+            raise ValueError("must be finite")
+        return v
+
+    def to_camera(self, image_size: tuple[int, int] | None = None) -> PinholeCamera:
+        """The project's camera; the image's (width, height) fills a missing size."""
+        data = self.model_dump()
+        if data["width"] is None or data["height"] is None:
+            if image_size is None:
+                raise ApiError(422, "bad_camera", "camera: width and height are required")
+            data["width"], data["height"] = image_size
+        if data["dist_coeffs"] is None:
+            data.pop("dist_coeffs")
+        try:
+            return camera_from_dict(data, "camera")
+        except (SpecError, ValueError) as exc:
+            raise ApiError(422, "bad_camera", str(exc)) from None
+
+
+class PoseOut(BaseModel):
+    t: Vec3 = Field(description="object origin in the camera frame, mesh units")
+    q_wxyz: list[float] = Field(description="unit quaternion, scalar first, w ≥ 0")
+
+
+class LocateOut(BaseModel):
+    """The same JSON object as ``quatrack locate --json`` (without ``image``)."""
+
+    found: bool
+    bbox: list[float] | None = Field(None, description="[x, y, w, h] of the RFCH window, pixels")
+    chi2: float | None = None
+    viewset: str | None = None
+    matches: int
+    inliers: int
+    reprojection_rms_px: float | None = None
+    pose: PoseOut | None = None
+    covariance: list[list[float]] | None = Field(None, description="6×6 over [p, δθ], row-major")
+    time_ms: dict[str, float]
+    reason: str | None = None
+    searched: str | None = None
+    model_config = ConfigDict(json_schema_extra={"examples": [{
+        "found": True, "bbox": [201.0, 118.0, 232.0, 260.0], "chi2": 0.41, "viewset": "view0",
+        "matches": 180, "inliers": 134, "reprojection_rms_px": 1.2,
+        "pose": {"t": [-1.9, 3.2, 62.0], "q_wxyz": [0.31, 0.87, -0.26, 0.28]},
+        "covariance": [[0.0] * 6 for _ in range(6)],
+        "time_ms": {"localise": 40.0, "match": 90.0, "pnp": 10.0, "total": 150.0},
+        "reason": None, "searched": "window"}]})
+
+
+class ObjectSummary(BaseModel):
+    name: str
+    created: str | None = None
+    viewsets: int | None = None
+    points3d: int | None = None
+    loaded: bool = Field(description="already in memory (first request needs no loading)")
+
+
+class ObjectList(BaseModel):
+    objects: list[ObjectSummary]
+    model_config = ConfigDict(json_schema_extra={"examples": [{"objects": [
+        {"name": "cookie-box", "created": "2025-01-01T00:00:00Z", "viewsets": 19, "points3d": 9000, "loaded": True}]}]})
+
+
+class ObjectDetail(BaseModel):
+    name: str
+    created: str | None = None
+    training_summary: dict = Field(description="the manifest's training summary, as `quatrack models show` prints it")
+    parameters: dict | None = None
+
+
+class Health(BaseModel):
+    status: Literal["ok"] = "ok"
+
+
+class Ready(BaseModel):
+    ready: bool
+    models: list[str]
+    tracker: str = Field(description="which tracker drives WebSocket sessions")
+
+
+# --- WebSocket messages (documented here; the socket itself is not in OpenAPI) -----------------
+
+class VelocityOut(BaseModel):
+    v: Vec3 = Field(description="linear velocity, mesh units/s, camera frame")
+    omega: Vec3 = Field(description="angular velocity, rad/s, camera frame")
+
+
+class TrackMessage(BaseModel):
+    """One server message per processed frame."""
+
+    frame: int = Field(description="0-based index of the frame in the order the server received it")
+    time_s: float
+    status: Literal["init", "tracking", "lost"]
+    pose: PoseOut | None
+    velocity: VelocityOut | None
+    covariance: list[list[float]] | None
+    inliers: int
+    latency_ms: float = Field(description="from the frame's arrival to this message")
+    skipped: int = Field(description="frames dropped (newer ones arrived) since the previous message")
+    reason: str | None = Field(None, description="why lost, or how (re)initialised")
+    timings_ms: dict[str, float] = {}

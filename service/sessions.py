@@ -1,0 +1,344 @@
+"""WebSocket tracking sessions: one receiver, one processor, and a single-slot mailbox between.
+
+Why this shape: frames may arrive faster than the CPU can track them. The receiver never blocks
+on tracking; it keeps only the *newest* unprocessed frame (a newer one replaces it and counts as
+skipped), so memory per session is bounded by one frame and latency by one processing time. The
+processor runs the tracker in the shared thread pool, one frame at a time, so a session's
+tracker is never used by two threads at once. Control messages (camera, reset, init) travel with
+the frame they preceded, so they act in the order the client sent them even when frames are
+skipped. Bad input is answered with an error message and the session stays open.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import math
+import time
+import uuid
+from concurrent.futures import Executor
+from dataclasses import dataclass, field
+
+import numpy as np
+from pydantic import ValidationError
+from starlette.websockets import WebSocket, WebSocketDisconnect, WebSocketState
+
+from quatrack.recognition.images import ImageError
+from quatrack.viewsets.errors import SpecError
+from quatrack.viewsets.spec import parse_pose
+
+from .errors import ApiError, error_body
+from .imagein import decode_upload, sniff
+from .metrics import Metrics
+from .models import ModelRegistry
+from .schemas import CameraIn
+from .settings import Settings
+from .tracker import TRACKER_KIND, make_tracker
+
+log = logging.getLogger("quatrack.service")
+MAX_CONTROLS = 32  # control messages waiting for a frame; more is a misbehaving client
+
+
+class SessionLimiter:
+    """Counts open sessions; the route refuses a new one with 503 when full."""
+
+    def __init__(self, max_sessions: int) -> None:
+        self.max = max_sessions
+        self.open: set[str] = set()
+
+    def try_open(self) -> str | None:
+        if len(self.open) >= self.max:
+            return None
+        sid = uuid.uuid4().hex[:12]
+        self.open.add(sid)
+        return sid
+
+    def close(self, sid: str) -> None:
+        self.open.discard(sid)
+
+
+@dataclass
+class _Frame:
+    number: int
+    time_s: float
+    data: bytes
+    arrival: float  # perf_counter
+    controls: list = field(default_factory=list)
+
+
+class _SessionError(Exception):
+    def __init__(self, code: str, message: str) -> None:
+        super().__init__(message)
+        self.code, self.message = code, message
+
+
+class TrackSession:
+    def __init__(self, ws: WebSocket, sid: str, name: str, registry: ModelRegistry, settings: Settings,
+                 executor: Executor, metrics: Metrics) -> None:
+        self.ws, self.sid, self.name = ws, sid, name
+        self.registry, self.settings, self.executor, self.metrics = registry, settings, executor, metrics
+        self.camera: CameraIn | None = None
+        self.controls: list = []
+        self.pending: _Frame | None = None
+        self.skipped = 0
+        self.next_frame = 0
+        self.last_time: float | None = None
+        self.header_time: float | None = None
+        self.t0: float | None = None
+        self.wakeup = asyncio.Event()
+        self.send_lock = asyncio.Lock()
+        self.closed = False
+        self.tokens = settings.max_fps  # token bucket: max_fps per second, bursts up to 1 s
+        self.token_time = time.monotonic()
+        # owned by the processor (worker thread, one job at a time):
+        self.tracker = None
+        self.tracker_camera = None
+        self.last_status: str | None = None
+
+    # --- sending ----------------------------------------------------------------------------------
+    async def send(self, payload: dict) -> None:
+        if self.closed:
+            return
+        async with self.send_lock:
+            try:
+                await self.ws.send_text(json.dumps(payload))
+            except (WebSocketDisconnect, RuntimeError, OSError):
+                self.closed = True
+
+    async def send_error(self, code: str, message: str, frame: int | None = None) -> None:
+        body = {"type": "error", **error_body(code, message)}
+        if frame is not None:
+            body["frame"] = frame
+        log.info("session %s: %s: %s", self.sid, code, message)
+        await self.send(body)
+
+    # --- receiving --------------------------------------------------------------------------------
+    async def run(self) -> str:
+        """Serve until the client leaves or idles; returns the outcome for the metrics."""
+        processor = asyncio.create_task(self._process_loop())
+        outcome = "closed"
+        try:
+            while not self.closed:
+                try:
+                    msg = await asyncio.wait_for(self.ws.receive(), self.settings.idle_timeout_s)
+                except asyncio.TimeoutError:
+                    await self.send_error("idle_timeout", f"no message for {self.settings.idle_timeout_s:g} s; closing")
+                    outcome = "idle"
+                    break
+                if msg["type"] == "websocket.disconnect":
+                    break
+                if msg.get("bytes") is not None:
+                    await self._on_frame(msg["bytes"])
+                elif msg.get("text") is not None:
+                    await self._on_text(msg["text"])
+        except (WebSocketDisconnect, RuntimeError):
+            outcome = "disconnected"
+        finally:
+            self.closed = True
+            self.wakeup.set()
+            processor.cancel()
+            try:
+                await processor
+            except (asyncio.CancelledError, Exception):
+                pass
+            if self.ws.client_state == WebSocketState.CONNECTED:
+                try:
+                    await self.ws.close(1000)
+                except (RuntimeError, OSError):
+                    pass
+        return outcome
+
+    def _take_token(self) -> bool:
+        now = time.monotonic()
+        rate = self.settings.max_fps
+        self.tokens = min(rate, self.tokens + (now - self.token_time) * rate)
+        self.token_time = now
+        if self.tokens < 1.0:
+            return False
+        self.tokens -= 1.0
+        return True
+
+    async def _on_frame(self, data: bytes) -> None:
+        arrival = time.perf_counter()
+        if self.camera is None:
+            await self.send_error("camera_required", "send the camera as a JSON text message before any frame")
+            return
+        if len(data) > self.settings.max_body_bytes:
+            self.header_time = None
+            await self.send_error("too_large", f"a frame may have at most {self.settings.max_body_bytes} bytes")
+            return
+        if sniff(data) is None:  # cheap, and keeps garbage from using a frame number or a time
+            self.header_time = None
+            self.metrics.frames.inc("error")
+            await self.send_error("unsupported_image", "a binary message must be a JPEG, PNG or WebP frame")
+            return
+        if not self._take_token():
+            self.header_time = None
+            self.metrics.frames.inc("rate_limited")
+            await self.send_error("rate_limited", f"more than {self.settings.max_fps:g} frames per second; frame dropped")
+            return
+        if self.header_time is not None:
+            time_s, self.header_time = self.header_time, None
+        else:
+            now = time.monotonic()
+            self.t0 = now if self.t0 is None else self.t0
+            time_s = now - self.t0
+            if self.last_time is not None and time_s <= self.last_time:
+                time_s = self.last_time + 1e-6  # clock mixed with client times: keep it increasing
+        self.last_time = time_s
+        number, self.next_frame = self.next_frame, self.next_frame + 1
+        self.metrics.frames.inc("received")
+        controls, self.controls = self.controls, []
+        if self.pending is not None:  # not started yet: the newer frame wins
+            self.skipped += 1
+            self.metrics.frames.inc("skipped")
+            controls = self.pending.controls + controls
+        self.pending = _Frame(number, time_s, data, arrival, controls)
+        self.wakeup.set()
+
+    async def _on_text(self, text: str) -> None:
+        try:
+            msg = json.loads(text)
+        except ValueError:
+            await self.send_error("bad_message", "a text message must be a JSON object")
+            return
+        if not isinstance(msg, dict):
+            await self.send_error("bad_message", "a text message must be a JSON object")
+            return
+        kind = msg.get("type")
+        if kind is None and "fx" in msg or kind == "camera":
+            await self._on_camera(msg.get("camera", msg) if kind == "camera" else msg)
+        elif self.camera is None:
+            await self.send_error("camera_required", "the first message must be the camera (JSON)")
+        elif kind == "frame":
+            ts = msg.get("time_s")
+            if isinstance(ts, bool) or not isinstance(ts, (int, float)) or not math.isfinite(ts) or ts < 0:
+                await self.send_error("bad_message", "'time_s' must be a finite number of seconds ≥ 0")
+            elif self.header_time is not None:
+                self.header_time = None
+                await self.send_error("out_of_order", "two frame headers in a row; send the binary frame after each")
+            elif self.last_time is not None and ts <= self.last_time:
+                await self.send_error("out_of_order", f"time_s {ts:g} is not after the previous frame's {self.last_time:g}")
+            else:
+                self.header_time = float(ts)
+        elif kind == "reset":
+            self._control(("reset",))
+            self.header_time = None
+        elif kind == "init":
+            try:
+                pose = parse_pose(msg.get("pose"), "init.pose")
+            except SpecError as exc:
+                await self.send_error("bad_pose", str(exc))
+                return
+            ts = msg.get("time_s")
+            ts = float(ts) if isinstance(ts, (int, float)) and not isinstance(ts, bool) and math.isfinite(ts) else None
+            self._control(("init", pose.t, pose.q_wxyz, ts))
+        else:
+            await self.send_error("bad_message", f"unknown message type {kind!r}; use camera, frame, reset or init")
+
+    def _control(self, op: tuple) -> None:
+        if len(self.controls) >= MAX_CONTROLS:
+            self.controls.pop(0)  # keep the newest; a client flooding controls loses the oldest
+        self.controls.append(op)
+
+    async def _on_camera(self, data) -> None:
+        try:
+            cam = CameraIn.model_validate(data)
+            cam.to_camera((cam.width or 1, cam.height or 1))  # the project's own checks
+        except ValidationError as exc:
+            e = exc.errors()[0]
+            await self.send_error("bad_camera", f"camera.{'.'.join(map(str, e['loc']))}: {e['msg']}")
+            return
+        except ApiError as exc:
+            await self.send_error(exc.code, exc.message)
+            return
+        first = self.camera is None
+        self.camera = cam
+        self._control(("camera", cam))
+        if first:
+            await self.send({"type": "ready", "session": self.sid, "object": self.name, "tracker": TRACKER_KIND})
+
+    # --- processing -------------------------------------------------------------------------------
+    async def _process_loop(self) -> None:
+        loop = asyncio.get_running_loop()
+        while not self.closed:
+            await self.wakeup.wait()
+            self.wakeup.clear()
+            item, skipped = self.pending, self.skipped
+            self.pending, self.skipped = None, 0
+            if item is None:
+                continue
+            try:
+                out = await loop.run_in_executor(self.executor, self._process, item)
+            except _SessionError as exc:
+                self.metrics.frames.inc("error")
+                await self.send_error(exc.code, exc.message, item.number)
+                continue
+            out["skipped"] = skipped
+            out["latency_ms"] = round((time.perf_counter() - item.arrival) * 1e3, 2)
+            self.metrics.frames.inc("processed")
+            self.metrics.frame_latency.observe(out["latency_ms"] / 1e3)
+            await self.send(out)
+
+    def _process(self, item: _Frame) -> dict:
+        """Worker thread: apply the controls, decode, step the tracker. Raises _SessionError."""
+        for op in item.controls:
+            if op[0] == "camera":
+                self.tracker, self.tracker_camera = None, op[1]
+            elif op[0] == "reset" and self.tracker is not None:
+                self.tracker.reset()
+        try:
+            image = decode_upload(item.data, self.settings.max_image_pixels)
+        except ApiError as exc:
+            raise _SessionError(exc.code, exc.message) from None
+        h, w = image.shape[:2]
+        cam_in = self.tracker_camera
+        if cam_in.width is not None and (cam_in.width, cam_in.height) != (w, h):
+            raise _SessionError("bad_image", f"the camera is for {cam_in.width}×{cam_in.height} px frames but this one is {w}×{h} px")
+        if self.tracker is None:
+            model, index = self.registry.get(self.name)
+            self.tracker = make_tracker(model, cam_in.to_camera((w, h)), index, self.settings.locate_max_pixels)
+            self.tracker_camera = cam_in.model_copy(update={"width": w, "height": h})
+        for op in item.controls:
+            if op[0] == "init":
+                try:
+                    self.tracker.init_pose(op[1], op[2], op[3])
+                except ValueError as exc:
+                    raise _SessionError("bad_pose", str(exc)) from None
+        try:
+            step = self.tracker.step(image, item.time_s)
+        except ImageError as exc:
+            raise _SessionError("bad_image", str(exc)) from None
+        except ValueError as exc:  # e.g. time going backwards after an init at a later time
+            raise _SessionError("bad_frame", str(exc)) from None
+        except Exception:  # a tracker bug must not end the session nor leak a traceback
+            log.exception("session %s: tracker failed on frame %d; resetting it", self.sid, item.number)
+            self.tracker.reset()
+            raise _SessionError("internal", "tracking failed on this frame (logged); the tracker was reset") from None
+        if step.status == "lost" and self.last_status != "lost":
+            self.metrics.losses.inc()
+        self.last_status = step.status
+        return _message(item, step)
+
+
+def _vec(x) -> list[float] | None:
+    return None if x is None else [float(v) for v in np.asarray(x, float).ravel()]
+
+
+def _message(item: _Frame, step) -> dict:
+    has_pose = step.status != "lost" and step.t is not None
+    cov = getattr(step, "covariance", None)
+    v, omega = getattr(step, "v", None), getattr(step, "omega", None)
+    return {
+        "type": "pose",
+        "frame": item.number,
+        "time_s": item.time_s,
+        "status": step.status,
+        "pose": {"t": _vec(step.t), "q_wxyz": _vec(step.q_wxyz)} if has_pose else None,
+        "velocity": {"v": _vec(v), "omega": _vec(omega)} if has_pose and v is not None and omega is not None else None,
+        "covariance": [[float(x) for x in row] for row in np.asarray(cov, float)[:6, :6]] if has_pose and cov is not None else None,
+        "inliers": int(getattr(step, "inliers", 0) or 0),
+        "reason": getattr(step, "reason", None),
+        "timings_ms": {k: round(float(val), 3) for k, val in (getattr(step, "timings_ms", None) or {}).items()},
+    }

@@ -1,0 +1,229 @@
+"""End-to-end tests of the service's HTTP side: a real uvicorn server on a loopback port.
+
+The example object is trained once per test session into a temporary store (≈ 3 s).
+"""
+
+from __future__ import annotations
+
+import json
+import struct
+import zlib
+from pathlib import Path
+
+import cv2
+import httpx
+import numpy as np
+import pytest
+
+from quatrack.service.server import BackgroundServer
+from quatrack.service.settings import Settings
+
+ROOT = Path(__file__).resolve().parent.parent
+EXAMPLE = ROOT / "examples" / "cookie-box"
+CAMERA = json.loads((EXAMPLE / "camera.json").read_text())
+_STORE: dict = {}
+
+
+def trained_store(tmp_path_factory) -> Path:
+    """One trained store per pytest process, shared by the service test modules."""
+    if "path" not in _STORE:
+        from quatrack.viewsets.spec import load_spec
+        from quatrack.viewsets.store import save_model
+        from quatrack.viewsets.train import train_object
+
+        store = tmp_path_factory.mktemp("service-store")
+        save_model(store, train_object(load_spec(EXAMPLE / "object.json")))
+        _STORE["path"] = store
+    return _STORE["path"]
+
+
+def video_frames(n: int, start: int = 0) -> list[np.ndarray]:
+    cap = cv2.VideoCapture(str(EXAMPLE / "box.mp4"))
+    out = []
+    i = 0
+    while len(out) < n:
+        ok, frame = cap.read()
+        if not ok:
+            break
+        if i >= start:
+            out.append(frame)
+        i += 1
+    cap.release()
+    return out
+
+
+def jpeg(img: np.ndarray) -> bytes:
+    return cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 90])[1].tobytes()
+
+
+def png_claiming(width: int, height: int) -> bytes:
+    """A tiny PNG whose header claims ``width × height`` pixels (a decompression bomb's shape)."""
+    def chunk(kind, data):
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+    ihdr = struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0)
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(b"\0" * 64)) + chunk(b"IEND", b"")
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory):
+    return trained_store(tmp_path_factory)
+
+
+@pytest.fixture(scope="module")
+def server(store):
+    settings = Settings(store=store, max_body_bytes=2_000_000, max_image_pixels=2_000_000)
+    with BackgroundServer(settings) as srv:
+        yield srv
+
+
+@pytest.fixture(scope="module")
+def client(server):
+    with httpx.Client(base_url=server.url, timeout=60) as c:
+        yield c
+
+
+@pytest.fixture(scope="module")
+def frame_jpeg():
+    return jpeg(video_frames(1, start=10)[0])
+
+
+def assert_error(r: httpx.Response, status: int, code: str | None = None) -> dict:
+    assert r.status_code == status, r.text
+    body = r.json()
+    assert set(body) == {"error"} and set(body["error"]) == {"code", "message"}, body
+    if code is not None:
+        assert body["error"]["code"] == code, body
+    return body
+
+
+def test_health_ready_objects(client):
+    assert client.get("/healthz").json() == {"status": "ok"}
+    ready = client.get("/readyz").json()
+    assert ready["ready"] and ready["models"] == ["cookie-box"] and ready["tracker"]
+    objs = client.get("/v1/objects").json()["objects"]
+    assert [o["name"] for o in objs] == ["cookie-box"] and objs[0]["loaded"]
+    detail = client.get("/v1/objects/cookie-box").json()
+    assert detail["name"] == "cookie-box" and detail["training_summary"]["viewsets"] == objs[0]["viewsets"]
+
+
+def _check_pose_json(body: dict) -> None:
+    assert body["found"], body
+    q = np.array(body["pose"]["q_wxyz"])
+    assert abs(np.linalg.norm(q) - 1) < 1e-6 and q[0] >= 0
+    cov = np.array(body["covariance"])
+    assert cov.shape == (6, 6) and np.allclose(cov, cov.T) and np.all(np.linalg.eigvalsh(cov) > -1e-12)
+    assert 20 < body["pose"]["t"][2] < 200  # the box is tens of cm in front of the webcam
+    assert body["inliers"] >= 12 and set(body["time_ms"]) >= {"localise", "match", "pnp", "total"}
+
+
+def test_pose_multipart_and_raw_agree(client, frame_jpeg):
+    r = client.post("/v1/objects/cookie-box/pose", files={"image": ("f.jpg", frame_jpeg, "image/jpeg")},
+                    data={"camera": json.dumps(CAMERA)})
+    assert r.status_code == 200, r.text
+    _check_pose_json(r.json())
+    params = {k: CAMERA[k] for k in ("fx", "fy", "cx", "cy")}
+    r2 = client.post("/v1/objects/cookie-box/pose", content=frame_jpeg, params=params,
+                     headers={"content-type": "image/jpeg"})
+    assert r2.status_code == 200, r2.text
+    _check_pose_json(r2.json())
+    assert np.allclose(r.json()["pose"]["t"], r2.json()["pose"]["t"], atol=1e-6)
+    assert r2.headers["x-request-id"]
+
+
+def test_pose_png_and_webp(client):
+    img = video_frames(1, start=10)[0]
+    params = {k: CAMERA[k] for k in ("fx", "fy", "cx", "cy")}
+    for ext, ctype in ((".png", "image/png"), (".webp", "image/webp")):
+        data = cv2.imencode(ext, img)[1].tobytes()
+        r = client.post("/v1/objects/cookie-box/pose", content=data, params=params, headers={"content-type": ctype})
+        assert r.status_code == 200, (ext, r.text)
+        assert r.json()["found"]
+
+
+def test_no_object_in_image_is_not_an_error(client):
+    blank = jpeg(np.full((480, 640, 3), 127, np.uint8))
+    r = client.post("/v1/objects/cookie-box/pose", content=blank, params={k: CAMERA[k] for k in ("fx", "fy", "cx", "cy")},
+                    headers={"content-type": "image/jpeg"})
+    assert r.status_code == 200 and r.json()["found"] is False and r.json()["pose"] is None
+
+
+@pytest.mark.parametrize("case", ["not-image", "truncated", "empty", "bomb", "wrong-size", "tiny"])
+def test_bad_images(client, frame_jpeg, case):
+    q = {k: CAMERA[k] for k in ("fx", "fy", "cx", "cy")}
+    data, status, code = {
+        "not-image": (b"hello, this is text" * 10, 415, "unsupported_image"),
+        "truncated": (frame_jpeg[: len(frame_jpeg) // 2], 400, "bad_image"),
+        "empty": (b"", 400, "bad_image"),
+        "bomb": (png_claiming(30000, 30000), 413, "image_too_large"),
+        "wrong-size": (jpeg(cv2.resize(video_frames(1)[0], (320, 240))), 422, "bad_image"),
+        "tiny": (jpeg(np.zeros((8, 8, 3), np.uint8)), 422, "bad_image"),
+    }[case]
+    if case == "wrong-size":
+        q.update(width=640, height=480)
+    r = client.post("/v1/objects/cookie-box/pose", content=data, params=q, headers={"content-type": "image/jpeg"})
+    assert_error(r, status, code)
+
+
+@pytest.mark.parametrize("camera, status", [
+    ("{not json", 422), (json.dumps({"fx": 1}), 422), (json.dumps({**CAMERA, "fx": -5}), 422),
+    (json.dumps({**CAMERA, "dist_coeffs": [1, 2, 3]}), 422), (json.dumps([1, 2]), 422),
+    (json.dumps({**CAMERA, "cx": "nan"}), 422),
+])
+def test_bad_cameras(client, frame_jpeg, camera, status):
+    r = client.post("/v1/objects/cookie-box/pose", files={"image": ("f.jpg", frame_jpeg, "image/jpeg")},
+                    data={"camera": camera})
+    assert_error(r, status)
+
+
+def test_missing_pieces(client, frame_jpeg):
+    url = "/v1/objects/cookie-box/pose"
+    assert_error(client.post(url, content=frame_jpeg, headers={"content-type": "image/jpeg"}), 422, "bad_camera")
+    assert_error(client.post(url, content=frame_jpeg, params={"fx": 600}, headers={"content-type": "image/jpeg"}), 422, "bad_camera")
+    assert_error(client.post(url, data={"camera": json.dumps(CAMERA)}, files={"other": ("x", b"1")}), 422, "missing_image")
+    assert_error(client.post(url, content=b"{}", headers={"content-type": "application/json"}), 415)
+    assert_error(client.post(url, content=b"--x\r\nbroken", headers={"content-type": "multipart/form-data; boundary=x"}), 422)
+
+
+def test_unknown_and_invalid_objects(client, frame_jpeg):
+    assert_error(client.get("/v1/objects/mug"), 404, "unknown_object")
+    assert_error(client.get("/v1/objects/.hidden"), 400, "invalid_object_name")
+    assert_error(client.get("/v1/objects/..%2F..%2Fetc"), 404)  # never reaches the store
+    r = client.post("/v1/objects/mug/pose", content=frame_jpeg, headers={"content-type": "image/jpeg"},
+                    params={k: CAMERA[k] for k in ("fx", "fy", "cx", "cy")})
+    assert_error(r, 404, "unknown_object")
+    assert_error(client.get("/nowhere"), 404)
+    assert_error(client.delete("/v1/objects"), 405)
+
+
+def test_body_limit(client):
+    big = b"\xff\xd8\xff" + b"0" * 2_100_000
+    assert_error(client.post("/v1/objects/cookie-box/pose", content=big, headers={"content-type": "image/jpeg"}), 413, "too_large")
+
+    def chunks():  # no content-length: the limit is enforced while streaming
+        for _ in range(30):
+            yield b"0" * 100_000
+    assert_error(client.post("/v1/objects/cookie-box/pose", content=chunks(), headers={"content-type": "image/jpeg"}), 413, "too_large")
+
+
+def test_metrics_and_openapi(client):
+    text = client.get("/metrics").text
+    assert "# TYPE quatrack_http_requests_total counter" in text
+    assert 'route="/v1/objects/{name}/pose"' in text and "quatrack_ws_sessions_active 0" in text
+    schema = client.get("/openapi.json").json()
+    assert "/v1/objects/{name}/pose" in schema["paths"]
+    assert client.get("/docs").status_code == 200
+
+
+def test_auth(store, frame_jpeg):
+    with BackgroundServer(Settings(store=store, api_token="s3cret", cors_origins=("https://app.example",))) as srv:
+        with httpx.Client(base_url=srv.url, timeout=60) as c:
+            assert c.get("/healthz").status_code == 200 and c.get("/readyz").status_code == 200
+            for path in ("/v1/objects", "/v1/objects/cookie-box", "/metrics"):
+                r = assert_error(c.get(path), 401, "unauthorized")
+                assert_error(c.get(path, headers={"Authorization": "Bearer wrong"}), 401)
+            assert c.get("/v1/objects", headers={"Authorization": "Bearer s3cret"}).status_code == 200
+            r = c.post("/v1/objects/cookie-box/pose", content=frame_jpeg, headers={"content-type": "image/jpeg"},
+                       params={k: CAMERA[k] for k in ("fx", "fy", "cx", "cy")})
+            assert_error(r, 401)
+            pre = c.options("/v1/objects", headers={"Origin": "https://app.example", "Access-Control-Request-Method": "GET"})
+            assert pre.headers.get("access-control-allow-origin") == "https://app.example"
