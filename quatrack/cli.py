@@ -37,6 +37,16 @@ def _add_bench(parser: argparse.ArgumentParser) -> None:
         help="a reading of the paper to test (default: paper, as printed); see bench/RESULTS.md",
     )
     ude.add_argument("--json", action="store_true", help="print one JSON object instead of the report")
+    track = sub.add_parser(
+        "track",
+        help="video tracking: every motion model at 1/1..1/5 frame rate on a rendered sequence, and box.mp4",
+        description="Tracking accuracy against rendered ground truth at several sampling rates, timings, and box.mp4.",
+    )
+    track.add_argument("--seconds", type=float, default=10.0, help="length of the rendered sequence (default 10)")
+    track.add_argument("--locate-frames", type=int, default=150, metavar="N",
+                       help="box.mp4 frames also given to per-frame recognition, for comparison (default 150)")
+    track.add_argument("--sheet", default="track_contact_sheet.png", metavar="PNG", help="contact sheet of overlays")
+    track.add_argument("--json", action="store_true", help="print one JSON object instead of the report")
 
 
 def _run_bench(args: argparse.Namespace) -> int:
@@ -48,6 +58,16 @@ def _run_bench(args: argparse.Namespace) -> int:
         if not 1 <= args.table_frame <= 180:
             raise UserError("--table-frame must be between 1 and 180")
         return ude_cube.main(args.seeds, args.first_seed, args.table_frame, args.json, args.variant)
+    if args.benchmark == "track":
+        from quatrack.bench import track
+
+        if not 1.0 <= args.seconds <= 120.0:
+            raise UserError("--seconds must be between 1 and 120")
+        if args.locate_frames < 0:
+            raise UserError("--locate-frames must be >= 0")
+        if not args.sheet.lower().endswith(".png"):
+            raise UserError("--sheet must name a .png file")
+        return track.main(args.json, args.seconds, args.locate_frames, args.sheet)
     raise UserError(f"unknown benchmark {args.benchmark!r}")
 
 
@@ -247,11 +267,24 @@ def _run_locate(args: argparse.Namespace) -> int:
     return 1 if failed else 0
 
 
+def _add_track(parser: argparse.ArgumentParser) -> None:
+    from quatrack.track_cli import add_arguments
+
+    add_arguments(parser)
+
+
+def _run_track(args: argparse.Namespace) -> int:
+    from quatrack.track_cli import run
+
+    return run(args)
+
+
 COMMANDS: dict[str, tuple[str, Callable[[argparse.ArgumentParser], None], Callable[[argparse.Namespace], int]]] = {
     "bench": ("run a benchmark and print its figures", _add_bench, _run_bench),
     "train": ("train an object's model (RFCH + SIFT viewsets) from its spec into the model store", _add_train, _run_train),
     "models": ("list, show or delete the trained objects in the model store", _add_models, _run_models),
     "locate": ("find a trained object in images and estimate its initial pose", _add_locate, _run_locate),
+    "track": ("track a trained object through a video or an image sequence (poses to CSV)", _add_track, _run_track),
 }
 
 

@@ -85,7 +85,8 @@ class TrackerParams:
     visibility: VisibilityParams = field(default_factory=VisibilityParams)
     locate: LocateParams = field(default_factory=LocateParams)
     adjust: AdjustOptions = field(
-        default_factory=lambda: AdjustOptions(method="levenberg-marquardt", robust="huber", max_iterations=10,
+        # Gauss–Newton from the prediction converges in 2–3 steps here; 4 is a measured margin
+        default_factory=lambda: AdjustOptions(method="gauss-newton", robust="huber", max_iterations=4,
                                               gradient_tolerance=1e-3)
     )
 
@@ -272,7 +273,7 @@ class Tracker:
         self.filter.initialize(time_s0, t, q, cov)
         self.filter.predict(time_s)
         t0 = time.perf_counter()
-        tracks, n_matches = self._anchor(img, _Tracks.empty(), wide=True)
+        tracks, n_matches, _ = self._anchor(img, _Tracks.empty(), wide=True)
         timings["replenish"] = _ms(t0)
         if len(tracks) < self.params.min_inliers:
             return self._lost(time_s, f"{how}: only {len(tracks)} model points matched near the pose")
@@ -302,12 +303,15 @@ class Tracker:
         tracks = self._tracks
         vis, uv_pred = visible_points(self.model.mesh, self.camera, self._pose(prior), tracks.X, p.visibility)
         tracks, uv_pred = tracks.keep(vis), uv_pred[vis]
+        timings["visibility"] = _ms(t0)
+        t1 = time.perf_counter()
         new_uv, ok, _ = track_points(self._prev, pyr, tracks.uv, uv_pred, p.klt)
+        timings["klt"] = _ms(t1)
         tracks = _Tracks(tracks.X[ok], new_uv[ok])
         gate = self._gate(tracks, prior)
         if gate.sum() >= p.min_inliers:
             tracks = tracks.keep(gate)
-        timings["measure"] = _ms(t0)
+        timings["measure"] = _ms(t0)  # visibility + KLT + gating
         if len(tracks) < p.min_inliers:
             return self._lost(time_s, f"only {len(tracks)} points tracked", len(tracks))
 
@@ -325,7 +329,13 @@ class Tracker:
         thin = len(self._tracks) < p.min_points
         if thin or (p.refresh_every and self._since_refresh >= p.refresh_every):
             t0 = time.perf_counter()
-            self._tracks, n_matches = self._anchor(img, self._tracks, wide=False)
+            self._tracks, n_matches, replaced = self._anchor(img, self._tracks, wide=False)
+            if replaced:  # the KLT tracks had slid: adjust this frame again to the fresh matches
+                good, why, inliers = self._adjust(self._tracks)
+                if not good:
+                    timings["replenish"] = _ms(t0)
+                    return self._lost(time_s, f"re-anchoring: {why}", inliers)
+                self._tracks = self._tracks.keep(self._last_inliers)
             timings["replenish"] = _ms(t0)
             self._since_refresh = 0
             self._failed_refreshes = 0 if n_matches >= p.min_anchor_matches else self._failed_refreshes + 1
@@ -403,38 +413,48 @@ class Tracker:
             return None
         return box
 
-    def _anchor(self, img: np.ndarray, tracks: _Tracks, wide: bool) -> tuple[_Tracks, int]:
-        """Add SIFT-matched model points that project near their keypoints at the current pose.
+    def _anchor(self, img: np.ndarray, tracks: _Tracks, wide: bool) -> tuple[_Tracks, int, bool]:
+        """Re-anchor to the model: SIFT in the object's window, matched to the viewsets, made
+        consistent by RANSAC PnP started at the current pose.
 
-        New anchored points replace tracks within 3 px of them (a fresh match is exact, a long
-        KLT track may have slid); returns the tracks and the number of consistent matches.
+        Returns ``(tracks, consistent matches, replaced)``. Fresh matches are exact
+        correspondences, so they replace tracks within 3 px of them; if the current pose
+        disagrees with them (median reprojection > ``anchor_radius_px / 2``) while they are
+        many, the KLT tracks have slid (occlusion, drift) and are all replaced (``replaced``).
         """
         p = self.params
         state = self.filter.state
         pose = self._pose(state)
-        box = self._window(pose)
+        box = self._window(pose, 0.3 if wide else 0.15)
         if box is None:
-            return tracks, 0
+            return tracks, 0, False
         index = self._index()
         feats = index.describe(img, box)
         m = index.match(feats)
-        if len(m) == 0:
-            return tracks, 0
-        kp = feats.keypoints[m.query_idx].astype(float)
-        X = m.points3d
-        vis, uv = visible_points(self.model.mesh, self.camera, pose, X, p.visibility)
-        err = np.linalg.norm(uv - kp, axis=1)
-        radius = p.anchor_radius_px
-        if wide:  # the pose is recognition's (or the user's): allow for its uncertainty
-            _, J = project_model_points(self.camera, X, state.p, state.R, True)
-            S = J @ state.pose_covariance @ np.swapaxes(J, 1, 2)
-            spread = np.sqrt(np.clip(np.trace(S, axis1=1, axis2=2), 0, None))
-            radius = np.clip(3.0 * spread, radius, 4 * radius)
-        good = vis & (err < radius)
-        n_good = int(good.sum())
-        X, kp = X[good], kp[good]
-        if len(tracks):
+        if len(m) < max(p.min_anchor_matches, 6):
+            return tracks, 0, False
+        kp = feats.keypoints[m.query_idx].astype(np.float64)
+        X = np.asarray(m.points3d, np.float64)
+        cam = self.camera
+        rvec0 = cv2.Rodrigues(pose.R)[0]
+        ok, rvec, tvec, inl = cv2.solvePnPRansac(
+            X, kp, cam.matrix, cam.dist_coeffs, rvec0.copy(), pose.t.reshape(3, 1).copy(), useExtrinsicGuess=True,
+            iterationsCount=100, reprojectionError=3.0, confidence=0.99, flags=cv2.SOLVEPNP_ITERATIVE)
+        if not ok or inl is None or len(inl) < p.min_anchor_matches:
+            return tracks, 0, False
+        inl = inl.ravel()
+        pnp = Pose(cv2.Rodrigues(rvec)[0], tvec.ravel())
+        vis, _ = visible_points(self.model.mesh, cam, pnp, X[inl], p.visibility)
+        X, kp = X[inl][vis], kp[inl][vis]
+        if len(X) < p.min_anchor_matches:
+            return tracks, 0, False
+        uv_cur = cam.project(pose.transform(X))
+        disagree = float(np.median(np.linalg.norm(uv_cur - kp, axis=1))) > 0.5 * p.anchor_radius_px
+        replaced = disagree and len(X) >= 2 * p.min_inliers and not wide
+        if len(tracks) and not replaced:
             d = np.linalg.norm(tracks.uv[:, None, :] - kp[None, :, :], axis=2)
             tracks = tracks.keep(d.min(axis=1) > 3.0)
+        elif replaced:
+            tracks = _Tracks.empty()
         merged = _Tracks(np.concatenate([X, tracks.X]), np.concatenate([kp, tracks.uv]))
-        return merged.keep(np.arange(len(merged)) < p.max_points), n_good
+        return merged.keep(np.arange(len(merged)) < p.max_points), len(X), replaced

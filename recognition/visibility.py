@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
+import cv2
 import numpy as np
 
 from quatrack.tracking.camera import PinholeCamera
@@ -68,7 +69,9 @@ def visible_points(
     vi = np.clip(np.rint((uv[:, 1] + 0.5) * sy - 0.5).astype(int), 0, small.height - 1)
     face = buf.face[vi, ui]
     depth = buf.depth[vi, ui]
-    ok &= face >= 0
+    # away from the silhouette by a low-res pixel: a KLT window there straddles the background
+    inner = cv2.erode((buf.face >= 0).astype(np.uint8), np.ones((3, 3), np.uint8))
+    ok &= (face >= 0) & (inner[vi, ui] > 0)
     ok &= np.abs(depth - Xc[:, 2]) < params.depth_tol * mesh.extent
     normals = mesh.face_normals[np.maximum(face, 0)] @ pose.R.T
     rays = Xc / np.linalg.norm(Xc, axis=1, keepdims=True)
