@@ -37,6 +37,16 @@ def _add_bench(parser: argparse.ArgumentParser) -> None:
         help="a reading of the paper to test (default: paper, as printed); see bench/RESULTS.md",
     )
     ude.add_argument("--json", action="store_true", help="print one JSON object instead of the report")
+    loc = sub.add_parser(
+        "locate",
+        help="recognition and initial pose: accuracy on rendered scenes, negatives, box.mp4; per-stage times",
+        description="Accuracy against rendered ground truth, false positives, the real video, per-stage p50/p95.",
+    )
+    loc.add_argument("--scenes", type=int, default=200, help="rendered scenes (default 200)")
+    loc.add_argument("--seed", type=int, default=0, help="random seed of the scenes (default 0)")
+    loc.add_argument("--every", type=int, default=3, help="use every N-th frame of box.mp4 (default 3)")
+    loc.add_argument("--sheet", metavar="PNG", help="write a contact sheet of box.mp4 overlays")
+    loc.add_argument("--json", action="store_true", help="print one JSON object instead of the report")
     track = sub.add_parser(
         "track",
         help="video tracking: every motion model at 1/1..1/5 frame rate on a rendered sequence, and box.mp4",
@@ -68,6 +78,12 @@ def _run_bench(args: argparse.Namespace) -> int:
         if not args.sheet.lower().endswith(".png"):
             raise UserError("--sheet must name a .png file")
         return track.main(args.json, args.seconds, args.locate_frames, args.sheet)
+    if args.benchmark == "locate":
+        from quatrack.bench import locate as bench_locate
+
+        if args.scenes < 1 or args.every < 1:
+            raise UserError("--scenes and --every must be at least 1")
+        return bench_locate.main(args.scenes, args.seed, args.every, args.sheet, args.json)
     raise UserError(f"unknown benchmark {args.benchmark!r}")
 
 

@@ -29,7 +29,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from quatrack.tracking.camera import PinholeCamera
-from quatrack.viewsets.rfch import RFCHModel, neighbour_counts, pixel_descriptors
+from quatrack.viewsets.rfch import RFCHModel, neighbour_planes, pixel_descriptors
 from quatrack.viewsets.store import ObjectModel
 
 
@@ -49,6 +49,9 @@ class LocaliseParams:
     aspects: tuple[float, ...] = (0.7, 1.0, 1.4)
     ring: float = 0.15
     bins: int = 128
+    refine: int = 6  # coarse candidates refined at full resolution
+    min_ring_inside: float = 0.3  # fraction of a window's ring that must lie in the image
+    ring_weight_power: float = 0.5  # contrast × (ring fraction inside)^power
     max_chi2: float = 1.2
     min_contrast: float = 0.05
 
@@ -87,40 +90,42 @@ def label_map(image: np.ndarray, rfch: RFCHModel, params: LocaliseParams = Local
     s = min(1.0, params.label_side / max(h, w))
     small = image if s == 1.0 else cv2.resize(image, (max(1, round(w * s)), max(1, round(h * s))), interpolation=cv2.INTER_AREA)
     desc = pixel_descriptors(small, tuple(float(sig) * s for sig in rfch.scales))
-    x = (desc.reshape(-1, desc.shape[-1]) - rfch.desc_mean) / rfch.desc_std
+    x = ((desc.reshape(-1, desc.shape[-1]) - rfch.desc_mean) / rfch.desc_std).astype(np.float32)
     c = rfch.centres.astype(np.float32)
-    d2 = (x * x).sum(1, keepdims=True) - 2.0 * x @ c.T + (c * c).sum(1)[None]
-    lab = np.argmin(d2, axis=1).astype(np.int32)
-    far = d2[np.arange(len(lab)), lab] > params.max_label_distance**2 * x.shape[1]
-    lab[far] = -1
+    d2 = x @ (-2.0 * c.T) + (c * c).sum(1)[None]  # ‖x - c‖² less ‖x‖², which argmin ignores
+    lab = d2.argmin(axis=1).astype(np.int32)
+    nearest = np.take_along_axis(d2, lab[:, None], 1)[:, 0] + (x * x).sum(1)
+    lab[nearest > params.max_label_distance**2 * x.shape[1]] = -1
     return LabelMap(lab.reshape(small.shape[:2]), small.shape[1] / w)
 
 
-def pair_counts(labels: np.ndarray, n: int, d: int) -> np.ndarray:
-    """(h, w, n): labelled pixels of each label within distance ``d``, the pixel itself excluded."""
+def pair_planes(labels: np.ndarray, n: int, d: int) -> np.ndarray:
+    """(n, h, w) uint16: labelled pixels of each label within distance ``d``, the pixel itself
+    excluded (the histogram counts pairs of distinct pixels)."""
     valid = labels >= 0
-    N = neighbour_counts(labels, valid, n, d)
-    N[valid, labels[valid]] -= 1.0
+    N = neighbour_planes(labels, valid, n, d)
+    flat = N.reshape(n, -1)
+    idx = np.flatnonzero(valid)
+    flat[labels.ravel()[idx], idx] -= 1
     return N
 
 
 def cell_histograms(labels: np.ndarray, N: np.ndarray, n: int, cell: int) -> np.ndarray:
-    """(rows, cols, n·n) co-occurrence counts per cell: row ``a·n + b`` counts pairs (a at p,
-    b near p) with p in the cell. Pixels beyond the last whole cell are dropped."""
+    """(rows, cols, n·n) co-occurrence counts per cell: bin ``a·n + b`` counts pairs (a at p,
+    b near p) with p in the cell. ``N``: :func:`pair_planes`. Pixels past the last whole cell
+    are dropped."""
     H, W = labels.shape
     rows, cols = H // cell, W // cell
     lab = labels[: rows * cell, : cols * cell]
-    cnt = N[: rows * cell, : cols * cell].reshape(-1, n)
-    cy, cx = np.divmod(np.arange(rows * cell * cols * cell), cols * cell)
-    cell_id = (cy // cell) * cols + (cx // cell)
     flat = lab.ravel()
-    ok = flat >= 0
-    key = cell_id[ok] * n + flat[ok]
-    m = int(ok.sum())
+    ok = np.flatnonzero(flat >= 0)
+    cy, cx = np.divmod(ok, cols * cell)
+    key = (cy // cell) * cols + (cx // cell)
+    key = key * n + flat[ok]
+    cnt = N[:, : rows * cell, : cols * cell].reshape(n, -1)[:, ok].T.astype(np.float32)
     # CSC with one non-zero per column (pixel): built without any sort
-    S = sp.csc_matrix((np.ones(m, np.float32), key, np.arange(m + 1)), shape=(rows * cols * n, m))
-    Hc = np.asarray(S @ cnt[ok])  # (rows·cols·n, n)
-    return Hc.reshape(rows, cols, n * n)
+    S = sp.csc_matrix((np.ones(len(ok), np.float32), key, np.arange(len(ok) + 1)), shape=(rows * cols * n, len(ok)))
+    return np.asarray(S @ cnt).reshape(rows, cols, n * n)
 
 
 def _kept_bins(model_hist: np.ndarray, k: int) -> np.ndarray:
@@ -129,21 +134,21 @@ def _kept_bins(model_hist: np.ndarray, k: int) -> np.ndarray:
 
 def compress(hist: np.ndarray, kept: np.ndarray) -> np.ndarray:
     """Histograms (..., n·n) → (..., k + 1): the kept bins, then everything else pooled."""
-    out = np.empty(hist.shape[:-1] + (len(kept) + 1,), dtype=np.float64)
+    out = np.empty(hist.shape[:-1] + (len(kept) + 1,), dtype=np.float32)
     out[..., :-1] = hist[..., kept]
     out[..., -1] = hist.sum(axis=-1) - out[..., :-1].sum(axis=-1)
     return out
 
 
 def chi2_rows(h: np.ndarray, m: np.ndarray) -> np.ndarray:
-    """χ² of each row of unnormalised histograms ``h`` (..., k) to the normalised ``m`` (k,)."""
+    """χ² of each row of unnormalised histograms ``h`` (..., k) to the normalised ``m`` (k,);
+    2 (the maximum) for an empty row."""
     tot = h.sum(axis=-1, keepdims=True)
     hn = h / np.maximum(tot, 1e-12)
     s = hn + m
-    with np.errstate(invalid="ignore", divide="ignore"):
-        terms = np.where(s > 0, (hn - m) ** 2 / np.where(s > 0, s, 1.0), 0.0)
-    out = terms.sum(axis=-1)
-    return np.where(tot[..., 0] > 0, out, 2.0)  # an empty histogram is as far as can be
+    diff = hn - m
+    out = (diff * diff / np.maximum(s, 1e-30)).sum(axis=-1)  # 0/0 bins contribute 0
+    return np.where(tot[..., 0] > 0, out, 2.0)
 
 
 def window_shapes(model: ObjectModel, image_size: tuple[int, int], scale: float, grid, params: LocaliseParams):
@@ -181,17 +186,15 @@ def localise(
     if not (lm.labels >= 0).any():
         return None
     d = max(1, int(round(rf.distance * lm.scale)))
-    N = pair_counts(lm.labels, n, d)
+    N = pair_planes(lm.labels, n, d)
     kept = _kept_bins(rf.histogram, params.bins)
-    m = compress(rf.histogram.reshape(1, -1), kept)[0]
+    m = compress(rf.histogram.reshape(1, -1).astype(np.float32), kept)[0]
     C = compress(cell_histograms(lm.labels, N, n, params.cell), kept)  # (rows, cols, k+1)
     rows, cols = C.shape[:2]
-    I = np.zeros((rows + 1, cols + 1, C.shape[2]))
+    I = np.zeros((rows + 1, cols + 1, C.shape[2]), np.float32)
     I[1:, 1:] = C.cumsum(0).cumsum(1)
-    best = None
-    for w, h in window_shapes(model, (image.shape[1], image.shape[0]), lm.scale, (rows, cols), params):
-        ys, xs = np.meshgrid(np.arange(rows - h + 1), np.arange(cols - w + 1), indexing="ij")
-        ys, xs = ys.ravel(), xs.ravel()
+    def evaluate(w: int, h: int, ys: np.ndarray, xs: np.ndarray):
+        """Centre-surround scores of the windows of shape (w, h) at cells (ys, xs)."""
         inner = _box_sums(I, ys, xs, ys + h, xs + w)
         rw, rh = max(1, round(params.ring * w)), max(1, round(params.ring * h))
         oy0, ox0 = np.maximum(ys - rh, 0), np.maximum(xs - rw, 0)
@@ -199,9 +202,28 @@ def localise(
         ring = _box_sums(I, oy0, ox0, oy1, ox1) - inner
         c_in = chi2_rows(inner, m)
         c_ring = chi2_rows(ring, m)
-        # a ring cut by the image border only speaks for the part of it inside the image
+        # the ring's histogram holds only its part inside the image; a window whose ring is
+        # mostly outside has no surround to compare with (the whole image, say) and is skipped
         inside = ((oy1 - oy0) * (ox1 - ox0) - w * h) / ((h + 2 * rh) * (w + 2 * rw) - w * h)
-        score = inside * (c_in - c_ring)
+        weight = np.where(inside >= params.min_ring_inside, inside**params.ring_weight_power, np.nan)
+        return np.where(np.isnan(weight), np.inf, weight * (c_in - c_ring)), c_in, c_ring
+
+    # coarse: every shape on a grid of every other cell; fine: ±1 cell around the best few
+    coarse = []
+    for w, h in window_shapes(model, (image.shape[1], image.shape[0]), lm.scale, (rows, cols), params):
+        ys, xs = np.meshgrid(np.arange(0, rows - h + 1, 2), np.arange(0, cols - w + 1, 2), indexing="ij")
+        ys, xs = ys.ravel(), xs.ravel()
+        score, _, _ = evaluate(w, h, ys, xs)
+        k = int(np.argmin(score))
+        if np.isfinite(score[k]):
+            coarse.append((float(score[k]), w, h, int(ys[k]), int(xs[k])))
+    coarse.sort()
+    best = None
+    for _, w, h, y0, x0 in coarse[: params.refine]:
+        ys, xs = np.meshgrid(np.arange(max(y0 - 1, 0), min(y0 + 2, rows - h + 1)),
+                             np.arange(max(x0 - 1, 0), min(x0 + 2, cols - w + 1)), indexing="ij")
+        ys, xs = ys.ravel(), xs.ravel()
+        score, c_in, c_ring = evaluate(w, h, ys, xs)
         k = int(np.argmin(score))
         if best is None or score[k] < best[0]:
             best = (float(score[k]), float(c_in[k]), float(c_ring[k]), (int(xs[k]), int(ys[k]), w, h))

@@ -100,11 +100,13 @@ def _pose_from(
             if len(keep) < params.pose.min_inliers:
                 continue
             m = matches.subset(keep)
-            est = solve_pnp(camera, m.points3d, features.keypoints[m.query_idx], params.pose)
+            vs = model.viewsets[int(np.bincount(m.viewset).argmax())]
+            prior = (vs.pose.R, vs.pose.t, model.mesh.centre)
+            est = solve_pnp(camera, m.points3d, features.keypoints[m.query_idx], params.pose, prior)
             if est is None:
                 reason = f"PnP found no consensus ({len(keep)} matches, viewset {label})"
                 continue
-            why = verify(est, len(keep), camera, model.mesh.vertices, window, params.pose)
+            why = verify(est, len(keep), camera, model.mesh.vertices, window, params.pose, m.points3d, m.normals, prior)
             if why is None:
                 return est, len(keep), None, label
             reason = f"{why} (viewset {label})"
@@ -138,7 +140,11 @@ def locate(
         feats = index.describe(img, _crop_box(win.bbox, params.margin, w, h))
         timer["match"] += (time.perf_counter() - t0) * 1e3
         est, n_matches, reason, vs_label = _pose_from(feats, index, model, cam, win.bbox, params, timer)
-    if est is None and (params.whole_image_fallback or not params.use_window):
+    # the whole image is searched when there is no window search, or when the window looked
+    # like the object but gave no verified pose; a window that is nothing like the object
+    # (χ² beyond the gate) ends the search: "not found" stays fast
+    window_failed = win is not None and win.found and est is None
+    if est is None and (not params.use_window or (params.whole_image_fallback and window_failed)):
         searched = "image"
         t0 = time.perf_counter()
         feats = index.describe(img)

@@ -18,6 +18,7 @@ import cv2
 import numpy as np
 
 from quatrack.viewsets.features import Features
+from quatrack.viewsets.mesh import surface_normals
 from quatrack.viewsets.store import ObjectModel
 from quatrack.viewsets.viewset import extract_query_features, params_from_manifest
 
@@ -37,19 +38,21 @@ class MatchParams:
 @dataclass(frozen=True)
 class Matches:
     """Ratio-tested matches: query feature ``query_idx[i]`` ↔ model row ``model_row[i]``, which
-    lies in viewset ``viewset[i]`` and is the 3-D point ``points3d[i]``."""
+    lies in viewset ``viewset[i]`` and is the 3-D point ``points3d[i]`` on a surface of normal ``normals[i]``."""
 
     query_idx: np.ndarray
     model_row: np.ndarray
     viewset: np.ndarray
     points3d: np.ndarray
+    normals: np.ndarray
     distance: np.ndarray
 
     def __len__(self) -> int:
         return len(self.query_idx)
 
     def subset(self, keep: np.ndarray) -> "Matches":
-        return Matches(self.query_idx[keep], self.model_row[keep], self.viewset[keep], self.points3d[keep], self.distance[keep])
+        return Matches(self.query_idx[keep], self.model_row[keep], self.viewset[keep], self.points3d[keep],
+                       self.normals[keep], self.distance[keep])
 
     def votes(self, n_viewsets: int) -> np.ndarray:
         """Good matches per viewset."""
@@ -73,6 +76,7 @@ class ModelIndex:
             [np.full(len(vs), i) for i, vs in enumerate(model.viewsets) if len(vs)]
         ).astype(int) if nonempty else np.zeros(0, int)
         self.point_tol = params.same_point_tol * float(model.mesh.extent)
+        self.normals = surface_normals(model.mesh, self.points3d)
         self._local = threading.local()  # cv2 matchers are not safe to share across threads
 
     def _matcher(self):
@@ -98,7 +102,7 @@ class ModelIndex:
 
     def match(self, features: Features) -> Matches:
         """Ratio-tested matches of ``features`` to the model, one per query feature at most."""
-        empty = Matches(np.zeros(0, int), np.zeros(0, int), np.zeros(0, int), np.zeros((0, 3)), np.zeros(0))
+        empty = Matches(np.zeros(0, int), np.zeros(0, int), np.zeros(0, int), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0))
         if len(features) == 0 or len(self.descriptors) < 2:
             return empty
         k = min(self.params.k, len(self.descriptors))
@@ -125,7 +129,7 @@ class ModelIndex:
         q, r, d = q[order], r[order], d[order]
         _, first = np.unique(r, return_index=True)
         q, r, d = q[first], r[first], d[first]
-        return Matches(q, r, self.row_viewset[r], self.points3d[r], d)
+        return Matches(q, r, self.row_viewset[r], self.points3d[r], self.normals[r], d)
 
 
 _INDEX_CACHE: dict[int, ModelIndex] = {}  # by id(model); an entry leaves with its model

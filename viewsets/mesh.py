@@ -79,7 +79,22 @@ def load_mesh(path: str | Path) -> Mesh:
         raise SpecError(f"{path}: the mesh has no vertices")
     if faces is None or len(faces) == 0:
         raise SpecError(f"{path}: the mesh has no faces (a point cloud cannot be rendered)")
-    return make_mesh(np.asarray(vertices), np.asarray(faces), str(path))
+    return make_mesh(np.asarray(vertices), outward_faces(np.asarray(vertices), np.asarray(faces)), str(path))
+
+
+def outward_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """The faces (same order) re-wound so that every normal points out of a closed mesh.
+
+    Exported meshes often mix windings (the bundled box.ply does); visibility tests need to know
+    which side of a face is outside. An open mesh is only made consistent, not turned inside out.
+    """
+    import trimesh
+
+    tm = trimesh.Trimesh(np.asarray(vertices, float), np.asarray(faces), process=False)
+    trimesh.repair.fix_winding(tm)
+    if tm.is_watertight and tm.volume < 0:
+        tm.invert()
+    return np.asarray(tm.faces)
 
 
 def planar_groups(mesh: Mesh, angle_tol_deg: float = 1.0, offset_tol: float = 1e-3) -> np.ndarray:
@@ -105,3 +120,22 @@ def planar_groups(mesh: Mesh, angle_tol_deg: float = 1.0, offset_tol: float = 1e
         groups[same] = next_id
         next_id += 1
     return groups
+
+
+def surface_normals(mesh: Mesh, points: np.ndarray, candidates: int = 16) -> np.ndarray:
+    """Outward unit normal (n, 3) of the surface at points lying on the mesh (e.g. lifted
+    keypoints): among the triangles with the nearest centroids, the one whose plane passes
+    closest to the point. Coplanar neighbours share the normal, so ties do not matter."""
+    from scipy.spatial import cKDTree
+
+    P = np.asarray(points, dtype=float).reshape(-1, 3)
+    if len(P) == 0:
+        return np.zeros((0, 3))
+    oriented = make_mesh(mesh.vertices, outward_faces(mesh.vertices, mesh.faces))  # models stored before winding was fixed
+    tris = oriented.triangles
+    normals = oriented.face_normals
+    k = min(candidates, len(tris))
+    _, cand = cKDTree(tris.mean(axis=1)).query(P, k=k)
+    cand = np.asarray(cand).reshape(len(P), k)
+    plane = np.abs(np.einsum("pkj,pkj->pk", normals[cand], P[:, None, :] - tris[cand, 0]))
+    return normals[cand[np.arange(len(P)), np.argmin(plane, axis=1)]]

@@ -1,0 +1,203 @@
+"""`quatrack bench locate`: speed and accuracy of recognition and initial pose (issue 4).
+
+- **Rendered scenes** (ground truth): the bundled cookie box rendered at known poses turned up
+  to 60° away from its registered view, over real room backgrounds, with colour casts, shading,
+  blur, noise, JPEG and occluders (:mod:`bench.scenes`). Success = centre translation error
+  ≤ 5 % of the object's diameter and rotation error ≤ 5°; the curve over viewing angle; the
+  localisation window's IoU with the true box.
+- **Negatives**: the same backgrounds without the box: how often a pose is (wrongly) reported.
+- **Real video** (``box.mp4``, no ground truth): in how many frames a verified pose is found,
+  and whether the window's centre lies on the box as drawn by a verified whole-image pose of the
+  same frame; a contact sheet of overlays to look at.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from quatrack.recognition.locate import LocateParams, locate
+from quatrack.recognition.match import index_for
+from quatrack.recognition.pose import iou
+from quatrack.tracking import quaternion as quat
+from quatrack.viewsets.camera import load_camera
+from quatrack.viewsets.render import render
+from quatrack.viewsets.spec import Pose
+
+from . import scenes as S
+
+STAGES = ("localise", "match", "pnp", "total")
+ANGLE_BINS = (0, 10, 20, 30, 40, 50, 60)
+
+
+def _pct(values, q) -> float | None:
+    return float(np.percentile(values, q)) if len(values) else None
+
+
+def draw_overlay(image: np.ndarray, camera, mesh, t, q, colour=(0, 255, 0)) -> np.ndarray:
+    """The mesh's edges projected at a pose (t, q) onto a copy of ``image``."""
+    out = image.copy()
+    uv = camera.project(mesh.vertices @ quat.to_matrix(q).T + t)
+    for tri in mesh.faces:
+        for a, b in ((0, 1), (1, 2), (2, 0)):
+            cv2.line(out, tuple(int(v) for v in uv[tri[a]]), tuple(int(v) for v in uv[tri[b]]), colour, 2, cv2.LINE_AA)
+    return out
+
+
+def rendered(n: int, seed: int, model, camera, progress: bool) -> dict:
+    from tqdm import tqdm
+
+    renderer = S.Renderer.from_spec(S.EXAMPLE / "object.json")
+    backgrounds = S.video_backgrounds()
+    rng = np.random.default_rng(seed)
+    index = index_for(model)
+    diameter = float(model.mesh.extent)
+    rows = []
+    for _ in tqdm(range(n), desc="rendered scenes", disable=not progress, unit="scene"):
+        sc = S.random_scene(rng, renderer, camera, backgrounds)
+        r = locate(sc.image, camera, model, LocateParams(), index=index)
+        dt, dr = (np.inf, np.inf) if not r.found else S.pose_errors(r.t, r.q_wxyz, sc.pose, model.mesh)
+        rows.append({
+            "angle": sc.view_angle_deg, "found": r.found, "dt": dt, "dr": dr,
+            "iou": iou(r.bbox, sc.bbox) if r.bbox else 0.0, "occluded": sc.occluded,
+            "searched": r.searched, **{k: r.time_ms.get(k, 0.0) for k in STAGES},
+        })
+    ok = np.array([row["dt"] <= 0.05 * diameter and row["dr"] <= 5.0 for row in rows])
+    ang = np.array([row["angle"] for row in rows])
+    found = np.array([row["found"] for row in rows])
+    curve = []
+    for lo, hi in zip(ANGLE_BINS[:-1], ANGLE_BINS[1:]):
+        sel = (ang >= lo) & (ang < hi)
+        curve.append({"from_deg": lo, "to_deg": hi, "scenes": int(sel.sum()),
+                      "success": float(ok[sel].mean()) if sel.any() else None})
+    within = ang <= 30.0
+    dts = np.array([row["dt"] for row in rows])[found]
+    drs = np.array([row["dr"] for row in rows])[found]
+    ious = np.array([row["iou"] for row in rows])
+    return {
+        "scenes": n,
+        "success": float(ok.mean()),
+        "success_within_30deg": float(ok[within].mean()) if within.any() else None,
+        "found": float(found.mean()),
+        "wrong_when_found": float(((~ok) & found).sum() / max(found.sum(), 1)),
+        "median_translation_error": float(np.median(dts)) if len(dts) else None,
+        "median_translation_error_pct_diameter": float(100 * np.median(dts) / diameter) if len(dts) else None,
+        "median_rotation_error_deg": float(np.median(drs)) if len(drs) else None,
+        "window_iou_ge_0.5": float(np.mean(ious >= 0.5)),
+        "window_iou_median": float(np.median(ious)),
+        "fallback_to_whole_image": float(np.mean([row["searched"] == "image" for row in rows])),
+        "curve": curve,
+        "time_ms": {k: {"p50": _pct([row[k] for row in rows], 50), "p95": _pct([row[k] for row in rows], 95)} for k in STAGES},
+    }
+
+
+def negatives(model, camera) -> dict:
+    index = index_for(model)
+    found, times = [], []
+    for bg in S.video_backgrounds():
+        for img in (bg, np.ascontiguousarray(bg[:, ::-1])):
+            r = locate(img, camera, model, LocateParams(), index=index)
+            found.append(r.found)
+            times.append(r.time_ms["total"])
+    return {"images": len(found), "false_positives": int(np.sum(found)),
+            "time_ms": {"p50": _pct(times, 50), "p95": _pct(times, 95)}}
+
+
+def video(model, camera, every: int, sheet: str | None, progress: bool) -> dict:
+    from tqdm import tqdm
+
+    index = index_for(model)
+    cap = cv2.VideoCapture(str(S.EXAMPLE / "box.mp4"))
+    n_total = int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) or 455
+    rows, thumbs = [], []
+    i = 0
+    bar = tqdm(total=n_total, desc="box.mp4", disable=not progress, unit="frame")
+    while True:
+        ok, frame = cap.read()
+        if not ok:
+            break
+        bar.update(1)
+        if i % every == 0:
+            r = locate(frame, camera, model, LocateParams(), index=index)
+            ref = locate(frame, camera, model, LocateParams(use_window=False), index=index)
+            on_box = None
+            if ref.found and r.bbox is not None:
+                sil = render(model.mesh, camera, Pose(quat.to_matrix(ref.q_wxyz), ref.t)).face >= 0
+                cx = int(np.clip(r.bbox[0] + r.bbox[2] / 2, 0, frame.shape[1] - 1))
+                cy = int(np.clip(r.bbox[1] + r.bbox[3] / 2, 0, frame.shape[0] - 1))
+                on_box = bool(sil[cy, cx])
+            rows.append({"frame": i, "found": r.found, "ref_found": ref.found, "on_box": on_box,
+                         **{k: r.time_ms.get(k, 0.0) for k in STAGES}})
+            if sheet and i % (every * 5) == 0 and len(thumbs) < 30:
+                g = draw_overlay(frame, camera, model.mesh, r.t, r.q_wxyz) if r.found else frame.copy()
+                if r.bbox:
+                    x, y, w, h = (int(v) for v in r.bbox)
+                    cv2.rectangle(g, (x, y), (x + w, y + h), (255, 128, 0), 2)
+                cv2.putText(g, f"{i} {'found' if r.found else 'not found'} {r.inliers} inliers", (8, 28),
+                            cv2.FONT_HERSHEY_SIMPLEX, 0.8, (0, 255, 255), 2)
+                thumbs.append(cv2.resize(g, (320, 240)))
+        i += 1
+    bar.close()
+    if sheet and thumbs:
+        while len(thumbs) % 5:
+            thumbs.append(np.zeros_like(thumbs[0]))
+        grid = np.vstack([np.hstack(thumbs[k : k + 5]) for k in range(0, len(thumbs), 5)])
+        Path(sheet).parent.mkdir(parents=True, exist_ok=True)
+        cv2.imwrite(str(sheet), grid)
+    on = [row["on_box"] for row in rows if row["on_box"] is not None]
+    return {
+        "frames": len(rows), "every": every,
+        "found": float(np.mean([row["found"] for row in rows])),
+        "found_whole_image": float(np.mean([row["ref_found"] for row in rows])),
+        "window_centre_on_box": float(np.mean(on)) if on else None,
+        "time_ms": {k: {"p50": _pct([row[k] for row in rows], 50), "p95": _pct([row[k] for row in rows], 95)} for k in STAGES},
+        "sheet": sheet,
+    }
+
+
+def run(scenes: int = 200, seed: int = 0, every: int = 3, sheet: str | None = None, progress: bool = True) -> dict:
+    model = S.example_model()
+    camera = load_camera(S.EXAMPLE / "camera.json")
+    index_for(model)._matcher()  # build the index before timing anything
+    return {
+        "rendered": rendered(scenes, seed, model, camera, progress),
+        "negatives": negatives(model, camera),
+        "video": video(model, camera, every, sheet, progress),
+    }
+
+
+def _share(x: float | None) -> str:
+    return "-" if x is None else f"{100 * x:.0f} %"
+
+
+def format_report(s: dict) -> str:
+    r, n, v = s["rendered"], s["negatives"], s["video"]
+    lines = [f"Rendered scenes ({r['scenes']}, 0–60° from the registered view):",
+             f"  success {100 * r['success']:.1f} % (within 30°: {100 * r['success_within_30deg']:.1f} %), "
+             f"found {100 * r['found']:.1f} %, wrong when found {100 * r['wrong_when_found']:.1f} %",
+             f"  median error {r['median_translation_error_pct_diameter']:.2f} % of diameter, "
+             f"{r['median_rotation_error_deg']:.2f}°; window IoU ≥ 0.5 in {100 * r['window_iou_ge_0.5']:.0f} % "
+             f"(median {r['window_iou_median']:.2f}); whole-image fallback in {100 * r['fallback_to_whole_image']:.0f} %",
+             "  success by angle: " + ", ".join(f"{c['from_deg']}–{c['to_deg']}°: {_share(c['success'])} ({c['scenes']})"
+                                                 for c in r["curve"])]
+    for name, block in (("rendered", r), ("box.mp4", v)):
+        lines.append(f"  time {name}: " + ", ".join(
+            f"{k} p50 {block['time_ms'][k]['p50']:.1f} / p95 {block['time_ms'][k]['p95']:.1f} ms" for k in STAGES))
+    lines += [f"Negatives: {n['false_positives']} of {n['images']} background images gave a pose; "
+              f"p50 {n['time_ms']['p50']:.0f} ms",
+              f"box.mp4 (every {v['every']}. frame, {v['frames']} frames): verified pose in {100 * v['found']:.1f} % "
+              f"(whole-image search: {100 * v['found_whole_image']:.1f} %), window centre on the box in "
+              f"{100 * v['window_centre_on_box']:.1f} %" + (f"; contact sheet {v['sheet']}" if v["sheet"] else "")]
+    return "\n".join(lines)
+
+
+def main(scenes: int, seed: int, every: int, sheet: str | None, as_json: bool) -> int:
+    t0 = time.perf_counter()
+    summary = run(scenes, seed, every, sheet, progress=not as_json)
+    summary["wall_s"] = time.perf_counter() - t0
+    print(json.dumps(summary) if as_json else format_report(summary))
+    return 0
