@@ -57,6 +57,15 @@ def _add_bench(parser: argparse.ArgumentParser) -> None:
                        help="box.mp4 frames also given to per-frame recognition, for comparison (default 150)")
     track.add_argument("--sheet", default="track_contact_sheet.png", metavar="PNG", help="contact sheet of overlays")
     track.add_argument("--json", action="store_true", help="print one JSON object instead of the report")
+    serve = sub.add_parser(
+        "serve",
+        help="the service under load: concurrent WebSocket streams at 30 fps, REST pose requests/s",
+        description="Start the service on loopback; N = 1, 2, 4, 8 WebSocket clients each stream box.mp4 at 30 fps "
+                    "(per-frame latency p50/p99, frames processed and skipped); REST pose requests/s at concurrency 4.",
+    )
+    from quatrack.bench.serve import add_arguments as _add_serve_bench
+
+    _add_serve_bench(serve)
 
 
 def _run_bench(args: argparse.Namespace) -> int:
@@ -68,6 +77,10 @@ def _run_bench(args: argparse.Namespace) -> int:
         if not 1 <= args.table_frame <= 180:
             raise UserError("--table-frame must be between 1 and 180")
         return ude_cube.main(args.seeds, args.first_seed, args.table_frame, args.json, args.variant)
+    if args.benchmark == "serve":
+        from quatrack.bench import serve
+
+        return serve.main(args)
     if args.benchmark == "track":
         from quatrack.bench import track
 
@@ -295,12 +308,38 @@ def _run_track(args: argparse.Namespace) -> int:
     return run(args)
 
 
+def _add_serve(parser: argparse.ArgumentParser) -> None:
+    from quatrack.service.cli import add_serve
+
+    add_serve(parser)
+
+
+def _run_serve(args: argparse.Namespace) -> int:
+    from quatrack.service.cli import run_serve
+
+    return run_serve(args)
+
+
+def _add_demo(parser: argparse.ArgumentParser) -> None:
+    from quatrack.service.cli import add_demo
+
+    add_demo(parser)
+
+
+def _run_demo(args: argparse.Namespace) -> int:
+    from quatrack.service.cli import run_demo
+
+    return run_demo(args)
+
+
 COMMANDS: dict[str, tuple[str, Callable[[argparse.ArgumentParser], None], Callable[[argparse.Namespace], int]]] = {
     "bench": ("run a benchmark and print its figures", _add_bench, _run_bench),
     "train": ("train an object's model (RFCH + SIFT viewsets) from its spec into the model store", _add_train, _run_train),
     "models": ("list, show or delete the trained objects in the model store", _add_models, _run_models),
     "locate": ("find a trained object in images and estimate its initial pose", _add_locate, _run_locate),
     "track": ("track a trained object through a video or an image sequence (poses to CSV)", _add_track, _run_track),
+    "serve": ("run the HTTP/WebSocket service (pose of an image, tracking of a stream)", _add_serve, _run_serve),
+    "demo": ("stream a video through the service's WebSocket; write poses (CSV) and an overlay video", _add_demo, _run_demo),
 }
 
 

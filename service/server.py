@@ -34,8 +34,15 @@ class BackgroundServer:
         config = uvicorn.Config(self.app, host="127.0.0.1", port=port, log_config=configure(log_level),
                                 ws_max_size=self.settings.max_body_bytes, lifespan="on", timeout_graceful_shutdown=2)
         self.server = uvicorn.Server(config)
-        self.thread = threading.Thread(target=self.server.run, name=f"quatrack-serve-{port}", daemon=True)
+        self.thread = threading.Thread(target=self._run, name=f"quatrack-serve-{port}", daemon=True)
         self.wait_ready = wait_ready
+        self.error: BaseException | None = None
+
+    def _run(self) -> None:
+        try:
+            self.server.run()
+        except BaseException as exc:  # reported by start(), not lost in a thread
+            self.error = exc
 
     @property
     def url(self) -> str:
@@ -47,10 +54,10 @@ class BackgroundServer:
 
     def start(self) -> "BackgroundServer":
         self.thread.start()
-        deadline = time.monotonic() + 60
+        deadline = time.monotonic() + 120  # generous: the machine may be busy
         while not self.server.started:
             if not self.thread.is_alive() or time.monotonic() > deadline:
-                raise RuntimeError("the service did not start")
+                raise RuntimeError(f"the service did not start ({self.error!r})")
             time.sleep(0.02)
         if self.wait_ready:
             import httpx

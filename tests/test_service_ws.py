@@ -1,0 +1,270 @@
+"""End-to-end tests of the WebSocket tracking sessions on a real server (loopback)."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import socket
+import threading
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+from websockets.exceptions import ConnectionClosed, InvalidStatus
+from websockets.sync.client import connect
+
+from quatrack.service.server import BackgroundServer
+from quatrack.service.settings import Settings
+from test_service_http import CAMERA, jpeg, trained_store, video_frames
+
+CAM_TEXT = json.dumps(CAMERA)
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory):
+    return trained_store(tmp_path_factory)
+
+
+@pytest.fixture(scope="module")
+def frames():
+    return [jpeg(f) for f in video_frames(24)]
+
+
+@pytest.fixture(scope="module")
+def server(store):
+    with BackgroundServer(Settings(store=store, max_sessions=3, max_body_bytes=2_000_000)) as srv:
+        yield srv
+
+
+@pytest.fixture(scope="module")
+def strict(store):
+    """Tight limits and a token: one session, 2 s idle timeout, 5 frames/s."""
+    settings = Settings(store=store, api_token="tok", max_sessions=1, idle_timeout_s=2.0, max_fps=5.0)
+    with BackgroundServer(settings) as srv:
+        yield srv
+
+
+def recv(ws, timeout=60.0) -> dict:
+    return json.loads(ws.recv(timeout=timeout))
+
+
+@contextlib.contextmanager
+def open_session(srv, name="cookie-box", **kw):
+    with connect(f"{srv.ws_url}/v1/objects/{name}/track", open_timeout=20, **kw) as ws:
+        ws.send(CAM_TEXT)
+        ready = recv(ws)
+        assert ready["type"] == "ready" and ready["object"] == name, ready
+        yield ws
+
+
+def send_frame(ws, data: bytes, time_s: float | None = None) -> None:
+    if time_s is not None:
+        ws.send(json.dumps({"type": "frame", "time_s": time_s}))
+    ws.send(data)
+
+
+def metric(srv, name: str, token: str | None = None) -> float:
+    headers = {"Authorization": f"Bearer {token}"} if token else {}
+    for line in httpx.get(f"{srv.url}/metrics", headers=headers).text.splitlines():
+        if line.startswith(name + " "):
+            return float(line.split()[1])
+    return 0.0
+
+
+def wait_until(pred, timeout=15.0) -> bool:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if pred():
+            return True
+        time.sleep(0.05)
+    return False
+
+
+def check_pose_message(m: dict) -> None:
+    assert m["type"] == "pose" and m["status"] in ("init", "tracking", "lost")
+    assert m["skipped"] >= 0 and m["latency_ms"] > 0
+    if m["status"] == "lost":
+        assert m["pose"] is None
+        return
+    q = np.array(m["pose"]["q_wxyz"])
+    assert abs(np.linalg.norm(q) - 1) < 1e-6 and q[0] >= 0 and len(m["pose"]["t"]) == 3
+    cov = np.array(m["covariance"])
+    assert cov.shape == (6, 6) and np.allclose(cov, cov.T, atol=1e-9)
+    assert len(m["velocity"]["v"]) == 3 and len(m["velocity"]["omega"]) == 3
+
+
+def test_tracked_stream(server, frames):
+    with open_session(server) as ws:
+        out = []
+        for i, f in enumerate(frames[:20]):
+            send_frame(ws, f, i / 30)
+            out.append(recv(ws))
+    for i, m in enumerate(out):
+        check_pose_message(m)
+        assert m["frame"] == i and m["skipped"] == 0 and m["time_s"] == pytest.approx(i / 30)
+    assert out[0]["status"] == "init"
+    assert sum(m["status"] == "tracking" for m in out) >= 15
+    t = np.array([m["pose"]["t"] for m in out if m["pose"]])
+    assert np.all(np.abs(np.diff(t, axis=0)) < 5.0)  # cm per frame: a hand-held box, not jumps
+
+
+def test_bad_messages_keep_the_session_usable(server, frames):
+    with connect(f"{server.ws_url}/v1/objects/cookie-box/track") as ws:
+        ws.send(frames[0])
+        assert recv(ws)["error"]["code"] == "camera_required"
+        ws.send(json.dumps({"type": "reset"}))
+        assert recv(ws)["error"]["code"] == "camera_required"
+        for bad in ({**CAMERA, "fx": -1}, {"fx": 600}, {**CAMERA, "dist_coeffs": "x"}):
+            ws.send(json.dumps(bad))
+            assert recv(ws)["error"]["code"] == "bad_camera"
+        ws.send(CAM_TEXT)
+        assert recv(ws)["type"] == "ready"
+        for text, code in (("{oops", "bad_message"), ("[1, 2]", "bad_message"), ('{"type": "dance"}', "bad_message"),
+                           ('{"type": "frame", "time_s": -1}', "bad_message"),
+                           ('{"type": "frame", "time_s": "soon"}', "bad_message"),
+                           ('{"type": "init", "pose": {"foo": 1}}', "bad_pose"),
+                           ('{"type": "init", "pose": {"q_wxyz": [0, 0, 0, 0], "t": [0, 0, 50]}}', "bad_pose")):
+            ws.send(text)
+            m = recv(ws)
+            assert m["type"] == "error" and m["error"]["code"] == code, (text, m)
+        ws.send(b"\x00garbage")
+        assert recv(ws)["error"]["code"] == "unsupported_image"
+        ws.send(frames[0][: len(frames[0]) // 3])  # truncated JPEG
+        m = recv(ws)
+        assert m["error"]["code"] == "bad_image" and m["frame"] == 0
+        import cv2
+        small = jpeg(cv2.resize(video_frames(1)[0], (320, 240)))
+        ws.send(small)
+        m = recv(ws)
+        assert m["error"]["code"] == "bad_image" and "640" in m["error"]["message"]
+        send_frame(ws, frames[1], 1.0)
+        good = recv(ws)
+        check_pose_message(good)
+        assert good["status"] == "init"
+        ws.send(json.dumps({"type": "frame", "time_s": 0.5}))  # before the previous frame
+        assert recv(ws)["error"]["code"] == "out_of_order"
+        ws.send(json.dumps({"type": "frame", "time_s": 2.0}))
+        ws.send(json.dumps({"type": "frame", "time_s": 2.1}))  # two headers in a row
+        assert recv(ws)["error"]["code"] == "out_of_order"
+        # reset, then init from the pose just found: the session still tracks
+        ws.send(json.dumps({"type": "reset"}))
+        ws.send(json.dumps({"type": "init", "pose": good["pose"]}))
+        send_frame(ws, frames[2], 3.0)
+        m = recv(ws)
+        check_pose_message(m)
+        assert m["status"] in ("init", "tracking") and m["frame"] == 3
+
+
+def test_back_pressure_processes_the_newest(server, frames):
+    with open_session(server) as ws:
+        n = 15
+        for i, f in enumerate(frames[:n]):
+            send_frame(ws, f, i / 30)
+        got = []
+        while not got or got[-1]["frame"] != n - 1:
+            got.append(recv(ws))
+    processed, skipped = len(got), sum(m["skipped"] for m in got)
+    assert processed + skipped == n and skipped >= 1
+    assert [m["frame"] for m in got] == sorted(m["frame"] for m in got)
+
+
+def test_two_sessions_one_fed_garbage(server, frames):
+    bad: list[dict] = []
+
+    def garbage():
+        with open_session(server) as ws:
+            for i in range(12):
+                ws.send([b"\xff\xd8\xff\xe0 not really", frames[i][:500], b"junk"][i % 3])
+                ws.send("{not json" if i % 2 else json.dumps({"type": "nope"}))
+            while True:  # until the server has nothing more to say
+                try:
+                    bad.append(recv(ws, timeout=5))
+                except TimeoutError:
+                    break
+
+    t = threading.Thread(target=garbage)
+    t.start()
+    with open_session(server) as ws:
+        good = []
+        for i, f in enumerate(frames[:12]):
+            send_frame(ws, f, i / 30)
+            good.append(recv(ws))
+    t.join(60)
+    assert not t.is_alive()
+    assert [m["frame"] for m in good] == list(range(12))
+    assert all(m["type"] == "pose" for m in good) and sum(m["status"] == "tracking" for m in good) >= 8
+    codes = [m["error"]["code"] for m in bad if m["type"] == "error"]
+    assert all(m["type"] == "error" for m in bad)  # garbage never yields a pose
+    assert codes.count("bad_message") == 12 and codes.count("unsupported_image") == 4
+    assert 1 <= codes.count("bad_image") <= 8  # truncated JPEGs: skipped ones are not decoded at all
+
+
+def test_disconnect_mid_stream_leaks_nothing(server, frames):
+    for abrupt in (False, True):
+        with contextlib.suppress(ConnectionClosed, OSError), open_session(server) as ws:
+            for i, f in enumerate(frames[:6]):
+                send_frame(ws, f, i / 30)
+            if abrupt:  # no closing handshake: the TCP connection just goes away
+                ws.socket.shutdown(socket.SHUT_RDWR)
+                ws.socket.close()
+    assert wait_until(lambda: metric(server, "quatrack_ws_sessions_active") == 0)
+    with open_session(server) as ws:  # the server is still fine
+        send_frame(ws, frames[0], 0.0)
+        check_pose_message(recv(ws))
+
+
+def test_unknown_object_and_bad_name(server):
+    for name, status in (("mug", 404), (".secret", 400)):
+        with pytest.raises(InvalidStatus) as err:
+            connect(f"{server.ws_url}/v1/objects/{name}/track")
+        assert err.value.response.status_code == status
+        assert "error" in json.loads(err.value.response.body)
+
+
+def test_auth_limits_and_idle(strict, frames):
+    url = f"{strict.ws_url}/v1/objects/cookie-box/track"
+    with pytest.raises(InvalidStatus) as err:
+        connect(url)
+    assert err.value.response.status_code == 401
+    with open_session(strict, additional_headers={"Authorization": "Bearer tok"}) as ws:
+        with pytest.raises(InvalidStatus) as err:  # one session at most
+            connect(url + "?token=tok")
+        assert err.value.response.status_code == 503 and err.value.response.headers["Retry-After"]
+        for i in range(10):  # 5 frames/s allowed: a burst of 10 loses some
+            send_frame(ws, frames[i], i / 30)
+        codes = []
+        while len(codes) < 5:
+            m = recv(ws)
+            if m["type"] == "error":
+                codes.append(m["error"]["code"])
+        assert set(codes) == {"rate_limited"}
+    assert wait_until(lambda: metric(strict, "quatrack_ws_sessions_active", "tok") == 0)
+    with connect(url + "?token=tok") as ws:  # idle: closed after 2 s without a message
+        ws.send(CAM_TEXT)
+        assert recv(ws)["type"] == "ready"
+        m = recv(ws, timeout=10)
+        assert m["error"]["code"] == "idle_timeout"
+        with pytest.raises(ConnectionClosed):
+            ws.recv(timeout=10)
+
+
+def test_demo_and_bench_commands(store, tmp_path, capsys):
+    """``quatrack demo`` writes the track CSV and an overlay; ``quatrack bench serve`` runs (tiny)."""
+    from quatrack.cli import main
+
+    out, overlay = tmp_path / "poses.csv", tmp_path / "overlay.mp4"
+    video = str(Path(__file__).resolve().parent.parent / "examples" / "cookie-box" / "box.mp4")
+    camera = str(Path(video).with_name("camera.json"))
+    assert main(["demo", "--store", str(store), "--video", video, "--camera", camera, "--max-frames", "8",
+                 "--out", str(out), "--overlay", str(overlay)]) == 0
+    rows = out.read_text().splitlines()
+    assert rows[0] == "frame,time_s,status,tx,ty,tz,qw,qx,qy,qz,vx,vy,vz,wx,wy,wz,inliers"
+    assert len(rows) == 9 and all(len(r.split(",")) == 17 for r in rows)
+    assert rows[1].split(",")[2] == "init" and rows[-1].split(",")[2] == "tracking"
+    assert overlay.stat().st_size > 1000
+    assert main(["bench", "serve", "--store", str(store), "--video", video, "--camera", camera, "--clients", "1",
+                 "--frames", "6", "--rest-requests", "2", "--json"]) == 0
+    report = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert report["websocket"][0]["frames_sent"] == 6 and report["rest"]["ok"] == 2
