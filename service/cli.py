@@ -29,8 +29,10 @@ def run_serve(args: argparse.Namespace) -> int:
     if settings.store.exists() and not settings.store.is_dir():
         raise ValueError(f"--store {settings.store}: not a directory")
     app = create_app(settings)
+    # frames up to max_body_bytes are answered; up to twice that get a "too_large" error message
+    # and the session goes on; beyond, the server closes the socket (1009) without buffering it
     uvicorn.run(app, host=settings.host, port=settings.port, log_config=configure(args.log_level),
-                ws_max_size=settings.max_body_bytes, timeout_graceful_shutdown=5, server_header=False)
+                ws_max_size=2 * settings.max_body_bytes, timeout_graceful_shutdown=5, server_header=False)
     return 0
 
 

@@ -32,7 +32,7 @@ class BackgroundServer:
         self.settings = replace(settings, host="127.0.0.1", port=port)
         self.app = create_app(self.settings)
         config = uvicorn.Config(self.app, host="127.0.0.1", port=port, log_config=configure(log_level),
-                                ws_max_size=self.settings.max_body_bytes, lifespan="on", timeout_graceful_shutdown=2)
+                                ws_max_size=2 * self.settings.max_body_bytes, lifespan="on", timeout_graceful_shutdown=2)
         self.server = uvicorn.Server(config)
         self.thread = threading.Thread(target=self._run, name=f"quatrack-serve-{port}", daemon=True)
         self.wait_ready = wait_ready

@@ -129,6 +129,8 @@ def test_bad_messages_keep_the_session_usable(server, frames):
             ws.send(text)
             m = recv(ws)
             assert m["type"] == "error" and m["error"]["code"] == code, (text, m)
+        ws.send(b"\xff\xd8\xff" + b"0" * 2_100_000)  # over max_body_bytes: refused, session goes on
+        assert recv(ws)["error"]["code"] == "too_large"
         ws.send(b"\x00garbage")
         assert recv(ws)["error"]["code"] == "unsupported_image"
         ws.send(frames[0][: len(frames[0]) // 3])  # truncated JPEG
