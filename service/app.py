@@ -40,7 +40,7 @@ covariances are 6×6 over `[p, δθ]`, row-major. Errors are `{"error": {"code",
 
 **WebSocket protocol**: send the camera JSON as the first text message; then binary frames (JPEG/PNG/WebP),
 optionally each preceded by `{"type": "frame", "time_s": t}`; also `{"type": "reset"}` and
-`{"type": "init", "pose": {"q_wxyz": [...], "t": [...]}}`. The server answers `{"type": "ready", ...}` to the camera,
+`{"type": "init", "pose": {"q_wxyz": [...], "t": [...]}}`. With `"ack": true` in the camera message the server answers `{"type": "ready", ...}` to it,
 then one `{"type": "pose", "frame", "time_s", "status", "pose", "velocity", "covariance", "inliers", "latency_ms",
 "skipped"}` per processed frame, and `{"type": "error", "error": {...}}` for bad input (the session stays open).
 """

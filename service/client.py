@@ -60,7 +60,7 @@ async def stream(url: str, camera: dict, frames: Iterable[tuple[int, float, byte
     sent_at: list[float] = []
     t_start = time.perf_counter()
     async with websockets.connect(url, additional_headers=headers, max_size=None, open_timeout=timeout) as ws:
-        await ws.send(json.dumps(camera))
+        await ws.send(json.dumps({**camera, "ack": True}))  # ask for the "ready" handshake
         ready = json.loads(await asyncio.wait_for(ws.recv(), timeout))
         if ready.get("type") != "ready":
             raise RuntimeError(f"the server refused the camera: {ready}")

@@ -243,6 +243,9 @@ class TrackSession:
         self.controls.append(op)
 
     async def _on_camera(self, data) -> None:
+        # The contract's exchange is one message per frame; a client that wants the camera
+        # acknowledged asks for it with "ack": true (then {"type": "ready", ...} answers).
+        ack = isinstance(data, dict) and data.get("ack") is True
         try:
             cam = CameraIn.model_validate(data)
             cam.to_camera((cam.width or 1, cam.height or 1))  # the project's own checks
@@ -256,8 +259,9 @@ class TrackSession:
         first = self.camera is None
         self.camera = cam
         self._control(("camera", cam))
-        if first:
-            await self.send({"type": "ready", "session": self.sid, "object": self.name, "tracker": TRACKER_KIND})
+        if ack:
+            await self.send({"type": "ready", "session": self.sid, "object": self.name, "tracker": TRACKER_KIND,
+                             "camera_replaced": not first})
 
     # --- processing -------------------------------------------------------------------------------
     async def _process_loop(self) -> None:

@@ -20,6 +20,7 @@ from quatrack.service.settings import Settings
 from test_service_http import CAMERA, jpeg, trained_store, video_frames
 
 CAM_TEXT = json.dumps(CAMERA)
+CAM_ACK = json.dumps({**CAMERA, "ack": True})  # asks for the {"type": "ready"} handshake
 
 
 @pytest.fixture(scope="module")
@@ -53,7 +54,7 @@ def recv(ws, timeout=60.0) -> dict:
 @contextlib.contextmanager
 def open_session(srv, name="cookie-box", **kw):
     with connect(f"{srv.ws_url}/v1/objects/{name}/track", open_timeout=20, **kw) as ws:
-        ws.send(CAM_TEXT)
+        ws.send(CAM_ACK)
         ready = recv(ws)
         assert ready["type"] == "ready" and ready["object"] == name, ready
         yield ws
@@ -95,6 +96,21 @@ def check_pose_message(m: dict) -> None:
     assert len(m["velocity"]["v"]) == 3 and len(m["velocity"]["omega"]) == 3
 
 
+def test_contract_exchange_is_one_message_per_frame(server, frames):
+    """The contract's plain exchange: a camera text message, then binary frames; each frame is
+    answered by exactly one pose message, and nothing else is sent."""
+    with connect(f"{server.ws_url}/v1/objects/cookie-box/track", open_timeout=20) as ws:
+        ws.send(CAM_TEXT)
+        for i, data in enumerate(frames[:3]):
+            ws.send(data)
+            msg = recv(ws)
+            assert msg["frame"] == i and msg["status"] in ("init", "tracking", "lost"), msg
+            for key in ("pose", "velocity", "covariance", "inliers", "latency_ms"):
+                assert key in msg
+        with pytest.raises(TimeoutError):
+            ws.recv(timeout=1.0)
+
+
 def test_tracked_stream(server, frames):
     with open_session(server) as ws:
         out = []
@@ -119,7 +135,7 @@ def test_bad_messages_keep_the_session_usable(server, frames):
         for bad in ({**CAMERA, "fx": -1}, {"fx": 600}, {**CAMERA, "dist_coeffs": "x"}):
             ws.send(json.dumps(bad))
             assert recv(ws)["error"]["code"] == "bad_camera"
-        ws.send(CAM_TEXT)
+        ws.send(CAM_ACK)
         assert recv(ws)["type"] == "ready"
         for text, code in (("{oops", "bad_message"), ("[1, 2]", "bad_message"), ('{"type": "dance"}', "bad_message"),
                            ('{"type": "frame", "time_s": -1}', "bad_message"),
@@ -244,7 +260,7 @@ def test_auth_limits_and_idle(strict, frames):
         assert set(codes) == {"rate_limited"}
     assert wait_until(lambda: metric(strict, "quatrack_ws_sessions_active", "tok") == 0)
     with connect(url + "?token=tok") as ws:  # idle: closed after 2 s without a message
-        ws.send(CAM_TEXT)
+        ws.send(CAM_ACK)
         assert recv(ws)["type"] == "ready"
         m = recv(ws, timeout=10)
         assert m["error"]["code"] == "idle_timeout"
