@@ -118,6 +118,8 @@ def _add_train(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--store", metavar="DIR", help="model store (default: $QUATRACK_STORE or the user data directory)")
     parser.add_argument("--jobs", type=int, default=2, metavar="N", help="views built in parallel (default 2)")
     parser.add_argument("--no-overwrite", action="store_true", help="refuse to replace an existing model of that name")
+    parser.add_argument("--skip-existing", action="store_true",
+                        help="do nothing (exit 0) if the store already holds this object trained from this very spec")
     parser.add_argument("--novel-views", default="20,40", metavar="DEG,...",
                         help="rotations (degrees, both signs) about each object axis for synthetic views; 'none' to disable (default 20,40)")
     parser.add_argument("--novel-axes", default="xyz", metavar="AXES", help="object axes to rotate about (default xyz)")
@@ -173,7 +175,7 @@ def _run_train(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from quatrack.viewsets.spec import load_spec
-    from quatrack.viewsets.store import model_path, resolve_store, save_model
+    from quatrack.viewsets.store import load_manifest, model_path, resolve_store, save_model
     from quatrack.viewsets.train import train_object
 
     t0 = time.perf_counter()
@@ -184,6 +186,14 @@ def _run_train(args: argparse.Namespace) -> int:
     spec = load_spec(args.spec)
     if args.no_overwrite and model_path(store, spec.name).exists():
         raise UserError(f"object {spec.name!r} already exists in {store} (and --no-overwrite was given)")
+    if args.skip_existing and model_path(store, spec.name).exists():
+        try:
+            trained_from = load_manifest(store, spec.name).get("spec", {}).get("sha256")
+        except ValueError:
+            trained_from = None  # unreadable: train it again
+        if trained_from == spec.checksum:
+            print(f"{spec.name!r} is already trained from {args.spec} in {store}: nothing to do")
+            return 0
     bar = tqdm(total=0, desc=f"training {spec.name}", unit="view", file=sys.stderr, disable=None, leave=False)
 
     def set_total(n: int) -> None:

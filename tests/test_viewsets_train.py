@@ -47,6 +47,23 @@ def test_cli_train_end_to_end(trained_store, capsys):
     assert json.loads(capsys.readouterr().out)["name"] == "cookie-box"
 
 
+def test_skip_existing_trains_only_what_is_missing_or_changed(tmp_path, capsys):
+    store = tmp_path / "store"
+    spec = tmp_path / "object.json"
+    data = json.loads((EXAMPLE / "object.json").read_text())
+    data["mesh"] = str(EXAMPLE / data["mesh"])
+    data["views"][0]["image"] = str(EXAMPLE / data["views"][0]["image"])
+    spec.write_text(json.dumps(data))
+    args = ["train", str(spec), "--store", str(store), "--skip-existing", "--novel-views", "none", "--novel-scales", "none"]
+    assert main(args) == 0 and "trained" in capsys.readouterr().out
+    stamp = (store / "cookie-box" / "manifest.json").stat().st_mtime_ns
+    assert main(args) == 0 and "nothing to do" in capsys.readouterr().out
+    assert (store / "cookie-box" / "manifest.json").stat().st_mtime_ns == stamp
+    data["views"][0]["pose"]["tvec"][2] += 0.5  # the spec changed: train again
+    spec.write_text(json.dumps(data))
+    assert main(args) == 0 and "trained" in capsys.readouterr().out
+
+
 def test_every_stored_point_reprojects_onto_its_keypoint(trained_store):
     model = load_model(trained_store, "cookie-box")
     for vs in model.viewsets:
