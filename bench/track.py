@@ -12,6 +12,7 @@ per-step timings, and behaviour on the real ``box.mp4``.
 from __future__ import annotations
 
 import json
+import os
 import time
 from dataclasses import dataclass
 
@@ -239,7 +240,7 @@ def study(seconds: float = 10.0, fps: float = 30.0, models=MODELS, rates=RATES, 
     if sheet_path:
         cv2.imwrite(sheet_path, contact_sheet(sheet + video_sheet))
     return {
-        "machine": "2 cores shared with other jobs",
+        "machine": f"{os.cpu_count()} cores",
         "sequence": {"seconds": seconds, "fps": fps, "frames": n, "diameter": diameter, "render_s": render_s},
         "rendered": results,
         "rendered_auto_init_full_rate": auto,
