@@ -95,6 +95,13 @@ def run_demo(args: argparse.Namespace) -> int:
             srv = stack.enter_context(BackgroundServer(settings))
             url = srv.ws_url
             print(f"demo: serving {settings.store} on {srv.url}", file=sys.stderr)
+        elif vertices is None:  # a remote service: the object's mesh may still be in the local store
+            from quatrack.viewsets.store import list_models, load_model
+
+            local = Settings.from_env(store=args.store, api_token=token).store
+            if args.object in list_models(local):
+                mesh = load_model(local, args.object).mesh
+                vertices, edges = mesh.vertices, feature_edges(mesh.vertices, mesh.faces)
         ws_url = f"{url.rstrip('/')}/v1/objects/{args.object}/track"
         times: dict[int, float] = {}  # every frame read, answered or not, for the CSV
 
@@ -104,17 +111,20 @@ def run_demo(args: argparse.Namespace) -> int:
                 yield i, t, data
 
         res = asyncio.run(stream(ws_url, camera, source(), fps=args.fps, token=token))
-    with open(args.out, "w", encoding="utf-8") as f:
+    tmp = Path(args.out).with_name(f".{Path(args.out).name}.tmp")
+    with open(tmp, "w", encoding="utf-8") as f:  # renamed when complete: never a half-written CSV
         f.write(CSV_HEADER + "\n")
         for i in sorted(times):
             f.write(csv_row(i, times[i], res.poses.get(i)) + "\n")
+    os.replace(tmp, args.out)
     statuses = [m["status"] for m in res.poses.values()]
     print(f"demo: {res.sent} frames sent, {len(res.poses)} tracked answers "
           f"({statuses.count('tracking')} tracking, {statuses.count('init')} init, {statuses.count('lost')} lost), "
           f"{res.skipped} skipped, {len(res.errors)} errors, {res.sent / max(res.wall_s, 1e-9):.1f} frames/s -> {args.out}")
     if args.overlay and args.overlay.lower() != "none":
         if vertices is None:
-            print("demo: no mesh for the overlay (give --mesh with --url); skipped", file=sys.stderr)
+            print(f"demo: no mesh for the overlay ({args.object!r} is not in the local store; give --mesh); skipped",
+                  file=sys.stderr)
             return 0
         cap = cv2.VideoCapture(args.video)
         fps = cap.get(cv2.CAP_PROP_FPS) or 30.0
