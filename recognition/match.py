@@ -88,17 +88,30 @@ class ModelIndex:
             self._local.matcher = m
         return m
 
-    def describe(self, image: np.ndarray, box: tuple[int, int, int, int] | None = None) -> Features:
+    def describe(self, image: np.ndarray, box: tuple[int, int, int, int] | None = None, max_side: int | None = None,
+                 max_features: int | None = None) -> Features:
         """SIFT features of ``image`` (or of its crop ``box`` = x0, y0, x1, y1, in image pixels),
-        extracted exactly as the viewsets' were. Cropping, not masking, saves the pyramid."""
+        extracted exactly as the viewsets' were. Cropping, not masking, saves the pyramid.
+        ``max_side``: shrink the crop to at most this many pixels on its longer side first
+        (SIFT's cost grows with the area; the viewsets hold the object at several scales);
+        ``max_features``: keep only the strongest (fewer descriptors to compute and to search);
+        keypoints are returned in the image's pixels either way."""
         x0, y0 = 0, 0
         if box is not None:
             x0, y0, x1, y1 = box
             image = image[y0:y1, x0:x1]
-        f = extract_query_features(image, None, self.viewset_params)
-        if box is None or len(f) == 0:
+        s = 1.0
+        if max_side is not None and max(image.shape[:2]) > max_side:
+            s = max_side / max(image.shape[:2])
+            image = cv2.resize(image, (max(1, round(image.shape[1] * s)), max(1, round(image.shape[0] * s))),
+                               interpolation=cv2.INTER_AREA)
+        params = self.viewset_params if max_features is None else replace(self.viewset_params, max_features=max_features)
+        f = extract_query_features(image, None, params)
+        if (box is None and s == 1.0) or len(f) == 0:
             return f
-        return Features(f.keypoints + np.array([x0, y0], np.float32), f.descriptors, f.sizes, f.angles)
+        # pixel centres: u = (u_small + ½)/s − ½
+        kp = (f.keypoints + 0.5) / s - 0.5 + np.array([x0, y0], np.float32)
+        return Features(kp.astype(np.float32), f.descriptors, f.sizes / s, f.angles)
 
     def match(self, features: Features) -> Matches:
         """Ratio-tested matches of ``features`` to the model, one per query feature at most."""

@@ -26,7 +26,9 @@ declared lost when too few points agree, the residuals are too large, the pose i
 
 from __future__ import annotations
 
+import threading
 import time
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import cv2
@@ -46,6 +48,20 @@ from .klt import Frame, KLTParams, make_frame, track_points
 from .locate import LocateParams, locate
 from .match import ModelIndex, index_for
 from .visibility import VisibilityParams, merge_points, visible_points
+
+_ANCHOR_POOL: ThreadPoolExecutor | None = None
+_ANCHOR_POOL_LOCK = threading.Lock()
+
+
+def _anchor_pool() -> ThreadPoolExecutor:
+    """One thread shared by every tracker of the process for pipelined re-anchoring: SIFT and
+    FLANN release the interpreter lock, so it runs beside the tracking steps, and its FLANN
+    index (thread-local) is built once per model."""
+    global _ANCHOR_POOL
+    with _ANCHOR_POOL_LOCK:
+        if _ANCHOR_POOL is None:
+            _ANCHOR_POOL = ThreadPoolExecutor(max_workers=1, thread_name_prefix="quatrack-anchor")
+        return _ANCHOR_POOL
 
 # Per-model plant noise for a hand-held object at ~0.5 m, in mesh units (cm) and radians:
 # ude/m3 are random accelerations (units²/s³, rad²/s³), m1/m2 random walks (units²/s, rad²/s).
@@ -74,6 +90,9 @@ class TrackerParams:
     max_points: int = 200  # tracked points at most
     min_points: int = 120  # below this, replenish from the model
     refresh_every: int = 10  # frames between SIFT re-anchorings (0: only when thin)
+    anchor_max_side: int = 320  # the re-anchoring window is shrunk to this (px) before SIFT
+    anchor_max_features: int = 400  # its strongest SIFT features only: re-anchoring needs tens of matches
+    pipelined_refresh: bool = True  # periodic re-anchoring runs beside the next frame's step
     anchor_radius_px: float = 6.0  # a SIFT match must project this close (at the current pose)
     min_inliers: int = 12  # fewer agreeing points: lost
     max_rms_px: float = 2.5  # larger inlier RMS residual: lost
@@ -176,6 +195,8 @@ class Tracker:
         self._frame = -1
         self._pending: tuple[np.ndarray, np.ndarray, float | None] | None = None
         self.reset()
+        if params.pipelined_refresh and params.refresh_every:
+            _anchor_pool().submit(lambda: self._index()._matcher())  # warm the anchor thread's index
 
     # -- public -------------------------------------------------------------------------------
     def reset(self) -> None:
@@ -187,6 +208,7 @@ class Tracker:
         self._since_refresh = 0
         self._failed_refreshes = 0
         self._pending = None
+        self._anchor_job: tuple[Future, Pose] | None = None  # SIFT + matching of the previous frame
 
     def init_pose(self, t, q_wxyz, time_s: float | None = None) -> None:
         """Start from a user-given pose (object → camera) at the next frame (or at ``time_s``)."""
@@ -299,6 +321,18 @@ class Tracker:
         if why:
             return self._lost(time_s, f"prediction {why}")
 
+        if self._anchor_job is not None:  # the previous frame's re-anchoring, run in the background
+            t0 = time.perf_counter()
+            fut, pose_then = self._anchor_job
+            self._anchor_job = None
+            feats, m = fut.result()
+            # its keypoints are in the previous frame, where KLT starts from: they join the tracks
+            self._tracks, n_matches, _ = self._anchor_merge(feats, m, pose_then, self._tracks, wide=False)
+            self._count_refresh(n_matches)
+            timings["replenish"] = _ms(t0)
+            if self._failed_refreshes >= p.max_failed_refreshes:
+                return self._lost(time_s, "the object's texture is no longer found where it is tracked")
+
         t0 = time.perf_counter()
         tracks = self._tracks
         vis, uv_pred = visible_points(self.model.mesh, self.camera, self._pose(prior), tracks.X, p.visibility)
@@ -327,7 +361,13 @@ class Tracker:
 
         self._since_refresh += 1
         thin = len(self._tracks) < p.min_points
-        if thin or (p.refresh_every and self._since_refresh >= p.refresh_every):
+        due = p.refresh_every and self._since_refresh >= p.refresh_every
+        if due and not thin and p.pipelined_refresh:
+            job = self._anchor_features_job(img)
+            if job is not None:
+                self._anchor_job = job
+                self._since_refresh = 0
+        elif thin or due:
             t0 = time.perf_counter()
             self._tracks, n_matches, replaced = self._anchor(img, self._tracks, wide=False)
             if replaced:  # the KLT tracks had slid: adjust this frame again to the fresh matches
@@ -338,7 +378,7 @@ class Tracker:
                 self._tracks = self._tracks.keep(self._last_inliers)
             timings["replenish"] = _ms(t0)
             self._since_refresh = 0
-            self._failed_refreshes = 0 if n_matches >= p.min_anchor_matches else self._failed_refreshes + 1
+            self._count_refresh(n_matches)
             if self._failed_refreshes >= p.max_failed_refreshes:
                 return self._lost(time_s, "the object's texture is no longer found where it is tracked", inliers)
         return self._pose_step(time_s, "tracking", inliers)
@@ -413,24 +453,53 @@ class Tracker:
             return None
         return box
 
-    def _anchor(self, img: np.ndarray, tracks: _Tracks, wide: bool) -> tuple[_Tracks, int, bool]:
-        """Re-anchor to the model: SIFT in the object's window, matched to the viewsets, made
-        consistent by RANSAC PnP started at the current pose.
+    def _count_refresh(self, n_matches: int) -> None:
+        ok = n_matches >= self.params.min_anchor_matches
+        self._failed_refreshes = 0 if ok else self._failed_refreshes + 1
 
-        Returns ``(tracks, consistent matches, replaced)``. Fresh matches are exact
-        correspondences, so they replace tracks within 3 px of them; if the current pose
-        disagrees with them (median reprojection > ``anchor_radius_px / 2``) while they are
-        many, the KLT tracks have slid (occlusion, drift) and are all replaced (``replaced``).
-        """
+    def _anchor_features(self, img: np.ndarray, box) -> tuple:
+        """SIFT in ``box`` and its matches to the model: the costly half of re-anchoring."""
         p = self.params
-        state = self.filter.state
-        pose = self._pose(state)
+        index = self._index()
+        feats = index.describe(img, box, max_side=p.anchor_max_side, max_features=p.anchor_max_features)
+        return feats, index.match(feats)
+
+    def _anchor_features_job(self, img: np.ndarray) -> tuple[Future, Pose] | None:
+        """Start the costly half on the anchor thread, for the frame ``img`` at the current pose."""
+        pose = self._pose(self.filter.state)
+        box = self._window(pose, 0.15)
+        if box is None:
+            return None
+        crop = np.ascontiguousarray(img[box[1] : box[3], box[0] : box[2]])
+        shifted = (0, 0, box[2] - box[0], box[3] - box[1])
+
+        def work():
+            feats, m = self._anchor_features(crop, shifted)
+            kp = feats.keypoints + np.array([box[0], box[1]], np.float32)
+            return type(feats)(kp, feats.descriptors, feats.sizes, feats.angles), m
+
+        return _anchor_pool().submit(work), pose
+
+    def _anchor(self, img: np.ndarray, tracks: _Tracks, wide: bool) -> tuple[_Tracks, int, bool]:
+        """Re-anchor to the model now: SIFT in the object's window, matched to the viewsets,
+        made consistent by :meth:`_anchor_merge`."""
+        pose = self._pose(self.filter.state)
         box = self._window(pose, 0.3 if wide else 0.15)
         if box is None:
             return tracks, 0, False
-        index = self._index()
-        feats = index.describe(img, box)
-        m = index.match(feats)
+        feats, m = self._anchor_features(img, box)
+        return self._anchor_merge(feats, m, pose, tracks, wide)
+
+    def _anchor_merge(self, feats, m, pose: Pose, tracks: _Tracks, wide: bool) -> tuple[_Tracks, int, bool]:
+        """Make SIFT matches consistent by RANSAC PnP started at ``pose`` (the pose of the frame
+        they were found in) and merge them into ``tracks``.
+
+        Returns ``(tracks, consistent matches, replaced)``. Fresh matches are exact
+        correspondences, so they replace tracks within 3 px of them; if the pose disagrees with
+        them (median reprojection > ``anchor_radius_px / 2``) while they are many, the KLT
+        tracks have slid (occlusion, drift) and are all replaced (``replaced``).
+        """
+        p = self.params
         if len(m) < max(p.min_anchor_matches, 6):
             return tracks, 0, False
         kp = feats.keypoints[m.query_idx].astype(np.float64)

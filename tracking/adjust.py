@@ -148,7 +148,8 @@ class _Problem:
         self.prior = prior
         self.prior_info = None if prior is None else spd_inverse(prior.covariance[:n, :n])
         self.scales = [
-            options.robust_scale if options.robust_scale is not None else robust.default_scale(options.robust, b.dim)
+            options.robust_scale if options.robust_scale is not None or options.robust == "none"
+            else robust.default_scale(options.robust, b.dim)
             for b in self.blocks
         ]
 
@@ -184,7 +185,7 @@ class _Problem:
             lin = block.linearize(p, R, jacobian)
             e = lin.residual
             s2 = np.einsum("ij,ij->i", e, e)
-            cost += 0.5 * float(np.sum(robust.rho(s2, loss, scale)))
+            cost += 0.5 * float(np.sum(s2 if loss == "none" else robust.rho(s2, loss, scale)))
             if loss != "none":
                 w = robust.weights(s2, loss, scale)
                 all_w.append(w)

@@ -20,10 +20,13 @@ LOSSES: tuple[str, ...] = ("none", "huber", "cauchy", "tukey")
 
 @lru_cache(maxsize=64)
 def default_scale(loss: str, dim: int) -> float:
-    """Threshold (Mahalanobis distance) for a residual of ``dim`` rows."""
-    from scipy.stats import chi2  # imported here: scipy.stats takes ~1 s to import
+    """Threshold (Mahalanobis distance) for a residual of ``dim`` rows: a χ² quantile.
 
-    return float(np.sqrt(chi2.ppf(0.999 if loss == "tukey" else 0.95, dim)))
+    ``scipy.special.chdtri`` (the inverse χ² survival function) rather than ``scipy.stats``,
+    which takes a second to import on the first frame."""
+    from scipy.special import chdtri
+
+    return float(np.sqrt(chdtri(dim, 0.001 if loss == "tukey" else 0.05)))
 
 
 def weights(s2: np.ndarray, loss: RobustLoss, scale: float) -> np.ndarray:
