@@ -14,7 +14,9 @@ TRACKER_KIND = "recognition.video.Tracker"
 
 
 def make_tracker(model, camera, index, max_pixels: int) -> Tracker:
-    """A fresh tracker sharing the model and its index (both read-only)."""
-    params = TrackerParams()
+    """A fresh tracker sharing the model and its index (both read-only), set for live streams:
+    re-anchoring runs in the background between frames (``pipelined_refresh``) on a smaller
+    window with fewer features, so that no frame waits for SIFT (bench/RESULTS.md, service)."""
+    params = TrackerParams(pipelined_refresh=True, anchor_max_side=320, anchor_max_features=400)
     params = replace(params, locate=replace(params.locate, max_pixels=max_pixels))
     return Tracker(model, camera, params, index=index)
