@@ -1,0 +1,20 @@
+"""The README's library example runs as written and does what it says."""
+
+import re
+from pathlib import Path
+
+import numpy as np
+
+README = Path(__file__).resolve().parents[1] / "README.md"
+
+
+def test_library_example_runs_and_recovers_the_motion(capsys):
+    text = README.read_text(encoding="utf-8")
+    section = text[text.index("## The tracker as a library"):]
+    code = re.search(r"```python\n(.*?)```", section, re.S).group(1)
+    scope: dict = {}
+    exec(compile(code, "README.md", "exec"), scope)  # noqa: S102 - our own documentation
+    s = scope["s"]
+    np.testing.assert_allclose(s.v, [40.0, 0.0, 0.0], atol=0.5)  # mm/s, as the example moves it
+    np.testing.assert_allclose(s.omega, [0.0, 0.3, 0.0], atol=0.01)  # rad/s
+    assert "[" in capsys.readouterr().out
