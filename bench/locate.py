@@ -22,7 +22,9 @@ import numpy as np
 
 from quatrack.recognition.locate import LocateParams, locate
 from quatrack.recognition.match import index_for
+from quatrack.recognition.overlay import draw_wireframe
 from quatrack.recognition.pose import iou
+from quatrack.recognition.visibility import mesh_edges
 from quatrack.tracking import quaternion as quat
 from quatrack.viewsets.camera import load_camera
 from quatrack.viewsets.render import render
@@ -36,16 +38,6 @@ ANGLE_BINS = (0, 10, 20, 30, 40, 50, 60)
 
 def _pct(values, q) -> float | None:
     return float(np.percentile(values, q)) if len(values) else None
-
-
-def draw_overlay(image: np.ndarray, camera, mesh, t, q, colour=(0, 255, 0)) -> np.ndarray:
-    """The mesh's edges projected at a pose (t, q) onto a copy of ``image``."""
-    out = image.copy()
-    uv = camera.project(mesh.vertices @ quat.to_matrix(q).T + t)
-    for tri in mesh.faces:
-        for a, b in ((0, 1), (1, 2), (2, 0)):
-            cv2.line(out, tuple(int(v) for v in uv[tri[a]]), tuple(int(v) for v in uv[tri[b]]), colour, 2, cv2.LINE_AA)
-    return out
 
 
 def rendered(n: int, seed: int, model, camera, progress: bool) -> dict:
@@ -114,6 +106,7 @@ def video(model, camera, every: int, sheet: str | None, progress: bool) -> dict:
     cap = cv2.VideoCapture(str(S.EXAMPLE / "box.mp4"))
     n_total = int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) or 455
     rows, thumbs = [], []
+    edges = mesh_edges(model.mesh)
     i = 0
     bar = tqdm(total=n_total, desc="box.mp4", disable=not progress, unit="frame")
     while True:
@@ -133,7 +126,9 @@ def video(model, camera, every: int, sheet: str | None, progress: bool) -> dict:
             rows.append({"frame": i, "found": r.found, "ref_found": ref.found, "on_box": on_box,
                          **{k: r.time_ms.get(k, 0.0) for k in STAGES}})
             if sheet and i % (every * 5) == 0 and len(thumbs) < 30:
-                g = draw_overlay(frame, camera, model.mesh, r.t, r.q_wxyz) if r.found else frame.copy()
+                g = frame.copy()
+                if r.found:
+                    draw_wireframe(g, camera, r.t, r.q_wxyz, edges, (0, 255, 0))
                 if r.bbox:
                     x, y, w, h = (int(v) for v in r.bbox)
                     cv2.rectangle(g, (x, y), (x + w, y + h), (255, 128, 0), 2)

@@ -29,6 +29,13 @@ def _segments(camera: PinholeCamera, R: np.ndarray, t: np.ndarray, seg: np.ndarr
     return [np.rint(line).astype(np.int32) for line in uv if np.all(np.isfinite(line)) and np.all(np.abs(line) < 1e5)]
 
 
+def draw_wireframe(out: np.ndarray, camera: PinholeCamera, t, q_wxyz, edges: np.ndarray, colour) -> None:
+    """Draw, in place, the 3-D segments ``edges`` (k, 2, 3) (e.g. :func:`mesh_edges`) at the pose
+    (``t``, ``q_wxyz``), object → camera; sampled along each edge so lens distortion bends them."""
+    R = quat.to_matrix(np.asarray(q_wxyz, float))
+    cv2.polylines(out, _segments(camera, R, np.asarray(t, float), edges), False, colour, 2, cv2.LINE_AA)
+
+
 def draw_overlay(image: np.ndarray, camera: PinholeCamera, mesh: Mesh, step, edges: np.ndarray | None = None) -> np.ndarray:
     """A copy of ``image`` with the wireframe, the object axes (x red, y green, z blue) and the
     status line of a :class:`~recognition.video.TrackStep`."""
@@ -37,8 +44,7 @@ def draw_overlay(image: np.ndarray, camera: PinholeCamera, mesh: Mesh, step, edg
     if step.t is not None and step.q_wxyz is not None:
         R = quat.to_matrix(step.q_wxyz)
         t = np.asarray(step.t, float)
-        edges = mesh_edges(mesh) if edges is None else edges
-        cv2.polylines(out, _segments(camera, R, t, edges), False, colour, 2, cv2.LINE_AA)
+        draw_wireframe(out, camera, t, step.q_wxyz, mesh_edges(mesh) if edges is None else edges, colour)
         L = 0.3 * mesh.extent
         o = mesh.vertices.min(axis=0)
         axes = np.array([[o, o + [L, 0, 0]], [o, o + [0, L, 0]], [o, o + [0, 0, L]]])

@@ -64,44 +64,39 @@ def run_demo(args: argparse.Namespace) -> int:
 
     from quatrack.viewsets.camera import camera_to_dict, load_camera
 
-    from .client import CSV_HEADER, csv_row, draw_overlay, feature_edges, stream, video_frames
+    from quatrack.recognition.visibility import mesh_edges
+    from quatrack.viewsets.store import list_models, load_model
+
+    from .client import CSV_HEADER, csv_row, draw_overlay, stream, video_frames
     from .server import BackgroundServer
     from .settings import Settings
 
-    camera = camera_to_dict(load_camera(args.camera))
+    pinhole = load_camera(args.camera)
+    camera = camera_to_dict(pinhole)
     if not Path(args.video).is_file():
         raise ValueError(f"--video {args.video}: no such file")
     if args.fps is not None and not 0 < args.fps <= 240:
         raise ValueError("--fps must be between 0 and 240")
     token = args.token or os.environ.get("QUATRACK_API_TOKEN")
-    vertices = edges = None
+    settings = Settings.from_env(store=args.store, api_token=token)
+    in_store = args.object in list_models(settings.store)
+    if args.url is None and not in_store:
+        raise ValueError(f"no object {args.object!r} in {settings.store}: train it first "
+                         "(quatrack train examples/cookie-box/object.json)")
+    mesh = None  # for the overlay: --mesh, else the object's in the local store (if there)
     if args.mesh:
         from quatrack.viewsets.mesh import load_mesh
 
         mesh = load_mesh(args.mesh)
-        vertices, edges = mesh.vertices, feature_edges(mesh.vertices, mesh.faces)
+    elif in_store:
+        mesh = load_model(settings.store, args.object).mesh
+    edges = None if mesh is None else mesh_edges(mesh)
     with contextlib.ExitStack() as stack:
         url = args.url
         if url is None:
-            from quatrack.viewsets.store import list_models, load_model
-
-            settings = Settings.from_env(store=args.store, api_token=token)
-            if args.object not in list_models(settings.store):
-                raise ValueError(f"no object {args.object!r} in {settings.store}: train it first "
-                                 "(quatrack train examples/cookie-box/object.json)")
-            if vertices is None:
-                mesh = load_model(settings.store, args.object).mesh
-                vertices, edges = mesh.vertices, feature_edges(mesh.vertices, mesh.faces)
             srv = stack.enter_context(BackgroundServer(settings))
             url = srv.ws_url
             print(f"demo: serving {settings.store} on {srv.url}", file=sys.stderr)
-        elif vertices is None:  # a remote service: the object's mesh may still be in the local store
-            from quatrack.viewsets.store import list_models, load_model
-
-            local = Settings.from_env(store=args.store, api_token=token).store
-            if args.object in list_models(local):
-                mesh = load_model(local, args.object).mesh
-                vertices, edges = mesh.vertices, feature_edges(mesh.vertices, mesh.faces)
         ws_url = f"{url.rstrip('/')}/v1/objects/{args.object}/track"
         times: dict[int, float] = {}  # every frame read, answered or not, for the CSV
 
@@ -122,7 +117,7 @@ def run_demo(args: argparse.Namespace) -> int:
           f"({statuses.count('tracking')} tracking, {statuses.count('init')} init, {statuses.count('lost')} lost), "
           f"{res.skipped} skipped, {len(res.errors)} errors, {res.sent / max(res.wall_s, 1e-9):.1f} frames/s -> {args.out}")
     if args.overlay and args.overlay.lower() != "none":
-        if vertices is None:
+        if edges is None:
             print(f"demo: no mesh for the overlay ({args.object!r} is not in the local store; give --mesh); skipped",
                   file=sys.stderr)
             return 0
@@ -136,7 +131,7 @@ def run_demo(args: argparse.Namespace) -> int:
                 break
             if writer is None:
                 writer = cv2.VideoWriter(args.overlay, cv2.VideoWriter_fourcc(*"mp4v"), fps, (img.shape[1], img.shape[0]))
-            writer.write(draw_overlay(img, res.poses.get(i), camera, vertices, edges))
+            writer.write(draw_overlay(img, res.poses.get(i), pinhole, edges))
             i += 1
         cap.release()
         if writer is not None:

@@ -126,38 +126,16 @@ def csv_row(index: int, time_s: float, msg: dict | None) -> str:
     return f"{index},{time_s:.6f},{msg['status']}," + ",".join(f"{x:.6g}" for x in nums) + f",{msg.get('inliers', 0)}"
 
 
-def feature_edges(vertices: np.ndarray, faces: np.ndarray, angle_deg: float = 1.0) -> np.ndarray:
-    """Mesh edges between faces that are not coplanar (a triangulated box → its 12 edges)."""
-    v = np.asarray(vertices, float)
-    f = np.asarray(faces, int)
-    n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
-    n /= np.linalg.norm(n, axis=1, keepdims=True) + 1e-12
-    owners: dict[tuple[int, int], list[int]] = {}
-    for i, tri in enumerate(f):
-        for a, b in ((tri[0], tri[1]), (tri[1], tri[2]), (tri[2], tri[0])):
-            owners.setdefault((min(a, b), max(a, b)), []).append(i)
-    cos = np.cos(np.radians(angle_deg))
-    keep = [e for e, fs in owners.items() if len(fs) != 2 or float(n[fs[0]] @ n[fs[1]]) < cos]
-    return np.array(keep, int).reshape(-1, 2)
+def draw_overlay(image: np.ndarray, msg: dict | None, camera, edges: np.ndarray) -> np.ndarray:
+    """The mesh's edges (k, 2, 3), e.g. ``recognition.visibility.mesh_edges``, at the tracked pose
+    (green tracking, yellow init) and the status; ``camera`` a ``PinholeCamera``."""
+    from quatrack.recognition.overlay import draw_wireframe
 
-
-def draw_overlay(image: np.ndarray, msg: dict | None, camera: dict, vertices: np.ndarray, edges: np.ndarray) -> np.ndarray:
-    """The mesh's edges at the tracked pose (green tracking, yellow init) and the status."""
     out = image.copy()
     status = "no answer" if msg is None else msg["status"]
     if msg is not None and msg.get("pose"):
-        from quatrack.tracking import quaternion as quat
-
-        R = quat.to_matrix(np.asarray(msg["pose"]["q_wxyz"], float))
-        K = np.array([[camera["fx"], 0, camera["cx"]], [0, camera["fy"], camera["cy"]], [0, 0, 1]], float)
-        dist = np.asarray(camera.get("dist_coeffs") or [0, 0, 0, 0, 0], float)
-        uv, _ = cv2.projectPoints(np.asarray(vertices, float), cv2.Rodrigues(R)[0], np.asarray(msg["pose"]["t"], float), K, dist)
-        uv = uv.reshape(-1, 2)
         colour = (0, 220, 0) if status == "tracking" else (0, 220, 220)
-        for a, b in edges:
-            pa, pb = uv[a], uv[b]
-            if np.all(np.isfinite([*pa, *pb])) and np.all(np.abs([*pa, *pb]) < 1e5):
-                cv2.line(out, tuple(int(round(x)) for x in pa), tuple(int(round(x)) for x in pb), colour, 2, cv2.LINE_AA)
+        draw_wireframe(out, camera, msg["pose"]["t"], msg["pose"]["q_wxyz"], edges, colour)
     label = status if msg is None else f"{status}  inliers {msg.get('inliers', 0)}  {msg.get('latency_ms', 0):.0f} ms"
     cv2.putText(out, label, (10, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.7, (0, 0, 0), 3, cv2.LINE_AA)
     cv2.putText(out, label, (10, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.7, (255, 255, 255), 1, cv2.LINE_AA)
