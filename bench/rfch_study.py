@@ -59,7 +59,7 @@ def scenes(seed: int = 0, count: int = 8):
     cam = PinholeCamera(v.camera.fx, v.camera.fy, 320.0, 240.0, width=640, height=480)
     groups = planar_groups(mesh)
     out = []
-    for i in range(count):
+    for _ in range(count):
         pose = rotate_about_centre(v.pose, mesh.centre, rng.normal(0, 0.35, 3))
         pose = scale_pose(pose, mesh.centre, float(rng.uniform(0.35, 0.6)))
         img, tex, _ = render_textured_view(mesh, groups, photo, v.camera, v.pose, buf, cam, pose)

@@ -188,6 +188,13 @@ def test_G_is_the_integral_of_R(omega, dt):
         np.testing.assert_allclose(G, ude, atol=1e-12)
 
 
+@given(unit_quaternions(), unit_quaternions())
+def test_product_matrices(a, b):
+    """L(a) b = a * b = R(b) a: the matrices the prior term's Jacobian (A.1 chain) is built from."""
+    np.testing.assert_allclose(quat.left_matrix(a) @ b, quat.multiply(a, b), atol=1e-14)
+    np.testing.assert_allclose(quat.right_matrix(b) @ a, quat.multiply(a, b), atol=1e-14)
+
+
 def test_functions_are_vectorised():
     rng = np.random.default_rng(1)
     r = rng.normal(size=(5, 7, 3))

@@ -75,7 +75,6 @@ def test_object_window_closer_than_background_windows(photo_and_mask):
     cx, cy = int(xs.mean()), int(ys.mean())
     w, h = (xs.max() - xs.min()) // 2, (ys.max() - ys.min()) // 2
     x0, y0 = cx - w // 2, cy - h // 2
-    x1, y1 = x0 + w, y0 + h
 
     def window_chi2(x, y):
         return chi2(cooccurrence(lab[y : y + h, x : x + w], None, m.n_clusters, m.distance), m.histogram)

@@ -15,7 +15,7 @@ import quatrack.viewsets.viewset as viewset_mod
 from quatrack.cli import main
 from quatrack.viewsets.errors import StoreError
 from quatrack.viewsets.spec import load_spec
-from quatrack.viewsets.store import default_store, delete_model, list_models, load_model, model_path, save_model
+from quatrack.viewsets.store import default_store, list_models, load_model, model_path, save_model
 from quatrack.viewsets.train import TrainParams, train_object
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "cookie-box"

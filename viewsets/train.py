@@ -22,7 +22,7 @@ from .mesh import Mesh, load_mesh, planar_groups
 from .novel import NovelViewParams, novel_poses, render_textured_view
 from .render import RenderBuffers, render
 from .rfch import RFCHParams, train_rfch
-from .spec import ObjectSpec, Pose, ViewSpec
+from .spec import ObjectSpec, ViewSpec
 from .store import ObjectModel
 from .viewset import Viewset, ViewsetParams, build_viewset
 
