@@ -205,3 +205,32 @@ def test_functions_are_vectorised():
     assert quat.dlog(q).shape == (5, 7, 3, 4)
     for i in range(5):
         np.testing.assert_allclose(quat.log(q[i]), np.stack([quat.log(x) for x in q[i]]))
+
+
+def test_angle_coefficients_keep_their_digits_near_zero():
+    """sin θ/θ, (1-cos θ)/θ², (θ-sin θ)/θ³ against 40-digit series, across the switch-overs
+    (a direct 1-cos θ lost 5 digits at θ = 2.5e-6, which hypothesis found through eq. 21)."""
+    from decimal import Decimal, getcontext
+
+    from quatrack.tracking.rotation import _angle_coefficients
+
+    getcontext().prec = 40
+
+    def series(x, k):  # Σ (-1)^i x^(2i+k) / (2i+k)!
+        out, term, n = Decimal(0), Decimal(1), 0
+        for i in range(k):
+            term *= x / (i + 1)
+        n = k
+        for _ in range(30):
+            out += term
+            term *= -x * x / ((n + 1) * (n + 2))
+            n += 2
+        return out
+
+    for th in (1e-9, 1e-7, 9.99e-7, 2.5e-6, 1e-4, 0.0999, 0.1, 0.5, 3.0):
+        t = Decimal(th)
+        sin, one_minus_cos = series(t, 1), series(t, 2)
+        ref = (sin / t, one_minus_cos / t**2, (t - sin) / t**3)
+        got = _angle_coefficients(np.array(th))
+        for g, r in zip(got, ref):
+            assert abs(Decimal(float(g)) - r) <= Decimal(1e-13) * abs(r), (th, float(g), float(r))
