@@ -15,6 +15,8 @@ from typing import Callable
 
 import numpy as np
 
+from quatrack.runtime import tune_allocator
+
 
 class UserError(Exception):
     """Bad input from the user: reported as one line, exit status 2."""
@@ -370,6 +372,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    tune_allocator()
     run = COMMANDS[args.command][2]
     try:
         return run(args)

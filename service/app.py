@@ -21,6 +21,7 @@ from fastapi import FastAPI
 from fastapi.middleware.cors import CORSMiddleware
 
 from quatrack import __version__
+from quatrack.runtime import tune_allocator
 
 from . import errors
 from .errors import ApiError, error_body
@@ -136,6 +137,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     settings = (settings or Settings.from_env()).checked()
     cores = os.cpu_count() or 1
     cv2.setNumThreads(max(1, cores // settings.workers))  # workers × OpenCV threads ≈ cores
+    tune_allocator()  # no page faults from re-allocated frame-sized arrays
     metrics = Metrics()
 
     @asynccontextmanager

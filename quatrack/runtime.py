@@ -1,0 +1,38 @@
+"""Process-wide tuning for numpy-heavy, latency-bound work (called by the CLI and the service)."""
+
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import os
+
+_M_TRIM_THRESHOLD = -1  # glibc mallopt parameters (malloc.h)
+_M_MMAP_THRESHOLD = -3
+_ENV = ("MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_")
+
+
+def tune_allocator(mmap_threshold: int = 16 << 20, trim_threshold: int = 64 << 20) -> bool:
+    """Keep freed blocks up to ``mmap_threshold`` bytes in the heap, and up to
+    ``trim_threshold`` free bytes at its top, instead of handing them back to the OS.
+
+    Why: by default glibc returns large blocks (``munmap``, heap trimming), so the next
+    frame's arrays of the same sizes fault all their pages in again. Measured on the 2-core
+    machine: a 640×480 localisation took 13 ms warm but 18 ms right after a SIFT pass, and
+    13 ms in both cases with this setting. The cost is up to ``trim_threshold`` of idle heap
+    per allocator arena (one per busy thread, bounded by the service's worker count).
+
+    Returns whether the setting was applied: not on a non-glibc system, and not when the
+    user set ``MALLOC_MMAP_THRESHOLD_`` or ``MALLOC_TRIM_THRESHOLD_`` (theirs wins).
+    """
+    for v in (mmap_threshold, trim_threshold):
+        if not 0 <= int(v) < 2**31:
+            raise ValueError(f"allocator threshold {v} outside 0 … 2³¹ − 1 bytes")
+    if any(v in os.environ for v in _ENV):
+        return False
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        mallopt = libc.mallopt
+    except (OSError, AttributeError):
+        return False
+    mallopt.argtypes, mallopt.restype = (ctypes.c_int, ctypes.c_int), ctypes.c_int
+    return bool(mallopt(_M_MMAP_THRESHOLD, int(mmap_threshold)) and mallopt(_M_TRIM_THRESHOLD, int(trim_threshold)))
