@@ -184,25 +184,34 @@ def compress(hist: np.ndarray, kept: np.ndarray) -> np.ndarray:
 
 def chi2_rows(h: np.ndarray, m: np.ndarray) -> np.ndarray:
     """χ² of each row of unnormalised histograms ``h`` (..., k) to the normalised ``m`` (k,);
-    2 (the maximum) for an empty row. ``h`` is overwritten (it is a scratch array here)."""
+    2 (the maximum) for an empty row. ``h`` is overwritten (it is a scratch array here).
+
+    For two normalised histograms Σ(a − b)²/(a + b) = Σ(a + b) − 4·Σ ab/(a + b) = 2 − 4·Σ ab/(a + b):
+    five passes over the rows instead of eight. Empty model bins are raised to 1e-12 so no
+    bin is 0/0 (a model seen in few views can have fewer non-zero bins than are kept).
+    """
+    m = np.maximum(m, np.float32(1e-12))
     tot = h.sum(axis=-1)
     h *= (1.0 / np.maximum(tot, 1e-12))[..., None]
     s = h + m
-    np.maximum(s, 1e-30, out=s)  # 0/0 bins contribute 0
-    h -= m
-    h *= h
+    h *= m
     h /= s
-    return np.where(tot > 0, h.sum(axis=-1), 2.0)
+    return np.where(tot > 0, 2.0 - 4.0 * h.sum(axis=-1), 2.0)
 
 
 def window_shapes(model: ObjectModel, image_size: tuple[int, int], scale: float, grid, params: LocaliseParams):
     """Window (w, h) in cells. The object's apparent sizes in the training views, as fractions of
     their image, are carried to the query image and widened by ``size_factors``: the training
     views (registered and synthetic, at several distances) bound the search."""
+    train_w = float(np.median([vs.camera.width for vs in model.viewsets])) if model.viewsets else float(image_size[0])
     rf = model.rfch
-    train_w = float(np.median([vs.camera.width for vs in model.viewsets])) if model.viewsets else image_size[0]
-    zoom = image_size[0] / train_w * scale / params.cell
-    (w0, h0), (w1, h1) = rf.size_min, rf.size_max
+    return _window_shapes(train_w, tuple(rf.size_min), tuple(rf.size_max), image_size[0], float(scale), tuple(grid), params)
+
+
+@functools.lru_cache(maxsize=256)
+def _window_shapes(train_w: float, size_min, size_max, image_w: int, scale: float, grid, params: LocaliseParams):
+    zoom = image_w / train_w * scale / params.cell
+    (w0, h0), (w1, h1) = size_min, size_max
     base_aspect = np.sqrt((w0 / h0) * (w1 / h1))
     rows, cols = grid
     hi = min(np.sqrt(w1 * h1) * zoom * params.size_factors[1], 0.9 * min(rows, cols) * np.sqrt(base_aspect))
@@ -292,6 +301,9 @@ def _coarse_windows(shapes: tuple, rows: int, cols: int) -> np.ndarray:
     return grid
 
 
+_EDGE_MOVES = np.stack(np.meshgrid(*[np.arange(-1, 2)] * 4, indexing="ij")).reshape(4, -1)  # (dy0, dx0, dy1, dx1)
+
+
 def localise(
     image: np.ndarray, camera: PinholeCamera, model: ObjectModel, params: LocaliseParams = LocaliseParams()
 ) -> Window | None:
@@ -333,7 +345,7 @@ def localise(
     if not np.isfinite(score[k]):
         return None
     # edges: move each side of the best window by −1, 0 or +1 cell while that lowers the score
-    moves = np.stack(np.meshgrid(*[np.arange(-1, 2)] * 4, indexing="ij")).reshape(4, -1)
+    moves = _EDGE_MOVES
     for _ in range(params.edge_refine):
         y0 = fy[k] + moves[0]; x0 = fx[k] + moves[1]
         y1 = fy[k] + fh[k] + moves[2]; x1 = fx[k] + fw[k] + moves[3]

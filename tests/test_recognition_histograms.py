@@ -98,3 +98,11 @@ def test_window_boxes_and_chi2_brute_force():
         assert c_ring[i] == pytest.approx(chi2(outer - inner), rel=1e-5)
         assert score[i] == pytest.approx(c_in[i] - c_ring[i], rel=1e-5)
     assert chi2_rows(np.zeros((1, 4), np.float32), m)[0] == 2.0  # an empty window is as far as can be
+
+
+def test_chi2_rows_with_empty_model_bins():
+    m = np.array([0.5, 0.5, 0.0, 0.0], np.float32)
+    h = np.array([[1, 1, 0, 0], [0, 0, 3, 1], [1, 0, 0, 1]], np.float32)
+    got = chi2_rows(h.copy(), m)
+    assert np.all(np.isfinite(got))
+    np.testing.assert_allclose(got, [0.0, 2.0, 1.0], atol=1e-6)  # last: 0 + .25/.5 + 0 + .25/.5
