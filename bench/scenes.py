@@ -111,18 +111,25 @@ def video_backgrounds(video: str = str(EXAMPLE / "box.mp4"), every: int = 23, li
 
 
 @lru_cache(maxsize=1)
-def _example_model():
-    """The bundled example, trained once into a temporary store (benchmarks must not depend on
-    the user's store)."""
+def example_store() -> Path:
+    """A temporary model store holding the bundled example trained with the default parameters,
+    trained once per process (benchmarks and tests must not depend on the user's store). Treat it
+    as read-only: every caller in the process shares it."""
     import tempfile
 
-    from quatrack.viewsets.store import load_model, save_model
+    from quatrack.viewsets.store import save_model
     from quatrack.viewsets.train import train_object
 
     store = Path(tempfile.mkdtemp(prefix="quatrack-bench-"))
-    model = train_object(load_spec(EXAMPLE / "object.json"))
-    save_model(store, model)
-    return load_model(store, model.name)
+    save_model(store, train_object(load_spec(EXAMPLE / "object.json")))
+    return store
+
+
+@lru_cache(maxsize=1)
+def _example_model():
+    from quatrack.viewsets.store import load_model
+
+    return load_model(example_store(), load_spec(EXAMPLE / "object.json").name)
 
 
 def example_model():

@@ -1,6 +1,7 @@
 """End-to-end tests of the service's HTTP side: a real uvicorn server on a loopback port.
 
-The example object is trained once per test session into a temporary store (≈ 3 s).
+The example object is trained once per test process into a temporary store (≈ 3 s), shared with
+the recognition tests (``quatrack.bench.scenes.example_store``).
 """
 
 from __future__ import annotations
@@ -21,20 +22,14 @@ from quatrack.service.settings import Settings
 ROOT = Path(__file__).resolve().parent.parent
 EXAMPLE = ROOT / "examples" / "cookie-box"
 CAMERA = json.loads((EXAMPLE / "camera.json").read_text())
-_STORE: dict = {}
 
 
 def trained_store(tmp_path_factory) -> Path:
-    """One trained store per pytest process, shared by the service test modules."""
-    if "path" not in _STORE:
-        from quatrack.viewsets.spec import load_spec
-        from quatrack.viewsets.store import save_model
-        from quatrack.viewsets.train import train_object
+    """The example trained once per pytest process, shared with the recognition tests and the
+    service test modules (read-only)."""
+    from quatrack.bench.scenes import example_store
 
-        store = tmp_path_factory.mktemp("service-store")
-        save_model(store, train_object(load_spec(EXAMPLE / "object.json")))
-        _STORE["path"] = store
-    return _STORE["path"]
+    return example_store()
 
 
 def video_frames(n: int, start: int = 0) -> list[np.ndarray]:
