@@ -24,7 +24,7 @@ from quatrack.tracking.camera import PinholeCamera
 from quatrack.viewsets.mesh import load_mesh, planar_groups
 from quatrack.viewsets.novel import render_textured_view, rotate_about_centre, scale_pose
 from quatrack.viewsets.render import render
-from quatrack.viewsets.rfch import RFCHParams, chi2, cooccurrence, pixel_descriptors, quantise, train_rfch
+from quatrack.viewsets.rfch import RFCHParams, chi2, cooccurrence, label_image, train_rfch
 from quatrack.viewsets.spec import load_spec
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "cookie-box"
@@ -81,7 +81,7 @@ def evaluate(photo, mask, scene_list, n, d, scales):
     model = train_rfch([photo], [mask], RFCHParams(n_clusters=n, distance=d, scales=scales))
     pairs, gaps, margins = [], [], []
     for scene, tex in scene_list:
-        lab = quantise(pixel_descriptors(scene, scales), model.centres, model.desc_mean, model.desc_std)
+        lab = label_image(scene, model)
         ys, xs = np.nonzero(tex)
         x0, y0, w, h = xs.min(), ys.min(), xs.max() - xs.min() + 1, ys.max() - ys.min() + 1
         obj = chi2(cooccurrence(lab[y0 : y0 + h, x0 : x0 + w], None, n, d), model.histogram)

@@ -323,7 +323,7 @@ def localise(
     y, x, w, h, shape = _coarse_windows(shapes, rows, cols)
     if len(y) == 0:
         return None
-    I = _Integral.of(C, int(max(_ring(w, h, params)[0].max(), _ring(w, h, params)[1].max())) + 1)
+    I = _Integral.of(C, int(max(_ring(cols, rows, params))) + 1)  # any window in the grid, edge moves included
 
     # coarse: the best position of every shape; fine: ±1 cell around the best few of those
     score, _, _ = _score_windows(I, m, y, x, w, h, params)
@@ -345,15 +345,14 @@ def localise(
     if not np.isfinite(score[k]):
         return None
     # edges: move each side of the best window by −1, 0 or +1 cell while that lowers the score
-    moves = _EDGE_MOVES
     for _ in range(params.edge_refine):
-        y0 = fy[k] + moves[0]; x0 = fx[k] + moves[1]
-        y1 = fy[k] + fh[k] + moves[2]; x1 = fx[k] + fw[k] + moves[3]
+        dy0, dx0, dy1, dx1 = _EDGE_MOVES
+        y0, x0, y1, x1 = fy[k] + dy0, fx[k] + dx0, fy[k] + fh[k] + dy1, fx[k] + fw[k] + dx1
         ok = (y0 >= 0) & (x0 >= 0) & (y1 <= rows) & (x1 <= cols) & (y1 - y0 >= 2) & (x1 - x0 >= 2)
         fy, fx, fh, fw = y0[ok], x0[ok], (y1 - y0)[ok], (x1 - x0)[ok]
         score, c_in, c_ring = _score_windows(I, m, fy, fx, fw, fh, params)
         k_new = int(np.argmin(score))
-        stay = int(np.flatnonzero((moves[:, ok] == 0).all(axis=0))[0])
+        stay = int(np.flatnonzero((_EDGE_MOVES[:, ok] == 0).all(axis=0))[0])
         k = k_new if score[k_new] < score[stay] else stay
         if k == stay:
             break

@@ -44,14 +44,6 @@ class RFCHModel:
     size_max: tuple[int, int]
 
 
-def grey_world(image: np.ndarray) -> np.ndarray:
-    """float32 BGR in [0, ~1] with every channel's mean scaled to 0.5: removes the illuminant's
-    colour and overall brightness (grey-world assumption)."""
-    img = _bgr(image)
-    gains = (0.5 / np.maximum(np.asarray(cv2.mean(img)[:3]), 1e-6)).astype(np.float32)
-    return img * gains
-
-
 def _bgr(image: np.ndarray) -> np.ndarray:
     """float32 (H, W, 3) from a grey, BGR or BGRA image of any depth (values kept)."""
     img = np.asarray(image, np.float32)
@@ -82,11 +74,6 @@ def descriptor_planes(image: np.ndarray, scales: tuple[float, ...]) -> np.ndarra
         cv2.magnitude(gx, gy, out[2 + 2 * i])
         cv2.Laplacian(blur, cv2.CV_32F, out[3 + 2 * i], ksize=3, scale=0.25 * sigma * sigma)
     return out
-
-
-def pixel_descriptors(image: np.ndarray, scales: tuple[float, ...]) -> np.ndarray:
-    """(H, W, 2 + 2·len(scales)) float32: :func:`descriptor_planes`, channel last."""
-    return np.ascontiguousarray(np.moveaxis(descriptor_planes(image, scales), 0, -1))
 
 
 def nearest_centres(
@@ -129,24 +116,22 @@ def nearest_centres(
     return key & ((1 << bits) - 1), (key & keep).view(np.float32)
 
 
-def quantise(descriptors: np.ndarray, centres: np.ndarray, mean: np.ndarray, std: np.ndarray) -> np.ndarray:
-    """Label (H, W) int32 of the nearest centre for each pixel descriptor (H, W, D)."""
-    h, w, dim = descriptors.shape
-    return nearest_centres(descriptors.reshape(-1, dim).T, centres, mean, std)[0].reshape(h, w)
+def label_planes(planes: np.ndarray, centres: np.ndarray, mean: np.ndarray, std: np.ndarray) -> np.ndarray:
+    """Label (H, W) int32 of the nearest centre for each pixel of :func:`descriptor_planes` (D, H, W)."""
+    return nearest_centres(planes, centres, mean, std)[0].reshape(planes.shape[1:])
 
 
 def label_image(image: np.ndarray, model: RFCHModel) -> np.ndarray:
     """The cluster label of every pixel of ``image`` under ``model`` (training and query alike)."""
-    planes = descriptor_planes(image, model.scales)
-    lab, _ = nearest_centres(planes, model.centres, model.desc_mean, model.desc_std)
-    return lab.reshape(planes.shape[1:])
+    return label_planes(descriptor_planes(image, model.scales), model.centres, model.desc_mean, model.desc_std)
 
 
 def neighbour_planes(labels: np.ndarray, mask: np.ndarray | None, n: int, d: int) -> np.ndarray:
-    """(N, H + 2d, W) uint8 (if (2d + 1)² ≤ 255) or uint16, ``d`` zero rows above and below each plane: for each label, how
-    many pixels of it lie within distance d of each pixel (Chebyshev, itself included), counting
-    only labelled pixels (``labels`` ≥ 0) inside ``mask``. Plane ``a``'s rows ``d … d + H`` are
-    the image; :func:`neighbour_counts` is the same, pixel-major.
+    """(N, H + 2d, W), uint8 if (2d + 1)² ≤ 255 else uint16: for each label, how many pixels of
+    it lie within distance d of each pixel (Chebyshev, itself included), counting only labelled
+    pixels (``labels`` ≥ 0) inside ``mask``. Each plane has ``d`` zero rows above and below:
+    plane ``a``'s rows ``d … d + H`` are the image; :func:`neighbour_counts` is the same,
+    pixel-major.
 
     All N indicator planes are stacked into one tall 8-bit image, ``d`` zero rows between planes
     so the box never reaches across, and filtered once: faster than float planes (10×) or one
@@ -231,7 +216,7 @@ def train_rfch(
     H = np.zeros((n, n))
     sizes = []
     for D, m in zip(descs, masks):
-        lab = nearest_centres(D, centres, mean, std)[0].reshape(D.shape[1:])
+        lab = label_planes(D, centres, mean, std)
         H += cooccurrence(lab, m, n, params.distance, normalise=False)
         ys, xs = np.nonzero(np.asarray(m) > 0)
         if len(xs):
