@@ -16,20 +16,13 @@ import httpx
 import numpy as np
 import pytest
 
+from quatrack.bench.scenes import example_store
 from quatrack.service.server import BackgroundServer
 from quatrack.service.settings import Settings
 
 ROOT = Path(__file__).resolve().parent.parent
 EXAMPLE = ROOT / "examples" / "cookie-box"
 CAMERA = json.loads((EXAMPLE / "camera.json").read_text())
-
-
-def trained_store(tmp_path_factory) -> Path:
-    """The example trained once per pytest process, shared with the recognition tests and the
-    service test modules (read-only)."""
-    from quatrack.bench.scenes import example_store
-
-    return example_store()
 
 
 def video_frames(n: int, start: int = 0) -> list[np.ndarray]:
@@ -60,8 +53,8 @@ def png_claiming(width: int, height: int) -> bytes:
 
 
 @pytest.fixture(scope="module")
-def store(tmp_path_factory):
-    return trained_store(tmp_path_factory)
+def store():
+    return example_store()
 
 
 @pytest.fixture(scope="module")

@@ -10,14 +10,14 @@ import pytest
 import schemathesis
 from hypothesis import HealthCheck, given, settings
 
+from quatrack.bench.scenes import example_store
 from quatrack.service.server import BackgroundServer
 from quatrack.service.settings import Settings
-from test_service_http import trained_store
 
 
 @pytest.fixture(scope="module")
-def api_server(tmp_path_factory):
-    with BackgroundServer(Settings(store=trained_store(tmp_path_factory), max_body_bytes=1_000_000)) as srv:
+def api_server():
+    with BackgroundServer(Settings(store=example_store(), max_body_bytes=1_000_000)) as srv:
         yield srv
 
 

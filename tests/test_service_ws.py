@@ -15,17 +15,18 @@ import pytest
 from websockets.exceptions import ConnectionClosed, InvalidStatus
 from websockets.sync.client import connect
 
+from quatrack.bench.scenes import example_store
 from quatrack.service.server import BackgroundServer
 from quatrack.service.settings import Settings
-from test_service_http import CAMERA, jpeg, trained_store, video_frames
+from test_service_http import CAMERA, jpeg, video_frames
 
 CAM_TEXT = json.dumps(CAMERA)
 CAM_ACK = json.dumps({**CAMERA, "ack": True})  # asks for the {"type": "ready"} handshake
 
 
 @pytest.fixture(scope="module")
-def store(tmp_path_factory):
-    return trained_store(tmp_path_factory)
+def store():
+    return example_store()
 
 
 @pytest.fixture(scope="module")
