@@ -333,15 +333,15 @@ def _run_serve(args: argparse.Namespace) -> int:
 
 
 def _add_demo(parser: argparse.ArgumentParser) -> None:
-    from quatrack.service.cli import add_demo
+    from quatrack.service.demo import add_arguments
 
-    add_demo(parser)
+    add_arguments(parser)
 
 
 def _run_demo(args: argparse.Namespace) -> int:
-    from quatrack.service.cli import run_demo
+    from quatrack.service.demo import run
 
-    return run_demo(args)
+    return run(args)
 
 
 COMMANDS: dict[str, tuple[str, Callable[[argparse.ArgumentParser], None], Callable[[argparse.Namespace], int]]] = {
