@@ -28,7 +28,7 @@ from quatrack.recognition.visibility import mesh_edges
 from quatrack.tracking import quaternion as quat
 from quatrack.viewsets.camera import load_camera
 from quatrack.viewsets.render import render
-from quatrack.viewsets.spec import Pose
+from quatrack.tracking.pose import Pose
 
 from . import scenes as S
 
@@ -119,7 +119,7 @@ def video(model, camera, every: int, sheet: str | None, progress: bool) -> dict:
             ref = locate(frame, camera, model, LocateParams(use_window=False), index=index)
             on_box = None
             if ref.found and r.bbox is not None:
-                sil = render(model.mesh, camera, Pose(quat.to_matrix(ref.q_wxyz), ref.t)).face >= 0
+                sil = render(model.mesh, camera, Pose(ref.q_wxyz, ref.t)).face >= 0
                 cx = int(np.clip(r.bbox[0] + r.bbox[2] / 2, 0, frame.shape[1] - 1))
                 cy = int(np.clip(r.bbox[1] + r.bbox[3] / 2, 0, frame.shape[0] - 1))
                 on_box = bool(sil[cy, cx])

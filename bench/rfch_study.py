@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import itertools
 import time
-from pathlib import Path
+from quatrack.examples import example_dir
 
 import cv2
 import numpy as np
@@ -27,7 +27,7 @@ from quatrack.viewsets.render import render
 from quatrack.viewsets.rfch import RFCHParams, chi2, cooccurrence, label_image, train_rfch
 from quatrack.viewsets.spec import load_spec
 
-EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "cookie-box"
+EXAMPLE = example_dir()
 
 
 def clutter(rng: np.random.Generator, h: int, w: int, palette: np.ndarray) -> np.ndarray:

@@ -16,14 +16,16 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from quatrack.examples import example_dir
 from quatrack.tracking import quaternion as quat
 from quatrack.tracking.camera import PinholeCamera
 from quatrack.viewsets.mesh import Mesh, load_mesh, planar_groups
 from quatrack.viewsets.novel import render_textured_view, rotate_about_centre
 from quatrack.viewsets.render import render
-from quatrack.viewsets.spec import ObjectSpec, Pose, load_spec
+from quatrack.tracking.pose import Pose
+from quatrack.viewsets.spec import ObjectSpec, load_spec
 
-EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "cookie-box"
+EXAMPLE = example_dir()
 
 
 @dataclass(frozen=True)
@@ -102,7 +104,7 @@ def video_backgrounds(video: str = str(EXAMPLE / "box.mp4"), every: int = 23, li
         if i % every == 0:
             r = locate(frame, cam, model, LocateParams(use_window=False), index=index)
             if r.found:
-                sil = render(model.mesh, cam, Pose(quat.to_matrix(r.q_wxyz), r.t)).face >= 0
+                sil = render(model.mesh, cam, Pose(r.q_wxyz, r.t)).face >= 0
                 hole = cv2.dilate(sil.astype(np.uint8) * 255, np.ones((25, 25), np.uint8))
                 out.append(cv2.inpaint(frame, hole, 7, cv2.INPAINT_TELEA))
         i += 1
@@ -170,7 +172,7 @@ def random_scene(
         ray = np.array([(u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy, 1.0])
         c_cam = ray * z
         t = c_cam - turned.R @ mesh.centre
-        pose = Pose(turned.R, t)
+        pose = Pose(turned.q_wxyz, t)
         obj, sil = renderer.render(camera, pose)
         if sil.any() and sil[[0, -1], :].sum() + sil[:, [0, -1]].sum() == 0:
             break

@@ -21,7 +21,7 @@ import numpy as np
 
 from quatrack.tracking import quaternion as quat
 from quatrack.tracking.camera import PinholeCamera
-from quatrack.viewsets.spec import Pose
+from quatrack.tracking.pose import Pose
 
 from .scenes import EXAMPLE, Renderer, example_model, pose_errors
 
@@ -48,7 +48,7 @@ class Trajectory:
         c = self.c0 + self.pos_amp * np.sin(2 * np.pi * self.pos_freq * t + self.pos_phase)
         rv = self.rot_amp * np.sin(2 * np.pi * self.rot_freq * t + self.rot_phase)
         R = self.R0 @ quat.to_matrix(quat.from_rotvec(rv))
-        return Pose(R, c - R @ self.mesh_centre)
+        return Pose.from_matrix(R, c - R @ self.mesh_centre)
 
 
 def lively_trajectory(renderer: Renderer, depth: float = 60.0, scale: float = 1.0, seed: int = 0) -> Trajectory:

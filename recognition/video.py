@@ -40,7 +40,7 @@ from quatrack.tracking.camera import PinholeCamera
 from quatrack.tracking.filter import PoseFilter
 from quatrack.tracking.measurements import PointMeasurements, project_model_points
 from quatrack.tracking.motion import make_motion_model
-from quatrack.viewsets.spec import Pose
+from quatrack.tracking.pose import Pose
 from quatrack.viewsets.store import ObjectModel
 
 from .images import ImageError, to_bgr8
@@ -299,7 +299,7 @@ class Tracker:
                 return self._lost(time_s, f"not found: {loc.reason}")
             t, q, cov, how, time_s0 = loc.t, loc.q_wxyz, loc.covariance, "recognition", time_s
             cov = 0.5 * (cov + cov.T) + 1e-9 * np.eye(6)
-        self.filter.initialize(time_s0, t, q, cov)
+        self.filter.initialize(time_s0, Pose(q, t), cov)
         self.filter.predict(time_s)
         t0 = time.perf_counter()
         tracks, n_matches, _ = self._anchor(img, _Tracks.empty(), wide=True)
@@ -317,7 +317,7 @@ class Tracker:
 
     def _pose(self, state=None) -> Pose:
         s = state or self.filter.state
-        return Pose(quat.to_matrix(s.q), s.p)
+        return s.pose
 
     def _track(self, img: np.ndarray, pyr: Frame, time_s: float, timings: dict) -> TrackStep:
         p = self.params
@@ -453,7 +453,7 @@ class Tracker:
 
     def _window(self, pose: Pose, margin: float = 0.15) -> tuple[int, int, int, int] | None:
         """Pixel box (x0, y0, x1, y1) of the projected mesh, enlarged by ``margin``."""
-        Xc = pose.transform(self.model.mesh.vertices)
+        Xc = pose.apply(self.model.mesh.vertices)
         if np.any(Xc[:, 2] <= 0):
             return None
         uv = self.camera.project(Xc)
@@ -482,7 +482,7 @@ class Tracker:
         next KLT step starts from); those that do not follow are dropped with their matches."""
         kp = feats.keypoints[m.query_idx].astype(np.float64)
         pose_prev = self._pose_before_predict  # the previous frame's posterior
-        guess = self.camera.project(pose_prev.transform(np.asarray(m.points3d, float)))
+        guess = self.camera.project(pose_prev.apply(np.asarray(m.points3d, float)))
         moved, ok, _ = track_points(pyr_then, self._prev, kp, guess, self.params.klt)
         keep = np.flatnonzero(ok)
         kp_new = np.zeros_like(feats.keypoints)
@@ -538,12 +538,12 @@ class Tracker:
         if not ok or inl is None or len(inl) < p.min_anchor_matches:
             return tracks, 0, False
         inl = inl.ravel()
-        pnp = Pose(cv2.Rodrigues(rvec)[0], tvec.ravel())
+        pnp = Pose.from_rvec(rvec, tvec)
         vis, _ = visible_points(self.model.mesh, cam, pnp, X[inl], p.visibility)
         X, kp = X[inl][vis], kp[inl][vis]
         if len(X) < p.min_anchor_matches:
             return tracks, 0, False
-        uv_cur = cam.project(pose.transform(X))
+        uv_cur = cam.project(pose.apply(X))
         disagree = float(np.median(np.linalg.norm(uv_cur - kp, axis=1))) > 0.5 * p.anchor_radius_px
         replaced = disagree and len(X) >= 2 * p.min_inliers and not wide
         if len(tracks) and not replaced:

@@ -17,7 +17,7 @@ import numpy as np
 from quatrack.tracking.camera import PinholeCamera
 from quatrack.viewsets.mesh import Mesh
 from quatrack.viewsets.render import render
-from quatrack.viewsets.spec import Pose
+from quatrack.tracking.pose import Pose
 
 
 def merge_points(points: np.ndarray, tol: float) -> np.ndarray:
@@ -50,7 +50,7 @@ def visible_points(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Mask (n,) of the ``points`` (object frame) visible at ``pose``, and their pixels (n, 2)."""
     P = np.asarray(points, float).reshape(-1, 3)
-    Xc = pose.transform(P)
+    Xc = pose.apply(P)
     n = len(P)
     ok = Xc[:, 2] > 1e-6
     uv = np.full((n, 2), -1.0)

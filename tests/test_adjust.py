@@ -17,6 +17,7 @@ from quatrack.tracking.camera import PinholeCamera
 from quatrack.tracking.filter import PoseFilter
 from quatrack.tracking.measurements import PointMeasurements, SegmentMeasurements
 from quatrack.tracking.motion import make_motion_model
+from quatrack.tracking.pose import Pose
 from quatrack.tracking.rotation import rodrigues
 from quatrack.tracking.state import FilterState, initial_state
 
@@ -59,11 +60,14 @@ def test_exact_measurements_converge_to_the_true_pose(seed):
     S = np.diag([1e8] * 12)
     res = adjust(FilterState(0.0, p0, q0, np.zeros(3), np.zeros(3), S), [block])
     assert res.converged
-    np.testing.assert_allclose(pose_error(res.state.p, res.state.q), 0.0, atol=1e-6)
+    err = np.linalg.norm(pose_error(res.state.p, res.state.q))
+    assert err < stop_rule_tolerance(res.state.covariance, P_TRUE), err
     est = estimate_pose([block], p0, q0)
     assert est.converged
-    np.testing.assert_allclose(pose_error(est.p, est.q), 0.0, atol=1e-7)
-    assert abs(quat.norm(est.q) - 1.0) < 1e-14
+    err = np.linalg.norm(pose_error(est.p, est.q))
+    assert err < stop_rule_tolerance(est.covariance, P_TRUE), err
+    # q moves by exact unit quaternions (eq. 28): its norm drifts by a few eps per iteration
+    assert abs(quat.norm(est.q) - 1.0) < 4 * (est.iterations + 1) * np.finfo(float).eps
 
 
 def test_exact_segments_converge_to_the_true_pose():
@@ -241,7 +245,7 @@ def simulate_motion(model_name, n=90, dt=1 / 30, sigma=0.5, seed=0):
     f = PoseFilter(make_motion_model(model_name, **params))
     first = PointMeasurements.create(CAM, X, observe(X, sigma=sigma, rng=rng), sigma)
     est = estimate_pose([first], P_TRUE, Q_TRUE)
-    f.initialize(0.0, est.p, est.q, est.covariance)
+    f.initialize(0.0, est.pose, est.covariance)
     errs = []
     for k in range(1, n):
         t = k * dt
@@ -276,7 +280,7 @@ def test_unit_norm_survives_without_renormalisation():
     """1000 predictions and geodesic updates: the quaternion stays on S³ to rounding."""
     X = box_points(10)
     f = PoseFilter(make_motion_model("ude", a=1.0, alpha=0.01))
-    f.initialize(0.0, P_TRUE, Q_TRUE, np.diag([1.0] * 3 + [1e-4] * 3), velocity_variance=1.0)
+    f.initialize(0.0, Pose(Q_TRUE, P_TRUE), np.diag([1.0] * 3 + [1e-4] * 3), velocity_variance=1.0)
     f.state = f.state.replace(omega=np.array([0.7, -0.4, 0.9]))
     rng = np.random.default_rng(0)
     for k in range(1, 1001):

@@ -98,7 +98,7 @@ def test_visible_points_agree_with_the_full_zbuffer(world):
     vis, uv = visible_points(model.mesh, camera, pose, X)
     assert 200 < vis.sum() < 0.5 * len(X)
     buf = render(model.mesh, camera, pose)
-    z = pose.transform(X)[:, 2]
+    z = pose.apply(X)[:, 2]
     ui, vi = np.rint(uv[vis]).astype(int).T
     assert np.all(buf.face[vi, ui] >= 0)
     assert np.all(np.abs(buf.depth[vi, ui] - z[vis]) < 0.05 * model.mesh.extent)

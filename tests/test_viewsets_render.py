@@ -9,7 +9,7 @@ import pytest
 from quatrack.tracking.camera import PinholeCamera
 from quatrack.viewsets.mesh import make_mesh, planar_groups
 from quatrack.viewsets.render import cast_rays, lift_keypoints, render, undistort_pixels
-from quatrack.viewsets.spec import Pose
+from quatrack.tracking.pose import Pose
 
 
 def box_mesh(sx=18.9, sy=25.8, sz=7.5):
@@ -21,7 +21,7 @@ def box_mesh(sx=18.9, sy=25.8, sz=7.5):
 def pose_looking_at(centre, rvec, distance):
     R = cv2.Rodrigues(np.asarray(rvec, float))[0]
     t = np.array([0.0, 0.0, distance]) - R @ np.asarray(centre, float)
-    return Pose(R, t)
+    return Pose.from_matrix(R, t)
 
 
 CAM = PinholeCamera(700.0, 690.0, 322.0, 241.0, width=640, height=480)
@@ -37,7 +37,7 @@ def test_mask_matches_convex_hull_of_projected_corners():
     mesh = box_mesh()
     pose = pose_looking_at(mesh.centre, [0.5, -0.4, 0.3], 80.0)
     buf = render(mesh, CAM, pose)
-    uv = CAM.project(pose.transform(mesh.vertices))
+    uv = CAM.project(pose.apply(mesh.vertices))
     ref = np.zeros((480, 640), np.uint8)
     cv2.fillConvexPoly(ref, np.round(cv2.convexHull(uv.astype(np.float32))[:, 0] * 16).astype(np.int32), 255,
                        lineType=cv2.LINE_8, shift=4)
@@ -57,7 +57,7 @@ def test_depth_buffer_agrees_with_ray_casting(camera):
     uv = np.stack([us[pick], vs[pick]], 1).astype(float)
     X, f, _ = cast_rays(mesh, pose, undistort_pixels(camera, uv))
     assert np.all(f >= 0)
-    z = pose.transform(X)[:, 2]
+    z = pose.apply(X)[:, 2]
     np.testing.assert_allclose(z, buf.depth[vs[pick], us[pick]], rtol=1e-6)
 
 
@@ -70,7 +70,7 @@ def test_lifted_points_reproject_onto_their_keypoints(camera):
     uv = rng.uniform([0, 0], [639, 479], (3000, 2))
     X, keep = lift_keypoints(mesh, camera, pose, uv, buffers=buf)
     assert keep.sum() > 300
-    err = np.linalg.norm(camera.project(pose.transform(X[keep])) - uv[keep], axis=1)
+    err = np.linalg.norm(camera.project(pose.apply(X[keep])) - uv[keep], axis=1)
     assert err.max() < 1e-3
     # points outside the object (or within 3 px of its silhouette) were dropped
     vi, ui = np.rint(uv[keep, 1]).astype(int), np.rint(uv[keep, 0]).astype(int)

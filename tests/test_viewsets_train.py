@@ -14,7 +14,8 @@ from quatrack.tracking.camera import PinholeCamera
 from quatrack.viewsets.mesh import make_mesh, planar_groups
 from quatrack.viewsets.novel import render_textured_view
 from quatrack.viewsets.render import cast_rays, render, undistort_pixels
-from quatrack.viewsets.spec import Pose, load_spec
+from quatrack.tracking.pose import Pose
+from quatrack.viewsets.spec import load_spec
 from quatrack.viewsets.store import list_models, load_model
 from quatrack.viewsets.train import TrainParams, train_object
 from quatrack.viewsets.novel import NovelViewParams
@@ -68,7 +69,7 @@ def test_every_stored_point_reprojects_onto_its_keypoint(trained_store):
     model = load_model(trained_store, "cookie-box")
     for vs in model.viewsets:
         assert vs.descriptors.dtype == np.float32 and vs.descriptors.shape == (len(vs), 128)
-        uv = vs.camera.project(vs.pose.transform(vs.points3d))
+        uv = vs.camera.project(vs.pose.apply(vs.points3d))
         err = np.linalg.norm(uv - vs.keypoints, axis=1)
         assert err.max() < 1.0, vs.label
         # and every point lies on the box's surface (cm)
@@ -136,7 +137,7 @@ def textured_box(tmp_path_factory):
     rvec = np.array([2.1, -0.6, 0.3])
     R = cv2.Rodrigues(rvec)[0]
     t = np.array([0.0, 0.0, 45.0]) - R @ mesh.centre
-    img = photograph(mesh, camera, Pose(R, t))
+    img = photograph(mesh, camera, Pose.from_matrix(R, t))
     cv2.imwrite(str(d / "photo.png"), img)
     write_ply(d / "box.ply", mesh)
     spec = {"name": "tbox", "mesh": "box.ply", "views": [{
@@ -174,7 +175,7 @@ def test_synthetic_viewsets_land_on_the_right_surfaces(textured_box):
         truth = photograph(mesh, vs.camera, vs.pose).astype(float)
         diff = np.abs(synth.astype(float) - truth).max(axis=2)[textured > 0]
         assert np.median(diff) < 15, vs.label
-        uv = vs.camera.project(vs.pose.transform(vs.points3d))
+        uv = vs.camera.project(vs.pose.apply(vs.points3d))
         assert np.linalg.norm(uv - vs.keypoints, axis=1).max() < 1.0
         checked += len(vs)
     assert checked > 150

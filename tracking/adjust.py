@@ -25,6 +25,7 @@ import numpy as np
 from . import quaternion as quat
 from . import robust
 from .measurements import MeasurementBlock
+from .pose import Pose
 from .state import POSE_DIM, STATE_DIM, FilterState
 
 
@@ -89,6 +90,11 @@ class PoseEstimate:
     gradient_norm: float
     cost: float
     weights: tuple[np.ndarray, ...]
+
+    @property
+    def pose(self) -> Pose:
+        """``(q, p)`` as a :class:`~tracking.pose.Pose`."""
+        return Pose(self.q, self.p)
 
 
 class SingularProblemError(ValueError):

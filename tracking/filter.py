@@ -1,7 +1,7 @@
 """The pose filter: predict and adjust kept apart (in the manner of filterpy).
 
     f = PoseFilter(UdeConstantVelocity(a=2.0, alpha=2e-4))
-    f.initialize(t0, p, q, pose_covariance)       # velocities unknown: variance 1e8
+    f.initialize(t0, pose, pose_covariance)       # a Pose; velocities unknown: variance 1e8
     for t, blocks in frames:
         f.predict(t)                                # eqs. 11–14 and 22–23 (or another model)
         result = f.update(blocks)                   # eqs. 24–30
@@ -19,6 +19,7 @@ import numpy as np
 from .adjust import AdjustOptions, AdjustResult, adjust
 from .measurements import MeasurementBlock
 from .motion import MotionModel
+from .pose import Pose
 from .state import FilterState, initial_state
 
 
@@ -34,13 +35,13 @@ class PoseFilter:
     def initialize(
         self,
         t: float,
-        p: np.ndarray,
-        q: np.ndarray,
+        pose: Pose,
         pose_covariance: np.ndarray,
         velocity_variance: float = 1e8,
     ) -> FilterState:
-        """Start from a pose estimate; velocities zero (and not estimated by zeroth-order models)."""
-        state = initial_state(t, p, q, pose_covariance, velocity_variance=velocity_variance)
+        """Start from a pose estimate (covariance 6×6 over ``[p, δθ]``); velocities zero, with
+        variance ``velocity_variance`` (and not estimated by zeroth-order models)."""
+        state = initial_state(t, pose.t, pose.q_wxyz, pose_covariance, velocity_variance=velocity_variance)
         if not self.motion.estimates_velocity:
             state.covariance[6:, 6:] = 0.0
         self.state, self.prior = state, None

@@ -7,6 +7,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from . import quaternion as quat
+from .pose import Pose
 
 STATE_DIM = 12  # [p, δθ, v, ω]
 POSE_DIM = 6  # [p, δθ]
@@ -35,6 +36,11 @@ class FilterState:
     def R(self) -> np.ndarray:
         """Rotation matrix of ``q``."""
         return quat.to_matrix(self.q)
+
+    @property
+    def pose(self) -> Pose:
+        """``(q, p)`` as the project's :class:`~tracking.pose.Pose` (canonical quaternion)."""
+        return Pose(self.q, self.p)
 
     @property
     def pose_covariance(self) -> np.ndarray:

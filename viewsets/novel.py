@@ -17,7 +17,7 @@ from quatrack.tracking.camera import PinholeCamera
 
 from .mesh import Mesh
 from .render import RenderBuffers, pixel_rays, render
-from .spec import Pose
+from quatrack.tracking.pose import Pose
 
 BACKGROUND = 127  # neutral grey: keypoints are taken only well inside the textured mask anyway
 
@@ -38,13 +38,13 @@ def rotate_about_centre(pose: Pose, centre: np.ndarray, rvec_obj: np.ndarray) ->
     Rd = cv2.Rodrigues(np.asarray(rvec_obj, float).reshape(3, 1))[0]
     R = pose.R @ Rd
     t = pose.R @ centre - R @ centre + pose.t
-    return Pose(R, t)
+    return Pose.from_matrix(R, t)
 
 
 def scale_pose(pose: Pose, centre: np.ndarray, scale: float) -> Pose:
     """Move the object along its line of sight so it appears ``scale`` times larger."""
     p = pose.R @ centre + pose.t
-    return Pose(pose.R, pose.t + p / scale - p)
+    return Pose(pose.q_wxyz, pose.t + p / scale - p)
 
 
 def novel_poses(mesh: Mesh, pose: Pose, params: NovelViewParams) -> list[tuple[str, Pose]]:

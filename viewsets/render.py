@@ -16,7 +16,7 @@ import numpy as np
 from quatrack.tracking.camera import PinholeCamera
 
 from .mesh import Mesh
-from .spec import Pose
+from quatrack.tracking.pose import Pose
 
 _NEAR = 1e-6
 
@@ -89,7 +89,7 @@ def render(mesh: Mesh, camera: PinholeCamera, pose: Pose) -> RenderBuffers:
     rays = pixel_rays(camera)
     depth = np.full((h, w), np.inf, dtype=np.float64)
     face = np.full((h, w), -1, dtype=np.int32)
-    tris = pose.transform(mesh.vertices)[mesh.faces]  # (m, 3, 3) camera frame
+    tris = pose.apply(mesh.vertices)[mesh.faces]  # (m, 3, 3) camera frame
     normals = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
     offsets = np.einsum("ij,ij->i", normals, tris[:, 0])
     for i in range(len(tris)):

@@ -18,30 +18,11 @@ import numpy as np
 
 from quatrack.tracking import quaternion as quat
 from quatrack.tracking.camera import PinholeCamera
+from quatrack.tracking.pose import Pose
 
 from .camera import camera_from_dict, load_camera
 from .errors import SpecError, StoreError
 from .names import check_object_name
-
-
-@dataclass(frozen=True)
-class Pose:
-    """Object → camera: ``X_cam = R @ X_obj + t``; ``t`` in mesh units."""
-
-    R: np.ndarray
-    t: np.ndarray
-
-    @property
-    def q_wxyz(self) -> np.ndarray:
-        return quat.canonical(quat.from_matrix(self.R))
-
-    @property
-    def rvec(self) -> np.ndarray:
-        return cv2.Rodrigues(self.R)[0].ravel()
-
-    def transform(self, X: np.ndarray) -> np.ndarray:
-        """Points (n, 3) from the object frame into the camera frame."""
-        return np.asarray(X, float) @ self.R.T + self.t
 
 
 @dataclass(frozen=True)
@@ -104,7 +85,7 @@ def parse_pose(data: Any, where: str = "pose") -> Pose:
         raise SpecError(
             f"{where}: unknown pose format with keys {sorted(keys)}; use {{rvec, tvec}}, {{R, t}} or {{q_wxyz, t}}"
         )
-    return Pose(np.asarray(R, float), np.asarray(t, float))
+    return Pose.from_matrix(R, t)
 
 
 def _path(base: Path, value: Any, where: str, field: str) -> Path:

@@ -22,7 +22,7 @@ from .errors import StoreError
 from .mesh import Mesh
 from .names import check_object_name
 from .rfch import RFCHModel
-from .spec import Pose
+from quatrack.tracking.pose import Pose
 from .viewset import Viewset
 
 SCHEMA_VERSION = 1
@@ -169,7 +169,7 @@ def load_model(store: str | Path, name: str) -> ObjectModel:
         s = slice(int(off[i]), int(off[i + 1]))
         viewsets.append(Viewset(
             meta["label"], int(a["vs_source"][i]), bool(a["vs_synthetic"][i]), cam,
-            Pose(a["vs_R"][i], a["vs_t"][i]), a["vs_keypoints"][s], a["vs_descriptors"][s],
+            Pose.from_matrix(a["vs_R"][i], a["vs_t"][i]), a["vs_keypoints"][s], a["vs_descriptors"][s],
             a["vs_points3d"][s], tuple(int(x) for x in a["vs_bbox"][i]),
         ))
     mesh = Mesh(a["mesh_vertices"], a["mesh_faces"])

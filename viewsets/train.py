@@ -63,7 +63,7 @@ def _read_image(view: ViewSpec) -> np.ndarray:
 
 def check_pose(mesh: Mesh, view: ViewSpec, buffers: RenderBuffers | None = None, min_inside: float = 0.5) -> RenderBuffers:
     """Refuse poses that put the object behind the camera or (mostly) outside the image."""
-    X = view.pose.transform(mesh.vertices)
+    X = view.pose.apply(mesh.vertices)
     if np.any(X[:, 2] <= 0):
         raise SpecError(f"view {view.index}: pose puts the object (partly) behind the camera (min z = {X[:, 2].min():.3g})")
     buffers = buffers or render(mesh, view.camera, view.pose)

@@ -12,7 +12,7 @@ from quatrack.tracking.camera import PinholeCamera
 from .features import extract_features
 from .mesh import Mesh
 from .render import RenderBuffers, lift_keypoints
-from .spec import Pose
+from quatrack.tracking.pose import Pose
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,138 @@
+"""The one pose type of quatrack: a rigid transform object → camera, ``X_cam = R(q) · X_obj + t``.
+
+Every layer passes poses as :class:`Pose`; they become JSON (``{"t", "q_wxyz"}``), CSV columns,
+OpenCV ``rvec``/``tvec`` or 4×4 matrices only at the edges. The filter state keeps Ude's ``p, q``
+and converts with :attr:`tracking.state.FilterState.pose`.
+
+The group is SE(3) written as a unit quaternion and a translation, as jaxlie's ``SE3`` and
+Sophus' ``SE3d``:
+
+- composition ``(a ∘ b).apply(X) = a.apply(b.apply(X))``: ``q = q_a ⊗ q_b``, ``t = R_a t_b + t_a``;
+- inverse: ``q⁻¹ = q̄``, ``t⁻¹ = −R(q)ᵀ t``;
+- the quaternion is kept unit and canonical (``w ≥ 0``): ``q`` and ``−q`` are one rotation.
+
+>>> import numpy as np
+>>> a = Pose.from_rvec([0.0, 0.0, np.pi / 2], [1.0, 0.0, 0.0])
+>>> a.apply([1.0, 0.0, 0.0]).round(6)            # rotate x onto y, then shift by t
+array([1., 1., 0.])
+>>> bool(np.allclose((a @ a.inverse()).as_matrix(), np.eye(4)))
+True
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cached_property
+from typing import Any
+
+import numpy as np
+
+from . import quaternion as quat
+
+
+def _readonly(a: np.ndarray) -> np.ndarray:
+    a.setflags(write=False)
+    return a
+
+
+@dataclass(frozen=True, eq=False)
+class Pose:
+    """Object → camera: ``X_cam = R(q_wxyz) · X_obj + t``; ``t`` in the object mesh's units.
+
+    ``q_wxyz`` is normalised and made canonical (``w ≥ 0``) on construction; both arrays are
+    read-only, so a pose can be shared freely. Construct from other forms with
+    :meth:`from_matrix`, :meth:`from_rvec` or :meth:`from_homogeneous`.
+    """
+
+    q_wxyz: np.ndarray
+    t: np.ndarray
+
+    def __post_init__(self) -> None:
+        q = np.array(self.q_wxyz, dtype=float).reshape(4)
+        t = np.array(self.t, dtype=float).reshape(3)
+        if not (np.all(np.isfinite(q)) and np.all(np.isfinite(t))):
+            raise ValueError("a pose must be finite")
+        n = float(np.linalg.norm(q))
+        if not n > 1e-12:
+            raise ValueError("a pose's quaternion must not be zero")
+        object.__setattr__(self, "q_wxyz", _readonly(quat.canonical(q / n)))
+        object.__setattr__(self, "t", _readonly(t))
+
+    # -- construction ------------------------------------------------------------------------
+    @classmethod
+    def identity(cls) -> "Pose":
+        """``R = I``, ``t = 0``."""
+        return cls(quat.IDENTITY, np.zeros(3))
+
+    @classmethod
+    def from_matrix(cls, R: Any, t: Any) -> "Pose":
+        """From a 3×3 rotation matrix (rows) and a translation."""
+        return cls(quat.from_matrix(np.asarray(R, float)), t)
+
+    @classmethod
+    def from_homogeneous(cls, T: Any) -> "Pose":
+        """From a 4×4 (or 3×4) matrix ``[R t]``."""
+        T = np.asarray(T, float)
+        return cls.from_matrix(T[:3, :3], T[:3, 3])
+
+    @classmethod
+    def from_rvec(cls, rvec: Any, tvec: Any) -> "Pose":
+        """From OpenCV's ``rvec, tvec`` (Rodrigues: ``rvec`` = axis · angle, radians)."""
+        return cls(quat.from_rotvec(np.asarray(rvec, float).reshape(3)), np.asarray(tvec, float).reshape(3))
+
+    # -- views -------------------------------------------------------------------------------
+    @cached_property
+    def R(self) -> np.ndarray:
+        """The 3×3 rotation matrix ``R(q)`` (eq. 5 of Ude 1999), read-only."""
+        return _readonly(quat.to_matrix(self.q_wxyz))
+
+    @property
+    def rvec(self) -> np.ndarray:
+        """OpenCV's rotation vector (axis · angle, radians), shape (3,)."""
+        return quat.to_rotvec(self.q_wxyz)
+
+    def as_matrix(self) -> np.ndarray:
+        """The 4×4 homogeneous matrix ``[[R, t], [0, 1]]``."""
+        T = np.eye(4)
+        T[:3, :3] = self.R
+        T[:3, 3] = self.t
+        return T
+
+    def to_json(self, digits: int | None = None) -> dict:
+        """``{"t": [...], "q_wxyz": [...]}``, the contract's pose object."""
+        r = (lambda v: float(v)) if digits is None else (lambda v: round(float(v), digits))
+        return {"t": [r(v) for v in self.t], "q_wxyz": [r(v) for v in self.q_wxyz]}
+
+    # -- group operations --------------------------------------------------------------------
+    def apply(self, X: Any) -> np.ndarray:
+        """Points (..., 3) from the object frame into the camera frame: ``R X + t``."""
+        return np.asarray(X, float) @ self.R.T + self.t
+
+    def compose(self, other: "Pose") -> "Pose":
+        """``self ∘ other``: first ``other``, then ``self`` (``q = q_s ⊗ q_o``, ``t = R_s t_o + t_s``).
+
+        >>> a = Pose.from_rvec([0.1, 0.2, 0.3], [1.0, 2.0, 3.0])
+        >>> b = Pose.from_rvec([-0.3, 0.0, 0.5], [0.0, -1.0, 4.0])
+        >>> bool(np.allclose(a.compose(b).apply([1.0, 2.0, 3.0]), a.apply(b.apply([1.0, 2.0, 3.0]))))
+        True
+        """
+        return Pose(quat.multiply(self.q_wxyz, other.q_wxyz), self.R @ other.t + self.t)
+
+    __matmul__ = compose
+
+    def inverse(self) -> "Pose":
+        """Camera → object: ``q̄`` and ``−Rᵀ t``."""
+        return Pose(quat.conjugate(self.q_wxyz), -self.R.T @ self.t)
+
+    # -- comparison --------------------------------------------------------------------------
+    def distance(self, other: "Pose") -> tuple[float, float]:
+        """``(‖t − t_o‖, angle between the rotations in radians)``: the error measures of the
+        benchmarks (translation in mesh units)."""
+        return float(np.linalg.norm(self.t - other.t)), float(quat.angle_between(self.q_wxyz, other.q_wxyz))
+
+    def allclose(self, other: "Pose", atol: float = 1e-9) -> bool:
+        """Same transform within ``atol`` (translation and quaternion components; ``q ≡ −q``)."""
+        return bool(np.allclose(self.t, other.t, atol=atol) and np.allclose(self.q_wxyz, other.q_wxyz, atol=atol))
+
+    def __repr__(self) -> str:
+        return f"Pose(q_wxyz={np.round(self.q_wxyz, 6).tolist()}, t={np.round(self.t, 6).tolist()})"
