@@ -15,7 +15,7 @@ from typing import Callable
 
 import numpy as np
 
-from quatrack.runtime import tune_allocator
+from quatrack.recognition.runtime import tune_allocator
 
 
 class UserError(Exception):

@@ -21,7 +21,7 @@ from fastapi import FastAPI
 from fastapi.middleware.cors import CORSMiddleware
 
 from quatrack import __version__
-from quatrack.runtime import tune_allocator
+from quatrack.recognition.runtime import tune_allocator
 
 from . import errors
 from .errors import ApiError, error_body

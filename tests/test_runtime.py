@@ -4,7 +4,7 @@ import platform
 
 import pytest
 
-from quatrack.runtime import tune_allocator
+from quatrack.recognition.runtime import tune_allocator
 
 
 @pytest.mark.skipif(platform.system() != "Linux" or platform.libc_ver()[0] != "glibc", reason="glibc only")

@@ -1,4 +1,6 @@
-"""Process-wide tuning for numpy-heavy, latency-bound work (called by the CLI and the service)."""
+"""Process-wide tuning for numpy-heavy, latency-bound work: the per-frame recognition and tracking
+loops allocate frame-sized arrays. Lives in the recognition layer so that both the command line
+and the service (the layers above) import it downward."""
 
 from __future__ import annotations
 
