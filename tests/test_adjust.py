@@ -2,7 +2,7 @@
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import given
 from hypothesis import strategies as st
 
 from quatrack.tracking import quaternion as quat
@@ -48,7 +48,21 @@ def prior_around(p, q, spread_p=20.0, spread_theta=0.1, t=0.0):
     return FilterState(t, p, q, np.zeros(3), np.zeros(3), S)
 
 
-@settings(max_examples=25, deadline=None)
+def stop_rule_tolerance(covariance: np.ndarray, p: np.ndarray, options: AdjustOptions = AdjustOptions()) -> float:
+    """How far from the exact minimum the solver may stop, derived from its stop rule.
+
+    Gauss–Newton stops once ``‖∇F‖ = ‖b‖ < ε`` (eq. 29, ``options.gradient_tolerance``). Near a
+    zero-residual minimum ``F`` is quadratic with Hessian ``A = DᵀD``, so the remaining error is
+    the Newton step ``A⁻¹b`` and ``‖[δp, δθ]‖ ≤ ‖A⁻¹‖₂ ‖b‖ < λ_max(Σ) ε`` with ``Σ = A⁻¹`` the
+    returned covariance (eq. 30). A factor 2 covers the model's curvature beyond second order.
+    Below that sits floating point: residuals and positions carry a relative error of a few
+    ``eps`` of ``|p|``, amplified by at most ~10³ through the conditioning of the pose problem.
+    A fixed 1e-7 (the earlier bound) was tighter than ε = 1e-5 guarantees: 7 of seeds 0–999 broke it.
+    """
+    lam_max = float(np.linalg.eigvalsh(covariance[:6, :6]).max())
+    return 2.0 * lam_max * options.gradient_tolerance + 1e3 * np.finfo(float).eps * float(np.linalg.norm(p))
+
+
 @given(seed=st.integers(0, 10_000))
 def test_exact_measurements_converge_to_the_true_pose(seed):
     rng = np.random.default_rng(seed)
@@ -294,7 +308,7 @@ def test_filter_api_guards():
     f = PoseFilter(make_motion_model("ude"))
     with pytest.raises(RuntimeError, match="initialize"):
         f.predict(0.1)
-    f.initialize(0.0, P_TRUE, Q_TRUE, np.eye(6))
+    f.initialize(0.0, Pose(Q_TRUE, P_TRUE), np.eye(6))
     with pytest.raises(RuntimeError, match="predict"):
         f.update([])
     state = initial_state(0.0, P_TRUE, Q_TRUE, np.eye(6))

@@ -17,4 +17,9 @@ def test_library_example_runs_and_recovers_the_motion(capsys):
     s = scope["s"]
     np.testing.assert_allclose(s.v, [40.0, 0.0, 0.0], atol=0.5)  # mm/s, as the example moves it
     np.testing.assert_allclose(s.omega, [0.0, 0.3, 0.0], atol=0.01)  # rad/s
-    assert "[" in capsys.readouterr().out
+    # the printed lines are the state's pose, velocities and 1σ, as the comments say
+    lines = capsys.readouterr().out.splitlines()
+    assert lines == [f"{s.pose} {s.v.round(1)} {s.omega.round(3)}", str(np.sqrt(np.diag(s.pose_covariance)).round(4))]
+    assert lines[0].startswith("Pose(q_wxyz=[")
+    sigma = np.array(lines[1].strip("[]").split(), float)
+    assert sigma.shape == (6,) and np.all(sigma > 0) and np.all(sigma[:3] < 5.0) and np.all(sigma[3:] < 0.05)

@@ -152,8 +152,14 @@ def test_cli_locate(tmp_path, model, scenes, capsys):
     lines = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
     good, bad = lines
     assert good["found"] and good["image"] == str(img)
-    for key in ("bbox", "chi2", "viewset", "matches", "inliers", "reprojection_rms_px", "pose", "covariance", "time_ms"):
-        assert key in good
+    truth = scenes[0][2]  # the CLI's JSON carries the recognition's values, checked against the rendered truth
+    dt, dr = S.pose_errors(np.array(good["pose"]["t"]), np.array(good["pose"]["q_wxyz"]), truth.pose, model.mesh)
+    assert dt <= 0.05 * model.mesh.extent and dr <= 5.0, (dt, dr)
+    assert iou(good["bbox"], truth.bbox) > 0.3 and good["chi2"] >= 0
+    assert good["viewset"] in {v.label for v in model.viewsets}
+    assert 6 <= good["inliers"] <= good["matches"] and 0 <= good["reprojection_rms_px"] < 3.0
+    cov = np.array(good["covariance"])
+    assert np.allclose(cov, cov.T) and np.all(np.linalg.eigvalsh(cov) > 0)
     assert set(good["time_ms"]) >= {"localise", "match", "pnp", "total"}
     assert len(good["covariance"]) == 6 and len(good["pose"]["q_wxyz"]) == 4
     assert not bad["found"] and "decoded" in bad["error"]

@@ -200,7 +200,7 @@ def test_bad_input_refused_store_unchanged(store, tmp_path, capsys, case):
     before = snapshot(store)
     code = main(["train", str(spec), "--store", str(store), *FAST, *extra])
     err = capsys.readouterr().err
-    assert code != 0
+    assert code == 2  # the README: bad input exits with status 2
     lines = [ln for ln in err.splitlines() if ln.strip()]
     assert len(lines) == 1 and lines[0].startswith("quatrack train: error:"), err
     assert "Traceback" not in err
