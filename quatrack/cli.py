@@ -1,7 +1,8 @@
 """The `quatrack` command line: a thin layer over the packages' public functions.
 
-Subcommands register themselves in ``COMMANDS``: each is ``(add_arguments, run)``, where ``run``
-takes the parsed arguments and returns an exit status. User errors are raised as
+The subcommands are listed in ``COMMANDS``: name → ``(help, add_arguments, run)``, where
+``add_arguments`` fills the subcommand's parser and ``run`` takes the parsed arguments and returns
+an exit status. User errors are raised as
 :class:`UserError` (or ``ValueError``/``OSError`` from the layers below) and become a one-line
 message on stderr with exit status 2 — never a traceback.
 """
