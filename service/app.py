@@ -25,11 +25,11 @@ from quatrack.recognition.runtime import tune_allocator
 
 from . import errors
 from .errors import ApiError, error_body
-from .metrics import Metrics
+from .metrics import Metrics, worker_exit
 from .models import ModelRegistry
 from .routes import ServiceState, api, health, ops, sockets
-from .sessions import SessionLimiter
 from .settings import Settings
+from .workers import count_open, session_limiter
 
 log = logging.getLogger("quatrack.service")
 
@@ -107,8 +107,8 @@ class RequestLog:
         finally:
             dt = time.perf_counter() - t0
             route = getattr(scope.get("route"), "path", None) or "unmatched"
-            self.metrics.requests.inc(scope["method"], route, str(status))
-            self.metrics.latency.observe(dt, route)
+            self.metrics.requests.labels(scope["method"], route, str(status)).inc()
+            self.metrics.latency.labels(route).observe(dt)
             log.info("request", extra={"request_id": rid, "method": scope["method"], "route": route,
                                        "path": scope["path"], "status": status, "ms": round(dt * 1e3, 1)})
 
@@ -117,7 +117,7 @@ def _warm(state: ServiceState) -> None:
     """Load the store's models, then build each worker thread's matcher (a barrier puts one
     warming job on every thread), so the first real request pays neither cost."""
     state.registry.load_all()
-    n = state.settings.workers
+    n = state.settings.threads
     barrier = threading.Barrier(n)
 
     def one():
@@ -136,14 +136,16 @@ def _warm(state: ServiceState) -> None:
 def create_app(settings: Settings | None = None) -> FastAPI:
     settings = (settings or Settings.from_env()).checked()
     cores = os.cpu_count() or 1
-    cv2.setNumThreads(max(1, cores // settings.workers))  # workers × OpenCV threads ≈ cores
+    # worker processes × threads × OpenCV threads ≈ cores
+    cv2.setNumThreads(max(1, cores // (settings.workers * settings.threads)))
     tune_allocator()  # no page faults from re-allocated frame-sized arrays
-    metrics = Metrics()
+    sessions = session_limiter(settings)  # shared by all worker processes when run_dir is set
+    metrics = Metrics(lambda: count_open(sessions))
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
-        executor = ThreadPoolExecutor(settings.workers, thread_name_prefix="quatrack-cpu")
-        state = ServiceState(settings, ModelRegistry(settings.store), executor, metrics, SessionLimiter(settings.max_sessions))
+        executor = ThreadPoolExecutor(settings.threads, thread_name_prefix="quatrack-cpu")
+        state = ServiceState(settings, ModelRegistry(settings.store), executor, metrics, sessions)
         app.state.quatrack = state
         loop = asyncio.get_running_loop()
         if settings.preload:
@@ -157,6 +159,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             if warm is not None and not warm.done():
                 warm.cancel()
             executor.shutdown(wait=False, cancel_futures=True)
+            worker_exit()
 
     app = FastAPI(title="quatrack", version=__version__, description=DESCRIPTION, lifespan=lifespan,
                   docs_url="/docs", redoc_url=None)

@@ -1,6 +1,8 @@
 """``quatrack serve``: the command-line side of the service (``quatrack demo`` is in :mod:`.demo`).
 
-``serve`` only parses options into :class:`Settings` and hands the app to uvicorn.
+``serve`` parses options into :class:`Settings`, prepares the run directory the worker processes
+share (:mod:`.workers`) and hands uvicorn the app factory: one worker process per ``--workers``
+(default: the number of cores), all accepting on one socket.
 """
 
 from __future__ import annotations
@@ -12,23 +14,39 @@ def add_serve(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--store", metavar="DIR", help="model store (default: $QUATRACK_STORE or the user data directory)")
     parser.add_argument("--host", default=None, help="address to listen on (default 127.0.0.1, or $QUATRACK_HOST)")
     parser.add_argument("--port", type=int, default=None, help="port (default 8000, or $QUATRACK_PORT)")
-    parser.add_argument("--workers", type=int, default=None, metavar="N", help="CPU worker threads (default 2)")
+    parser.add_argument("--workers", type=int, default=None, metavar="N",
+                        help="worker processes, each with its own sessions (default: the number of cores, or $QUATRACK_WORKERS)")
+    parser.add_argument("--threads", type=int, default=None, metavar="N",
+                        help="CPU threads per worker process (default 2, or $QUATRACK_THREADS)")
     parser.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"])
 
 
 def run_serve(args: argparse.Namespace) -> int:
-    import uvicorn
+    import os
+    import shutil
 
-    from .app import create_app
-    from .logs import configure
     from .settings import Settings
 
-    settings = Settings.from_env(store=args.store, host=args.host, port=args.port, workers=args.workers)
+    settings = Settings.from_env(store=args.store, host=args.host, port=args.port, workers=args.workers,
+                                 threads=args.threads)
     if settings.store.exists() and not settings.store.is_dir():
         raise ValueError(f"--store {settings.store}: not a directory")
-    app = create_app(settings)
-    # frames up to max_body_bytes are answered; up to twice that get a "too_large" error message
-    # and the session goes on; beyond, the server closes the socket (1009) without buffering it
-    uvicorn.run(app, host=settings.host, port=settings.port, log_config=configure(args.log_level),
-                ws_max_size=2 * settings.max_body_bytes, timeout_graceful_shutdown=5, server_header=False)
+    from .workers import prepare_run_dir
+
+    settings, run_dir, made = prepare_run_dir(settings)  # before uvicorn (and prometheus-client) start
+    os.environ.update(settings.to_env())  # the workers rebuild the settings from these
+    try:
+        import uvicorn
+
+        from .logs import configure
+
+        # frames up to max_body_bytes are answered; up to twice that get a "too_large" error message
+        # and the session goes on; beyond, the server closes the socket (1009) without buffering it.
+        # On SIGTERM every open session is closed with code 1012 (service restart).
+        uvicorn.run("quatrack.service.workers:app_from_env", factory=True, workers=settings.workers,
+                    host=settings.host, port=settings.port, log_config=configure(args.log_level),
+                    ws_max_size=2 * settings.max_body_bytes, timeout_graceful_shutdown=5, server_header=False)
+    finally:
+        if made:
+            shutil.rmtree(run_dir, ignore_errors=True)
     return 0

@@ -1,113 +1,117 @@
-"""A small Prometheus text-format registry (exposition format 0.0.4), written by hand.
+"""The service's Prometheus metrics, from ``prometheus-client`` (text exposition format 0.0.4).
 
-Counters, gauges and histograms with labels are all the service needs; one lock, no
-dependency. Route templates (``/v1/objects/{name}/pose``), never raw paths, are used as labels so
+Why the library: it implements the format, label escaping, histograms and — what a hand-written
+registry cannot do — *multiprocess mode*: with ``quatrack serve --workers N`` every worker writes
+its samples to memory-mapped files in ``$PROMETHEUS_MULTIPROC_DIR`` (set and wiped by ``serve``
+before the workers start), and whichever worker answers ``/metrics`` merges them all: counters
+and histograms are summed over the workers, ``quatrack_models_loaded`` is the largest of the live
+workers'. Route templates (``/v1/objects/{name}/pose``), never raw paths, are used as labels so
 that clients cannot blow up the number of series.
+
+Without that variable (tests, the benchmark's in-process server) each :class:`Metrics` has its
+own registry, so several apps in one process do not mix their counts.
 """
 
 from __future__ import annotations
 
-import threading
-from collections import defaultdict
+import os
+from typing import Callable
+
+from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, generate_latest
+from prometheus_client.core import GaugeMetricFamily
+from prometheus_client.registry import Collector
 
 LATENCY_BUCKETS = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0)
+STAGE_BUCKETS = (0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0)
+CONTENT_TYPE = "text/plain; version=0.0.4; charset=utf-8"
+MULTIPROC_ENV = "PROMETHEUS_MULTIPROC_DIR"
 
 
-def _labels(names: tuple[str, ...], values: tuple) -> str:
-    if not names:
-        return ""
-    esc = (str(v).replace("\\", "\\\\").replace('"', '\\"').replace("\n", "\\n") for v in values)
-    return "{" + ",".join(f'{n}="{v}"' for n, v in zip(names, esc)) + "}"
+def multiprocess_dir() -> str | None:
+    """The shared directory when the workers run in multiprocess mode, else None."""
+    return os.environ.get(MULTIPROC_ENV) or os.environ.get(MULTIPROC_ENV.lower()) or None
 
 
-class _Metric:
-    def __init__(self, name: str, help_text: str, kind: str, labels: tuple[str, ...] = ()) -> None:
-        self.name, self.help, self.kind, self.labelnames = name, help_text, kind, labels
-        self.lock = threading.Lock()
+class _Computed(Collector):
+    """A gauge whose value is computed at scrape time (e.g. sessions open in the whole server)."""
 
+    def __init__(self, name: str, help_text: str, value: Callable[[], float]) -> None:
+        self.name, self.help, self.value = name, help_text, value
 
-class Counter(_Metric):
-    def __init__(self, name, help_text, labels=()):
-        super().__init__(name, help_text, "counter", labels)
-        self.values: dict[tuple, float] = defaultdict(float)
-
-    def inc(self, *labels, amount: float = 1.0) -> None:
-        with self.lock:
-            self.values[labels] += amount
-
-    def get(self, *labels) -> float:
-        with self.lock:
-            return self.values.get(labels, 0.0)
-
-    def lines(self):
-        with self.lock:
-            items = sorted(self.values.items())
-        return [f"{self.name}{_labels(self.labelnames, k)} {v:g}" for k, v in items]
-
-
-class Gauge(Counter):
-    def __init__(self, name, help_text, labels=()):
-        super().__init__(name, help_text, labels)
-        self.kind = "gauge"
-
-    def set(self, value: float, *labels) -> None:
-        with self.lock:
-            self.values[labels] = value
-
-    def dec(self, *labels) -> None:
-        self.inc(*labels, amount=-1.0)
-
-
-class Histogram(_Metric):
-    def __init__(self, name, help_text, labels=(), buckets=LATENCY_BUCKETS):
-        super().__init__(name, help_text, "histogram", labels)
-        self.buckets = tuple(buckets)
-        self.data: dict[tuple, list] = {}
-
-    def observe(self, value: float, *labels) -> None:
-        with self.lock:
-            d = self.data.setdefault(labels, [[0] * len(self.buckets), 0.0, 0])
-            for i, b in enumerate(self.buckets):
-                if value <= b:
-                    d[0][i] += 1
-            d[1] += value
-            d[2] += 1
-
-    def lines(self):
-        out = []
-        with self.lock:
-            items = sorted((k, (list(v[0]), v[1], v[2])) for k, v in self.data.items())
-        names = self.labelnames + ("le",)
-        for k, (counts, total, n) in items:
-            for b, c in zip(self.buckets, counts):
-                out.append(f"{self.name}_bucket{_labels(names, k + (f'{b:g}',))} {c}")
-            out.append(f"{self.name}_bucket{_labels(names, k + ('+Inf',))} {n}")
-            out.append(f"{self.name}_sum{_labels(self.labelnames, k)} {total:.6f}")
-            out.append(f"{self.name}_count{_labels(self.labelnames, k)} {n}")
-        return out
+    def collect(self):
+        g = GaugeMetricFamily(self.name, self.help)
+        g.add_metric([], float(self.value()))
+        yield g
 
 
 class Metrics:
-    """The service's metrics; one instance per app (tests start several apps in one process)."""
+    """The service's metrics; one instance per app (tests start several apps in one process).
 
-    def __init__(self) -> None:
-        self.requests = Counter("quatrack_http_requests_total", "HTTP requests by route and status", ("method", "route", "status"))
-        self.latency = Histogram("quatrack_http_request_duration_seconds", "HTTP request latency", ("route",))
-        self.sessions_active = Gauge("quatrack_ws_sessions_active", "open tracking sessions")
-        self.sessions = Counter("quatrack_ws_sessions_total", "tracking sessions by outcome", ("outcome",))
-        self.frames = Counter("quatrack_ws_frames_total", "WebSocket frames by result", ("result",))
-        self.frame_latency = Histogram("quatrack_ws_frame_latency_seconds", "frame arrival to pose message")
-        self.losses = Counter("quatrack_track_losses_total", "transitions of a session to status lost")
-        self.models = Gauge("quatrack_models_loaded", "object models in memory")
-        self.sessions_active.set(0)
+    ``sessions_open`` (a callable) gives the number of sessions open in the whole server; it is
+    read at scrape time, so a worker that died holds no stale count.
+    """
+
+    def __init__(self, sessions_open: Callable[[], float] = lambda: 0) -> None:
+        self.multiprocess = multiprocess_dir() is not None
+        # in multiprocess mode samples go to the shared files whatever registry the metrics are
+        # registered with; a private registry keeps several apps in one process apart
+        reg = CollectorRegistry(auto_describe=True)
+        self.registry = reg
+        self.requests = Counter("quatrack_http_requests", "HTTP requests by route and status",
+                                ("method", "route", "status"), registry=reg)
+        self.latency = Histogram("quatrack_http_request_duration_seconds", "HTTP request latency", ("route",),
+                                 buckets=LATENCY_BUCKETS, registry=reg)
+        self.sessions = Counter("quatrack_ws_sessions", "tracking sessions by outcome", ("outcome",), registry=reg)
+        self.frames = Counter("quatrack_ws_frames", "WebSocket frames by result", ("result",), registry=reg)
+        self.frame_latency = Histogram("quatrack_ws_frame_latency_seconds", "frame arrival to pose message",
+                                       buckets=LATENCY_BUCKETS, registry=reg)
+        self.statuses = Counter("quatrack_track_frames", "processed frames by tracker status (init, tracking, lost)",
+                                ("status",), registry=reg)
+        self.losses = Counter("quatrack_track_losses", "transitions of a session to status lost", registry=reg)
+        self.inits = Counter("quatrack_track_inits", "transitions of a session to status init (recognition found the object)",
+                             registry=reg)
+        self.stages = Histogram("quatrack_track_stage_seconds", "per-frame time of each tracker stage", ("stage",),
+                                buckets=STAGE_BUCKETS, registry=reg)
+        self.locate_stages = Histogram("quatrack_locate_stage_seconds", "per-request time of each recognition stage (REST pose)",
+                                       ("stage",), buckets=STAGE_BUCKETS, registry=reg)
+        self.models = Gauge("quatrack_models_loaded", "object models in memory (the largest over live workers)",
+                            registry=reg, multiprocess_mode="livemax")
+        self.model_loads = Counter("quatrack_model_loads", "object model loads by result (ok, failed)", ("result",),
+                                   registry=reg)
         self.models.set(0)
-        self._all = (self.requests, self.latency, self.sessions_active, self.sessions, self.frames,
-                     self.frame_latency, self.losses, self.models)
+        self._sessions_open = _Computed("quatrack_ws_sessions_active", "open tracking sessions (whole server)", sessions_open)
 
-    def render(self) -> str:
-        out = []
-        for m in self._all:
-            out.append(f"# HELP {m.name} {m.help}")
-            out.append(f"# TYPE {m.name} {m.kind}")
-            out.extend(m.lines())
-        return "\n".join(out) + "\n"
+    def observe_stages(self, histogram: Histogram, timings_ms: dict | None) -> None:
+        for stage, ms in (timings_ms or {}).items():
+            histogram.labels(str(stage)).observe(float(ms) / 1e3)
+
+    def render(self) -> bytes:
+        """The text exposition: this process's metrics, or every worker's in multiprocess mode."""
+        if self.multiprocess:
+            from prometheus_client import multiprocess
+
+            reg = CollectorRegistry()
+            multiprocess.MultiProcessCollector(reg)
+        else:
+            reg = CollectorRegistry()
+            reg.register(_Forward(self.registry))
+        reg.register(self._sessions_open)
+        return generate_latest(reg)
+
+
+class _Forward(Collector):
+    """The metrics of another registry (so that a computed gauge joins them in one scrape)."""
+
+    def __init__(self, registry: CollectorRegistry) -> None:
+        self.registry = registry
+
+    def collect(self):
+        return self.registry.collect()
+
+
+def worker_exit(pid: int | None = None) -> None:
+    """Tell multiprocess mode a worker is gone (drops its ``live*`` gauge files)."""
+    if multiprocess_dir() is not None:
+        from prometheus_client import multiprocess
+
+        multiprocess.mark_process_dead(pid or os.getpid())

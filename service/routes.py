@@ -24,7 +24,7 @@ from quatrack.recognition.locate import LocateParams, locate
 
 from .errors import ApiError, error_body
 from .imagein import decode_upload
-from .metrics import Metrics
+from .metrics import CONTENT_TYPE, Metrics
 from .models import ModelRegistry
 from .schemas import CameraIn, ErrorResponse, Health, LocateOut, ObjectDetail, ObjectList, ObjectSummary, Ready
 from .sessions import SessionLimiter, TrackSession
@@ -89,9 +89,8 @@ async def readyz(state: State):
 
 @ops.get("/metrics", response_class=PlainTextResponse, summary="Prometheus metrics (text format 0.0.4)")
 async def metrics(state: State) -> PlainTextResponse:
-    state.metrics.sessions_active.set(len(state.sessions.open))
     state.metrics.models.set(len(state.registry.loaded()))
-    return PlainTextResponse(state.metrics.render(), media_type="text/plain; version=0.0.4")
+    return PlainTextResponse(state.metrics.render(), media_type=CONTENT_TYPE)
 
 
 @api.get("/objects", response_model=ObjectList, summary="the trained objects")
@@ -224,6 +223,7 @@ def _locate(state: ServiceState, name: str, data: bytes, camera: CameraIn) -> di
         result = locate(image, cam, model, LocateParams(max_pixels=state.settings.locate_max_pixels), index=index)
     except ImageError as exc:
         raise ApiError(422, "bad_image", str(exc)) from None
+    state.metrics.observe_stages(state.metrics.locate_stages, result.time_ms)
     return result.to_json()
 
 
@@ -250,7 +250,6 @@ async def track(websocket: WebSocket, name: str) -> None:
                            f"{state.settings.max_sessions} tracking sessions are open; retry later", 1013,
                            {"Retry-After": str(state.settings.retry_after_s)})
     m = state.metrics
-    m.sessions_active.set(len(state.sessions.open))
     outcome = "error"
     try:
         await asyncio.get_running_loop().run_in_executor(state.executor, state.registry.get, name)
@@ -259,8 +258,7 @@ async def track(websocket: WebSocket, name: str) -> None:
         outcome = await session.run()
     finally:
         state.sessions.close(sid)
-        m.sessions.inc(outcome)
-        m.sessions_active.set(len(state.sessions.open))
+        m.sessions.labels(outcome).inc()
 
 
 async def _deny(ws: WebSocket, status: int, code: str, message: str, close_code: int, headers=None) -> None:

@@ -9,8 +9,6 @@ from __future__ import annotations
 import socket
 import threading
 import time
-from dataclasses import replace
-
 import uvicorn
 
 from .app import create_app
@@ -29,7 +27,7 @@ class BackgroundServer:
 
     def __init__(self, settings: Settings, port: int = 0, log_level: str = "warning", wait_ready: bool = True) -> None:
         port = port or free_port()
-        self.settings = replace(settings, host="127.0.0.1", port=port)
+        self.settings = settings.replace(host="127.0.0.1", port=port)
         self.app = create_app(self.settings)
         config = uvicorn.Config(self.app, host="127.0.0.1", port=port, log_config=configure(log_level),
                                 ws_max_size=2 * self.settings.max_body_bytes, lifespan="on", timeout_graceful_shutdown=2)

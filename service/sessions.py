@@ -170,12 +170,12 @@ class TrackSession:
             return
         if sniff(data) is None:  # cheap, and keeps garbage from using a frame number or a time
             self.header_time = None
-            self.metrics.frames.inc("error")
+            self.metrics.frames.labels("error").inc()
             await self.send_error("unsupported_image", "a binary message must be a JPEG, PNG or WebP frame")
             return
         if not self._take_token():
             self.header_time = None
-            self.metrics.frames.inc("rate_limited")
+            self.metrics.frames.labels("rate_limited").inc()
             await self.send_error("rate_limited", f"more than {self.settings.max_fps:g} frames per second; frame dropped")
             return
         if self.header_time is not None:
@@ -188,11 +188,11 @@ class TrackSession:
                 time_s = self.last_time + 1e-6  # clock mixed with client times: keep it increasing
         self.last_time = time_s
         number, self.next_frame = self.next_frame, self.next_frame + 1
-        self.metrics.frames.inc("received")
+        self.metrics.frames.labels("received").inc()
         controls, self.controls = self.controls, []
         if self.pending is not None:  # not started yet: the newer frame wins
             self.skipped += 1
-            self.metrics.frames.inc("skipped")
+            self.metrics.frames.labels("skipped").inc()
             controls = self.pending.controls + controls
         self.pending = _Frame(number, time_s, data, arrival, controls)
         self.wakeup.set()
@@ -276,12 +276,12 @@ class TrackSession:
             try:
                 out = await loop.run_in_executor(self.executor, self._process, item)
             except _SessionError as exc:
-                self.metrics.frames.inc("error")
+                self.metrics.frames.labels("error").inc()
                 await self.send_error(exc.code, exc.message, item.number)
                 continue
             out["skipped"] = skipped
             out["latency_ms"] = round((time.perf_counter() - item.arrival) * 1e3, 2)
-            self.metrics.frames.inc("processed")
+            self.metrics.frames.labels("processed").inc()
             self.metrics.frame_latency.observe(out["latency_ms"] / 1e3)
             await self.send(out)
 
@@ -322,6 +322,10 @@ class TrackSession:
             raise _SessionError("internal", "tracking failed on this frame (logged); the tracker was reset") from None
         if step.status == "lost" and self.last_status != "lost":
             self.metrics.losses.inc()
+        if step.status == "init" and self.last_status != "init":
+            self.metrics.inits.inc()
+        self.metrics.statuses.labels(step.status).inc()
+        self.metrics.observe_stages(self.metrics.stages, getattr(step, "timings_ms", None))
         self.last_status = step.status
         return _message(item, step)
 

@@ -1,82 +1,142 @@
-"""Service settings, read once from the environment (``QUATRACK_*``) and overridable in code.
+"""Service settings: one pydantic-settings class, read from ``QUATRACK_*`` environment variables.
 
-A plain frozen dataclass rather than pydantic-settings: one dependency fewer, and every limit is
-visible here with its unit. ``quatrack serve`` builds one from the environment and its options.
+Why pydantic-settings: types, bounds, defaults and the documentation of every variable live on
+the field (the README's settings table is generated from these descriptions and a test checks it
+lists every field). Precedence, highest first: values passed in code (``Settings(port=1)``, CLI
+options through :meth:`Settings.from_env`), then ``QUATRACK_<FIELD>``, then the default. Empty
+variables count as unset. ``quatrack serve --workers N`` hands its settings to the worker
+processes through the same variables (:meth:`Settings.to_env`).
 """
 
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
+from typing import Annotated
+
+from pydantic import Field, ValidationError, field_validator, model_validator
+from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 from quatrack.viewsets.store import resolve_store
 
-
-def _env(name: str, default, cast):
-    raw = os.environ.get(name)
-    if raw is None or raw.strip() == "":
-        return default
-    try:
-        return cast(raw)
-    except ValueError:
-        raise ValueError(f"environment variable {name}={raw!r}: expected {cast.__name__}") from None
+ENV_PREFIX = "QUATRACK_"
 
 
-def _origins(raw: str) -> tuple[str, ...]:
-    return tuple(o.strip() for o in raw.split(",") if o.strip())
+def _cores() -> int:
+    return os.cpu_count() or 1
 
 
-@dataclass(frozen=True)
-class Settings:
+class Settings(BaseSettings):
     """Everything an operator may tune. Sizes in bytes/pixels, times in seconds."""
 
-    store: Path = field(default_factory=lambda: resolve_store(None))
-    host: str = "127.0.0.1"
-    port: int = 8000
-    api_token: str | None = None  # bearer token for everything but /healthz and /readyz
-    cors_origins: tuple[str, ...] = ()  # e.g. ("https://example.org",); "*" allows any
-    workers: int = 2  # threads doing the CPU work (the machine has 2 cores)
-    max_body_bytes: int = 10 * 1024 * 1024  # REST body and one WebSocket frame
-    max_image_pixels: int = 20_000_000  # refused before decoding (decompression bombs)
-    locate_max_pixels: int = 4_000_000  # larger images are downscaled for recognition
-    max_pending_requests: int = 8  # REST pose requests queued or running; then 503
-    max_sessions: int = 4  # concurrent WebSocket sessions; then 503 + Retry-After
-    max_fps: float = 60.0  # frames a session may send per second (token bucket); above: dropped
-    idle_timeout_s: float = 60.0  # a session with no message for this long is closed
-    retry_after_s: int = 5
-    preload: bool = True  # load every model of the store at start-up (readyz waits for it)
+    model_config = SettingsConfigDict(env_prefix=ENV_PREFIX, frozen=True, extra="ignore", env_ignore_empty=True,
+                                      validate_default=True)
+
+    store: Path = Field(default_factory=lambda: resolve_store(None),
+                        description="model store directory (default: `$XDG_DATA_HOME/quatrack/models`)")
+    host: str = Field("127.0.0.1", description="address to listen on (`0.0.0.0` in containers)")
+    port: int = Field(8000, ge=1, le=65535, description="TCP port")
+    api_token: str | None = Field(None, description="bearer token required on everything but `/healthz` and `/readyz`")
+    cors_origins: Annotated[tuple[str, ...], NoDecode] = Field(
+        (), description="comma-separated origins allowed by CORS, e.g. `https://example.org`; `*` allows any")
+    workers: int = Field(default_factory=_cores, ge=1, le=256,
+                         description="worker processes, each with its own models and sessions (default: the number of cores)")
+    threads: int = Field(2, ge=1, le=64, description="CPU threads per worker process doing recognition and tracking")
+    max_body_bytes: int = Field(10 * 1024 * 1024, ge=1, description="largest REST body and WebSocket frame, bytes")
+    max_image_pixels: int = Field(20_000_000, ge=1, description="larger images are refused before decoding (decompression bombs)")
+    locate_max_pixels: int = Field(4_000_000, ge=1, description="larger images are downscaled for recognition")
+    max_pending_requests: int = Field(8, ge=1, description="REST pose requests queued or running **per worker process**; then 503")
+    max_sessions: int = Field(4, ge=1, description="concurrent WebSocket sessions **for the whole server** (all workers); then 503 + Retry-After")
+    max_fps: float = Field(60.0, gt=0, description="frames a session may send per second (token bucket); above: dropped")
+    idle_timeout_s: float = Field(60.0, gt=0, description="a session with no message for this long is closed")
+    retry_after_s: int = Field(5, ge=0, description="`Retry-After` seconds sent with 503 answers")
+    preload: bool = Field(True, description="load every model of the store at start-up (`/readyz` waits for it)")
+    run_dir: Path | None = Field(None, description="directory the worker processes share (session slots, Prometheus "
+                                                    "multiprocess files); `quatrack serve` makes a fresh one and wipes it on start")
+
+    @field_validator("cors_origins", mode="before")
+    @classmethod
+    def _split_origins(cls, v):
+        if isinstance(v, str):
+            return tuple(o.strip() for o in v.split(",") if o.strip())
+        return v
+
+    @field_validator("store", mode="after")
+    @classmethod
+    def _expand(cls, v: Path) -> Path:
+        return Path(v).expanduser()
+
+    @model_validator(mode="after")
+    def _sane(self) -> "Settings":
+        if not self.host.strip():
+            raise ValueError("host must not be empty")
+        return self
 
     @classmethod
     def from_env(cls, **overrides) -> "Settings":
-        """Settings from ``QUATRACK_*`` variables; explicit ``overrides`` (CLI options) win."""
-        s = cls(
-            store=resolve_store(None),
-            host=_env("QUATRACK_HOST", cls.host, str),
-            port=_env("QUATRACK_PORT", cls.port, int),
-            api_token=_env("QUATRACK_API_TOKEN", None, str),
-            cors_origins=_env("QUATRACK_CORS_ORIGINS", (), _origins),
-            workers=_env("QUATRACK_WORKERS", cls.workers, int),
-            max_body_bytes=_env("QUATRACK_MAX_BODY_BYTES", cls.max_body_bytes, int),
-            max_image_pixels=_env("QUATRACK_MAX_IMAGE_PIXELS", cls.max_image_pixels, int),
-            locate_max_pixels=_env("QUATRACK_LOCATE_MAX_PIXELS", cls.locate_max_pixels, int),
-            max_pending_requests=_env("QUATRACK_MAX_PENDING_REQUESTS", cls.max_pending_requests, int),
-            max_sessions=_env("QUATRACK_MAX_SESSIONS", cls.max_sessions, int),
-            max_fps=_env("QUATRACK_MAX_FPS", cls.max_fps, float),
-            idle_timeout_s=_env("QUATRACK_IDLE_TIMEOUT_S", cls.idle_timeout_s, float),
-        )
-        known = {f.name for f in fields(cls)}
-        return replace(s, **{k: v for k, v in overrides.items() if k in known and v is not None}).checked()
+        """Settings from ``QUATRACK_*`` variables; explicit, non-None ``overrides`` (CLI options) win.
+        A bad value is one line naming the variable (or option), as a ``ValueError``."""
+        given = {k: v for k, v in overrides.items() if k in cls.model_fields and v is not None}
+        try:
+            return cls(**given)
+        except ValidationError as exc:
+            raise ValueError(describe(exc, given)) from None
 
     def checked(self) -> "Settings":
-        """Refuse settings that cannot work, with the variable's meaning in the message."""
-        if self.workers < 1:
-            raise ValueError("workers must be at least 1")
-        if not 0 < self.port < 65536:
-            raise ValueError(f"port must be 1-65535, got {self.port}")
-        for name in ("max_body_bytes", "max_image_pixels", "locate_max_pixels", "max_pending_requests", "max_sessions"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be positive")
-        if self.max_fps <= 0 or self.idle_timeout_s <= 0:
-            raise ValueError("max_fps and idle_timeout_s must be positive")
-        return replace(self, store=Path(self.store).expanduser())
+        """Kept for callers of the former dataclass: validation now happens on construction."""
+        return self
+
+    def replace(self, **changes) -> "Settings":
+        """A copy with ``changes``, validated like a new instance (``model_copy`` does not validate)."""
+        try:
+            return type(self).model_validate({**self.model_dump(), **changes})
+        except ValidationError as exc:
+            raise ValueError(describe(exc, changes)) from None
+
+    def to_env(self) -> dict[str, str]:
+        """The ``QUATRACK_*`` variables that rebuild these settings in another process."""
+        out = {}
+        for name, value in self.model_dump().items():
+            if value is None:
+                continue
+            if isinstance(value, (tuple, list)):
+                value = ",".join(value)
+            out[env_name(name)] = str(value)
+        return out
+
+
+def env_name(field: str) -> str:
+    return ENV_PREFIX + field.upper()
+
+
+def describe(exc: ValidationError, given: dict) -> str:
+    """The first error of ``exc`` as one line: ``QUATRACK_PORT='x': Input should be ...``."""
+    e = exc.errors()[0]
+    field = str(e["loc"][0]) if e["loc"] else ""
+    if field and field not in given and env_name(field) in os.environ:
+        where = f"environment variable {env_name(field)}={os.environ[env_name(field)]!r}"
+    elif field:
+        where = f"{field}={given.get(field)!r}"
+    else:
+        where = "settings"
+    return f"{where}: {e['msg']}"
+
+
+def settings_table() -> str:
+    """The README's table of variables, from the field descriptions (``python -m quatrack.service.settings``)."""
+    rows = ["| variable | default | meaning |", "| --- | --- | --- |"]
+    for name, f in Settings.model_fields.items():
+        if f.default_factory is not None:
+            default = "(see meaning)"
+        elif f.default is None:
+            default = "unset"
+        elif isinstance(f.default, tuple):
+            default = ",".join(f.default) or "(none)"
+        else:
+            default = f"`{f.default}`"
+        rows.append(f"| `{env_name(name)}` | {default} | {f.description} |")
+    return "\n".join(rows)
+
+
+if __name__ == "__main__":
+    print(settings_table())

@@ -1,0 +1,128 @@
+"""Several worker processes behind one listening socket: ``quatrack serve --workers N``.
+
+Choice (measured in bench/RESULTS.md, "Serving many cameras"): uvicorn's own multi-process mode.
+The parent binds the socket once and starts N workers; the kernel hands each new connection to
+one of them, and a WebSocket session lives and dies with its connection, so the connection *is*
+the session's affinity — no routing, no shared tracker state. Each worker loads the models itself
+(read-only, ≈ a few MB per object) and runs tracking in its own thread pool, off its event loop;
+uvicorn restarts a worker that dies. A process pool behind one event loop would have to ship every
+frame and each session's tracker state between processes; processes that own their sessions ship
+nothing.
+
+What the workers share lives in one *run directory* (``Settings.run_dir``), wiped at start:
+
+- ``sessions/slot-K`` (K < ``max_sessions``): a session holds an exclusive ``flock`` on one slot
+  file for its lifetime, so the limit holds for the whole server; the kernel drops the locks of a
+  worker that dies, so a crash never leaks a slot.
+- ``prometheus/``: ``$PROMETHEUS_MULTIPROC_DIR`` for prometheus-client's multiprocess mode.
+
+``max_pending_requests`` (REST) stays a per-worker limit: a worker's own queue is what it bounds.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import os
+import shutil
+import tempfile
+import threading
+import uuid
+from pathlib import Path
+
+from .metrics import MULTIPROC_ENV
+from .settings import Settings
+
+
+class SlotLimiter:
+    """At most ``max_sessions`` sessions in all processes sharing ``directory``.
+
+    Same interface as :class:`quatrack.service.sessions.SessionLimiter` (``try_open``, ``close``,
+    ``open``); ``count()`` is the number of slots held by any process.
+    """
+
+    def __init__(self, directory: Path, max_sessions: int) -> None:
+        self.dir = Path(directory)
+        self.dir.mkdir(parents=True, exist_ok=True)
+        self.max = max_sessions
+        self._held: dict[str, int] = {}  # session id -> fd holding the lock
+        self._lock = threading.Lock()
+
+    @property
+    def open(self) -> set[str]:
+        """This process's sessions."""
+        return set(self._held)
+
+    def _grab(self, k: int) -> int | None:
+        fd = os.open(self.dir / f"slot-{k}", os.O_RDWR | os.O_CREAT, 0o600)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(fd)
+            return None
+        return fd
+
+    def try_open(self) -> str | None:
+        # Two passes: count() probes slots by briefly locking them, which may hide a free slot
+        # from one pass.
+        for _ in range(2):
+            for k in range(self.max):
+                fd = self._grab(k)
+                if fd is not None:
+                    sid = uuid.uuid4().hex[:12]
+                    with self._lock:
+                        self._held[sid] = fd
+                    return sid
+        return None
+
+    def close(self, sid: str) -> None:
+        with self._lock:
+            fd = self._held.pop(sid, None)
+        if fd is not None:
+            os.close(fd)  # releases the flock
+
+    def count(self) -> int:
+        """Slots held by any process (a free slot is locked and released at once to find out)."""
+        held = 0
+        for k in range(self.max):
+            fd = self._grab(k)
+            if fd is None:
+                held += 1
+            else:
+                os.close(fd)
+        return held
+
+
+def prepare_run_dir(settings: Settings) -> tuple[Settings, Path, bool]:
+    """Settings with a fresh, empty run directory (made in the temp dir unless given), and whether
+    the caller made it (then it removes it on exit). Sets ``$PROMETHEUS_MULTIPROC_DIR`` for the
+    workers about to start; any files of a previous run there are deleted (stale counters)."""
+    made = settings.run_dir is None
+    run = Path(tempfile.mkdtemp(prefix="quatrack-run-")) if made else Path(settings.run_dir)
+    run.mkdir(parents=True, exist_ok=True)
+    for sub in ("sessions", "prometheus"):
+        shutil.rmtree(run / sub, ignore_errors=True)
+        (run / sub).mkdir()
+    os.environ[MULTIPROC_ENV] = str(run / "prometheus")
+    return settings.replace(run_dir=run), run, made
+
+
+def session_limiter(settings: Settings):
+    """The limiter the app uses: shared slots when a run directory is set, else in-memory."""
+    if settings.run_dir is not None:
+        return SlotLimiter(Path(settings.run_dir) / "sessions", settings.max_sessions)
+    from .sessions import SessionLimiter
+
+    return SessionLimiter(settings.max_sessions)
+
+
+def count_open(limiter) -> int:
+    """Sessions open in the whole server (all workers for slots, this process otherwise)."""
+    return limiter.count() if isinstance(limiter, SlotLimiter) else len(limiter.open)
+
+
+def app_from_env():
+    """uvicorn's app factory in each worker process: the settings come from ``QUATRACK_*``,
+    which ``quatrack serve`` set before starting the workers."""
+    from .app import create_app
+
+    return create_app(Settings.from_env())
