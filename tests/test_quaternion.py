@@ -120,6 +120,16 @@ def test_angular_metric(a, b, c):
     assert quat.angle_between(a, b) == pytest.approx(np.arccos(cos), abs=1e-6)
 
 
+def test_log_next_to_minus_one_has_norm_pi():
+    """Found by the ``explore`` profile: the small-‖u‖ branch ``u/w`` of log was also taken
+    next to ``-1``, where it gives ~0 instead of ~π, so ``distance(-1 + ε, 1)`` came out ~0."""
+    for eps in (1e-12, 1e-9, 3e-8):
+        q = np.array([-np.sqrt(1 - eps**2), eps, 0.0, 0.0])
+        assert np.linalg.norm(quat.log(q)) == pytest.approx(np.pi - eps, abs=1e-15)
+        assert quat.distance(q, quat.IDENTITY) == pytest.approx(2 * np.pi, abs=1e-7)
+        np.testing.assert_allclose(quat.exp(quat.log(q)), q, atol=1e-15)
+
+
 def test_distance_of_a_known_rotation():
     q = quat.from_rotvec([0.0, 0.0, np.radians(30)])
     assert np.degrees(quat.distance(q, quat.IDENTITY)) == pytest.approx(30.0)

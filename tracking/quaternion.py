@@ -91,8 +91,10 @@ def log(q: np.ndarray) -> np.ndarray:
     q = _f(q)
     w, u = q[..., :1], q[..., 1:]
     s = np.linalg.norm(u, axis=-1, keepdims=True)
-    small = s < _SMALL
-    safe = np.where(small, 1.0, s)
+    # the limit u/w holds near +1 only: near -1 (w < 0) ‖log q‖ → π, and atan2(s, w)/s is exact
+    # there for every s > 0 (u/w would give a near-zero log, i.e. -1 taken for +1)
+    small = (s < _SMALL) & (w > 0)
+    safe = np.where(s == 0, 1.0, s)
     factor = np.where(small, 1.0 / np.where(small, w, 1.0), np.arctan2(s, w) / safe)
     return factor * u
 
