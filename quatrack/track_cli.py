@@ -1,39 +1,46 @@
-"""``quatrack track``: a video (or an image sequence) → one pose row per frame in a CSV.
+"""``quatrack track``: a video, an image sequence, a camera or a stream → one pose row per frame.
 
-Every output (CSV, overlay video, plot) is written to a temporary file next to its target and
-renamed into place only when the whole input has been processed, so an error never leaves a
-half-written file behind.
+The steps are plain functions: :func:`_setup` checks the options and builds the tracker,
+:func:`_track_frames` runs it over the frames (writing rows, overlay frames and the progress
+line as it goes), :func:`_summary` reports. Frame sources, rows, the overlay and atomic writes
+come from :mod:`recognition.trackio` and :mod:`recognition.overlay`, shared with ``demo`` and
+the client. Every output (poses, overlay video, plot) is written to a temporary file next to its
+target and renamed into place only when the run ends — normally, at ``--max-frames`` or on Ctrl-C
+(which stops a live source cleanly) — so an error never leaves a half-written file behind.
 """
 
 from __future__ import annotations
 
 import argparse
-import csv
-import glob
 import json
-import os
 import sys
-import tempfile
 from contextlib import ExitStack
-from typing import Iterator
+from dataclasses import dataclass
 
 import numpy as np
 
-CSV_COLUMNS = ["frame", "time_s", "status", "tx", "ty", "tz", "qw", "qx", "qy", "qz",
-               "vx", "vy", "vz", "wx", "wy", "wz", "inliers"]
+from quatrack.recognition.trackio import FORMATS, UNIT_METRES
 
 
 class TrackInputError(ValueError):
-    """Bad input to ``quatrack track``: reported in one line."""
+    """Bad input to ``quatrack track``: reported in one line, exit status 2."""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     src = parser.add_mutually_exclusive_group(required=True)
-    src.add_argument("--video", metavar="FILE", help="a video file (anything OpenCV/FFmpeg reads)")
+    src.add_argument("--video", metavar="SOURCE",
+                     help="a video file (anything OpenCV/FFmpeg reads), a camera index such as 0, "
+                          "or a stream URL (rtsp://, http://, ...)")
     src.add_argument("--images", metavar="GLOB", help="an image sequence, e.g. 'frames/*.png' (quote it; sorted by name)")
     parser.add_argument("--object", required=True, metavar="NAME", help="a trained object (see `quatrack models list`)")
     parser.add_argument("--camera", required=True, metavar="CAMERA", help="camera file of the frames (JSON, or OpenCV YAML)")
-    parser.add_argument("--out", required=True, metavar="POSES.csv", help="output CSV, one row per frame")
+    parser.add_argument("--out", required=True, metavar="POSES", help="output file, one row per frame (see --format)")
+    parser.add_argument("--format", default="csv", choices=FORMATS,
+                        help="csv: the contract's columns (default); jsonl: one JSON message per frame (pose, "
+                             "velocity, covariance); bop: BOP results (scene_id,im_id,obj_id,score,R,t,time; t in mm)")
+    parser.add_argument("--mesh-unit", choices=sorted(UNIT_METRES), default=None,
+                        help="the unit of the object's mesh; needed by --format bop (BOP's t is in mm)")
+    parser.add_argument("--obj-id", type=int, default=1, metavar="N", help="BOP obj_id (default 1)")
     parser.add_argument("--store", metavar="DIR", help="model store (default: $QUATRACK_STORE or the user data directory)")
     parser.add_argument("--motion-model", default="ude", choices=["ude", "m1", "m2", "m3"],
                         help="ude: constant velocity on R³×S³ (default); m1/m2: object/camera random walk; "
@@ -43,10 +50,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--init-pose", metavar="POSE.json",
                         help="start from this pose (object → camera: {rvec,tvec}, {R,t} or {q_wxyz,t}) instead of recognition")
     parser.add_argument("--fps", type=float, default=None, metavar="F",
-                        help="frame rate for time_s (default: the video's own rate; 30 for images)")
+                        help="frame rate for time_s (default: the video's own rate; 30 for images; "
+                             "the clock for a camera or stream)")
+    parser.add_argument("--max-frames", type=int, default=None, metavar="N",
+                        help="stop after N frames (Ctrl-C also stops cleanly, with complete outputs)")
     parser.add_argument("--overlay", metavar="OUT.mp4", help="also write the video with the wireframe, axes and status")
     parser.add_argument("--plot", metavar="OUT.png", help="also draw position and orientation with 3σ bands over time")
-    parser.add_argument("--quiet", action="store_true", help="no summary on stdout")
+    parser.add_argument("--quiet", action="store_true", help="no summary on stdout, no progress line")
 
 
 def _noise(text: str) -> dict:
@@ -77,135 +87,95 @@ def _load_init_pose(path: str):
     return parse_pose(data, f"--init-pose {path}")
 
 
-def _video_frames(path: str, fps: float | None) -> tuple[Iterator, float]:
-    """Frames of a video and the rate used for time_s (per-frame timestamps from OpenCV are not
-    reliable: with B-frames they come out of order, so time is frame index / rate)."""
-    import cv2
+@dataclass
+class _Setup:
+    """Everything a run needs, checked before any output is opened."""
 
-    if not os.path.isfile(path):
-        raise TrackInputError(f"--video {path}: no such file")
-    cap = cv2.VideoCapture(path)
-    if not cap.isOpened():
-        raise TrackInputError(f"--video {path}: cannot be opened as a video")
-    ok, first = cap.read()
-    if not ok or first is None:
-        cap.release()
-        raise TrackInputError(f"--video {path}: no frame can be decoded")
-    rate = fps or cap.get(cv2.CAP_PROP_FPS)
-    if not rate or not np.isfinite(rate) or rate <= 0 or rate > 1000:
-        rate = 30.0
-
-    def gen():
-        try:
-            frame = first
-            while frame is not None:
-                yield frame
-                ok, frame = cap.read()
-                if not ok:
-                    break
-        finally:
-            cap.release()
-
-    return gen(), float(rate)
+    model: object
+    camera: object
+    tracker: object
+    source: object
 
 
-def _image_frames(pattern: str, fps: float | None) -> tuple[Iterator, float, list[str]]:
-    from quatrack.recognition.images import read_image
-
-    paths = sorted(p for p in glob.glob(os.path.expanduser(pattern)) if os.path.isfile(p))
-    if not paths:
-        raise TrackInputError(f"--images {pattern!r}: no file matches")
-    return (read_image(p) for p in paths), float(fps or 30.0), paths
-
-
-def _row(step) -> list:
-    pose = step.t is not None
-    fmt = lambda a: [f"{float(x):.6g}" for x in a] if pose else [""] * len(a)  # noqa: E731
-    return ([step.frame, f"{step.time_s:.6f}", step.status] + fmt(step.t if pose else [0] * 3)
-            + fmt(step.q_wxyz if pose else [0] * 4) + fmt(step.v if pose else [0] * 3)
-            + fmt(step.omega if pose else [0] * 3) + [step.inliers])
-
-
-def _temp_beside(target: str, suffix: str, stack: ExitStack) -> str:
-    """A temporary path in the target's folder (so the final rename is atomic); removed on error."""
-    folder = os.path.dirname(os.path.abspath(target))
-    if not os.path.isdir(folder):
-        raise TrackInputError(f"{target}: the folder {folder} does not exist")
-    fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(target)}.", suffix=suffix, dir=folder)
-    os.close(fd)
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(tmp, 0o666 & ~umask)  # mkstemp's 0600 would survive the rename
-    stack.callback(lambda: os.path.exists(tmp) and os.unlink(tmp))
-    return tmp
-
-
-def run(args: argparse.Namespace) -> int:
-    import cv2
-
-    from quatrack.recognition.images import to_bgr8
+def _setup(args: argparse.Namespace) -> _Setup:
     from quatrack.recognition.match import index_for
-    from quatrack.recognition.overlay import draw_overlay, plot_track
+    from quatrack.recognition.trackio import open_frames
     from quatrack.recognition.video import Tracker, TrackerParams
-    from quatrack.recognition.visibility import mesh_edges
     from quatrack.viewsets.camera import load_camera
     from quatrack.viewsets.store import load_model, resolve_store
 
-    if args.fps is not None and not (np.isfinite(args.fps) and 0 < args.fps <= 1000):
-        raise TrackInputError("--fps must be a positive number (at most 1000)")
     for opt, path, ext in (("--overlay", args.overlay, ".mp4"), ("--plot", args.plot, ".png")):
         if path and not path.lower().endswith(ext):
             raise TrackInputError(f"{opt} {path}: the file name must end in {ext}")
+    if args.format == "bop" and args.mesh_unit is None:
+        raise TrackInputError("--format bop needs --mesh-unit (mm, cm or m): BOP's t is in millimetres")
     params = TrackerParams(motion_model=args.motion_model, motion_noise=_noise(args.motion_noise))
     camera = load_camera(args.camera)
     init = _load_init_pose(args.init_pose) if args.init_pose else None
     model = load_model(resolve_store(args.store), args.object)
-    if args.video:
-        frames, rate = _video_frames(args.video, args.fps)
-        names = None
-    else:
-        frames, rate, names = _image_frames(args.images, args.fps)
-
+    source = open_frames(args.video, args.images, args.fps, args.max_frames)
     tracker = Tracker(model, camera, params, index=index_for(model))
     if init is not None:
         from quatrack.tracking import quaternion as quat
 
         tracker.init_pose(init.t, quat.from_matrix(init.R), 0.0)
-    edges = mesh_edges(model.mesh)
+    return _Setup(model, camera, tracker, source)
+
+
+def _track_frames(s: _Setup, rows, video, progress) -> tuple[list, bool]:
+    """Step the tracker over every frame; returns the steps and whether Ctrl-C stopped it."""
+    from quatrack.recognition.images import to_bgr8
+    from quatrack.recognition.overlay import draw_overlay
+    from quatrack.recognition.visibility import mesh_edges
+
+    edges = mesh_edges(s.model.mesh)
     steps = []
+    try:
+        for i, t, image in s.source:
+            try:
+                step = s.tracker.step(image, t)
+            except ValueError as exc:
+                raise TrackInputError(f"{s.source.where(i)}: {exc}") from None
+            rows.write(step)
+            steps.append(step)
+            progress.update(step.status)
+            if video is not None:
+                video.write(draw_overlay(to_bgr8(image), s.camera, s.model.mesh, step, edges))
+    except KeyboardInterrupt:
+        return steps, True
+    finally:
+        s.source.close()
+    return steps, False
+
+
+def run(args: argparse.Namespace) -> int:
+    import cv2
+
+    from quatrack.recognition.overlay import plot_track
+    from quatrack.recognition.trackio import Progress, RowWriter, VideoOut, atomic_path
+
+    s = _setup(args)
+    progress = Progress("tracking", enabled=False if args.quiet else None)
     with ExitStack() as stack:
-        tmp_csv = _temp_beside(args.out, ".csv", stack)
-        writer_video = None
-        tmp_video = _temp_beside(args.overlay, ".mp4", stack) if args.overlay else None
-        with open(tmp_csv, "w", newline="", encoding="utf-8") as f:
-            out = csv.writer(f)
-            out.writerow(CSV_COLUMNS)
-            for i, image in enumerate(frames):
-                try:
-                    step = tracker.step(image, i / rate)
-                except ValueError as exc:
-                    where = names[i] if names else f"frame {i} of {args.video}"
-                    raise TrackInputError(f"{where}: {exc}") from None
-                out.writerow(_row(step))
-                steps.append(step)
-                if tmp_video:
-                    if writer_video is None:
-                        h, w = image.shape[:2]
-                        writer_video = cv2.VideoWriter(tmp_video, cv2.VideoWriter_fourcc(*"mp4v"), rate, (w, h))
-                        if not writer_video.isOpened():
-                            raise TrackInputError(f"--overlay {args.overlay}: cannot write an MP4 video here")
-                        stack.callback(writer_video.release)
-                    writer_video.write(draw_overlay(to_bgr8(image), camera, model.mesh, step, edges))
-        if writer_video is not None:
-            writer_video.release()
+        stack.callback(s.source.close)
+        tmp_out = stack.enter_context(atomic_path(args.out, "--out"))
+        video = None
+        if args.overlay:
+            video = VideoOut(stack.enter_context(atomic_path(args.overlay, "--overlay")), s.source.rate)
+        with open(tmp_out, "w", newline="", encoding="utf-8") as f:
+            rows = RowWriter(f, args.format, args.mesh_unit, args.obj_id)
+            try:
+                steps, interrupted = _track_frames(s, rows, video, progress)
+            finally:
+                progress.close()
+                if video is not None:
+                    video.close()
         if args.plot:
-            tmp_png = _temp_beside(args.plot, ".png", stack)
-            if not cv2.imwrite(tmp_png, plot_track(steps)):
-                raise TrackInputError(f"--plot {args.plot}: cannot write the PNG")
-            os.replace(tmp_png, args.plot)
-        if tmp_video:
-            os.replace(tmp_video, args.overlay)
-        os.replace(tmp_csv, args.out)
+            with atomic_path(args.plot, "--plot") as tmp_png:
+                if not cv2.imwrite(tmp_png, plot_track(steps)):
+                    raise TrackInputError(f"--plot {args.plot}: cannot write the PNG")
+    if interrupted:
+        print(f"quatrack track: stopped (Ctrl-C) after {len(steps)} frames; outputs complete", file=sys.stderr)
     if not args.quiet:
         _summary(steps, args.out)
     return 0

@@ -36,23 +36,51 @@ def draw_wireframe(out: np.ndarray, camera: PinholeCamera, t, q_wxyz, edges: np.
     cv2.polylines(out, _segments(camera, R, np.asarray(t, float), edges), False, colour, 2, cv2.LINE_AA)
 
 
-def draw_overlay(image: np.ndarray, camera: PinholeCamera, mesh: Mesh, step, edges: np.ndarray | None = None) -> np.ndarray:
-    """A copy of ``image`` with the wireframe, the object axes (x red, y green, z blue) and the
-    status line of a :class:`~recognition.video.TrackStep`."""
+def draw_label(out: np.ndarray, text: str, origin: tuple[int, int] = (8, 8), colour=(255, 255, 255),
+               scale: float = 0.6, background=(0, 0, 0)) -> tuple[int, int, int, int]:
+    """Draw, in place, ``text`` on an opaque box whose top-left corner is ``origin``; returns
+    the box ``(x0, y0, x1, y1)``. Why a box: the usual "thick dark outline, thin fill" label
+    is unreadable with OpenCV 5, whose thick and thin glyphs no longer have the same advance
+    width, so the two copies drift apart along the line; one thin copy on a box cannot."""
+    font, thickness = cv2.FONT_HERSHEY_SIMPLEX, 1
+    (w, h), base = cv2.getTextSize(text, font, scale, thickness)
+    pad = max(2, int(round(4 * scale)))
+    x0, y0 = origin
+    x1, y1 = x0 + w + 2 * pad, y0 + h + base + 2 * pad
+    cv2.rectangle(out, (x0, y0), (x1 - 1, y1 - 1), background, cv2.FILLED)
+    cv2.putText(out, text, (x0 + pad, y0 + pad + h), font, scale, colour, thickness, cv2.LINE_AA)
+    return x0, y0, x1, y1
+
+
+def step_label(step) -> str:
+    """``#frame time status inliers [latency]``: the status line of an overlay."""
+    text = f"#{step.frame} {step.time_s:.2f}s {step.status} inliers {step.inliers}"
+    latency = (step.timings_ms or {}).get("latency")
+    return text if latency is None else f"{text} {latency:.0f} ms"
+
+
+def draw_overlay(image: np.ndarray, camera: PinholeCamera, mesh: Mesh | None, step, edges: np.ndarray | None = None,
+                 label: str | None = None) -> np.ndarray:
+    """A copy of ``image`` (BGR) with the wireframe, the object axes (x red, y green, z blue) and
+    the status line of a :class:`~recognition.video.TrackStep` (colour by status). The one
+    overlay drawer of quatrack: ``track --overlay``, ``demo`` and the benchmarks use it. Either
+    ``mesh`` or ``edges`` (k, 2, 3) must be given; the axes start at the corner of the edges'
+    (or mesh's) bounding box and are 0.3 of its diagonal long."""
     out = image.copy()
     colour = STATUS_COLOURS.get(step.status, (255, 255, 255))
-    if step.t is not None and step.q_wxyz is not None:
-        R = quat.to_matrix(step.q_wxyz)
+    if edges is None:
+        edges = mesh_edges(mesh)
+    if step.t is not None and step.q_wxyz is not None and step.status != "lost":
+        R = quat.to_matrix(np.asarray(step.q_wxyz, float))
         t = np.asarray(step.t, float)
-        draw_wireframe(out, camera, t, step.q_wxyz, mesh_edges(mesh) if edges is None else edges, colour)
-        L = 0.3 * mesh.extent
-        o = mesh.vertices.min(axis=0)
+        draw_wireframe(out, camera, t, step.q_wxyz, edges, colour)
+        pts = mesh.vertices if mesh is not None else np.asarray(edges, float).reshape(-1, 3)
+        o = pts.min(axis=0)
+        L = 0.3 * float(np.linalg.norm(pts.max(axis=0) - o))  # 0.3 × the bounding box diagonal
         axes = np.array([[o, o + [L, 0, 0]], [o, o + [0, L, 0]], [o, o + [0, 0, L]]])
         for line, c in zip(_segments(camera, R, t, axes, 2), ((0, 0, 255), (0, 200, 0), (255, 0, 0))):
             cv2.arrowedLine(out, tuple(map(int, line[0])), tuple(map(int, line[1])), c, 2, cv2.LINE_AA, tipLength=0.15)
-    text = f"#{step.frame} {step.time_s:.2f}s {step.status} inliers {step.inliers}"
-    cv2.putText(out, text, (8, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (0, 0, 0), 4, cv2.LINE_AA)
-    cv2.putText(out, text, (8, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.6, colour, 1, cv2.LINE_AA)
+    draw_label(out, step_label(step) if label is None else label, colour=colour)
     return out
 
 

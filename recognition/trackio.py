@@ -1,0 +1,460 @@
+"""Track input and output: where frames come from, and the rows and files poses leave in.
+
+Every consumer of a track — ``quatrack track``, ``quatrack demo``, the Python client, the
+benchmarks and the tests — reads frames and writes poses through this module, so the rules below
+hold everywhere:
+
+- **Frame sources** (:func:`open_frames`): a video file, a glob of images (sorted by name), a
+  camera index (``"0"``) or any URL ``cv2.VideoCapture`` opens (``rtsp://``, ``http://``, ...).
+- **Frame rate and time** (one rule): ``time_s = index / rate`` where ``rate`` is the user's
+  ``--fps`` if given, else the rate the container reports if it is finite and in (0, 1000], else
+  30. Per-frame container timestamps are not used (with B-frames they come out of order). A live
+  source (camera index or URL) without ``--fps`` is timed by the clock instead: ``time_s`` =
+  monotonic seconds since its first frame, since a camera drops and delays frames.
+- FFmpeg's decoder warnings (``[h264 @ ...] A non-intra slice ...``) are kept out of the user's
+  terminal: ``OPENCV_FFMPEG_LOGLEVEL`` is set (unless the user set it) before the first capture.
+- **Rows**: one in-memory record per frame, :class:`~recognition.video.TrackStep`; the service's
+  per-frame JSON message converts to and from it (:func:`step_message`, :func:`step_from_message`).
+  Rows out: the contract's CSV (:data:`CSV_COLUMNS`), JSON lines (the full message), BOP results
+  (``scene_id,im_id,obj_id,score,R,t,time``) and ROS ``geometry_msgs/PoseWithCovarianceStamped``.
+- **Files** are written atomically (:func:`atomic_path`): to a temporary file beside the target,
+  renamed into place only when complete, so an error or Ctrl-C never leaves half a file.
+- A **progress line** (:class:`Progress`) on stderr when it is a terminal, silent otherwise.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import glob as globlib
+import json
+import math
+import os
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable, Iterator
+
+import numpy as np
+
+from quatrack.tracking import quaternion as quat
+from quatrack.tracking.pose import Pose
+
+CSV_COLUMNS = ("frame", "time_s", "status", "tx", "ty", "tz", "qw", "qx", "qy", "qz",
+               "vx", "vy", "vz", "wx", "wy", "wz", "inliers")
+CSV_HEADER = ",".join(CSV_COLUMNS)
+BOP_COLUMNS = ("scene_id", "im_id", "obj_id", "score", "R", "t", "time")
+FORMATS = ("csv", "jsonl", "bop")
+DEFAULT_RATE = 30.0
+MAX_RATE = 1000.0
+#: metres per mesh unit, for the outputs with fixed units (BOP: mm, ROS: m)
+UNIT_METRES = {"mm": 1e-3, "cm": 1e-2, "m": 1.0}
+
+
+class SourceError(ValueError):
+    """A frame source that cannot be used; the message names it (one line for the user)."""
+
+
+# --- frame sources ------------------------------------------------------------------------------
+
+def quiet_ffmpeg() -> None:
+    """Keep FFmpeg's decoder chatter off stderr. OpenCV reads ``OPENCV_FFMPEG_LOGLEVEL`` once,
+    when its FFmpeg backend starts (the first capture), so call this before opening one; a
+    value the user set is kept."""
+    os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")  # AV_LOG_QUIET
+
+
+def open_capture(target: int | str):
+    """``cv2.VideoCapture(target)``: the one place captures are made (tests replace it to fake a
+    camera)."""
+    import cv2
+
+    quiet_ffmpeg()
+    return cv2.VideoCapture(target)
+
+
+def frame_rate(given: float | None, reported: float | None = None) -> float:
+    """The module's rule: ``given`` (``--fps``) if set, else ``reported`` (the container's) if
+    finite and in (0, 1000], else 30 frames/s."""
+    if given is not None:
+        return float(given)
+    if reported is not None and math.isfinite(reported) and 0 < reported <= MAX_RATE:
+        return float(reported)
+    return DEFAULT_RATE
+
+
+def capture_target(video: str) -> int | str:
+    """What ``--video`` names: a camera index (all digits) or a URL (has ``://``) as given; else a
+    file, which must exist."""
+    text = video.strip()
+    if text.isdigit():
+        return int(text)
+    if "://" in text:
+        return text
+    if not os.path.isfile(text):
+        raise SourceError(f"--video {video}: no such file (give a file, a camera index such as 0, or a stream URL)")
+    return text
+
+
+@dataclass
+class FrameSource:
+    """Frames ``(index, time_s, image)`` of one source; iterate once, then :meth:`close` (or use
+    ``with``). ``names`` holds the file of each frame for an image sequence."""
+
+    label: str  # how the user named it, for messages: "--video box.mp4"
+    rate: float
+    live: bool = False
+    names: list[str] | None = None
+    max_frames: int | None = None
+    _frames: Iterator[np.ndarray] | None = None
+    _close: Callable[[], None] = lambda: None
+    _clock: Callable[[], float] = time.monotonic
+    count: int = field(default=0, init=False)
+
+    def __iter__(self) -> Iterator[tuple[int, float, np.ndarray]]:
+        t0 = None
+        try:
+            for image in self._frames:
+                if self.max_frames is not None and self.count >= self.max_frames:
+                    break
+                i = self.count
+                if self.live:
+                    now = self._clock()
+                    t0 = now if t0 is None else t0
+                    t = now - t0
+                else:
+                    t = i / self.rate
+                self.count += 1
+                yield i, t, image
+        finally:
+            self.close()
+
+    def where(self, index: int) -> str:
+        """Name frame ``index`` for an error message."""
+        return self.names[index] if self.names else f"frame {index} of {self.label}"
+
+    def close(self) -> None:
+        self._close()
+
+    def __enter__(self) -> "FrameSource":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def open_frames(video: str | None = None, images: str | None = None, fps: float | None = None,
+                max_frames: int | None = None) -> FrameSource:
+    """A :class:`FrameSource` for ``--video`` (file, camera index, URL) or ``--images`` (a glob).
+    Raises :class:`SourceError` when nothing can be read from it (the first frame is decoded
+    here, so a bad file fails before any output is opened)."""
+    if fps is not None and not (math.isfinite(fps) and 0 < fps <= MAX_RATE):
+        raise SourceError(f"--fps must be a positive number (at most {MAX_RATE:g})")
+    if max_frames is not None and max_frames < 1:
+        raise SourceError("--max-frames must be at least 1")
+    if (video is None) == (images is None):
+        raise SourceError("give one of --video or --images")
+    if images is not None:
+        from .images import read_image
+
+        paths = sorted(p for p in globlib.glob(os.path.expanduser(images)) if os.path.isfile(p))
+        if not paths:
+            raise SourceError(f"--images {images!r}: no file matches")
+        return FrameSource(f"--images {images}", frame_rate(fps), names=paths, max_frames=max_frames,
+                           _frames=(read_image(p) for p in paths))
+    target = capture_target(video)
+    live = not isinstance(target, str) or "://" in target
+    cap = open_capture(target)
+    if not cap.isOpened():
+        cap.release()
+        kind = "camera" if isinstance(target, int) else "stream" if live else "video"
+        raise SourceError(f"--video {video}: cannot be opened as a {kind}")
+    ok, first = cap.read()
+    if not ok or first is None:
+        cap.release()
+        raise SourceError(f"--video {video}: no frame can be decoded")
+    import cv2
+
+    rate = frame_rate(fps, cap.get(cv2.CAP_PROP_FPS))
+
+    def frames() -> Iterator[np.ndarray]:
+        frame = first
+        while frame is not None:
+            yield frame
+            ok, frame = cap.read()
+            if not ok:
+                return
+
+    return FrameSource(f"--video {video}", rate, live=live and fps is None, max_frames=max_frames,
+                       _frames=frames(), _close=cap.release)
+
+
+def jpeg_frames(source: FrameSource, quality: int = 90) -> Iterator[tuple[int, float, bytes]]:
+    """``(index, time_s, JPEG bytes)`` of a source: what a WebSocket client streams."""
+    import cv2
+
+    from .images import to_bgr8
+
+    for i, t, image in source:
+        yield i, t, cv2.imencode(".jpg", to_bgr8(image), [cv2.IMWRITE_JPEG_QUALITY, quality])[1].tobytes()
+
+
+# --- one record per frame: TrackStep <-> the service's JSON message ----------------------------
+
+def _vec(x) -> list[float] | None:
+    return None if x is None else [float(v) for v in np.asarray(x, float).ravel()]
+
+
+def step_message(step) -> dict:
+    """The contract's per-frame JSON object (``"type": "pose"``) of a
+    :class:`~recognition.video.TrackStep`: pose, velocity and 6×6 covariance are ``null`` when
+    the status is ``lost``."""
+    has_pose = step.status != "lost" and step.t is not None
+    has_vel = has_pose and step.v is not None and step.omega is not None
+    cov = step.covariance
+    return {
+        "type": "pose",
+        "frame": int(step.frame),
+        "time_s": float(step.time_s),
+        "status": step.status,
+        "pose": {"t": _vec(step.t), "q_wxyz": _vec(step.q_wxyz)} if has_pose else None,
+        "velocity": {"v": _vec(step.v), "omega": _vec(step.omega)} if has_vel else None,
+        "covariance": [[float(x) for x in row] for row in np.asarray(cov, float)[:6, :6]]
+        if has_pose and cov is not None else None,
+        "inliers": int(step.inliers or 0),
+        "reason": step.reason,
+        "timings_ms": {k: round(float(v), 3) for k, v in (step.timings_ms or {}).items()},
+    }
+
+
+def step_from_message(msg: dict | Any | None, frame: int | None = None, time_s: float | None = None):
+    """A :class:`~recognition.video.TrackStep` from a server message (a dict or the client's
+    pydantic ``TrackMessage``); ``None`` (no answer for that frame) is a ``lost`` step at
+    ``frame``/``time_s``. ``frame``/``time_s`` override the message's (the caller's numbering)."""
+    from .video import TrackStep
+
+    if msg is not None and not isinstance(msg, dict):
+        msg = msg.model_dump()
+    if msg is None:
+        return TrackStep(frame=int(frame or 0), time_s=float(time_s or 0.0), status="lost", reason="no answer")
+    pose, vel, cov = msg.get("pose"), msg.get("velocity"), msg.get("covariance")
+    timings = dict(msg.get("timings_ms") or {})
+    if msg.get("latency_ms") is not None:
+        timings["latency"] = float(msg["latency_ms"])
+    return TrackStep(
+        frame=int(msg["frame"] if frame is None else frame),
+        time_s=float(msg["time_s"] if time_s is None else time_s),
+        status=msg["status"],
+        t=None if not pose else np.asarray(pose["t"], float),
+        q_wxyz=None if not pose else np.asarray(pose["q_wxyz"], float),
+        v=None if not vel else np.asarray(vel["v"], float),
+        omega=None if not vel else np.asarray(vel["omega"], float),
+        covariance=None if cov is None else np.asarray(cov, float),
+        inliers=int(msg.get("inliers") or 0),
+        timings_ms=timings,
+        reason=msg.get("reason"),
+    )
+
+
+# --- rows ----------------------------------------------------------------------------------------
+
+def csv_row(step) -> str:
+    """One line of the contract's CSV (:data:`CSV_COLUMNS`, no newline); the pose and velocity
+    columns are empty when the step has no pose (``lost``), velocity zero if unknown."""
+    head = f"{int(step.frame)},{float(step.time_s):.6f},{step.status}"
+    if step.status == "lost" or step.t is None or step.q_wxyz is None:
+        return head + "," * 14 + str(int(step.inliers or 0))
+    v = np.zeros(3) if step.v is None else step.v
+    w = np.zeros(3) if step.omega is None else step.omega
+    nums = [*np.ravel(step.t), *np.ravel(step.q_wxyz), *np.ravel(v), *np.ravel(w)]
+    return head + "," + ",".join(f"{float(x):.6g}" for x in nums) + f",{int(step.inliers or 0)}"
+
+
+def jsonl_row(step) -> str:
+    """The full per-frame message (:func:`step_message`) as one JSON line (no newline)."""
+    return json.dumps(step_message(step), separators=(",", ":"))
+
+
+def _unit_scale(unit: str, to_metres: float) -> float:
+    if unit not in UNIT_METRES:
+        raise ValueError(f"mesh unit {unit!r}: use one of {', '.join(UNIT_METRES)}")
+    return UNIT_METRES[unit] / to_metres
+
+
+def bop_row(step, mesh_unit: str, obj_id: int = 1, scene_id: int = 0) -> str | None:
+    """One line of a BOP results CSV (``scene_id,im_id,obj_id,score,R,t,time``): ``R`` row-major
+    (9 numbers, space-separated), ``t`` in mm, ``im_id`` the frame index, ``score`` the inlier
+    count, ``time`` the frame's processing time in seconds (-1 if unknown). ``None`` for a frame
+    without a pose (BOP lists estimates only). ``mesh_unit``: the unit of the mesh (mm, cm, m)."""
+    if step.status == "lost" or step.t is None or step.q_wxyz is None:
+        return None
+    s = _unit_scale(mesh_unit, 1e-3)
+    R = quat.to_matrix(np.asarray(step.q_wxyz, float))
+    total = (step.timings_ms or {}).get("total")
+    seconds = f"{total / 1e3:.6f}" if total is not None else "-1"
+    return (f"{scene_id},{int(step.frame)},{obj_id},{float(step.inliers or 0):g},"
+            + " ".join(f"{x:.9g}" for x in R.ravel()) + ","
+            + " ".join(f"{x * s:.9g}" for x in np.ravel(step.t)) + f",{seconds}")
+
+
+def pose_from_bop(line: str, mesh_unit: str) -> Pose:
+    """The :class:`~tracking.pose.Pose` (mesh units) of a :func:`bop_row` line."""
+    parts = line.strip().split(",")
+    R = np.array([float(x) for x in parts[4].split()]).reshape(3, 3)
+    return Pose.from_matrix(R, np.array([float(x) for x in parts[5].split()]) / _unit_scale(mesh_unit, 1e-3))
+
+
+def ros_pose_with_covariance(step_or_msg, mesh_unit: str, frame_id: str = "camera") -> dict | None:
+    """``geometry_msgs/PoseWithCovarianceStamped`` as JSON (the field names of ROS 2's message):
+    ``header.stamp`` from ``time_s``, position in metres, ``orientation`` in ROS order ``x, y,
+    z, w``, ``covariance`` the 36 numbers of the 6×6 over ``[x, y, z, rot X, rot Y, rot Z]``,
+    row-major, with position rows/columns scaled to metres. ROS's rotation covariance is about
+    the parent frame's fixed axes, which is quatrack's ``δθ`` (``q_true = exp(δθ/2) ⊗ q``,
+    camera frame), so it is copied as is. ``None`` for a frame without a pose."""
+    step = step_or_msg if not isinstance(step_or_msg, dict) else step_from_message(step_or_msg)
+    if step.status == "lost" or step.t is None or step.q_wxyz is None:
+        return None
+    s = _unit_scale(mesh_unit, 1.0)
+    t = np.ravel(step.t) * s
+    w, x, y, z = (float(v) for v in np.ravel(step.q_wxyz))
+    if step.covariance is not None:
+        scale = np.array([s, s, s, 1.0, 1.0, 1.0])
+        cov = (np.asarray(step.covariance, float)[:6, :6] * np.outer(scale, scale)).ravel()
+    else:
+        cov = np.zeros(36)  # unknown; ROS says -1 in [0] means "unknown"
+        cov[0] = -1.0
+    sec = int(math.floor(step.time_s))
+    return {
+        "header": {"stamp": {"sec": sec, "nanosec": int(round((step.time_s - sec) * 1e9)) % 1_000_000_000},
+                   "frame_id": frame_id},
+        "pose": {"pose": {"position": {"x": float(t[0]), "y": float(t[1]), "z": float(t[2])},
+                          "orientation": {"x": x, "y": y, "z": z, "w": w}},
+                 "covariance": [float(c) for c in cov]},
+    }
+
+
+def pose_from_ros(msg: dict, mesh_unit: str) -> tuple[Pose, np.ndarray]:
+    """``(pose, 6×6 covariance)`` in mesh units back from :func:`ros_pose_with_covariance`."""
+    s = _unit_scale(mesh_unit, 1.0)
+    p, o = msg["pose"]["pose"]["position"], msg["pose"]["pose"]["orientation"]
+    scale = np.array([s, s, s, 1.0, 1.0, 1.0])
+    cov = np.asarray(msg["pose"]["covariance"], float).reshape(6, 6) / np.outer(scale, scale)
+    return Pose([o["w"], o["x"], o["y"], o["z"]], np.array([p["x"], p["y"], p["z"]]) / s), cov
+
+
+class RowWriter:
+    """Writes one format's header and rows to an open text file: ``csv`` (the contract's),
+    ``jsonl`` (:func:`jsonl_row`) or ``bop`` (:func:`bop_row`; needs ``mesh_unit``)."""
+
+    def __init__(self, f, fmt: str = "csv", mesh_unit: str | None = None, obj_id: int = 1, scene_id: int = 0) -> None:
+        if fmt not in FORMATS:
+            raise ValueError(f"--format {fmt}: use one of {', '.join(FORMATS)}")
+        if fmt == "bop" and mesh_unit is None:
+            raise ValueError("--format bop needs --mesh-unit (mm, cm or m): BOP's t is in millimetres")
+        if mesh_unit is not None:
+            _unit_scale(mesh_unit, 1.0)
+        self.f, self.fmt, self.mesh_unit, self.obj_id, self.scene_id = f, fmt, mesh_unit, obj_id, scene_id
+        if fmt == "csv":
+            f.write(CSV_HEADER + "\n")
+        elif fmt == "bop":
+            f.write(",".join(BOP_COLUMNS) + "\n")
+
+    def write(self, step) -> None:
+        if self.fmt == "csv":
+            line = csv_row(step)
+        elif self.fmt == "jsonl":
+            line = jsonl_row(step)
+        else:
+            line = bop_row(step, self.mesh_unit, self.obj_id, self.scene_id)
+        if line is not None:
+            self.f.write(line + "\n")
+
+
+# --- files ---------------------------------------------------------------------------------------
+
+@contextlib.contextmanager
+def atomic_path(target: str | os.PathLike, option: str = "") -> Iterator[str]:
+    """A temporary path beside ``target`` (same folder, so the rename is atomic) that becomes
+    ``target`` when the block ends normally, and is deleted if it raises. Permissions follow the
+    umask (``mkstemp``'s 0600 would survive the rename)."""
+    target = os.fspath(target)
+    folder = os.path.dirname(os.path.abspath(target))
+    name = f"{option} {target}" if option else target
+    if not os.path.isdir(folder):
+        raise SourceError(f"{name}: the folder {folder} does not exist")
+    suffix = os.path.splitext(target)[1]
+    fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(target)}.", suffix=suffix, dir=folder)
+    os.close(fd)
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp, 0o666 & ~umask)
+    try:
+        yield tmp
+        os.replace(tmp, target)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+class VideoOut:
+    """An MP4 (``mp4v``) written frame by frame to ``path``, opened at the first frame's size."""
+
+    def __init__(self, path: str, rate: float, option: str = "--overlay") -> None:
+        self.path, self.rate, self.option, self.writer = path, rate, option, None
+
+    def write(self, image: np.ndarray) -> None:
+        import cv2
+
+        if self.writer is None:
+            h, w = image.shape[:2]
+            self.writer = cv2.VideoWriter(self.path, cv2.VideoWriter_fourcc(*"mp4v"), self.rate, (w, h))
+            if not self.writer.isOpened():
+                raise SourceError(f"{self.option}: cannot write an MP4 video here")
+        self.writer.write(image)
+
+    def close(self) -> None:
+        if self.writer is not None:
+            self.writer.release()
+            self.writer = None
+
+
+# --- progress --------------------------------------------------------------------------------------
+
+class Progress:
+    """One self-overwriting line on a terminal: frames, frames/s and status counts, at most
+    ``every_s`` apart. Silent when ``stream`` is not a terminal (logs, pipes, CI)."""
+
+    def __init__(self, label: str, stream=None, every_s: float = 0.25, enabled: bool | None = None,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self.label, self.stream = label, stream if stream is not None else sys.stderr
+        self.enabled = bool(getattr(self.stream, "isatty", lambda: False)()) if enabled is None else enabled
+        self.every_s, self.clock = every_s, clock
+        self.counts = {"init": 0, "tracking": 0, "lost": 0}
+        self.frames = 0
+        self.t0 = clock()
+        self.last = -math.inf
+        self.shown = False
+
+    def line(self) -> str:
+        dt = self.clock() - self.t0
+        fps = self.frames / dt if dt > 0 else 0.0
+        c = self.counts
+        return (f"{self.label}: {self.frames} frames, {fps:.1f} fps "
+                f"(init {c['init']}, tracking {c['tracking']}, lost {c['lost']})")
+
+    def update(self, status: str | None) -> None:
+        self.frames += 1
+        if status in self.counts:
+            self.counts[status] += 1
+        now = self.clock()
+        if self.enabled and now - self.last >= self.every_s:
+            self.last = now
+            self.stream.write("\r" + self.line() + "\x1b[K")
+            self.stream.flush()
+            self.shown = True
+
+    def close(self) -> None:
+        if self.shown:
+            self.stream.write("\r\x1b[K")
+            self.stream.flush()
+            self.shown = False

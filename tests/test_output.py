@@ -1,0 +1,255 @@
+"""The track-output module (recognition/trackio.py) and the one overlay drawer: frame sources and
+their time rule, a fake live camera, CSV/JSON-lines/BOP/ROS rows and their round trips, atomic
+writes, the progress line, and a readable overlay label (pixel comparison, no OCR)."""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+
+import cv2
+import numpy as np
+import pytest
+
+from quatrack.recognition import trackio
+from quatrack.recognition.overlay import draw_label, draw_overlay
+from quatrack.recognition.video import TrackStep
+from quatrack.tracking import quaternion as quat
+from quatrack.tracking.camera import PinholeCamera
+from quatrack.tracking.pose import Pose
+
+EXAMPLE = os.path.join(os.path.dirname(__file__), "..", "examples", "cookie-box")
+
+
+def _step(frame=3, status="tracking", seed=0) -> TrackStep:
+    rng = np.random.default_rng(seed)
+    A = rng.normal(size=(6, 6))
+    cov = A @ A.T * 0.01 + np.eye(6) * 1e-4
+    q = quat.canonical(quat.from_rotvec(rng.normal(size=3)))
+    return TrackStep(frame=frame, time_s=frame / 30, status=status, t=rng.normal(size=3) + [0, 0, 40],
+                     q_wxyz=q, v=rng.normal(size=3), omega=rng.normal(size=3), covariance=cov, inliers=42,
+                     timings_ms={"total": 12.5})
+
+
+# --- frame sources -------------------------------------------------------------------------------
+
+def test_video_file_frames_and_the_rate_rule():
+    src = trackio.open_frames(video=os.path.join(EXAMPLE, "box.mp4"), max_frames=5)
+    got = list(src)
+    assert [i for i, _, _ in got] == [0, 1, 2, 3, 4]
+    assert not src.live and abs(src.rate - 29.966) < 0.01  # the container's rate
+    assert np.allclose([t for _, t, _ in got], np.arange(5) / src.rate)
+    assert trackio.frame_rate(12.0, 29.97) == 12.0
+    assert trackio.frame_rate(None, float("nan")) == trackio.frame_rate(None, 0.0) == trackio.frame_rate(None, 5000) == 30.0
+
+
+def test_images_sorted_by_name(tmp_path):
+    for k in (2, 10, 1):
+        cv2.imwrite(str(tmp_path / f"f{k:02d}.png"), np.full((8, 8, 3), k, np.uint8))
+    src = trackio.open_frames(images=str(tmp_path / "*.png"), fps=10)
+    got = list(src)
+    assert [int(img[0, 0, 0]) for _, _, img in got] == [1, 2, 10]
+    assert [t for _, t, _ in got] == [0.0, 0.1, 0.2]
+    assert src.where(2).endswith("f10.png")
+
+
+@pytest.mark.parametrize("video, message", [("missing.mp4", "no such file"), ("7", "cannot be opened as a camera")])
+def test_bad_sources_are_one_line_errors(tmp_path, monkeypatch, video, message):
+    class Closed:
+        def isOpened(self):
+            return False
+
+        def release(self):
+            pass
+
+    monkeypatch.setattr(trackio, "open_capture", lambda target: Closed())
+    with pytest.raises(trackio.SourceError, match=message):
+        trackio.open_frames(video=str(tmp_path / video) if video.endswith(".mp4") else video)
+
+
+class LoopedCamera:
+    """A stand-in for a camera: ``cv2.VideoCapture(0)`` needs a device, so the frames of
+    box.mp4 are served in a loop, endlessly, as a camera would; it records what it was opened on."""
+
+    opened_with: list = []
+
+    def __init__(self, target):
+        LoopedCamera.opened_with.append(target)
+        self.cap = cv2.VideoCapture(os.path.join(EXAMPLE, "box.mp4"))
+        self.frames = []
+        self.k = 0
+
+    def isOpened(self):
+        return True
+
+    def read(self):
+        if len(self.frames) < 10:
+            ok, f = self.cap.read()
+            self.frames.append(f)
+            return ok, f
+        self.k += 1
+        return True, self.frames[self.k % 10]
+
+    def get(self, prop):
+        return 0.0  # cameras often report no rate
+
+    def release(self):
+        self.cap.release()
+
+
+def test_a_camera_index_is_live_and_timed_by_the_clock(monkeypatch):
+    monkeypatch.setattr(trackio, "open_capture", LoopedCamera)
+    LoopedCamera.opened_with.clear()
+    ticks = iter([100.0, 100.04, 100.09, 100.2])
+    src = trackio.open_frames(video="0", max_frames=4)
+    src._clock = lambda: next(ticks)
+    got = list(src)
+    assert LoopedCamera.opened_with == [0] and src.live
+    assert len(got) == 4 and np.allclose([t for _, t, _ in got], [0.0, 0.04, 0.09, 0.2])
+    # a URL is passed to OpenCV as given; --fps turns the clock off
+    src = trackio.open_frames(video="rtsp://127.0.0.1:8554/cam", fps=10, max_frames=2)
+    assert LoopedCamera.opened_with[-1] == "rtsp://127.0.0.1:8554/cam" and not src.live
+    assert [t for _, t, _ in src] == [0.0, 0.1]
+
+
+# --- rows ---------------------------------------------------------------------------------------
+
+def test_csv_rows_tracking_and_lost():
+    s = _step()
+    cols = trackio.csv_row(s).split(",")
+    assert len(cols) == len(trackio.CSV_COLUMNS) == 17
+    assert cols[:3] == ["3", "0.100000", "tracking"] and cols[-1] == "42"
+    assert np.allclose([float(x) for x in cols[3:6]], s.t, atol=1e-4)
+    assert np.allclose([float(x) for x in cols[6:10]], s.q_wxyz, atol=1e-5)
+    lost = trackio.csv_row(TrackStep(frame=4, time_s=0.5, status="lost", inliers=3)).split(",")
+    assert lost[:3] == ["4", "0.500000", "lost"] and lost[3:16] == [""] * 13 and lost[16] == "3"
+
+
+def test_message_round_trip_and_jsonl():
+    s = _step()
+    msg = json.loads(trackio.jsonl_row(s))
+    assert msg["type"] == "pose" and msg["status"] == "tracking" and len(msg["covariance"]) == 6
+    back = trackio.step_from_message(msg)
+    assert np.allclose(back.t, s.t) and np.allclose(back.q_wxyz, s.q_wxyz)
+    assert np.allclose(back.v, s.v) and np.allclose(back.omega, s.omega) and np.allclose(back.covariance, s.covariance)
+    assert trackio.csv_row(back) == trackio.csv_row(s)
+    none = trackio.step_from_message(None, frame=9, time_s=0.3)
+    assert (none.frame, none.status, none.t) == (9, "lost", None)
+
+
+@pytest.mark.parametrize("unit, mm", [("mm", 1.0), ("cm", 10.0), ("m", 1000.0)])
+def test_bop_row_round_trip(unit, mm):
+    s = _step(seed=5)
+    line = trackio.bop_row(s, unit, obj_id=7, scene_id=2)
+    parts = line.split(",")
+    assert len(parts) == len(trackio.BOP_COLUMNS)
+    assert parts[:4] == ["2", "3", "7", "42"] and parts[6] == "0.012500"
+    R = np.array([float(x) for x in parts[4].split()]).reshape(3, 3)
+    assert np.allclose(R, quat.to_matrix(s.q_wxyz), atol=1e-8)  # row-major
+    assert np.allclose([float(x) for x in parts[5].split()], s.t * mm)  # millimetres
+    back = trackio.pose_from_bop(line, unit)
+    assert back.allclose(Pose(s.q_wxyz, s.t), atol=1e-7)
+    assert trackio.bop_row(TrackStep(frame=1, time_s=0.0, status="lost"), unit) is None
+
+
+@pytest.mark.parametrize("unit", ["mm", "cm", "m"])
+def test_ros_message_round_trip(unit):
+    s = _step(seed=6)
+    s.time_s = 12.25
+    msg = trackio.ros_pose_with_covariance(s, unit, frame_id="cam")
+    o = msg["pose"]["pose"]["orientation"]
+    assert [o["x"], o["y"], o["z"], o["w"]] == pytest.approx([*s.q_wxyz[1:], s.q_wxyz[0]])  # ROS order x,y,z,w
+    assert msg["header"] == {"stamp": {"sec": 12, "nanosec": 250_000_000}, "frame_id": "cam"}
+    k = trackio.UNIT_METRES[unit]
+    assert msg["pose"]["pose"]["position"]["z"] == pytest.approx(s.t[2] * k)
+    cov = np.array(msg["pose"]["covariance"]).reshape(6, 6)
+    assert cov[0, 1] == pytest.approx(s.covariance[0, 1] * k * k) and cov[3, 4] == pytest.approx(s.covariance[3, 4])
+    assert cov[0, 4] == pytest.approx(s.covariance[0, 4] * k)  # row-major, position rows scaled once
+    pose, cov_back = trackio.pose_from_ros(json.loads(json.dumps(msg)), unit)
+    assert pose.allclose(Pose(s.q_wxyz, s.t), atol=1e-9) and np.allclose(cov_back, s.covariance)
+
+
+def test_row_writer_formats():
+    f = io.StringIO()
+    w = trackio.RowWriter(f, "csv")
+    w.write(_step())
+    w.write(TrackStep(frame=4, time_s=0.1, status="lost"))
+    assert f.getvalue().splitlines()[0] == trackio.CSV_HEADER and len(f.getvalue().splitlines()) == 3
+    f = io.StringIO()
+    w = trackio.RowWriter(f, "bop", mesh_unit="cm")
+    w.write(TrackStep(frame=4, time_s=0.1, status="lost"))
+    w.write(_step())
+    assert f.getvalue().splitlines()[0] == "scene_id,im_id,obj_id,score,R,t,time" and len(f.getvalue().splitlines()) == 2
+    with pytest.raises(ValueError, match="--mesh-unit"):
+        trackio.RowWriter(io.StringIO(), "bop")
+
+
+# --- files and progress --------------------------------------------------------------------------
+
+def test_atomic_path_renames_only_on_success(tmp_path):
+    target = tmp_path / "out.csv"
+    with trackio.atomic_path(target) as tmp:
+        open(tmp, "w").write("a\n")
+        assert not target.exists() and os.path.dirname(tmp) == str(tmp_path)
+    assert target.read_text() == "a\n"
+    with pytest.raises(RuntimeError):
+        with trackio.atomic_path(target) as tmp:
+            open(tmp, "w").write("half")
+            raise RuntimeError("boom")
+    assert target.read_text() == "a\n" and sorted(p.name for p in tmp_path.iterdir()) == ["out.csv"]
+    with pytest.raises(trackio.SourceError, match="does not exist"):
+        with trackio.atomic_path(tmp_path / "nowhere" / "x.csv"):
+            pass
+
+
+def test_progress_line_only_on_a_terminal():
+    class Tty(io.StringIO):
+        def isatty(self):
+            return True
+
+    clock = iter(np.arange(0.0, 10.0, 0.5))
+    out = Tty()
+    p = trackio.Progress("tracking", stream=out, clock=lambda: float(next(clock)))
+    for s in ("init", "tracking", "lost"):
+        p.update(s)
+    p.close()
+    assert "tracking: 3 frames" in out.getvalue() and "init 1, tracking 1, lost 1" in out.getvalue()
+    pipe = io.StringIO()
+    q = trackio.Progress("tracking", stream=pipe)
+    q.update("init")
+    q.close()
+    assert pipe.getvalue() == ""
+
+
+# --- the overlay ---------------------------------------------------------------------------------
+
+def test_the_label_is_readable_text_on_an_opaque_box():
+    """The label drawn over a busy image must be exactly the same pixels as the text drawn once
+    on a black canvas (no outline of another width smearing the glyphs), and cover all of it."""
+    text = "#123 4.10s tracking inliers 187 14 ms"
+    rng = np.random.default_rng(0)
+    busy = rng.integers(0, 256, (80, 640, 3), dtype=np.uint8)
+    x0, y0, x1, y1 = draw_label(busy, text, (8, 8), colour=(60, 200, 60))
+    font, scale = cv2.FONT_HERSHEY_SIMPLEX, 0.6
+    (w, h), base = cv2.getTextSize(text, font, scale, 1)
+    assert x1 - x0 >= w and y1 - y0 >= h + base
+    ref = np.zeros((y1 - y0, x1 - x0, 3), np.uint8)
+    pad = max(2, round(4 * scale))
+    cv2.putText(ref, text, (pad, pad + h), font, scale, (60, 200, 60), 1, cv2.LINE_AA)
+    crop = busy[y0:y1, x0:x1]
+    assert np.array_equal(crop, ref)
+    ink = ref.any(axis=2)
+    assert ink.sum() > 300 and not ink[0].any() and not ink[-1].any() and not ink[:, 0].any() and not ink[:, -1].any()
+
+
+def test_overlay_draws_the_wireframe_where_the_pose_projects():
+    cam = PinholeCamera(fx=500, fy=500, cx=160, cy=120, width=320, height=240)
+    edges = np.array([[[0, 0, 0], [4, 0, 0]], [[4, 0, 0], [4, 3, 0]]], float)
+    s = TrackStep(frame=0, time_s=0.0, status="tracking", t=np.array([-2.0, 0.0, 50.0]), q_wxyz=quat.IDENTITY.copy())
+    img = draw_overlay(np.zeros((240, 320, 3), np.uint8), cam, None, s, edges)
+    u, v = cam.project(np.array([[2.0, 0.0, 50.0], [2.0, 1.5, 50.0]])).T
+    green = (img[..., 1] > 150) & (img[..., 2] < 120)
+    assert green[int(round(v[0])) - 2:int(round(v[0])) + 3, int(round(u[0]))].any()  # middle of the first edge
+    lost = draw_overlay(np.zeros((240, 320, 3), np.uint8), cam, None, TrackStep(frame=1, time_s=0.0, status="lost"), edges)
+    assert not lost[40:].any()  # nothing but the label
