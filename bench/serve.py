@@ -42,7 +42,7 @@ async def _streams(url: str, http_url: str, camera: dict, frames: list, n: int, 
 
     import httpx
 
-    from quatrack.service.client import stream
+    from quatrack.client import stream
 
     probes: list[float] = []
 
@@ -148,7 +148,7 @@ def main(args: argparse.Namespace) -> int:
     import tempfile
     from pathlib import Path
 
-    from quatrack.service.client import video_frames
+    from quatrack.client import video_frames
     from quatrack.service.server import BackgroundServer
     from quatrack.service.settings import Settings
     from quatrack.viewsets.camera import camera_to_dict, load_camera

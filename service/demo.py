@@ -1,113 +1,234 @@
-"""``quatrack demo``: stream a video through the service's WebSocket, write the poses and an overlay.
+"""``quatrack demo``: stream a video through the service's WebSocket; write the poses, an overlay and a plot.
 
-A plain WebSocket client (the ``websockets`` package) that anyone can copy: it streams a video's
-frames as JPEG, writes the poses as ``quatrack track`` does, and draws an overlay video.
+The steps are plain functions: :func:`_check` turns the options into a :class:`_Plan` (every user
+error is found here, before any output: one line, exit status 2), :func:`_stream_video` runs
+the WebSocket session (through :func:`quatrack.client.stream`, a plain ``websockets`` client
+anyone can copy), :func:`_write_outputs` writes the CSV, the overlay video and the plot
+atomically under one folder (default ``./quatrack-demo/``). With no ``--url`` a server is
+started on loopback for the run. The defaults use the bundled example wherever the command is
+run from.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+OUT_DIR = "quatrack-demo"
+
+
+def bundled_example() -> Path:
+    """The folder of the bundled cookie-box example (video, camera, spec), found through the
+    installed package rather than the working directory."""
+    try:
+        from quatrack.examples import example_dir  # the package-data helper, where installed
+    except ImportError:
+        import quatrack.service
+
+        return Path(quatrack.service.__file__).resolve().parent.parent / "examples" / "cookie-box"
+    return Path(example_dir("cookie-box"))
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--url", help="a running service, e.g. ws://127.0.0.1:8000 (default: start one on loopback)")
+    parser.add_argument("--url", help="a running service, e.g. ws://127.0.0.1:8000 or http://127.0.0.1:8000 "
+                                      "(default: start one on loopback)")
     parser.add_argument("--store", metavar="DIR", help="model store for the local service (default: $QUATRACK_STORE or the user data directory)")
     parser.add_argument("--object", default="cookie-box", metavar="NAME", help="trained object (default cookie-box)")
-    parser.add_argument("--video", default="examples/cookie-box/box.mp4", help="video to stream (default: the bundled box.mp4)")
-    parser.add_argument("--camera", default="examples/cookie-box/camera.json", help="the video's camera file (JSON)")
-    parser.add_argument("--mesh", default=None, help="mesh for the overlay (default: the object's, from the store)")
-    parser.add_argument("--out", default="demo-poses.csv", metavar="POSES.csv", help="tracked poses, as `quatrack track` writes them")
-    parser.add_argument("--overlay", default="demo-overlay.mp4", metavar="VIDEO", help="overlay video ('none' to skip)")
+    parser.add_argument("--video", default=None, help="video to stream (default: the bundled box.mp4)")
+    parser.add_argument("--camera", default=None, help="the video's camera file (default: the bundled example's)")
+    parser.add_argument("--mesh", default=None, help="mesh for the overlay (default: the object's, from the store or the server)")
+    parser.add_argument("--out-dir", default=OUT_DIR, metavar="DIR",
+                        help=f"folder for the outputs (default ./{OUT_DIR}/, created if missing)")
+    parser.add_argument("--out", default="poses.csv", metavar="POSES.csv", help="tracked poses as `quatrack track` writes them (in --out-dir)")
+    parser.add_argument("--overlay", default="overlay.mp4", metavar="VIDEO", help="overlay video in --out-dir ('none' to skip)")
+    parser.add_argument("--plot", default="plot.png", metavar="PNG", help="position/orientation plot in --out-dir ('none' to skip)")
     parser.add_argument("--fps", type=float, default=None,
                         help="stream in real time at this rate (frames the server cannot keep up with are skipped, "
                              "and written as lost); default: lock-step, every frame tracked")
     parser.add_argument("--max-frames", type=int, default=None, metavar="N", help="stop after N frames")
     parser.add_argument("--token", default=None, help="bearer token (default $QUATRACK_API_TOKEN)")
+    parser.add_argument("--quiet", action="store_true", help="no progress line")
 
 
-def run(args: argparse.Namespace) -> int:
-    """Stream a video through the WebSocket, write the poses (CSV) and an overlay video."""
-    import asyncio
-    import contextlib
-    import os
-    import sys
-    from pathlib import Path
+@dataclass
+class _Plan:
+    """The checked options."""
 
-    import cv2
+    camera: object  # PinholeCamera
+    video: str
+    ws_url: str | None  # None: start a local server
+    http_url: str | None
+    token: str | None
+    settings: object  # Settings of the local store
+    mesh: object | None  # Mesh for the overlay, when known locally
+    outputs: dict  # "csv" | "overlay" | "plot" -> path or None
 
-    from quatrack.viewsets.camera import camera_to_dict, load_camera
 
-    from quatrack.recognition.visibility import mesh_edges
+def _output(out_dir: Path, name: str, ext: str, option: str) -> str | None:
+    if not name or name.lower() == "none":
+        return None
+    if not name.lower().endswith(ext):
+        raise ValueError(f"{option} {name}: the file name must end in {ext}")
+    return str(out_dir / name)
+
+
+def _check(args: argparse.Namespace) -> _Plan:
+    from quatrack.client import base_urls
+    from quatrack.viewsets.camera import load_camera
     from quatrack.viewsets.store import list_models, load_model
 
-    from .client import CSV_HEADER, csv_row, draw_overlay, stream, video_frames
-    from .server import BackgroundServer
     from .settings import Settings
 
-    pinhole = load_camera(args.camera)
-    camera = camera_to_dict(pinhole)
-    if not Path(args.video).is_file():
-        raise ValueError(f"--video {args.video}: no such file")
+    example = bundled_example()
+    video = args.video or str(example / "box.mp4")
+    camera_file = args.camera or str(example / "camera.json")
+    for opt, path in (("--video", video), ("--camera", camera_file)):
+        if not Path(path).is_file():
+            hint = "" if getattr(args, opt[2:]) else " (the bundled example is not installed here; give the option)"
+            raise ValueError(f"{opt} {path}: no such file{hint}")
     if args.fps is not None and not 0 < args.fps <= 240:
         raise ValueError("--fps must be between 0 and 240")
-    token = args.token or os.environ.get("QUATRACK_API_TOKEN")
+    if args.max_frames is not None and args.max_frames < 1:
+        raise ValueError("--max-frames must be at least 1")
+    http_url = ws_url = None
+    if args.url is not None:
+        try:
+            http_url, ws_url = base_urls(args.url)
+        except ValueError as exc:
+            raise ValueError(f"--url {exc}") from None
+    token = args.token or os.environ.get("QUATRACK_API_TOKEN") or None
     settings = Settings.from_env(store=args.store, api_token=token)
-    in_store = args.object in list_models(settings.store)
+    in_store = settings.store.is_dir() and args.object in list_models(settings.store)
     if args.url is None and not in_store:
         raise ValueError(f"no object {args.object!r} in {settings.store}: train it first "
-                         "(quatrack train examples/cookie-box/object.json)")
-    mesh = None  # for the overlay: --mesh, else the object's in the local store (if there)
+                         f"(quatrack train {example / 'object.json'}), or give --url of a server that has it")
     if args.mesh:
         from quatrack.viewsets.mesh import load_mesh
 
         mesh = load_mesh(args.mesh)
-    elif in_store:
-        mesh = load_model(settings.store, args.object).mesh
-    edges = None if mesh is None else mesh_edges(mesh)
+    else:
+        mesh = load_model(settings.store, args.object).mesh if in_store else None
+    out_dir = Path(args.out_dir)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise ValueError(f"--out-dir {out_dir}: not a folder")
+    outputs = {"csv": _output(out_dir, args.out, ".csv", "--out"),
+               "overlay": _output(out_dir, args.overlay, ".mp4", "--overlay"),
+               "plot": _output(out_dir, args.plot, ".png", "--plot")}
+    if outputs["csv"] is None:
+        raise ValueError("--out: a CSV file name is required")
+    return _Plan(load_camera(camera_file), video, ws_url, http_url, token, settings, mesh, outputs)
+
+
+def _stream_video(plan: _Plan, args: argparse.Namespace):
+    """Run the session; returns (the stream result, time of every frame read, by index)."""
+    import asyncio
+    import contextlib
+
+    from quatrack.client import QuatrackError, stream
+    from quatrack.recognition.trackio import Progress, jpeg_frames, open_frames
+    from quatrack.viewsets.camera import camera_to_dict
+
+    from .server import BackgroundServer
+
+    times: dict[int, float] = {}  # every frame read, answered or not, for the CSV
+    source = open_frames(video=plan.video, max_frames=args.max_frames)
+
+    def frames():
+        for i, t, data in jpeg_frames(source):
+            times[i] = t
+            yield i, t, data
+
     with contextlib.ExitStack() as stack:
-        url = args.url
-        if url is None:
-            srv = stack.enter_context(BackgroundServer(settings))
-            url = srv.ws_url
-            print(f"demo: serving {settings.store} on {srv.url}", file=sys.stderr)
-        ws_url = f"{url.rstrip('/')}/v1/objects/{args.object}/track"
-        times: dict[int, float] = {}  # every frame read, answered or not, for the CSV
+        ws_url = plan.ws_url
+        if ws_url is None:
+            srv = stack.enter_context(BackgroundServer(plan.settings))
+            ws_url, plan.http_url = srv.ws_url, srv.url
+            print(f"demo: serving {plan.settings.store} on {srv.url}", file=sys.stderr)
+        url = f"{ws_url}/v1/objects/{args.object}/track"
+        progress = Progress("demo", enabled=False if args.quiet else None)
+        try:
+            res = asyncio.run(stream(url, camera_to_dict(plan.camera), frames(), fps=args.fps, token=plan.token,
+                                     on_answer=lambda msg: progress.update(msg.get("status"))))
+        except QuatrackError as exc:
+            raise ValueError(_explain(exc, args)) from None
+        finally:
+            progress.close()
+        if plan.mesh is None and args.overlay.lower() != "none":
+            plan.mesh = _server_edges(plan, args)
+    return res, times
 
-        def source():
-            for i, t, data in video_frames(args.video, args.max_frames):
-                times[i] = t
-                yield i, t, data
 
-        res = asyncio.run(stream(ws_url, camera, source(), fps=args.fps, token=token))
-    tmp = Path(args.out).with_name(f".{Path(args.out).name}.tmp")
-    with open(tmp, "w", encoding="utf-8") as f:  # renamed when complete: never a half-written CSV
-        f.write(CSV_HEADER + "\n")
-        for i in sorted(times):
-            f.write(csv_row(i, times[i], res.poses.get(i)) + "\n")
-    os.replace(tmp, args.out)
-    statuses = [m["status"] for m in res.poses.values()]
-    print(f"demo: {res.sent} frames sent, {len(res.poses)} tracked answers "
-          f"({statuses.count('tracking')} tracking, {statuses.count('init')} init, {statuses.count('lost')} lost), "
-          f"{res.skipped} skipped, {len(res.errors)} errors, {res.sent / max(res.wall_s, 1e-9):.1f} frames/s -> {args.out}")
-    if args.overlay and args.overlay.lower() != "none":
-        if edges is None:
+def _explain(exc, args) -> str:
+    """A server's refusal as a one-line message naming the culprit."""
+    if exc.code == "unauthorized":
+        return f"{args.url or 'the server'} needs a token: give --token or set QUATRACK_API_TOKEN"
+    if exc.code == "unknown_object":
+        return f"--object {args.object}: the server has no such object ({exc.message})"
+    if exc.code == "unreachable":
+        return f"--url {args.url}: no server answers there ({exc.message})"
+    return f"the server refused: {exc}"
+
+
+def _server_edges(plan: _Plan, args):
+    """The overlay's wireframe from the server (``GET /v1/objects/{name}/mesh``), or None."""
+    from quatrack.client import Client, QuatrackError
+
+    try:
+        with Client(plan.http_url, args.object, plan.token) as c:
+            return c.mesh_edges()
+    except QuatrackError:
+        return None
+
+
+def _write_outputs(plan: _Plan, args: argparse.Namespace, res, times: dict) -> list:
+    """The CSV, the overlay video and the plot, each atomically; returns the steps."""
+    import cv2
+
+    from quatrack.recognition.overlay import draw_overlay, plot_track
+    from quatrack.recognition.trackio import Progress, RowWriter, VideoOut, atomic_path, open_frames, step_from_message
+
+    steps = [step_from_message(res.poses.get(i), i, times[i]) for i in sorted(times)]
+    os.makedirs(args.out_dir, exist_ok=True)
+    with atomic_path(plan.outputs["csv"], "--out") as tmp, open(tmp, "w", newline="", encoding="utf-8") as f:
+        rows = RowWriter(f)
+        for s in steps:
+            rows.write(s)
+    if plan.outputs["plot"]:
+        with atomic_path(plan.outputs["plot"], "--plot") as tmp:
+            if not cv2.imwrite(tmp, plot_track(steps)):
+                raise ValueError(f"--plot {plan.outputs['plot']}: cannot write the PNG")
+    if plan.outputs["overlay"]:
+        if plan.mesh is None:
             print(f"demo: no mesh for the overlay ({args.object!r} is not in the local store; give --mesh); skipped",
                   file=sys.stderr)
-            return 0
-        cap = cv2.VideoCapture(args.video)
-        fps = cap.get(cv2.CAP_PROP_FPS) or 30.0
-        writer = None
-        i = 0
-        while args.max_frames is None or i < args.max_frames:
-            ok, img = cap.read()
-            if not ok:
-                break
-            if writer is None:
-                writer = cv2.VideoWriter(args.overlay, cv2.VideoWriter_fourcc(*"mp4v"), fps, (img.shape[1], img.shape[0]))
-            writer.write(draw_overlay(img, res.poses.get(i), pinhole, edges))
-            i += 1
-        cap.release()
-        if writer is not None:
-            writer.release()
-        print(f"demo: overlay -> {args.overlay}")
+            plan.outputs["overlay"] = None
+            return steps
+        mesh, edges = (None, plan.mesh) if not hasattr(plan.mesh, "vertices") else (plan.mesh, None)
+        source = open_frames(video=plan.video, max_frames=len(steps))
+        progress = Progress("demo: overlay", enabled=False if args.quiet else None)
+        with atomic_path(plan.outputs["overlay"], "--overlay") as tmp:
+            video = VideoOut(tmp, source.rate)
+            try:
+                for (i, _, image), step in zip(source, steps):
+                    video.write(draw_overlay(image, plan.camera, mesh, step, edges))
+                    progress.update(step.status)
+            finally:
+                video.close()
+                progress.close()
+    return steps
+
+
+def run(args: argparse.Namespace) -> int:
+    """Stream a video through the WebSocket; write the poses (CSV), an overlay video and a plot."""
+    plan = _check(args)
+    res, times = _stream_video(plan, args)
+    steps = _write_outputs(plan, args, res, times)
+    counts = {k: sum(s.status == k for s in steps if s.reason != "no answer") for k in ("tracking", "init", "lost")}
+    written = ", ".join(p for p in plan.outputs.values() if p)
+    print(f"demo: {res.sent} frames sent, {len(res.poses)} tracked answers ({counts['tracking']} tracking, "
+          f"{counts['init']} init, {counts['lost']} lost), {res.skipped} skipped, {len(res.errors)} errors, "
+          f"{res.sent / max(res.wall_s, 1e-9):.1f} frames/s -> {written}")
     return 0

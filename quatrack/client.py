@@ -1,0 +1,312 @@
+"""A Python client for a running ``quatrack serve``: poses of images, tracks of frame streams.
+
+    from quatrack.client import Client
+
+    with Client("http://127.0.0.1:8000", token=None) as client:
+        found = client.pose("photo.jpg", "camera.json", object="cookie-box")  # a LocateOut
+        for msg in client.track(frames, "camera.json", object="cookie-box"):  # TrackMessage each
+            print(msg.frame, msg.status, msg.pose)
+
+Results are the service's own pydantic schemas (:mod:`service.schemas`): :class:`LocateOut` for
+a pose, :class:`TrackMessage` per tracked frame. Every error the server answers becomes a
+:class:`QuatrackError` carrying its ``code`` (``unknown_object``, ``bad_camera``,
+``unauthorized``, ...) and HTTP ``status``; an unreachable server is ``code="unreachable"``.
+
+``track`` is *lock-step*: it sends a frame, waits for its answer, yields it, then sends the
+next, so every frame is tracked and answers arrive in order. :func:`stream` (asyncio) is the
+other protocol, for live sources: it sends at a fixed rate regardless and the server skips the
+frames it cannot keep up with (``quatrack demo --fps`` and ``quatrack bench serve`` use it).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterable, Iterator
+from urllib.parse import urlsplit, urlunsplit
+
+import numpy as np
+
+from quatrack.service.schemas import LocateOut, ObjectList, TrackMessage
+
+
+class QuatrackError(Exception):
+    """An error answered by the server (``code``, ``message``, HTTP ``status``), or
+    ``code="unreachable"`` when there is no server at the address."""
+
+    def __init__(self, code: str, message: str, status: int | None = None) -> None:
+        super().__init__(f"{code}: {message}" if status is None else f"{status} {code}: {message}")
+        self.code, self.message, self.status = code, message, status
+
+
+def base_urls(url: str) -> tuple[str, str]:
+    """``(http_url, ws_url)`` of a server address given as ``http(s)://`` or ``ws(s)://`` HOST[:PORT].
+    A path, query or fragment is refused: the client adds the API's own paths."""
+    parts = urlsplit(url.strip())
+    if parts.scheme not in ("http", "https", "ws", "wss") or not parts.netloc:
+        raise ValueError(f"{url!r}: give the server's address, e.g. http://127.0.0.1:8000 or ws://127.0.0.1:8000")
+    if parts.path not in ("", "/") or parts.query or parts.fragment:
+        raise ValueError(f"{url!r}: give the server's address only (scheme://host:port), without a path")
+    secure = parts.scheme in ("https", "wss")
+    http = urlunsplit(("https" if secure else "http", parts.netloc, "", "", ""))
+    ws = urlunsplit(("wss" if secure else "ws", parts.netloc, "", "", ""))
+    return http, ws
+
+
+def camera_json(camera: Any) -> dict:
+    """The contract's camera object from a dict, a :class:`PinholeCamera` or a camera file path."""
+    from quatrack.tracking.camera import PinholeCamera
+    from quatrack.viewsets.camera import camera_to_dict, load_camera
+
+    if isinstance(camera, dict):
+        return camera
+    if isinstance(camera, PinholeCamera):
+        return camera_to_dict(camera)
+    if isinstance(camera, (str, os.PathLike)):
+        return camera_to_dict(load_camera(camera))
+    raise TypeError("camera: a dict, a PinholeCamera or the path of a camera file")
+
+
+def image_bytes(image: Any, quality: int = 95) -> bytes:
+    """Encoded image bytes from bytes (sent as they are), a path, or a numpy image (BGR or grey:
+    JPEG at ``quality``)."""
+    if isinstance(image, (bytes, bytearray, memoryview)):
+        return bytes(image)
+    if isinstance(image, (str, os.PathLike)):
+        return Path(image).read_bytes()
+    if isinstance(image, np.ndarray):
+        import cv2
+
+        from quatrack.recognition.images import to_bgr8
+
+        ok, buf = cv2.imencode(".jpg", to_bgr8(image), [cv2.IMWRITE_JPEG_QUALITY, quality])
+        if not ok:
+            raise ValueError("image: cannot be encoded as JPEG")
+        return buf.tobytes()
+    raise TypeError("image: bytes, a file path or a numpy array")
+
+
+def _error_of(status: int, body: bytes | str) -> QuatrackError:
+    try:
+        e = json.loads(body)["error"]
+        return QuatrackError(str(e["code"]), str(e["message"]), status)
+    except (ValueError, KeyError, TypeError):
+        text = body.decode("utf-8", "replace") if isinstance(body, bytes) else str(body)
+        return QuatrackError("http_error", text.strip()[:200] or f"HTTP {status}", status)
+
+
+def _ws_error(exc: BaseException) -> QuatrackError:
+    """A refused WebSocket handshake (its HTTP answer) or a connection failure, as a QuatrackError."""
+    from websockets.exceptions import InvalidStatus
+
+    if isinstance(exc, InvalidStatus):
+        return _error_of(exc.response.status_code, exc.response.body or b"")
+    if isinstance(exc, (OSError, TimeoutError)):
+        return QuatrackError("unreachable", f"cannot connect: {exc.strerror if isinstance(exc, OSError) and exc.strerror else exc}")
+    return QuatrackError("protocol", str(exc))
+
+
+class Client:
+    """A synchronous client of one server (``http://HOST:PORT``; ``ws://`` is accepted too).
+    ``object`` is the default object name of :meth:`pose` and :meth:`track`; ``token`` the
+    bearer token (default ``$QUATRACK_API_TOKEN``). Use as a context manager, or :meth:`close`."""
+
+    def __init__(self, url: str = "http://127.0.0.1:8000", object: str | None = None, token: str | None = None,
+                 timeout: float = 60.0) -> None:
+        import httpx
+
+        self.http_url, self.ws_url = base_urls(url)
+        self.object = object
+        self.token = token if token is not None else os.environ.get("QUATRACK_API_TOKEN") or None
+        self.timeout = timeout
+        headers = {"Authorization": f"Bearer {self.token}"} if self.token else {}
+        self._http = httpx.Client(base_url=self.http_url, headers=headers, timeout=timeout)
+
+    # --- REST -------------------------------------------------------------------------------------
+    def _request(self, method: str, path: str, **kw):
+        import httpx
+
+        try:
+            r = self._http.request(method, path, **kw)
+        except httpx.TransportError as exc:
+            raise QuatrackError("unreachable", f"{self.http_url}: {exc}") from None
+        if r.status_code >= 400:
+            raise _error_of(r.status_code, r.content)
+        return r
+
+    def _name(self, object: str | None) -> str:
+        name = object or self.object
+        if not name:
+            raise ValueError("which object? give object=NAME here or to Client(...)")
+        return name
+
+    def objects(self) -> ObjectList:
+        """The server's trained objects."""
+        return ObjectList.model_validate(self._request("GET", "/v1/objects").json())
+
+    def pose(self, image: Any, camera: Any, object: str | None = None) -> LocateOut:
+        """Recognise the object in one image and estimate its pose (``found`` False if absent)."""
+        files = {"image": ("image", image_bytes(image), "application/octet-stream"),
+                 "camera": (None, json.dumps(camera_json(camera)))}
+        r = self._request("POST", f"/v1/objects/{self._name(object)}/pose", files=files)
+        return LocateOut.model_validate(r.json())
+
+    def mesh_edges(self, object: str | None = None) -> np.ndarray:
+        """The object's wireframe, (k, 2, 3) segments in mesh units (``GET /v1/objects/{name}/mesh``):
+        what an overlay draws."""
+        data = self._request("GET", f"/v1/objects/{self._name(object)}/mesh").json()
+        return np.asarray(data["edges"], float).reshape(-1, 2, 3)
+
+    # --- WebSocket --------------------------------------------------------------------------------
+    def track(self, frames: Iterable[Any], camera: Any, object: str | None = None,
+              times: Iterable[float] | None = None) -> Iterator[TrackMessage]:
+        """Track ``frames`` (images: numpy arrays, encoded bytes or paths), lock-step: one
+        :class:`TrackMessage` per frame, in order. ``times`` gives each frame's ``time_s``
+        (default: the server's clock). A per-frame error ends the iteration with a QuatrackError."""
+        from websockets.sync.client import connect
+
+        url = f"{self.ws_url}/v1/objects/{self._name(object)}/track"
+        headers = {"Authorization": f"Bearer {self.token}"} if self.token else None
+        try:
+            ws = connect(url, additional_headers=headers, max_size=None, open_timeout=self.timeout)
+        except Exception as exc:  # refused handshake or no server: typed, with the server's code
+            raise _ws_error(exc) from None
+        with ws:
+            ws.send(json.dumps({**camera_json(camera), "ack": True}))
+            self._expect(json.loads(ws.recv(self.timeout)), "ready")
+            clock = iter(times) if times is not None else None
+            for image in frames:
+                if clock is not None:
+                    ws.send(json.dumps({"type": "frame", "time_s": float(next(clock))}))
+                ws.send(image_bytes(image))
+                yield TrackMessage.model_validate(self._expect(json.loads(ws.recv(self.timeout)), "pose"))
+
+    @staticmethod
+    def _expect(msg: dict, kind: str) -> dict:
+        if msg.get("type") == "error":
+            e = msg.get("error", {})
+            raise QuatrackError(e.get("code", "error"), e.get("message", ""))
+        if msg.get("type") != kind:
+            raise QuatrackError("protocol", f"expected a {kind!r} message, got {str(msg)[:120]}")
+        return msg
+
+    def close(self) -> None:
+        self._http.close()
+
+    def __enter__(self) -> "Client":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+# --- the streaming protocol (asyncio): lock-step or real time --------------------------------------
+
+@dataclass
+class StreamResult:
+    """Answers by the index of the frame they are for (the caller's numbering)."""
+
+    poses: dict[int, dict] = field(default_factory=dict)
+    errors: list[dict] = field(default_factory=list)
+    sent: int = 0
+    skipped: int = 0
+    rtt_ms: list[float] = field(default_factory=list)  # send → answer, per processed frame
+    wall_s: float = 0.0
+
+
+class _Session:
+    """One open socket's bookkeeping: the caller's index of each server frame number, send times."""
+
+    def __init__(self, ws, res: StreamResult, on_answer=None) -> None:
+        self.ws, self.res, self.on_answer = ws, res, on_answer
+        self.numbers: list[int] = []
+        self.sent_at: list[float] = []
+
+    async def send(self, idx: int, t: float, data: bytes) -> None:
+        await self.ws.send(json.dumps({"type": "frame", "time_s": t}))
+        self.numbers.append(idx)
+        self.sent_at.append(time.perf_counter())
+        await self.ws.send(data)
+        self.res.sent += 1
+
+    def take(self, msg: dict) -> int | None:
+        """Record one answer; returns the server frame number it closes, if any."""
+        if msg.get("type") == "pose":
+            n = msg["frame"]
+            self.res.poses[self.numbers[n]] = msg
+            self.res.skipped += msg.get("skipped", 0)
+            self.res.rtt_ms.append((time.perf_counter() - self.sent_at[n]) * 1e3)
+            if self.on_answer is not None:
+                self.on_answer(msg)
+            return n
+        self.res.errors.append(msg)
+        return msg.get("frame")
+
+    def last_answered(self) -> bool:
+        last = len(self.numbers) - 1
+        return self.numbers[-1] in self.res.poses or any(e.get("frame") == last for e in self.res.errors)
+
+
+async def _lockstep(s: _Session, frames, timeout: float) -> None:
+    for idx, t, data in frames:
+        await s.send(idx, t, data)
+        while True:
+            msg = json.loads(await asyncio.wait_for(s.ws.recv(), timeout))
+            if s.take(msg) == len(s.numbers) - 1 or (msg.get("type") == "error" and "frame" not in msg):
+                break
+
+
+async def _realtime(s: _Session, frames, fps: float, timeout: float) -> None:
+    async def receive():
+        while True:
+            s.take(json.loads(await s.ws.recv()))
+
+    receiver = asyncio.create_task(receive())
+    t0 = time.perf_counter()
+    for k, (idx, t, data) in enumerate(frames):
+        delay = t0 + k / fps - time.perf_counter()
+        if delay > 0:
+            await asyncio.sleep(delay)
+        await s.send(idx, t, data)
+    deadline = time.perf_counter() + timeout  # the newest frame is always answered: wait for it
+    while s.numbers and not s.last_answered() and time.perf_counter() < deadline and not receiver.done():
+        await asyncio.sleep(0.01)
+    receiver.cancel()
+
+
+async def stream(url: str, camera: dict, frames: Iterable[tuple[int, float, bytes]], fps: float | None = None,
+                 token: str | None = None, timeout: float = 60.0, on_answer=None) -> StreamResult:
+    """Stream ``(index, time_s, JPEG bytes)`` through one tracking session at ``url`` (the full
+    ``ws://.../v1/objects/NAME/track``) and collect the answers: lock-step when ``fps`` is None,
+    else real time at ``fps`` frames/s; ``on_answer(msg)`` is called on each pose message as it
+    arrives. Raises :class:`QuatrackError` when the server refuses."""
+    import websockets
+
+    headers = {"Authorization": f"Bearer {token}"} if token else None
+    res = StreamResult()
+    t_start = time.perf_counter()
+    try:
+        ws = await websockets.connect(url, additional_headers=headers, max_size=None, open_timeout=timeout)
+    except Exception as exc:
+        raise _ws_error(exc) from None
+    async with ws:
+        await ws.send(json.dumps({**camera, "ack": True}))  # ask for the "ready" handshake
+        Client._expect(json.loads(await asyncio.wait_for(ws.recv(), timeout)), "ready")
+        s = _Session(ws, res, on_answer)
+        if fps is None:
+            await _lockstep(s, frames, timeout)
+        else:
+            await _realtime(s, frames, fps, timeout)
+    res.wall_s = time.perf_counter() - t_start
+    return res
+
+
+def video_frames(path: str, max_frames: int | None = None, quality: int = 90) -> Iterator[tuple[int, float, bytes]]:
+    """``(index, time_s, JPEG bytes)`` of a video, timed by :mod:`recognition.trackio`'s rule."""
+    from quatrack.recognition.trackio import jpeg_frames, open_frames
+
+    return jpeg_frames(open_frames(video=str(path), max_frames=max_frames), quality)
