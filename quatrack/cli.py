@@ -236,17 +236,19 @@ def _add_models(parser: argparse.ArgumentParser) -> None:
 def _run_models(args: argparse.Namespace) -> int:
     import json
 
-    from quatrack.viewsets.store import delete_model, list_models, load_manifest, resolve_store
+    from quatrack.viewsets.store import delete_model, list_models, load_manifest, load_model, remove_stale, resolve_store
 
     store = resolve_store(args.store)
     if args.action == "list":
+        remove_stale(store)
         for name in list_models(store):
-            try:
-                m = load_manifest(store, name)
-                s = m.get("training_summary", {})
-                print(f"{name}\t{s.get('viewsets', '?')} viewsets\t{s.get('points3d_total', '?')} points\t{m.get('created', '?')}")
-            except ValueError:
-                print(f"{name}\t(unreadable manifest)")
+            try:  # fully loaded, so that a model `locate`/`serve` cannot use is marked broken here
+                m = load_model(store, name).manifest
+            except ValueError as exc:
+                print(f"{name}\tBROKEN\t{exc}")
+                continue
+            s = m.get("training_summary", {})
+            print(f"{name}\t{s.get('viewsets', '?')} viewsets\t{s.get('points3d_total', '?')} points\t{m.get('created', '?')}")
         return 0
     if args.action == "show":
         print(json.dumps(load_manifest(store, args.name), indent=1))

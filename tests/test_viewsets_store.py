@@ -9,6 +9,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 import quatrack.viewsets.store as store_mod
 import quatrack.viewsets.viewset as viewset_mod
@@ -238,3 +240,119 @@ def test_training_is_deterministic():
     np.testing.assert_array_equal(a.viewsets[0].descriptors, b.viewsets[0].descriptors)
     np.testing.assert_array_equal(a.rfch.centres, b.rfch.centres)
     np.testing.assert_array_equal(a.rfch.histogram, b.rfch.histogram)
+
+
+# --- corrupt models: always that object's StoreError, never a traceback from deep inside ------------
+
+CORRUPTIONS = st.one_of(
+    st.tuples(st.just("truncate"), st.floats(0.0, 0.999)),
+    st.tuples(st.just("zero"), st.floats(0.0, 0.999), st.integers(1, 4096)),
+    st.tuples(st.just("garble"), st.lists(st.tuples(st.floats(0.0, 0.999), st.integers(1, 255)), min_size=1, max_size=8)),
+    st.tuples(st.just("manifest-key"), st.sampled_from([("parameters",), ("rfch",), ("viewsets",), ("schema_version",),
+                                                      ("parameters", "rfch"), ("parameters", "rfch", "scales"),
+                                                      ("rfch", "size_min")])),
+    st.tuples(st.just("manifest-text"), st.sampled_from(["", "{", "[]", "null", '{"schema_version": 1}', "\x00" * 64,
+                                                         "[" * 100_000])),
+    st.tuples(st.just("remove"), st.sampled_from([store_mod.ARRAYS])),
+)
+
+
+def corrupt(folder: Path, how: tuple) -> None:
+    arrays, manifest = folder / store_mod.ARRAYS, folder / store_mod.MANIFEST
+    kind = how[0]
+    if kind in ("truncate", "zero", "garble"):
+        data = bytearray(arrays.read_bytes())
+        if kind == "truncate":
+            data = data[: int(how[1] * len(data))]
+        elif kind == "zero":
+            start = int(how[1] * len(data))
+            data[start:start + how[2]] = bytes(len(data[start:start + how[2]]))
+        else:
+            for where, xor in how[1]:
+                data[int(where * len(data))] ^= xor
+        arrays.write_bytes(bytes(data))
+    elif kind == "manifest-key":
+        m = json.loads(manifest.read_text())
+        node = m
+        for key in how[1][:-1]:
+            node = node[key]
+        del node[how[1][-1]]
+        manifest.write_text(json.dumps(m))
+    elif kind == "manifest-text":
+        manifest.write_text(how[1])
+    else:
+        (folder / how[1]).unlink()
+
+
+@settings(suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(how=CORRUPTIONS)
+def test_any_corrupt_model_is_that_objects_store_error(base_store, tmp_path, how):
+    """Fuzz: truncated, zeroed, garbled arrays and broken manifests. Loading raises StoreError
+    naming the object in one line — or, when the damage missed the data (the zip's CRCs check
+    every byte of it), returns exactly the original model."""
+    import shutil
+
+    s = tmp_path / "fuzz"
+    shutil.rmtree(s, ignore_errors=True)
+    shutil.copytree(base_store, s)
+    corrupt(s / "cookie-box", how)
+    assert list_models(s) == ["cookie-box"]  # still listed: it is broken, not absent
+    try:
+        model = load_model(s, "cookie-box")
+    except StoreError as exc:
+        msg = str(exc)
+        assert "'cookie-box'" in msg and "\n" not in msg and len(msg) <= 500, msg
+        return
+    original = load_model(base_store, "cookie-box")
+    np.testing.assert_array_equal(model.rfch.histogram, original.rfch.histogram)
+    for a, b in zip(model.viewsets, original.viewsets, strict=True):
+        np.testing.assert_array_equal(a.descriptors, b.descriptors)
+        np.testing.assert_array_equal(a.points3d, b.points3d)
+
+
+@pytest.mark.parametrize("how", [("truncate", 0.5), ("truncate", 0.0), ("zero", 0.3, 4096),
+                                 ("manifest-key", ("parameters",))], ids=["truncated", "empty", "zeroed", "no-parameters"])
+def test_cli_reports_a_corrupt_model_in_one_line(store, tmp_path, capsys, how):
+    """The issue's four cases: BadZipFile, EOFError, zlib.error and KeyError tracebacks before."""
+    import shutil
+
+    shutil.copytree(store / "cookie-box", store / "other-box")
+    m = json.loads((store / "other-box" / store_mod.MANIFEST).read_text())
+    (store / "other-box" / store_mod.MANIFEST).write_text(json.dumps({**m, "name": "other-box"}))
+    corrupt(store / "cookie-box", how)
+    img = tmp_path / "x.png"
+    cv2.imwrite(str(img), np.zeros((480, 640, 3), np.uint8))
+    cam = str(EXAMPLE / "camera.json")
+    for cmd in (["locate", "--object", "cookie-box", "--camera", cam, str(img)],
+                ["track", "--object", "cookie-box", "--camera", cam, "--video", str(EXAMPLE / "box.mp4"), "--max-frames", "1",
+                 "--out", str(tmp_path / "poses.csv")]):
+        assert main([*cmd, "--store", str(store)]) == 2, cmd
+        err = capsys.readouterr().err.strip()
+        assert err.count("\n") == 0 and "'cookie-box'" in err and "Traceback" not in err, err
+    assert main(["models", "list", "--store", str(store)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert len(lines) == 2 and lines[0].startswith("cookie-box\tBROKEN\t") and lines[1].startswith("other-box\t")
+    assert "BROKEN" not in lines[1]
+    assert main(["locate", "--object", "other-box", "--camera", cam, str(img), "--store", str(store)]) == 0
+
+
+def test_stale_temporaries_are_removed_when_the_store_opens(store):
+    """A training killed mid-write leaves .tmp-NAME-*; a retraining killed between its two
+    renames leaves the previous model in .old-NAME-*/model with NAME missing."""
+    import time
+
+    old_time = time.time() - 2 * store_mod.STALE_AFTER_S
+    stale = store / ".tmp-cookie-box-abc123"
+    fresh = store / ".tmp-cookie-box-def456"
+    for d in (stale, fresh):
+        d.mkdir()
+        (d / "model.npz").write_bytes(b"partial")
+    orphan = store / ".old-cookie-box-xyz_9"
+    orphan.mkdir()
+    os.replace(store / "cookie-box", orphan / "model")
+    for d in (stale, orphan):
+        os.utime(d, (old_time, old_time))
+    assert list_models(store) == []
+    assert main(["models", "list", "--store", str(store)]) == 0  # opening the store cleans it
+    assert sorted(p.name for p in store.iterdir()) == [fresh.name, "cookie-box"]  # a young one may be in use
+    assert load_model(store, "cookie-box").name == "cookie-box"  # the previous model was put back

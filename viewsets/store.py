@@ -2,7 +2,9 @@
 
 Writes are atomic: a model is built in a temporary folder inside the store and renamed into
 place only when complete, so readers never see a partial model and a failed retraining leaves
-the old one intact. Folders whose names start with ``.`` are temporary and never listed.
+the old one intact. Folders whose names start with ``.`` are temporary and never listed; those
+an interrupted write left behind are removed after an hour (:func:`remove_stale`) when the store
+is opened (training, listing, serving).
 """
 
 from __future__ import annotations
@@ -11,6 +13,7 @@ import json
 import os
 import shutil
 import tempfile
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -98,6 +101,7 @@ def save_model(store: str | Path, model: ObjectModel, overwrite: bool = True) ->
     if final.exists() and not overwrite:
         raise StoreError(f"object {model.name!r} already exists in {store} (and --no-overwrite was given)")
     store.mkdir(parents=True, exist_ok=True)
+    remove_stale(store)
     tmp = Path(tempfile.mkdtemp(prefix=f".tmp-{model.name}-", dir=store))
     old = None
     try:
@@ -139,52 +143,173 @@ def load_manifest(store: str | Path, name: str) -> dict:
     if not path.is_file():
         raise StoreError(f"no object named {name!r} in {store}")
     try:
-        return json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, json.JSONDecodeError) as exc:
-        raise StoreError(f"{path}: unreadable manifest ({exc})") from None
+        manifest = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError, RecursionError) as exc:
+        raise StoreError(f"object {name!r}: unreadable manifest {path} ({exc.__class__.__name__}: {exc})"[:500]) from None
+    if not isinstance(manifest, dict):
+        raise StoreError(f"object {name!r}: manifest {path} is not a JSON object; retrain it")
+    return manifest
+
+
+# What model.npz must hold: name -> (number of dimensions, trailing shape or None, kind).
+# "n" is the number of viewsets, "K" the number of keypoints over all of them.
+_ARRAY_SPEC = {
+    "rfch_centres": (2, None, "f"), "rfch_histogram": (2, None, "f"),
+    "rfch_desc_mean": (1, None, "f"), "rfch_desc_std": (1, None, "f"),
+    "mesh_vertices": (2, (3,), "f"), "mesh_faces": (2, (3,), "i"),
+    "vs_offsets": (1, None, "i"),
+    "vs_keypoints": (2, (2,), "f"), "vs_descriptors": (2, (128,), "f"), "vs_points3d": (2, (3,), "f"),
+    "vs_R": (3, (3, 3), "f"), "vs_t": (2, (3,), "f"), "vs_camera": (2, (14,), "f"),
+    "vs_bbox": (2, (4,), "i"), "vs_synthetic": (1, None, "b"), "vs_source": (1, None, "i"),
+}
+
+
+def _check_arrays(a: dict[str, np.ndarray], n: int) -> None:
+    """Raise ValueError unless the arrays fit together (a garbled file may still decompress)."""
+    for key, (ndim, tail, kind) in _ARRAY_SPEC.items():
+        if key not in a:
+            raise ValueError(f"array {key!r} is missing")
+        x = a[key]
+        if x.ndim != ndim or (tail is not None and x.shape[1:] != tail) or x.dtype.kind not in (kind + ("iu" if kind == "i" else "")):
+            raise ValueError(f"array {key!r} has shape {x.shape} and type {x.dtype}")
+        if kind == "f" and not np.all(np.isfinite(x)):
+            raise ValueError(f"array {key!r} holds NaN or infinite values")
+    off = a["vs_offsets"]
+    k = len(a["vs_keypoints"])
+    if len(off) != n + 1 or off[0] != 0 or off[-1] != k or np.any(np.diff(off) < 0):
+        raise ValueError("viewset offsets do not match the keypoints")
+    if len(a["vs_descriptors"]) != k or len(a["vs_points3d"]) != k:
+        raise ValueError("keypoints, descriptors and 3-D points differ in number")
+    for key in ("vs_R", "vs_t", "vs_camera", "vs_bbox", "vs_synthetic", "vs_source"):
+        if len(a[key]) != n:
+            raise ValueError(f"array {key!r} has {len(a[key])} rows for {n} viewsets")
+    faces, nv = a["mesh_faces"], len(a["mesh_vertices"])
+    if faces.size and (faces.min() < 0 or faces.max() >= nv):
+        raise ValueError("mesh faces index missing vertices")
+    c = a["rfch_centres"]
+    if a["rfch_histogram"].shape != (len(c), len(c)) or a["rfch_desc_mean"].shape != c.shape[1:] \
+            or a["rfch_desc_std"].shape != c.shape[1:]:
+        raise ValueError("RFCH arrays do not fit together")
 
 
 def load_model(store: str | Path, name: str) -> ObjectModel:
-    """Load ``store/NAME`` back into an :class:`ObjectModel`."""
+    """Load ``store/NAME`` back into an :class:`ObjectModel`.
+
+    Anything unreadable — a truncated, zeroed or garbled ``model.npz``, a manifest missing keys,
+    arrays that do not fit together — is that object's :class:`StoreError` naming it, never a
+    ``BadZipFile``/``zlib.error``/``KeyError`` from deep inside: the CLI prints one line (exit 2)
+    and the service reports that object as broken while serving the others.
+    """
     manifest = load_manifest(store, name)
     if manifest.get("schema_version") != SCHEMA_VERSION:
-        raise StoreError(f"object {name!r}: model schema {manifest.get('schema_version')} is not {SCHEMA_VERSION}; retrain it")
+        raise StoreError(f"object {name!r}: model schema {manifest.get('schema_version')!r} is not {SCHEMA_VERSION}; retrain it")
     path = model_path(Path(store), name) / ARRAYS
     try:
         with np.load(path, allow_pickle=False) as z:
             a = {k: z[k] for k in z.files}
-    except (OSError, ValueError) as exc:
-        raise StoreError(f"{path}: unreadable model arrays ({exc})") from None
+    except Exception as exc:  # BadZipFile, EOFError, zlib.error, OSError, ValueError, ...: all "unreadable"
+        raise StoreError(f"object {name!r}: unreadable model arrays {path} ({exc.__class__.__name__}: {exc}); retrain it"[:500]) from None
+    try:
+        return _build_model(name, manifest, a)
+    except (KeyError, IndexError, TypeError, ValueError, AttributeError) as exc:
+        what = f"missing key {exc}" if isinstance(exc, KeyError) else f"{exc.__class__.__name__}: {exc}"
+        raise StoreError(f"object {name!r}: corrupt model in {path.parent} ({what}); retrain it"[:500]) from None
+
+
+def _build_model(name: str, manifest: dict, a: dict[str, np.ndarray]) -> ObjectModel:
+    metas = manifest["viewsets"]
+    if not isinstance(metas, list):
+        raise ValueError("manifest 'viewsets' is not a list")
+    _check_arrays(a, len(metas))
     p = manifest["parameters"]["rfch"]
     info = manifest["rfch"]
     rfch = RFCHModel(
-        a["rfch_centres"], a["rfch_histogram"], tuple(p["scales"]), int(p["n_clusters"]), int(p["distance"]),
-        a["rfch_desc_mean"], a["rfch_desc_std"], tuple(info["size_min"]), tuple(info["size_max"]),
+        a["rfch_centres"], a["rfch_histogram"], tuple(float(x) for x in p["scales"]), int(p["n_clusters"]),
+        int(p["distance"]), a["rfch_desc_mean"], a["rfch_desc_std"], tuple(int(x) for x in info["size_min"]),
+        tuple(int(x) for x in info["size_max"]),
     )
     viewsets = []
     off = a["vs_offsets"]
-    for i, meta in enumerate(manifest["viewsets"]):
+    for i, meta in enumerate(metas):
         c = a["vs_camera"][i]
         cam = PinholeCamera(c[0], c[1], c[2], c[3], c[6:], width=int(c[4]), height=int(c[5]))
         s = slice(int(off[i]), int(off[i + 1]))
         viewsets.append(Viewset(
-            meta["label"], int(a["vs_source"][i]), bool(a["vs_synthetic"][i]), cam,
+            str(meta["label"]), int(a["vs_source"][i]), bool(a["vs_synthetic"][i]), cam,
             Pose.from_matrix(a["vs_R"][i], a["vs_t"][i]), a["vs_keypoints"][s], a["vs_descriptors"][s],
             a["vs_points3d"][s], tuple(int(x) for x in a["vs_bbox"][i]),
         ))
     mesh = Mesh(a["mesh_vertices"], a["mesh_faces"])
-    return ObjectModel(manifest["name"], rfch, viewsets, mesh, manifest)
+    if manifest.get("name", name) != name:
+        raise ValueError(f"manifest names object {manifest.get('name')!r}")
+    return ObjectModel(name, rfch, viewsets, mesh, manifest)
 
 
 def list_models(store: str | Path) -> list[str]:
-    """Names of the complete models in the store (temporary folders excluded), sorted."""
+    """Names of the objects in the store (a folder with a manifest; temporary folders excluded),
+    sorted. A listed object may still be broken: :func:`load_model` says so."""
     store = Path(store)
     if not store.is_dir():
         return []
     return sorted(
         p.name for p in store.iterdir()
-        if not p.name.startswith(".") and (p / MANIFEST).is_file() and (p / ARRAYS).is_file()
+        if not p.name.startswith(".") and (p / MANIFEST).is_file()
     )
+
+
+def model_stamp(store: str | Path, name: str) -> tuple | None:
+    """What changes when ``store/NAME`` is replaced (an atomic rename brings new inodes and
+    times) or removed (``None``): compared by the service to reload a retrained model."""
+    folder = model_path(Path(store), name)
+    try:
+        m, z = os.stat(folder / MANIFEST), os.stat(folder / ARRAYS)
+    except OSError:
+        try:
+            m = os.stat(folder / MANIFEST)
+        except OSError:
+            return None
+        return (m.st_ino, m.st_mtime_ns, m.st_size, None)
+    return (m.st_ino, m.st_mtime_ns, m.st_size, z.st_ino, z.st_mtime_ns, z.st_size)
+
+
+STALE_AFTER_S = 3600.0
+
+
+def remove_stale(store: str | Path, max_age_s: float = STALE_AFTER_S, now: float | None = None) -> list[str]:
+    """Clean what interrupted writes left behind; returns the folders removed or restored.
+
+    ``.tmp-NAME-*`` (a training killed while writing), ``.del-NAME-*`` (a delete killed while
+    removing) and ``.old-NAME-*`` folders older than ``max_age_s`` are removed — younger ones may
+    belong to a write in progress. An ``.old-NAME-*/model`` whose ``NAME`` is missing is the
+    previous model of a retraining killed between its two renames: it is put back instead.
+    """
+    store = Path(store)
+    if not store.is_dir():
+        return []
+    now = time.time() if now is None else now
+    done = []
+    for p in store.iterdir():
+        kind = p.name[:5]
+        if kind not in (".tmp-", ".old-", ".del-") or not p.is_dir():
+            continue
+        try:
+            age = now - p.stat().st_mtime
+        except OSError:
+            continue
+        if age < max_age_s:
+            continue
+        if kind == ".old-":
+            name = p.name[5:].rsplit("-", 1)[0]
+            final = store / name
+            if (p / "model" / MANIFEST).is_file() and not final.exists():
+                try:
+                    os.replace(p / "model", final)
+                    done.append(f"restored {name}")
+                except OSError:
+                    pass
+        shutil.rmtree(p, ignore_errors=True)
+        done.append(p.name)
+    return done
 
 
 def delete_model(store: str | Path, name: str) -> None:
