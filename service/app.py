@@ -145,7 +145,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     @asynccontextmanager
     async def lifespan(app: FastAPI):
         executor = ThreadPoolExecutor(settings.threads, thread_name_prefix="quatrack-cpu")
-        state = ServiceState(settings, ModelRegistry(settings.store), executor, metrics, sessions)
+        registry = ModelRegistry(settings.store, on_load=lambda result: metrics.model_loads.labels(result).inc())
+        state = ServiceState(settings, registry, executor, metrics, sessions)
         app.state.quatrack = state
         loop = asyncio.get_running_loop()
         if settings.preload:
@@ -153,9 +154,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         else:
             state.registry.ready = True
             warm = None
+        registry.start_watching(settings.model_poll_s)  # retrained, new and deleted models, live
         try:
             yield
         finally:
+            registry.stop()
             if warm is not None and not warm.done():
                 warm.cancel()
             executor.shutdown(wait=False, cancel_futures=True)

@@ -26,7 +26,7 @@ from .errors import ApiError, error_body
 from .imagein import decode_upload
 from .metrics import CONTENT_TYPE, Metrics
 from .models import ModelRegistry
-from .schemas import CameraIn, ErrorResponse, Health, LocateOut, ObjectDetail, ObjectList, ObjectSummary, Ready
+from .schemas import CameraIn, ErrorResponse, Health, LocateOut, ObjectDetail, ObjectList, ObjectSummary, Ready, ReloadOut
 from .sessions import SessionLimiter, TrackSession
 from .settings import Settings
 from .tracker import TRACKER_KIND
@@ -83,7 +83,8 @@ async def healthz() -> Health:
 
 @health.get("/readyz", response_model=Ready, summary="models are loaded", responses={503: {"model": Ready}})
 async def readyz(state: State):
-    body = Ready(ready=state.registry.ready, models=state.registry.loaded(), tracker=TRACKER_KIND)
+    body = Ready(ready=state.registry.ready, models=state.registry.loaded(), tracker=TRACKER_KIND,
+                 failed=state.registry.failed())
     return JSONResponse(body.model_dump(), status_code=200 if body.ready else 503)
 
 
@@ -93,26 +94,42 @@ async def metrics(state: State) -> PlainTextResponse:
     return PlainTextResponse(state.metrics.render(), media_type=CONTENT_TYPE)
 
 
-@api.get("/objects", response_model=ObjectList, summary="the trained objects")
+@api.get("/objects", response_model=ObjectList, summary="the trained objects (broken ones with their `error`)")
 async def list_objects(state: State) -> ObjectList:
     loaded = set(state.registry.loaded())
+    failed = state.registry.failed()
     out = []
     for name in state.registry.names():
         try:
             m = state.registry.manifest(name)
-        except ApiError:
-            continue
-        s = m.get("training_summary", {})
-        out.append(ObjectSummary(name=name, created=m.get("created"), viewsets=s.get("viewsets"),
-                                 points3d=s.get("points3d_total"), loaded=name in loaded))
+            s = m.get("training_summary")
+            s = s if isinstance(s, dict) else {}
+            item = ObjectSummary(name=name, created=m.get("created"), viewsets=s.get("viewsets"),
+                                 points3d=s.get("points3d_total"), loaded=name in loaded, error=failed.get(name))
+        except (ApiError, ValidationError) as exc:  # a manifest nobody can read: listed as broken
+            item = ObjectSummary(name=name, loaded=name in loaded,
+                                 error=failed.get(name) or getattr(exc, "message", f"object {name!r}: unreadable manifest"))
+        out.append(item)
     return ObjectList(objects=out)
 
 
 @api.get("/objects/{name}", response_model=ObjectDetail, summary="one object's training summary")
 async def get_object(name: str, state: State) -> ObjectDetail:
     m = state.registry.manifest(name)
-    return ObjectDetail(name=name, created=m.get("created"), training_summary=m.get("training_summary", {}),
-                        parameters=m.get("parameters"))
+    summary, params = m.get("training_summary"), m.get("parameters")
+    return ObjectDetail(name=name, created=m.get("created") if isinstance(m.get("created"), str) else None,
+                        training_summary=summary if isinstance(summary, dict) else {},
+                        parameters=params if isinstance(params, dict) else None,
+                        error=state.registry.failed().get(name))
+
+
+@api.post("/objects/{name}/reload", response_model=ReloadOut,
+          summary="load the object's model from the store now (after `quatrack train` or `models delete`)")
+async def reload_object(name: str, state: State) -> ReloadOut:
+    """The store is also watched (every `QUATRACK_MODEL_POLL_S` seconds); this call does it at once.
+    Sessions already running keep the model they started with."""
+    out = await asyncio.get_running_loop().run_in_executor(state.executor, state.registry.reload, name)
+    return ReloadOut(**out)
 
 
 _POSE_BODY = {
@@ -252,9 +269,12 @@ async def track(websocket: WebSocket, name: str) -> None:
     m = state.metrics
     outcome = "error"
     try:
-        await asyncio.get_running_loop().run_in_executor(state.executor, state.registry.get, name)
+        try:  # the session keeps this model to its end, whatever a retraining does meanwhile
+            model = await asyncio.get_running_loop().run_in_executor(state.executor, state.registry.get, name)
+        except ApiError as exc:  # e.g. a corrupt model: 503 naming the object
+            return await _deny(websocket, exc.status_code, exc.code, exc.message, 1011)
         await websocket.accept()
-        session = TrackSession(websocket, sid, name, state.registry, state.settings, state.executor, m)
+        session = TrackSession(websocket, sid, name, model, state.settings, state.executor, m)
         outcome = await session.run()
     finally:
         state.sessions.close(sid)

@@ -105,6 +105,7 @@ class ObjectSummary(BaseModel):
     viewsets: int | None = None
     points3d: int | None = None
     loaded: bool = Field(description="already in memory (first request needs no loading)")
+    error: str | None = Field(None, description="why the model cannot be loaded (corrupt files): requests for it get 503")
 
 
 class ObjectList(BaseModel):
@@ -118,6 +119,7 @@ class ObjectDetail(BaseModel):
     created: str | None = None
     training_summary: dict = Field(description="the manifest's training summary, as `quatrack models show` prints it")
     parameters: dict | None = None
+    error: str | None = Field(None, description="why the model cannot be loaded, if it cannot")
 
 
 class Health(BaseModel):
@@ -125,9 +127,20 @@ class Health(BaseModel):
 
 
 class Ready(BaseModel):
-    ready: bool
+    ready: bool = Field(description="start-up loading is done (objects that failed are listed, the others served)")
     models: list[str]
     tracker: str = Field(description="which tracker drives WebSocket sessions")
+    failed: dict[str, str] = Field({}, description="objects of the store that cannot be loaded, with the reason")
+
+
+class ReloadOut(BaseModel):
+    """What ``POST /v1/objects/{name}/reload`` did."""
+
+    name: str
+    status: Literal["loaded", "unchanged", "removed", "failed"] = Field(
+        description="loaded: the store's (new) model now serves new sessions; unchanged: it already did; "
+                    "removed: gone from the store, out of service; failed: unreadable (see message)")
+    message: str | None = None
 
 
 # --- WebSocket messages (documented here; the socket itself is not in OpenAPI) -----------------

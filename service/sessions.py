@@ -25,13 +25,14 @@ from pydantic import ValidationError
 from starlette.websockets import WebSocket, WebSocketDisconnect, WebSocketState
 
 from quatrack.recognition.images import ImageError
+from quatrack.recognition.match import ModelIndex
+from quatrack.viewsets.store import ObjectModel
 from quatrack.viewsets.errors import SpecError
 from quatrack.viewsets.spec import parse_pose
 
 from .errors import ApiError, error_body
 from .imagein import decode_upload, sniff
 from .metrics import Metrics
-from .models import ModelRegistry
 from .schemas import CameraIn
 from .settings import Settings
 from .tracker import TRACKER_KIND, make_tracker
@@ -74,10 +75,11 @@ class _SessionError(Exception):
 
 
 class TrackSession:
-    def __init__(self, ws: WebSocket, sid: str, name: str, registry: ModelRegistry, settings: Settings,
+    def __init__(self, ws: WebSocket, sid: str, name: str, model: tuple[ObjectModel, ModelIndex], settings: Settings,
                  executor: Executor, metrics: Metrics) -> None:
         self.ws, self.sid, self.name = ws, sid, name
-        self.registry, self.settings, self.executor, self.metrics = registry, settings, executor, metrics
+        # the model the session started with, to its end (a retrained one serves new sessions)
+        self.model, self.settings, self.executor, self.metrics = model, settings, executor, metrics
         self.camera: CameraIn | None = None
         self.controls: list = []
         self.pending: _Frame | None = None
@@ -301,7 +303,7 @@ class TrackSession:
         if cam_in.width is not None and (cam_in.width, cam_in.height) != (w, h):
             raise _SessionError("bad_image", f"the camera is for {cam_in.width}×{cam_in.height} px frames but this one is {w}×{h} px")
         if self.tracker is None:
-            model, index = self.registry.get(self.name)
+            model, index = self.model
             self.tracker = make_tracker(model, cam_in.to_camera((w, h)), index, self.settings.locate_max_pixels)
             self.tracker_camera = cam_in.model_copy(update={"width": w, "height": h})
         for op in item.controls:

@@ -51,6 +51,8 @@ class Settings(BaseSettings):
     idle_timeout_s: float = Field(60.0, gt=0, description="a session with no message for this long is closed")
     retry_after_s: int = Field(5, ge=0, description="`Retry-After` seconds sent with 503 answers")
     preload: bool = Field(True, description="load every model of the store at start-up (`/readyz` waits for it)")
+    model_poll_s: float = Field(2.0, ge=0, description="how often the store is checked for retrained, new and deleted models "
+                                                      "(new sessions get them; 0: never, `POST /v1/objects/{name}/reload` still works)")
     run_dir: Path | None = Field(None, description="directory the worker processes share (session slots, Prometheus "
                                                     "multiprocess files); `quatrack serve` makes a fresh one and wipes it on start")
 
