@@ -1,12 +1,52 @@
-"""Structured logs: one JSON object per line, with the request or session id when there is one."""
+"""Structured logs: one JSON object per line, with the request or session id when there is one.
+
+Two things every line passes through (a filter on the one handler, so uvicorn's own lines too):
+
+- Secrets are never written: a ``token`` query parameter (WebSocket clients that cannot set a
+  header send ``?token=…``; uvicorn logs the path with its query) is replaced by ``[redacted]``.
+- A WebSocket the service refused on purpose (401, 404, 503: see ``routes._deny``) is logged by
+  the service at info level with its reason; uvicorn's error "ASGI callable returned without
+  completing handshake", which it writes after every denial response, is dropped for those
+  connections only (:func:`mark_refused` sets a context variable in the connection's task, which
+  is where uvicorn logs it). Any other connection that ends so is still an error.
+"""
 
 from __future__ import annotations
 
+import contextvars
 import json
 import logging
+import re
 import time
 
 _STD = set(vars(logging.makeLogRecord({}))) | {"message", "asctime"}
+_TOKEN = re.compile(r"(?i)([?&;](?:access_)?token=)[^&#\s\"']*")
+_REFUSED: contextvars.ContextVar[bool] = contextvars.ContextVar("quatrack_ws_refused", default=False)
+_UVICORN_AFTER_DENIAL = "ASGI callable returned without completing handshake"
+
+
+def redact(text: str) -> str:
+    """``text`` with the value of every ``token=`` query parameter replaced."""
+    return _TOKEN.sub(r"\1[redacted]", text)
+
+
+def mark_refused() -> None:
+    """Called when the service answers a WebSocket handshake with an HTTP error on purpose."""
+    _REFUSED.set(True)
+
+
+class ServiceLogFilter(logging.Filter):
+    def filter(self, record: logging.LogRecord) -> bool:
+        if record.name.startswith("uvicorn") and _UVICORN_AFTER_DENIAL in str(record.msg) and _REFUSED.get():
+            return False
+        message = record.getMessage()
+        clean = redact(message)
+        if clean != message:
+            record.msg, record.args = clean, ()
+        for key, value in list(vars(record).items()):
+            if key not in _STD and isinstance(value, str) and "token=" in value.lower():
+                setattr(record, key, redact(value))
+        return True
 
 
 class JsonFormatter(logging.Formatter):
@@ -15,7 +55,7 @@ class JsonFormatter(logging.Formatter):
                "level": record.levelname.lower(), "logger": record.name, "msg": record.getMessage()}
         out.update({k: v for k, v in vars(record).items() if k not in _STD and not k.startswith("_")})
         if record.exc_info:
-            out["exc"] = self.formatException(record.exc_info)
+            out["exc"] = redact(self.formatException(record.exc_info))
         return json.dumps(out, default=str)
 
 
@@ -25,7 +65,9 @@ def configure(level: str = "info") -> dict:
         "version": 1,
         "disable_existing_loggers": False,
         "formatters": {"json": {"()": JsonFormatter}},
-        "handlers": {"stderr": {"class": "logging.StreamHandler", "formatter": "json", "stream": "ext://sys.stderr"}},
+        "filters": {"service": {"()": ServiceLogFilter}},
+        "handlers": {"stderr": {"class": "logging.StreamHandler", "formatter": "json", "stream": "ext://sys.stderr",
+                                "filters": ["service"]}},
         "loggers": {
             "quatrack": {"handlers": ["stderr"], "level": level.upper(), "propagate": False},
             "uvicorn": {"handlers": ["stderr"], "level": level.upper(), "propagate": False},

@@ -9,10 +9,12 @@ from __future__ import annotations
 
 import asyncio
 import hmac
+import logging
+import time
 import json
 from concurrent.futures import Executor
 from dataclasses import dataclass
-from typing import Annotated
+from typing import Annotated, Callable
 
 from fastapi import APIRouter, Depends, Query, Request, WebSocket
 from fastapi.responses import JSONResponse, PlainTextResponse
@@ -24,12 +26,15 @@ from quatrack.recognition.locate import LocateParams, locate
 
 from .errors import ApiError, error_body
 from .imagein import decode_upload
+from .logs import mark_refused
 from .metrics import CONTENT_TYPE, Metrics
 from .models import ModelRegistry
 from .schemas import CameraIn, ErrorResponse, Health, LocateOut, ObjectDetail, ObjectList, ObjectSummary, Ready, ReloadOut
 from .sessions import SessionLimiter, TrackSession
 from .settings import Settings
 from .tracker import TRACKER_KIND
+
+log = logging.getLogger("quatrack.service")
 
 
 @dataclass
@@ -42,6 +47,9 @@ class ServiceState:
     metrics: Metrics
     sessions: SessionLimiter
     pending: int = 0  # REST pose requests in flight
+    # the sessions' clock (rate limit, arrival times of frames without a time_s): tests inject
+    # a controlled one, so that what they check does not depend on the machine's speed
+    clock: Callable[[], float] = time.monotonic
 
 
 def get_state(request: Request) -> ServiceState:
@@ -274,7 +282,7 @@ async def track(websocket: WebSocket, name: str) -> None:
         except ApiError as exc:  # e.g. a corrupt model: 503 naming the object
             return await _deny(websocket, exc.status_code, exc.code, exc.message, 1011)
         await websocket.accept()
-        session = TrackSession(websocket, sid, name, model, state.settings, state.executor, m)
+        session = TrackSession(websocket, sid, name, model, state.settings, state.executor, m, clock=state.clock)
         outcome = await session.run()
     finally:
         state.sessions.close(sid)
@@ -283,9 +291,12 @@ async def track(websocket: WebSocket, name: str) -> None:
 
 async def _deny(ws: WebSocket, status: int, code: str, message: str, close_code: int, headers=None) -> None:
     """Refuse a WebSocket with an HTTP error response where the server supports it, else accept,
-    send the error message and close (1008 policy / 1013 try again later)."""
+    send the error message and close (1008 policy / 1013 try again later). Logged at info level
+    with the reason: a refusal is the service working, not an error (see ``logs.mark_refused``)."""
+    log.info("websocket refused", extra={"status": status, "code": code, "reason": message, "path": ws.url.path})
     try:
         await ws.send_denial_response(JSONResponse(error_body(code, message), status_code=status, headers=headers))
+        mark_refused()
         return
     except RuntimeError:
         pass

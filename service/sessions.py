@@ -19,6 +19,7 @@ import time
 import uuid
 from concurrent.futures import Executor
 from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 from pydantic import ValidationError
@@ -39,6 +40,7 @@ from .tracker import TRACKER_KIND, make_tracker
 
 log = logging.getLogger("quatrack.service")
 MAX_CONTROLS = 32  # control messages waiting for a frame; more is a misbehaving client
+MAX_TEXT = 65_536  # characters in one text message: a camera or a control is a few hundred
 
 
 class SessionLimiter:
@@ -76,7 +78,7 @@ class _SessionError(Exception):
 
 class TrackSession:
     def __init__(self, ws: WebSocket, sid: str, name: str, model: tuple[ObjectModel, ModelIndex], settings: Settings,
-                 executor: Executor, metrics: Metrics) -> None:
+                 executor: Executor, metrics: Metrics, clock: Callable[[], float] = time.monotonic) -> None:
         self.ws, self.sid, self.name = ws, sid, name
         # the model the session started with, to its end (a retrained one serves new sessions)
         self.model, self.settings, self.executor, self.metrics = model, settings, executor, metrics
@@ -92,7 +94,8 @@ class TrackSession:
         self.send_lock = asyncio.Lock()
         self.closed = False
         self.tokens = settings.max_fps  # token bucket: max_fps per second, bursts up to 1 s
-        self.token_time = time.monotonic()
+        self.clock = clock
+        self.token_time = clock()
         # owned by the processor (worker thread, one job at a time):
         self.tracker = None
         self.tracker_camera = None
@@ -130,11 +133,15 @@ class TrackSession:
                     break
                 if msg["type"] == "websocket.disconnect":
                     break
-                if msg.get("bytes") is not None:
-                    await self._on_frame(msg["bytes"])
-                elif msg.get("text") is not None:
-                    await self._on_text(msg["text"])
-        except (WebSocketDisconnect, RuntimeError):
+                try:
+                    if msg.get("bytes") is not None:
+                        await self._on_frame(msg["bytes"])
+                    elif msg.get("text") is not None:
+                        await self._on_text(msg["text"])
+                except Exception:  # a bug on one message must not pass for a disconnect (RuntimeError) nor end the session
+                    log.exception("session %s: a message could not be handled", self.sid)
+                    await self.send_error("internal", "this message could not be handled (logged); the session goes on")
+        except (WebSocketDisconnect, RuntimeError):  # receive() after the client left
             outcome = "disconnected"
         finally:
             self.closed = True
@@ -152,7 +159,7 @@ class TrackSession:
         return outcome
 
     def _take_token(self) -> bool:
-        now = time.monotonic()
+        now = self.clock()
         rate = self.settings.max_fps
         self.tokens = min(rate, self.tokens + (now - self.token_time) * rate)
         self.token_time = now
@@ -183,7 +190,7 @@ class TrackSession:
         if self.header_time is not None:
             time_s, self.header_time = self.header_time, None
         else:
-            now = time.monotonic()
+            now = self.clock()
             self.t0 = now if self.t0 is None else self.t0
             time_s = now - self.t0
             if self.last_time is not None and time_s <= self.last_time:
@@ -200,8 +207,14 @@ class TrackSession:
         self.wakeup.set()
 
     async def _on_text(self, text: str) -> None:
+        if len(text) > MAX_TEXT:
+            await self.send_error("too_large", f"a text message may have at most {MAX_TEXT} characters")
+            return
         try:
             msg = json.loads(text)
+        except RecursionError:  # a RuntimeError: uncaught, the receive loop took it for a disconnect
+            await self.send_error("bad_message", "the JSON is nested too deeply")
+            return
         except ValueError:
             await self.send_error("bad_message", "a text message must be a JSON object")
             return
@@ -237,7 +250,7 @@ class TrackSession:
             ts = float(ts) if isinstance(ts, (int, float)) and not isinstance(ts, bool) and math.isfinite(ts) else None
             self._control(("init", pose.t, pose.q_wxyz, ts))
         else:
-            await self.send_error("bad_message", f"unknown message type {kind!r}; use camera, frame, reset or init")
+            await self.send_error("bad_message", f"unknown message type {repr(kind)[:40]}; use camera, frame, reset or init")
 
     def _control(self, op: tuple) -> None:
         if len(self.controls) >= MAX_CONTROLS:
