@@ -23,7 +23,7 @@ from fastapi.middleware.cors import CORSMiddleware
 from quatrack import __version__
 from quatrack.recognition.runtime import tune_allocator
 
-from . import errors
+from . import docs, errors
 from .errors import ApiError, error_body
 from .metrics import Metrics, worker_exit
 from .models import ModelRegistry
@@ -165,8 +165,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             worker_exit()
 
     app = FastAPI(title="quatrack", version=__version__, description=DESCRIPTION, lifespan=lifespan,
-                  docs_url="/docs", redoc_url=None)
+                  docs_url=None, redoc_url=None)
     errors.install(app)
+    docs.install(app)  # /docs and /redoc with local assets (they work offline)
     app.include_router(health)
     app.include_router(ops)
     app.include_router(api)

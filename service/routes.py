@@ -20,8 +20,9 @@ from fastapi import APIRouter, Depends, Query, Request, WebSocket
 from fastapi.responses import JSONResponse, PlainTextResponse
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from pydantic import ValidationError
+from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from quatrack.recognition.images import ImageError
+from quatrack.recognition.images import MIN_SIDE, ImageError
 from quatrack.recognition.locate import LocateParams, locate
 
 from .errors import ApiError, error_body
@@ -76,6 +77,7 @@ def require_token(
 
 
 State = Annotated[ServiceState, Depends(get_state)]
+MAX_CAMERA_BYTES = 65_536  # a camera JSON is ~200 bytes
 ERRORS = {code: {"model": ErrorResponse} for code in (400, 401, 404, 413, 415, 422, 503)}
 
 health = APIRouter(tags=["health"])
@@ -207,9 +209,14 @@ async def pose(
     camera = _camera_from_query(fx, fy, cx, cy, width, height, dist)
     if ctype == "multipart/form-data":
         try:
-            form = await request.form(max_files=2, max_fields=8)
+            form = await request.form(max_files=2, max_fields=8, max_part_size=MAX_CAMERA_BYTES)
         except ApiError:
             raise
+        except StarletteHTTPException as exc:  # what Starlette's parser refused, with its reason
+            if "maximum size" in str(exc.detail):
+                raise ApiError(413, "too_large", f"a multipart text field (the camera) may have at most "
+                                                 f"{MAX_CAMERA_BYTES} bytes") from None
+            raise ApiError(400, "bad_request", f"malformed multipart body: {exc.detail}") from None
         except Exception as exc:  # malformed multipart
             raise ApiError(400, "bad_request", f"malformed multipart body ({exc.__class__.__name__})") from None
         upload = form.get("image")
@@ -219,7 +226,10 @@ async def pose(
         cam_field = form.get("camera")
         if cam_field is not None:
             if not isinstance(cam_field, str):
-                cam_field = (await cam_field.read()).decode("utf-8", "replace")
+                raw = await cam_field.read(MAX_CAMERA_BYTES + 1)
+                if len(raw) > MAX_CAMERA_BYTES:
+                    raise ApiError(413, "too_large", f"the camera may have at most {MAX_CAMERA_BYTES} bytes")
+                cam_field = raw.decode("utf-8", "replace")
             camera = _camera_from_json(cam_field)
     elif ctype.startswith("image/") or ctype == "application/octet-stream":
         data = await request.body()
@@ -228,6 +238,8 @@ async def pose(
                        "send multipart/form-data (fields image, camera) or the raw image with an image/* content type")
     if camera is None:
         raise ApiError(422, "bad_camera", "a camera is required: multipart field 'camera' or query parameters fx, fy, cx, cy")
+    if camera.width is not None and camera.height is not None:
+        camera.to_camera()  # implausible intrinsics: 422 before any decoding
     if state.pending >= state.settings.max_pending_requests:
         raise ApiError(503, "busy", "too many pose requests in progress; retry later",
                        {"Retry-After": str(state.settings.retry_after_s)})
@@ -242,6 +254,8 @@ def _locate(state: ServiceState, name: str, data: bytes, camera: CameraIn) -> di
     """Worker thread: decode, check the camera against the image, recognise."""
     image = decode_upload(data, state.settings.max_image_pixels)
     h, w = image.shape[:2]
+    if min(h, w) < MIN_SIDE:  # said before the camera is checked against this size
+        raise ApiError(422, "bad_image", f"the image is too small ({w}×{h} px; at least {MIN_SIDE} px a side)")
     cam = camera.to_camera((w, h))
     model, index = state.registry.get(name)
     try:

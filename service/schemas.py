@@ -48,6 +48,21 @@ class CameraIn(BaseModel):
     dist_coeffs: list[float] | None = None
     model_config = ConfigDict(extra="ignore", json_schema_extra={"examples": [CAMERA_EXAMPLE]})
 
+    @field_validator("fx", "fy", "cx", "cy", "width", "height", mode="before")
+    @classmethod
+    def _a_number(cls, v):
+        """JSON numbers only: pydantic's lax mode would take ``true`` as 1 and ``"600"`` as 600."""
+        if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float))):
+            raise ValueError(f"must be a number, got {type(v).__name__}")
+        return v
+
+    @field_validator("dist_coeffs", mode="before")
+    @classmethod
+    def _numbers(cls, v):
+        if v is not None and (not isinstance(v, list) or any(isinstance(x, bool) or not isinstance(x, (int, float)) for x in v)):
+            raise ValueError("must be a list of numbers (OpenCV order k1, k2, p1, p2[, k3[, k4, k5, k6]])")
+        return v
+
     @field_validator("fx", "fy", "cx", "cy")
     @classmethod
     def _finite(cls, v: float) -> float:

@@ -263,7 +263,8 @@ class TrackSession:
         ack = isinstance(data, dict) and data.get("ack") is True
         try:
             cam = CameraIn.model_validate(data)
-            cam.to_camera((cam.width or 1, cam.height or 1))  # the project's own checks
+            if cam.width is not None and cam.height is not None:
+                cam.to_camera()  # the project's own checks (plausibility); else at the first frame
         except ValidationError as exc:
             e = exc.errors()[0]
             await self.send_error("bad_camera", f"camera.{'.'.join(map(str, e['loc']))}: {e['msg']}")
@@ -317,7 +318,11 @@ class TrackSession:
             raise _SessionError("bad_image", f"the camera is for {cam_in.width}×{cam_in.height} px frames but this one is {w}×{h} px")
         if self.tracker is None:
             model, index = self.model
-            self.tracker = make_tracker(model, cam_in.to_camera((w, h)), index, self.settings.locate_max_pixels)
+            try:
+                camera = cam_in.to_camera((w, h))
+            except ApiError as exc:  # a camera without a size, implausible for this frame's
+                raise _SessionError(exc.code, exc.message) from None
+            self.tracker = make_tracker(model, camera, index, self.settings.locate_max_pixels)
             self.tracker_camera = cam_in.model_copy(update={"width": w, "height": h})
         for op in item.controls:
             if op[0] == "init":

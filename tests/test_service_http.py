@@ -156,11 +156,27 @@ def test_bad_images(client, frame_jpeg, case):
     ("{not json", 422), (json.dumps({"fx": 1}), 422), (json.dumps({**CAMERA, "fx": -5}), 422),
     (json.dumps({**CAMERA, "dist_coeffs": [1, 2, 3]}), 422), (json.dumps([1, 2]), 422),
     (json.dumps({**CAMERA, "cx": "nan"}), 422),
+    # implausible: accepted with 200 (and a second of work for fx = 1e308) before
+    (json.dumps({**CAMERA, "fx": 1e308}), 422), (json.dumps({**CAMERA, "fx": True}), 422),
+    (json.dumps({**CAMERA, "fy": "600"}), 422), (json.dumps({**CAMERA, "fx": 3.0}), 422),
+    (json.dumps({**CAMERA, "cx": 5000}), 422), (json.dumps({**CAMERA, "width": True}), 422),
+    (json.dumps({**CAMERA, "dist_coeffs": [True, 0, 0, 0]}), 422), (json.dumps({**CAMERA, "fy": 20000}), 422),
 ])
 def test_bad_cameras(client, frame_jpeg, camera, status):
     r = client.post("/v1/objects/cookie-box/pose", files={"image": ("f.jpg", frame_jpeg, "image/jpeg")},
                     data={"camera": camera})
-    assert_error(r, status)
+    body = assert_error(r, status)
+    assert body["error"]["code"] in ("bad_camera", "invalid_input") and "\n" not in body["error"]["message"]
+
+
+def test_implausible_query_camera_and_a_huge_camera_field(client, frame_jpeg):
+    url = "/v1/objects/cookie-box/pose"
+    r = client.post(url, content=frame_jpeg, headers={"content-type": "image/jpeg"},
+                    params={"fx": 1e300, "fy": 600, "cx": 320, "cy": 240})  # size from the image
+    assert "fx" in assert_error(r, 422, "bad_camera")["error"]["message"]
+    huge = json.dumps({**CAMERA, "pad": "x" * 1_000_000})  # "malformed multipart body (HTTPException)" before
+    r = client.post(url, files={"image": ("f.jpg", frame_jpeg, "image/jpeg")}, data={"camera": huge})
+    assert "camera" in assert_error(r, 413, "too_large")["error"]["message"]
 
 
 def test_missing_pieces(client, frame_jpeg):
@@ -215,3 +231,23 @@ def test_auth(store, frame_jpeg):
             assert_error(r, 401)
             pre = c.options("/v1/objects", headers={"Origin": "https://app.example", "Access-Control-Request-Method": "GET"})
             assert pre.headers.get("access-control-allow-origin") == "https://app.example"
+
+
+def test_docs_are_served_locally_and_what_is_open_without_a_token(store):
+    """/docs loaded Swagger UI from a CDN (blank offline). With a token set, the health checks and
+    the API's description are open; everything that shows objects, poses or traffic is not."""
+    with BackgroundServer(Settings(store=store, api_token="t0k")) as srv, httpx.Client(base_url=srv.url, timeout=60) as c:
+        for page, asset in (("/docs", "swagger-ui-bundle.js"), ("/redoc", "redoc.standalone.js")):
+            html = c.get(page)
+            assert html.status_code == 200 and f"/docs-assets/{asset}" in html.text, html.text[:300]
+            assert "cdn." not in html.text and "https://" not in html.text.replace("https://fastapi", "")
+            js = c.get(f"/docs-assets/{asset}")
+            assert js.status_code == 200 and len(js.content) > 100_000
+        assert c.get("/docs-assets/swagger-ui.css").status_code == 200
+        for path in ("/healthz", "/openapi.json", "/docs"):
+            assert c.get(path).status_code == 200, path
+        assert c.get("/readyz").status_code in (200, 503)
+        for path in ("/metrics", "/v1/objects", "/v1/objects/cookie-box"):
+            assert_error(c.get(path), 401, "unauthorized")
+        assert_error(c.post("/v1/objects/cookie-box/reload"), 401, "unauthorized")
+        assert c.get("/metrics", headers={"Authorization": "Bearer t0k"}).status_code == 200

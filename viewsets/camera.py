@@ -54,7 +54,42 @@ def camera_from_dict(data: Any, where: str = "camera") -> PinholeCamera:
     return _make(fx, fy, cx, cy, dist, size[0], size[1], where)
 
 
+# Plausibility: beyond these a camera is a typo or an attack (fx = 1e308 made a request compute
+# for a second before failing), not a lens. A focal length f (px) gives a field of view of
+# 2·atan(w / 2f): f = 0.02·w is ~176° (past any pinhole-modelled lens), f = 1000·w is ~0.06°
+# (past a 2000 mm telephoto on a small sensor, ~350·w). Pixels are near square (fx/fy within
+# 1/8..8, anamorphic lenses are ~2). The principal point lies within half an image of the image.
+FOCAL_PER_SIZE = (0.02, 1000.0)
+MAX_ASPECT = 8.0
+MAX_SIDE = 100_000  # pixels
+
+
+def check_plausible(fx: float, fy: float, cx: float, cy: float, width: int, height: int, where: str = "camera") -> None:
+    """Raise :class:`SpecError` (naming ``where`` and the field) unless the intrinsics can be a
+    real camera's for a ``width`` × ``height`` image. The one place both the CLI and the service
+    check a camera: every parser ends here."""
+    for name, v in (("fx", fx), ("fy", fy), ("cx", cx), ("cy", cy)):
+        if isinstance(v, bool) or not isinstance(v, (int, float, np.floating, np.integer)) or not math.isfinite(v):
+            raise SpecError(f"{where}: field {name!r} must be a finite number, got {v!r}")
+    for name, v in (("width", width), ("height", height)):
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not 0 < v <= MAX_SIDE:
+            raise SpecError(f"{where}: field {name!r} must be an integer 1..{MAX_SIDE}, got {v!r}")
+    side = max(width, height)
+    lo, hi = FOCAL_PER_SIZE[0] * side, FOCAL_PER_SIZE[1] * side
+    for name, f in (("fx", fx), ("fy", fy)):
+        if not lo <= f <= hi:
+            raise SpecError(f"{where}: field {name!r} = {f:g} px is not a focal length for a {width}×{height} image "
+                            f"(expected {lo:g}..{hi:g} px)")
+    if not 1 / MAX_ASPECT <= fx / fy <= MAX_ASPECT:
+        raise SpecError(f"{where}: fx/fy = {fx / fy:g}: pixels that far from square are a typo (fx={fx:g}, fy={fy:g})")
+    for name, c, n in (("cx", cx, width), ("cy", cy, height)):
+        if not -0.5 * n <= c <= 1.5 * n:
+            raise SpecError(f"{where}: field {name!r} = {c:g} px is not near the {width}×{height} image "
+                            f"(expected {-0.5 * n:g}..{1.5 * n:g} px)")
+
+
 def _make(fx, fy, cx, cy, dist, width, height, where) -> PinholeCamera:
+    check_plausible(fx, fy, cx, cy, width, height, where)
     try:
         return PinholeCamera(fx, fy, cx, cy, np.asarray(dist, float), width=width, height=height)
     except ValueError as exc:

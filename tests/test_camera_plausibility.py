@@ -1,0 +1,62 @@
+"""Camera plausibility: one check (viewsets/camera.py) behind the CLI's files and the service's JSON."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from quatrack.cli import main
+from quatrack.viewsets.camera import camera_from_dict, load_camera
+from quatrack.viewsets.errors import SpecError
+
+EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "cookie-box"
+CAMERA = json.loads((EXAMPLE / "camera.json").read_text())
+
+
+@pytest.mark.parametrize("change", [
+    {}, {"fx": 14.0, "fy": 14.0}, {"fx": 600_000.0, "fy": 600_000.0}, {"cx": -300.0}, {"cy": 700.0},
+    {"fx": 1200.0, "fy": 600.0},  # an anamorphic lens (2:1)
+    {"width": 4000, "height": 3000, "fx": 3000.0, "fy": 3000.0, "cx": 2000.0, "cy": 1500.0},
+])
+def test_real_cameras_pass(change):
+    cam = camera_from_dict({**CAMERA, **change})
+    assert cam.fx == {**CAMERA, **change}["fx"]
+
+
+@pytest.mark.parametrize("change, field", [
+    ({"fx": 1e308}, "fx"), ({"fy": 1e308}, "fy"), ({"fx": 12.0}, "fx"), ({"fx": 700_000.0}, "fx"),
+    ({"fx": True}, "fx"), ({"cx": 1e9}, "cx"), ({"cy": -250.0}, "cy"), ({"cx": float("nan")}, "cx"),
+    ({"fx": 669.7, "fy": 60.0}, "fy"), ({"width": True}, "width"), ({"height": 10**6}, "height"),
+    ({"fx": 6000.0, "fy": 669.7}, "fx/fy"),
+])
+def test_implausible_cameras_are_refused_naming_the_field(change, field):
+    with pytest.raises(SpecError) as err:
+        camera_from_dict({**CAMERA, **change}, "cam.json")
+    msg = str(err.value)
+    assert msg.startswith("cam.json:") and field in msg and "\n" not in msg, msg
+
+
+def test_yaml_calibrations_are_checked_too(tmp_path):
+    fs_path = tmp_path / "cam.yml"
+    fs = cv2.FileStorage(str(fs_path), cv2.FILE_STORAGE_WRITE)
+    fs.write("camera_matrix", np.array([[1e12, 0, 320], [0, 1e12, 240], [0, 0, 1]], float))
+    fs.write("distortion_coefficients", np.zeros((1, 5)))
+    fs.write("image_width", 640)
+    fs.write("image_height", 480)
+    fs.release()
+    with pytest.raises(SpecError, match="fx"):
+        load_camera(fs_path)
+
+
+def test_cli_says_it_in_one_line(tmp_path, capsys):
+    cam = tmp_path / "cam.json"
+    cam.write_text(json.dumps({**CAMERA, "fx": 1e308}))
+    img = tmp_path / "x.png"
+    cv2.imwrite(str(img), np.zeros((480, 640, 3), np.uint8))
+    assert main(["locate", "--object", "cookie-box", "--camera", str(cam), "--store", str(tmp_path / "s"), str(img)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "fx" in err and "Traceback" not in err, err
