@@ -34,7 +34,7 @@ def test_no_server_errors(api_schema, api_server):
     for op in operations:
 
         @given(case=op.as_strategy())
-        @settings(max_examples=25, deadline=None, derandomize=True, database=None,
+        @settings(max_examples=25,  # a budget: each example is an HTTP round trip; the profile does the rest
                   suppress_health_check=list(HealthCheck))
         def fuzz(case):
             response = case.call(timeout=60)
