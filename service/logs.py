@@ -39,7 +39,10 @@ class ServiceLogFilter(logging.Filter):
     def filter(self, record: logging.LogRecord) -> bool:
         if record.name.startswith("uvicorn") and _UVICORN_AFTER_DENIAL in str(record.msg) and _REFUSED.get():
             return False
-        message = record.getMessage()
+        try:
+            message = record.getMessage()
+        except Exception:  # a malformed call: let the formatter report it, as logging does
+            return True
         clean = redact(message)
         if clean != message:
             record.msg, record.args = clean, ()
