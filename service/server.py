@@ -1,4 +1,4 @@
-"""Run the service in a background thread on a loopback port: for tests, the demo and the bench.
+"""Run the service on a loopback port for tests, the demo and the bench: in a thread, or as a process.
 
 ``uvicorn.Server`` in a thread, not a subprocess: starting is fast (the model store is loaded
 once), and the caller can stop it deterministically. Port 0 picks a free port.
@@ -72,6 +72,100 @@ class BackgroundServer:
         self.thread.join(timeout=10)
 
     def __enter__(self) -> "BackgroundServer":
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+
+class ServeProcess:
+    """``quatrack serve`` in a child process on a loopback port: for the bench and the tests that
+    need real worker processes or several replicas. ``env`` adds ``QUATRACK_*`` variables.
+
+    ``stop()`` sends SIGTERM (open sessions are closed with code 1012) and waits; the child runs
+    in its own process group so that its workers go with it.
+    """
+
+    def __init__(self, store, port: int = 0, workers: int = 1, env: dict | None = None,
+                 log_level: str = "warning", log_path=None) -> None:
+        self.store, self.port, self.workers = store, port or free_port(), workers
+        self.env, self.log_level, self.log_path = dict(env or {}), log_level, log_path
+        self.proc = None
+        self._log = None
+
+    @property
+    def url(self) -> str:
+        return f"http://127.0.0.1:{self.port}"
+
+    @property
+    def ws_url(self) -> str:
+        return f"ws://127.0.0.1:{self.port}"
+
+    def start(self, timeout: float = 180.0) -> "ServeProcess":
+        import os
+        import subprocess
+        import sys
+
+        import httpx
+
+        env = {k: v for k, v in os.environ.items() if not k.startswith("QUATRACK_") and k != "PROMETHEUS_MULTIPROC_DIR"}
+        env.update(self.env)
+        self._log = open(self.log_path, "ab") if self.log_path else subprocess.DEVNULL
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "quatrack", "serve", "--store", str(self.store), "--host", "127.0.0.1",
+             "--port", str(self.port), "--workers", str(self.workers), "--log-level", self.log_level],
+            env=env, stdout=self._log, stderr=self._log, start_new_session=True)
+        deadline = time.monotonic() + timeout  # generous: the machine may be busy
+        while True:
+            try:
+                if httpx.get(f"{self.url}/readyz", timeout=5).status_code == 200:
+                    return self
+            except httpx.TransportError:
+                pass
+            if self.proc.poll() is not None or time.monotonic() > deadline:
+                self.stop()
+                raise RuntimeError(f"quatrack serve on port {self.port} did not become ready")
+            time.sleep(0.1)
+
+    def worker_pids(self) -> list[int]:
+        """The worker processes (children of the uvicorn supervisor), from /proc (Linux)."""
+        import os
+
+        if self.proc is None or self.workers == 1:
+            return [self.proc.pid] if self.proc else []
+        out = []
+        for entry in os.listdir("/proc"):
+            if entry.isdigit():
+                try:
+                    with open(f"/proc/{entry}/stat") as f:
+                        fields = f.read().rsplit(")", 1)[1].split()
+                    with open(f"/proc/{entry}/cmdline", "rb") as f:
+                        worker = b"spawn_main" in f.read()  # not multiprocessing's resource tracker
+                except OSError:
+                    continue
+                if int(fields[1]) == self.proc.pid and worker:
+                    out.append(int(entry))
+        return sorted(out)
+
+    def stop(self, sig=None, timeout: float = 30.0) -> None:
+        import os
+        import signal
+        import subprocess
+
+        if self.proc is not None and self.proc.poll() is None:
+            try:
+                os.killpg(self.proc.pid, sig or signal.SIGTERM)
+                self.proc.wait(timeout=timeout)
+            except subprocess.TimeoutExpired:
+                os.killpg(self.proc.pid, signal.SIGKILL)
+                self.proc.wait(timeout=timeout)
+            except ProcessLookupError:
+                pass
+        if self._log not in (None, subprocess.DEVNULL):
+            self._log.close()
+            self._log = None
+
+    def __enter__(self) -> "ServeProcess":
         return self.start()
 
     def __exit__(self, *exc) -> None:

@@ -1,0 +1,160 @@
+"""``quatrack serve --workers 2``: real worker processes, a session limit that holds for the whole
+server, metrics merged over the workers (parsed by prometheus-client's own parser), and the
+settings table of the README generated from the Settings class."""
+
+from __future__ import annotations
+
+import json
+import multiprocessing
+import os
+import re
+import signal
+from pathlib import Path
+
+import httpx
+import pytest
+from prometheus_client.parser import text_string_to_metric_families
+from websockets.exceptions import InvalidStatus
+from websockets.sync.client import connect
+
+from quatrack.bench.scenes import example_store
+from quatrack.service.server import ServeProcess
+from quatrack.service.settings import Settings, env_name, settings_table
+from quatrack.service.workers import SlotLimiter
+
+ROOT = Path(__file__).resolve().parent.parent
+EXAMPLE = ROOT / "examples" / "cookie-box"
+CAMERA = json.loads((EXAMPLE / "camera.json").read_text())
+
+
+def samples(text: str) -> dict:
+    """{(name, frozenset(labels)): value} from the Prometheus text, by prometheus-client's parser."""
+    out = {}
+    for family in text_string_to_metric_families(text):
+        for s in family.samples:
+            out[(s.name, frozenset(s.labels.items()))] = s.value
+    return out
+
+
+def frames_jpeg(n: int) -> list[bytes]:
+    import cv2
+
+    cap = cv2.VideoCapture(str(EXAMPLE / "box.mp4"))
+    out = []
+    while len(out) < n:
+        ok, img = cap.read()
+        if not ok:
+            break
+        out.append(cv2.imencode(".jpg", img)[1].tobytes())
+    cap.release()
+    return out
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory):
+    log = tmp_path_factory.mktemp("serve") / "serve.log"
+    srv = ServeProcess(example_store(), workers=2, env={env_name("max_sessions"): "2", env_name("threads"): "1"},
+                       log_path=log)
+    with srv:
+        yield srv
+
+
+def test_workers_are_processes_with_a_global_session_limit(server):
+    assert len(server.worker_pids()) == 2  # two uvicorn worker processes under one supervisor
+    frames = frames_jpeg(3)
+    url = f"{server.ws_url}/v1/objects/cookie-box/track"
+    answers = 0
+    # the limit (2) holds for the whole server, whichever workers the kernel gave the connections to
+    with connect(url, open_timeout=60) as a, connect(url, open_timeout=60) as b:
+        for ws in (a, b):
+            ws.send(json.dumps(CAMERA))
+        for k, data in enumerate(frames):
+            for ws in (a, b):
+                ws.send(json.dumps({"type": "frame", "time_s": k / 30}))
+                ws.send(data)
+                msg = json.loads(ws.recv(timeout=120))
+                assert msg["type"] == "pose" and msg["frame"] == k, msg
+                answers += 1
+        with pytest.raises(InvalidStatus) as exc:
+            with connect(url, open_timeout=60):
+                pass
+        assert exc.value.response.status_code == 503
+        m = samples(httpx.get(f"{server.url}/metrics", timeout=60).text)
+        assert m[("quatrack_ws_sessions_active", frozenset())] == 2
+    # frames of both sessions are counted, whichever worker served them (multiprocess mode)
+    m = samples(httpx.get(f"{server.url}/metrics", timeout=60).text)
+    assert m[("quatrack_ws_frames_total", frozenset({("result", "processed")}))] == answers
+    statuses = sum(v for (name, labels), v in m.items() if name == "quatrack_track_frames_total")
+    assert statuses == answers
+    assert any(name == "quatrack_track_stage_seconds_count" for name, _ in m)
+    assert m[("quatrack_models_loaded", frozenset())] == 1
+    # the sessions are gone: their slots are free again (bounded wait: closing is asynchronous)
+    import time
+
+    deadline = time.monotonic() + 30
+    while samples(httpx.get(f"{server.url}/metrics", timeout=60).text)[("quatrack_ws_sessions_active", frozenset())] != 0:
+        assert time.monotonic() < deadline, "sessions still counted after their sockets closed"
+        time.sleep(0.1)
+
+
+def test_health_answers_while_tracking(server):
+    """/healthz and /readyz are answered (by either worker) while both sessions track."""
+    frames = frames_jpeg(2)
+    url = f"{server.ws_url}/v1/objects/cookie-box/track"
+    with connect(url, open_timeout=60) as ws:
+        ws.send(json.dumps(CAMERA))
+        for k, data in enumerate(frames):
+            ws.send(data)
+            for _ in range(3):
+                assert httpx.get(f"{server.url}/healthz", timeout=60).status_code == 200
+            assert json.loads(ws.recv(timeout=120))["frame"] == k
+
+
+def _hold_slot(directory: str, ready, done) -> None:
+    lim = SlotLimiter(Path(directory), 2)
+    assert lim.try_open() is not None
+    ready.set()
+    done.wait(60)
+
+
+def test_slots_are_freed_when_a_worker_dies(tmp_path):
+    ctx = multiprocessing.get_context("spawn")
+    ready, done = ctx.Event(), ctx.Event()
+    child = ctx.Process(target=_hold_slot, args=(str(tmp_path), ready, done))
+    child.start()
+    try:
+        assert ready.wait(60)
+        lim = SlotLimiter(tmp_path, 2)
+        assert lim.count() == 1
+        sid = lim.try_open()
+        assert sid is not None and lim.count() == 2
+        assert lim.try_open() is None  # full: one slot here, one in the other process
+        os.kill(child.pid, signal.SIGKILL)  # a crashed worker...
+        child.join(30)
+        assert lim.count() == 1  # ...holds nothing: the kernel dropped its lock
+        assert lim.try_open() is not None
+    finally:
+        done.set()
+        if child.is_alive():
+            child.kill()
+
+
+def test_settings_from_environment(monkeypatch):
+    monkeypatch.setenv("QUATRACK_MAX_SESSIONS", "7")
+    monkeypatch.setenv("QUATRACK_CORS_ORIGINS", "https://a.example, https://b.example")
+    s = Settings.from_env(port=9001)
+    assert s.max_sessions == 7 and s.port == 9001 and s.cors_origins == ("https://a.example", "https://b.example")
+    assert Settings.from_env(**{}).to_env()[env_name("max_sessions")] == "7"
+    monkeypatch.setenv("QUATRACK_WORKERS", "zero")
+    with pytest.raises(ValueError, match="QUATRACK_WORKERS"):
+        Settings.from_env()
+    monkeypatch.delenv("QUATRACK_WORKERS")
+    with pytest.raises(ValueError, match="threads=0"):
+        Settings.from_env(threads=0)
+
+
+def test_readme_documents_every_setting():
+    readme = (ROOT / "README.md").read_text()
+    for name in Settings.model_fields:
+        assert re.search(rf"\|\s*`{env_name(name)}`\s*\|", readme), f"README's settings table lacks {env_name(name)}"
+    assert settings_table() in readme, "README's settings table is stale: python -m quatrack.service.settings"
