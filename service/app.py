@@ -23,7 +23,7 @@ from fastapi.middleware.cors import CORSMiddleware
 from quatrack import __version__
 from quatrack.recognition.runtime import tune_allocator
 
-from . import docs, errors
+from . import docs, errors, viewer
 from .errors import ApiError, error_body
 from .metrics import Metrics, worker_exit
 from .models import ModelRegistry
@@ -172,6 +172,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(ops)
     app.include_router(api)
     app.include_router(sockets)
+    app.include_router(viewer.router)  # /viewer page + GET /v1/objects/{name}/mesh (service/viewer.py)
     app.add_middleware(BodyLimit, limit=settings.max_body_bytes)
     if settings.cors_origins:
         app.add_middleware(CORSMiddleware, allow_origins=list(settings.cors_origins), allow_methods=["GET", "POST"],

@@ -22,14 +22,10 @@ OUT_DIR = "quatrack-demo"
 
 def bundled_example() -> Path:
     """The folder of the bundled cookie-box example (video, camera, spec), found through the
-    installed package rather than the working directory."""
-    try:
-        from quatrack.examples import example_dir  # the package-data helper, where installed
-    except ImportError:
-        import quatrack.service
+    installed package (``quatrack.examples``), not the working directory."""
+    from quatrack.examples import DEFAULT_EXAMPLE, example_dir
 
-        return Path(quatrack.service.__file__).resolve().parent.parent / "examples" / "cookie-box"
-    return Path(example_dir("cookie-box"))
+    return example_dir(DEFAULT_EXAMPLE)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -1,0 +1,276 @@
+// quatrack viewer: stream the webcam or a video file over /v1/objects/{name}/track and draw each
+// answer: wireframe + axes at the pose (object -> camera, X_cam = R(q) X_obj + t, q = [w, x, y, z]),
+// status, latency, and scrolling plots of position and orientation with 3-sigma bands.
+// Lock-step: one frame in flight, so the drawn frame is the one the pose is for.
+"use strict";
+
+const $ = (id) => document.getElementById(id);
+const state = { ws: null, running: false, edges: [], bbox: null, camera: null, count: 0, history: [], t0: 0 };
+const HISTORY = 200;
+const COLOURS = { tracking: "rgb(0,220,0)", init: "rgb(255,215,0)" };
+const AXIS_RGB = [[221, 51, 51], [34, 153, 34], [51, 51, 221]];  // x, y, z
+const AXIS_COLOURS = AXIS_RGB.map(([r, g, b]) => `rgb(${r},${g},${b})`);
+const AXIS_BANDS = AXIS_RGB.map(([r, g, b]) => `rgba(${r},${g},${b},0.25)`);
+
+function token() { return $("token").value.trim(); }
+function headers() { return token() ? { Authorization: "Bearer " + token() } : {}; }
+function message(text) { $("message").textContent = text || ""; }
+
+async function getJSON(path) {
+  const r = await fetch(path, { headers: headers() });
+  const body = await r.json().catch(() => ({}));
+  if (!r.ok) throw new Error((body.error && body.error.code + ": " + body.error.message) || "HTTP " + r.status);
+  return body;
+}
+
+async function loadObjects() {
+  try {
+    const list = await getJSON("/v1/objects");
+    const sel = $("object");
+    const keep = sel.value;
+    sel.innerHTML = "";
+    for (const o of list.objects) sel.add(new Option(o.name, o.name));
+    if (keep) sel.value = keep;
+    message(list.objects.length ? "" : "no trained object on this server");
+  } catch (e) { message("objects: " + e.message); }
+}
+
+// --- geometry ---------------------------------------------------------------------------------
+function rotation(q) {  // R(q) for q = [w, x, y, z] (Hamilton), rows
+  const [w, x, y, z] = q;
+  return [[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+          [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+          [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]];
+}
+
+function project(cam, R, t, X) {  // pinhole with OpenCV's k1,k2,p1,p2,k3; null behind the camera
+  const xc = R[0][0] * X[0] + R[0][1] * X[1] + R[0][2] * X[2] + t[0];
+  const yc = R[1][0] * X[0] + R[1][1] * X[1] + R[1][2] * X[2] + t[1];
+  const zc = R[2][0] * X[0] + R[2][1] * X[1] + R[2][2] * X[2] + t[2];
+  if (zc <= 1e-9) return null;
+  const x = xc / zc, y = yc / zc, d = cam.dist_coeffs || [];
+  const [k1 = 0, k2 = 0, p1 = 0, p2 = 0, k3 = 0] = d;
+  const r2 = x * x + y * y, radial = 1 + k1 * r2 + k2 * r2 * r2 + k3 * r2 * r2 * r2;
+  const xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x);
+  const yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y;
+  return [cam.fx * xd + cam.cx, cam.fy * yd + cam.cy];
+}
+
+function polyline(ctx, cam, R, t, a, b, n) {  // a segment sampled so lens distortion bends it
+  ctx.beginPath();
+  let pen = false;
+  for (let i = 0; i <= n; i++) {
+    const s = i / n;
+    const p = project(cam, R, t, [a[0] + (b[0] - a[0]) * s, a[1] + (b[1] - a[1]) * s, a[2] + (b[2] - a[2]) * s]);
+    if (!p) { pen = false; continue; }
+    if (pen) ctx.lineTo(p[0], p[1]); else ctx.moveTo(p[0], p[1]);
+    pen = true;
+  }
+  ctx.stroke();
+}
+
+function rotvecDeg(q) {  // full rotation vector (axis * angle), degrees
+  let [w, x, y, z] = q;
+  if (w < 0) { w = -w; x = -x; y = -y; z = -z; }
+  const s = Math.hypot(x, y, z);
+  const k = s < 1e-12 ? 2 : 2 * Math.atan2(s, w) / s;
+  return [x * k * 180 / Math.PI, y * k * 180 / Math.PI, z * k * 180 / Math.PI];
+}
+
+// --- drawing ----------------------------------------------------------------------------------
+function drawFrame(frame, msg, rttMs) {
+  const c = $("overlay"), ctx = c.getContext("2d");
+  if (c.width !== frame.width || c.height !== frame.height) { c.width = frame.width; c.height = frame.height; }
+  ctx.drawImage(frame, 0, 0);
+  if (msg.pose) {
+    const R = rotation(msg.pose.q_wxyz), t = msg.pose.t, cam = state.camera;
+    ctx.lineWidth = 2;
+    ctx.strokeStyle = COLOURS[msg.status] || "#fff";
+    for (const [a, b] of state.edges) polyline(ctx, cam, R, t, a, b, 8);
+    if (state.bbox) {
+      const [lo, hi] = state.bbox;
+      const L = 0.3 * Math.hypot(hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2]);
+      for (let k = 0; k < 3; k++) {
+        const end = lo.slice(); end[k] += L;
+        ctx.strokeStyle = AXIS_COLOURS[k];
+        polyline(ctx, cam, R, t, lo, end, 1);
+      }
+    }
+  }
+  $("status").textContent = msg.status;
+  $("latency").textContent = `${rttMs.toFixed(0)} ms round trip, ${msg.latency_ms.toFixed(0)} ms server`;
+  state.count += 1;
+  $("pose-count").textContent = String(state.count);
+  $("last-pose").textContent = JSON.stringify({ frame: msg.frame, status: msg.status, pose: msg.pose,
+                                                 width: frame.width, height: frame.height });
+}
+
+function record(msg) {
+  let row = null;
+  if (msg.pose) {
+    const sd = msg.covariance ? msg.covariance.map((r, i) => Math.sqrt(Math.max(r[i], 0))) : [0, 0, 0, 0, 0, 0];
+    row = { p: msg.pose.t, sp: sd.slice(0, 3), r: rotvecDeg(msg.pose.q_wxyz), sr: sd.slice(3).map((v) => v * 180 / Math.PI) };
+  }
+  state.history.push(row);
+  if (state.history.length > HISTORY) state.history.shift();
+  plot($("plot-position"), "p", "sp");
+  plot($("plot-orientation"), "r", "sr");
+}
+
+function plot(canvas, key, sigmaKey) {  // one panel per axis, each with its own range
+  const ctx = canvas.getContext("2d"), W = canvas.width, H = canvas.height, h = state.history, ph = H / 3;
+  ctx.clearRect(0, 0, W, H);
+  ctx.font = "10px sans-serif";
+  for (let k = 0; k < 3; k++) {
+    const top = k * ph;
+    let lo = Infinity, hi = -Infinity;
+    for (const row of h) if (row) {
+      lo = Math.min(lo, row[key][k] - 3 * row[sigmaKey][k]);
+      hi = Math.max(hi, row[key][k] + 3 * row[sigmaKey][k]);
+    }
+    ctx.strokeStyle = "#ddd";
+    ctx.strokeRect(40.5, top + 2.5, W - 45, ph - 5);
+    if (!isFinite(lo)) continue;
+    if (hi - lo < 1e-9) { lo -= 1; hi += 1; }
+    const pad = 0.05 * (hi - lo); lo -= pad; hi += pad;
+    const X = (i) => 40 + (W - 45) * i / (HISTORY - 1), Y = (v) => top + ph - 3 - (ph - 6) * (v - lo) / (hi - lo);
+    ctx.fillStyle = AXIS_BANDS[k];  // the 3-sigma band, then the value; a lost frame breaks both
+    ctx.strokeStyle = AXIS_COLOURS[k];
+    let run = [];
+    const flush = () => {
+      if (run.length) {
+        ctx.beginPath();
+        run.forEach(([i, r], j) => (j ? ctx.lineTo : ctx.moveTo).call(ctx, X(i), Y(r[key][k] + 3 * r[sigmaKey][k])));
+        for (let j = run.length - 1; j >= 0; j--) ctx.lineTo(X(run[j][0]), Y(run[j][1][key][k] - 3 * run[j][1][sigmaKey][k]));
+        ctx.fill();
+        ctx.beginPath();
+        run.forEach(([i, r], j) => (j ? ctx.lineTo : ctx.moveTo).call(ctx, X(i), Y(r[key][k])));
+        ctx.stroke();
+      }
+      run = [];
+    };
+    h.forEach((r, i) => { if (r) run.push([i, r]); else flush(); });
+    flush();
+    ctx.fillStyle = "#333";
+    ctx.fillText(hi.toFixed(1), 2, top + 12);
+    ctx.fillText(lo.toFixed(1), 2, top + ph - 4);
+    ctx.fillStyle = AXIS_COLOURS[k];
+    ctx.fillText("xyz"[k], 30, top + ph / 2 + 3);
+  }
+}
+
+// --- streaming --------------------------------------------------------------------------------
+function cameraFor(w, h) {
+  const text = $("camera").value.trim();
+  let cam;
+  if (text) {
+    cam = JSON.parse(text);
+    if (cam.width && cam.height && (cam.width !== w || cam.height !== h)) {  // same camera, another size
+      const sx = w / cam.width, sy = h / cam.height;
+      cam = { ...cam, fx: cam.fx * sx, cx: cam.cx * sx, fy: cam.fy * sy, cy: cam.cy * sy };
+    }
+  } else {
+    const f = 0.5 * w / Math.tan(30 * Math.PI / 180);
+    cam = { fx: f, fy: f, cx: w / 2, cy: h / 2 };
+  }
+  return { ...cam, width: w, height: h };
+}
+
+function stop(reason) {
+  state.running = false;
+  if (state.ws) { try { state.ws.close(); } catch (e) { /* already closed */ } }
+  state.ws = null;
+  const v = $("video");
+  if (v.srcObject) { v.srcObject.getTracks().forEach((t) => t.stop()); v.srcObject = null; }
+  v.pause();
+  $("stop").disabled = true;
+  $("status").textContent = "stopped";
+  if (reason) message(reason);
+}
+
+function nextMessage(ws) {
+  return new Promise((resolve, reject) => {
+    ws.onmessage = (e) => resolve(JSON.parse(e.data));
+    ws.onclose = (e) => reject(new Error(`connection closed (${e.code}${e.reason ? " " + e.reason : ""})`));
+    ws.onerror = () => reject(new Error("connection failed"));
+  });
+}
+
+async function start() {
+  const name = $("object").value;
+  if (!name) { message("pick an object"); return; }
+  const v = $("video");
+  await new Promise((res) => (v.readyState >= 2 ? res() : v.addEventListener("loadeddata", res, { once: true })));
+  await v.play();
+  const mesh = await getJSON(`/v1/objects/${encodeURIComponent(name)}/mesh`);
+  state.edges = mesh.edges; state.bbox = mesh.bbox;
+  const w = v.videoWidth, h = v.videoHeight;
+  state.camera = cameraFor(w, h);
+  state.count = 0; state.history = []; state.running = true;
+  $("drop").classList.add("hidden");
+  $("stop").disabled = false;
+  message("");
+  const proto = location.protocol === "https:" ? "wss:" : "ws:";
+  const q = token() ? "?token=" + encodeURIComponent(token()) : "";
+  const ws = new WebSocket(`${proto}//${location.host}/v1/objects/${encodeURIComponent(name)}/track${q}`);
+  state.ws = ws;
+  await new Promise((res, rej) => { ws.onopen = res; ws.onerror = () => rej(new Error("cannot open the WebSocket (token?)")); });
+  ws.send(JSON.stringify({ ...state.camera, ack: true }));
+  const ready = await nextMessage(ws);
+  if (ready.type !== "ready") throw new Error(ready.error ? ready.error.code + ": " + ready.error.message : "refused");
+  const grab = document.createElement("canvas");
+  grab.width = w; grab.height = h;
+  const max = parseInt($("max-frames").value, 10);
+  state.t0 = performance.now();
+  let last = -1;
+  while (state.running && !(max > 0 && state.count >= max)) {
+    grab.getContext("2d").drawImage(v, 0, 0, w, h);
+    const frame = document.createElement("canvas");  // keep the sent frame: the pose is drawn on it
+    frame.width = w; frame.height = h;
+    frame.getContext("2d").drawImage(grab, 0, 0);
+    const blob = await new Promise((res) => grab.toBlob(res, "image/jpeg", 0.9));
+    let t = (performance.now() - state.t0) / 1000;
+    if (t <= last) t = last + 1e-3;
+    last = t;
+    const sent = performance.now();
+    ws.send(JSON.stringify({ type: "frame", time_s: t }));
+    ws.send(blob);
+    const msg = await nextMessage(ws);
+    if (!state.running) break;
+    if (msg.type === "error") { message(msg.error.code + ": " + msg.error.message); continue; }
+    drawFrame(frame, msg, performance.now() - sent);
+    record(msg);
+    if (v.ended) break;
+  }
+  stop(state.count ? "" : "no pose received");
+}
+
+function run() { start().catch((e) => stop(e.message)); }
+
+$("webcam").onclick = async () => {
+  stop();
+  try {
+    const v = $("video");
+    v.src = "";
+    v.srcObject = await navigator.mediaDevices.getUserMedia({ video: { width: 640, height: 480 }, audio: false });
+    run();
+  } catch (e) { message("webcam: " + e.message); }
+};
+
+function playFile(file) {
+  stop();
+  const v = $("video");
+  v.srcObject = null;
+  v.src = URL.createObjectURL(file);
+  v.loop = false;
+  run();
+}
+
+$("file").onchange = (e) => { if (e.target.files[0]) playFile(e.target.files[0]); };
+const view = $("view");
+view.addEventListener("dragover", (e) => e.preventDefault());
+view.addEventListener("drop", (e) => { e.preventDefault(); if (e.dataTransfer.files[0]) playFile(e.dataTransfer.files[0]); });
+$("stop").onclick = () => stop("stopped by the user");
+$("refresh").onclick = loadObjects;
+$("token").addEventListener("change", loadObjects);
+loadObjects();
