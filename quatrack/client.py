@@ -4,7 +4,7 @@
 
     with Client("http://127.0.0.1:8000", token=None) as client:
         found = client.pose("photo.jpg", "camera.json", object="cookie-box")  # a LocateOut
-        for msg in client.track(frames, "camera.json", object="cookie-box"):  # TrackMessage each
+        for msg in client.track(frames, "camera.json", object="cookie-box"):  # frames: images or (time_s, image)
             print(msg.frame, msg.status, msg.pose)
 
 Results are the service's own pydantic schemas (:mod:`service.schemas`): :class:`LocateOut` for
@@ -163,13 +163,19 @@ class Client:
 
     # --- WebSocket --------------------------------------------------------------------------------
     def track(self, frames: Iterable[Any], camera: Any, object: str | None = None,
-              times: Iterable[float] | None = None) -> Iterator[TrackMessage]:
-        """Track ``frames`` (images: numpy arrays, encoded bytes or paths), lock-step: one
-        :class:`TrackMessage` per frame, in order. ``times`` gives each frame's ``time_s``
-        (default: the server's clock). A per-frame error ends the iteration with a QuatrackError."""
+              ros_mesh_unit: str | None = None) -> Iterator[TrackMessage]:
+        """Track ``frames`` lock-step: one :class:`TrackMessage` per frame, in order. A frame is
+        an image (numpy array, encoded bytes or a path), timed by the server's clock, or a pair
+        ``(time_s, image)`` (seconds, increasing). ``ros_mesh_unit`` (mm, cm, m: the mesh's unit) asks for
+        ``format=ros``: each message's ``ros`` is then a ``geometry_msgs/PoseWithCovarianceStamped``
+        (metres). A per-frame error ends the iteration with a QuatrackError."""
+        from urllib.parse import urlencode
+
         from websockets.sync.client import connect
 
         url = f"{self.ws_url}/v1/objects/{self._name(object)}/track"
+        if ros_mesh_unit is not None:
+            url += "?" + urlencode({"format": "ros", "mesh_unit": ros_mesh_unit})
         headers = {"Authorization": f"Bearer {self.token}"} if self.token else None
         try:
             ws = connect(url, additional_headers=headers, max_size=None, open_timeout=self.timeout)
@@ -178,11 +184,11 @@ class Client:
         with ws:
             ws.send(json.dumps({**camera_json(camera), "ack": True}))
             self._expect(json.loads(ws.recv(self.timeout)), "ready")
-            clock = iter(times) if times is not None else None
-            for image in frames:
-                if clock is not None:
-                    ws.send(json.dumps({"type": "frame", "time_s": float(next(clock))}))
-                ws.send(image_bytes(image))
+            for item in frames:
+                if isinstance(item, tuple) and len(item) == 2:
+                    ws.send(json.dumps({"type": "frame", "time_s": float(item[0])}))
+                    item = item[1]
+                ws.send(image_bytes(item))
                 yield TrackMessage.model_validate(self._expect(json.loads(ws.recv(self.timeout)), "pose"))
 
     @staticmethod

@@ -25,6 +25,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from quatrack.recognition.images import MIN_SIDE, ImageError
 from quatrack.recognition.locate import LocateParams, locate
 
+from . import ros
 from .errors import ApiError, error_body
 from .imagein import decode_upload
 from .logs import mark_refused
@@ -200,7 +201,10 @@ async def pose(
     width: Annotated[int | None, Query(gt=0, description="image width the camera is for (default: the image's)")] = None,
     height: Annotated[int | None, Query(gt=0, description="image height the camera is for")] = None,
     dist: Annotated[str | None, Query(description="distortion k1,k2,p1,p2[,k3], comma-separated")] = None,
+    format: Annotated[str, Query(description="json, or ros: also a geometry_msgs/PoseWithCovarianceStamped under \"ros\"")] = "json",
+    mesh_unit: Annotated[str | None, Query(description="with format=ros: the mesh's unit, mm, cm or m")] = None,
 ) -> dict:
+    unit = ros.ros_unit({"format": format, "mesh_unit": mesh_unit})
     registry = state.registry
     registry.check_name(name)
     if not registry.is_known(name):
@@ -245,7 +249,8 @@ async def pose(
                        {"Retry-After": str(state.settings.retry_after_s)})
     state.pending += 1
     try:
-        return await asyncio.get_running_loop().run_in_executor(state.executor, _locate, state, name, data, camera)
+        result = await asyncio.get_running_loop().run_in_executor(state.executor, _locate, state, name, data, camera)
+        return JSONResponse(ros.add_to_locate(result, unit)) if unit else result  # "ros" added: LocateOut + ros
     finally:
         state.pending -= 1
 
@@ -283,6 +288,10 @@ async def track(websocket: WebSocket, name: str) -> None:
         return await _deny(websocket, exc.status_code, exc.code, exc.message, 1008)
     if not state.registry.is_known(name):
         return await _deny(websocket, 404, "unknown_object", f"no object named {name!r} in the store", 1008)
+    try:
+        unit = ros.ros_unit(websocket.query_params)  # ?format=ros&mesh_unit=cm
+    except ApiError as exc:
+        return await _deny(websocket, exc.status_code, exc.code, exc.message, 1008)
     sid = state.sessions.try_open()
     if sid is None:
         return await _deny(websocket, 503, "too_many_sessions",
@@ -296,7 +305,8 @@ async def track(websocket: WebSocket, name: str) -> None:
         except ApiError as exc:  # e.g. a corrupt model: 503 naming the object
             return await _deny(websocket, exc.status_code, exc.code, exc.message, 1011)
         await websocket.accept()
-        session = TrackSession(websocket, sid, name, model, state.settings, state.executor, m, clock=state.clock)
+        session = TrackSession(websocket, sid, name, model, state.settings, state.executor, m, clock=state.clock,
+                               ros_unit=unit)
         outcome = await session.run()
     finally:
         state.sessions.close(sid)

@@ -179,3 +179,4 @@ class TrackMessage(BaseModel):
     skipped: int = Field(description="frames dropped (newer ones arrived) since the previous message")
     reason: str | None = Field(None, description="why lost, or how (re)initialised")
     timings_ms: dict[str, float] = {}
+    ros: dict | None = Field(None, description="with ?format=ros: geometry_msgs/PoseWithCovarianceStamped (metres, x,y,z,w)")

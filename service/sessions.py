@@ -34,6 +34,7 @@ from quatrack.viewsets.spec import parse_pose
 from .errors import ApiError, error_body
 from .imagein import decode_upload, sniff
 from .metrics import Metrics
+from .ros import add_to_track_message
 from .schemas import CameraIn
 from .settings import Settings
 from .tracker import TRACKER_KIND, make_tracker
@@ -78,8 +79,10 @@ class _SessionError(Exception):
 
 class TrackSession:
     def __init__(self, ws: WebSocket, sid: str, name: str, model: tuple[ObjectModel, ModelIndex], settings: Settings,
-                 executor: Executor, metrics: Metrics, clock: Callable[[], float] = time.monotonic) -> None:
+                 executor: Executor, metrics: Metrics, clock: Callable[[], float] = time.monotonic,
+                 ros_unit: str | None = None) -> None:
         self.ws, self.sid, self.name = ws, sid, name
+        self.ros_unit = ros_unit  # ?format=ros: each pose message also carries "ros" (service/ros.py)
         # the model the session started with, to its end (a retrained one serves new sessions)
         self.model, self.settings, self.executor, self.metrics = model, settings, executor, metrics
         self.camera: CameraIn | None = None
@@ -297,6 +300,7 @@ class TrackSession:
                 continue
             out["skipped"] = skipped
             out["latency_ms"] = round((time.perf_counter() - item.arrival) * 1e3, 2)
+            add_to_track_message(out, self.ros_unit)
             self.metrics.frames.labels("processed").inc()
             self.metrics.frame_latency.observe(out["latency_ms"] / 1e3)
             await self.send(out)

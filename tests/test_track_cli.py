@@ -1,0 +1,93 @@
+"""``quatrack track`` on live sources and in every output format.
+
+A camera index needs a device, which CI has not: ``--video 0`` is tested with the frame-source
+module's capture factory replaced by a looped file source (box.mp4's frames, endlessly, with no
+frame rate, as a webcam reports), so the CLI path is the real one from ``--video 0`` on.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+
+import numpy as np
+import pytest
+
+from quatrack.bench.scenes import EXAMPLE, example_store
+from quatrack.cli import main
+from quatrack.recognition import trackio
+
+from test_output import LoopedCamera
+
+
+def _track(tmp_path, *extra):
+    return main(["track", "--object", "cookie-box", "--camera", str(EXAMPLE / "camera.json"),
+                 "--store", str(example_store()), "--quiet", *extra])
+
+
+@pytest.fixture
+def camera(monkeypatch):
+    monkeypatch.setattr(trackio, "open_capture", LoopedCamera)
+    LoopedCamera.opened_with.clear()
+    return LoopedCamera
+
+
+def test_camera_index_with_max_frames_in_json_lines(camera, tmp_path):
+    out = tmp_path / "poses.jsonl"
+    assert _track(tmp_path, "--video", "0", "--max-frames", "6", "--format", "jsonl", "--out", str(out)) == 0
+    assert camera.opened_with == [0]
+    msgs = [json.loads(line) for line in out.read_text().splitlines()]
+    assert [m["frame"] for m in msgs] == list(range(6))
+    assert msgs[0]["status"] == "init" and all(m["status"] == "tracking" for m in msgs[1:])
+    times = [m["time_s"] for m in msgs]
+    assert times[0] == 0.0 and all(b > a for a, b in zip(times, times[1:]))  # the clock: increasing
+    for m in msgs[1:]:
+        assert len(m["covariance"]) == 6 and len(m["velocity"]["v"]) == 3 and abs(np.linalg.norm(m["pose"]["q_wxyz"]) - 1) < 1e-6
+
+
+def test_ctrl_c_ends_a_live_run_with_a_complete_csv(monkeypatch, tmp_path, capsys):
+    class Interrupted(LoopedCamera):
+        def read(self):
+            if self.k >= 4 or len(self.frames) >= 5:  # the user presses Ctrl-C at the 6th frame
+                raise KeyboardInterrupt
+            return super().read()
+
+    monkeypatch.setattr(trackio, "open_capture", Interrupted)
+    out = tmp_path / "poses.csv"
+    overlay = tmp_path / "overlay.mp4"
+    rc = _track(tmp_path, "--video", "0", "--out", str(out), "--overlay", str(overlay))
+    err = capsys.readouterr().err
+    assert rc == 0 and "stopped (Ctrl-C) after 5 frames" in err
+    rows = list(csv.reader(out.open()))
+    assert rows[0] == list(trackio.CSV_COLUMNS) and [int(r[0]) for r in rows[1:]] == [0, 1, 2, 3, 4]
+    assert all(len(r) == 17 for r in rows) and rows[1][2] == "init"
+    assert overlay.stat().st_size > 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["overlay.mp4", "poses.csv"]  # no temporary left
+
+
+def test_bop_format(camera, tmp_path):
+    out = tmp_path / "poses_bop.csv"
+    assert _track(tmp_path, "--video", "0", "--fps", "30", "--max-frames", "4", "--out", str(out),
+                  "--format", "bop", "--mesh-unit", "cm", "--obj-id", "5") == 0
+    lines = out.read_text().splitlines()
+    assert lines[0] == "scene_id,im_id,obj_id,score,R,t,time" and len(lines) == 5
+    for k, line in enumerate(lines[1:]):
+        scene, im, obj, score, R, t, secs = line.split(",")
+        assert (scene, im, obj) == ("0", str(k), "5") and float(score) > 10 and float(secs) > 0
+        R = np.array([float(x) for x in R.split()]).reshape(3, 3)
+        assert np.allclose(R @ R.T, np.eye(3), atol=1e-6) and np.linalg.det(R) > 0
+        t_mm = np.array([float(x) for x in t.split()])
+        assert 300 < t_mm[2] < 1500  # the box ~65 cm in front of the camera, in millimetres
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["--format", "bop"], "--mesh-unit"),
+    (["--max-frames", "0"], "--max-frames"),
+    (["--video", "rtsp://127.0.0.1:9/none"], "cannot be opened as a stream"),
+])
+def test_bad_live_options_are_one_line_errors(tmp_path, capsys, extra, message):
+    out = tmp_path / "poses.csv"
+    args = extra if "--video" in extra else ["--video", str(EXAMPLE / "box.mp4"), *extra]
+    rc = _track(tmp_path, *args, "--out", str(out))
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and message in err and "\n" not in err and not out.exists()
