@@ -1,0 +1,179 @@
+"""The Python client (``quatrack.client``), the runnable examples in docs/examples/, ``?format=ros``
+and ``quatrack demo``, against a real server on a loopback port (with a token)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from quatrack.bench.scenes import EXAMPLE, example_store
+from quatrack.cli import main
+from quatrack.client import Client, QuatrackError, base_urls
+from quatrack.recognition import trackio
+from quatrack.service.schemas import LocateOut, TrackMessage
+from quatrack.service.server import BackgroundServer, free_port
+from quatrack.service.settings import Settings
+
+ROOT = Path(__file__).resolve().parent.parent
+TOKEN = "client-test-token"
+CAMERA = EXAMPLE / "camera.json"
+
+
+@pytest.fixture(scope="module")
+def server():
+    with BackgroundServer(Settings(store=example_store(), api_token=TOKEN)) as srv:
+        yield srv
+
+
+@pytest.fixture(scope="module")
+def frames():
+    with trackio.open_frames(video=str(EXAMPLE / "box.mp4"), max_frames=8) as src:
+        return [(t, image) for _, t, image in src]
+
+
+def test_pose_and_track_typed(server, frames):
+    with Client(server.url, object="cookie-box", token=TOKEN) as c:
+        assert [o.name for o in c.objects().objects] == ["cookie-box"]
+        found = c.pose(frames[0][1], str(CAMERA))
+        assert isinstance(found, LocateOut) and found.found and 20 < found.pose.t[2] < 200
+        msgs = list(c.track(frames, CAMERA))
+    assert all(isinstance(m, TrackMessage) for m in msgs)
+    assert [m.frame for m in msgs] == list(range(8)) and [m.status for m in msgs] == ["init"] + ["tracking"] * 7
+    assert [m.time_s for m in msgs] == pytest.approx([t for t, _ in frames])
+    assert np.linalg.norm(np.array(msgs[0].pose.t) - found.pose.t) < 2.0  # the same box, the same place
+
+
+def test_errors_carry_the_servers_code(server, frames):
+    image = frames[0][1]
+    with Client(server.url, object="no-such-box", token=TOKEN) as c:
+        with pytest.raises(QuatrackError) as e:
+            c.pose(image, CAMERA)
+        assert (e.value.code, e.value.status) == ("unknown_object", 404)
+        with pytest.raises(QuatrackError) as e:
+            next(c.track([image], CAMERA))
+        assert (e.value.code, e.value.status) == ("unknown_object", 404)
+    with Client(server.url, object="cookie-box", token="wrong") as c:
+        with pytest.raises(QuatrackError) as e:
+            c.pose(image, CAMERA)
+        assert (e.value.code, e.value.status) == ("unauthorized", 401)
+        with pytest.raises(QuatrackError) as e:
+            next(c.track([image], CAMERA))
+        assert e.value.code == "unauthorized"
+    with Client(server.url, object="cookie-box", token=TOKEN) as c:
+        with pytest.raises(QuatrackError) as e:
+            next(c.track([image], {"width": 640, "height": 480, "fx": -1, "fy": 600, "cx": 320, "cy": 240}))
+        assert e.value.code == "bad_camera"
+    with Client(f"http://127.0.0.1:{free_port()}", object="cookie-box") as c:
+        with pytest.raises(QuatrackError) as e:
+            c.objects()
+        assert e.value.code == "unreachable"
+    assert base_urls("ws://h:1/") == ("http://h:1", "ws://h:1") and base_urls("https://h") == ("https://h", "wss://h")
+    with pytest.raises(ValueError, match="without a path"):
+        base_urls("http://h:1/v1/objects")
+
+
+def test_ros_format_round_trips(server, frames):
+    import httpx
+
+    from quatrack.tracking.pose import Pose
+
+    with Client(server.url, object="cookie-box", token=TOKEN) as c:
+        msgs = list(c.track(frames[:4], CAMERA, ros_mesh_unit="cm"))
+    for m in msgs:
+        pose, cov = trackio.pose_from_ros(m.ros, "cm")
+        assert pose.allclose(Pose(m.pose.q_wxyz, m.pose.t), atol=1e-9)
+        assert m.ros["pose"]["pose"]["position"]["z"] == pytest.approx(m.pose.t[2] / 100)  # metres
+        if m.covariance is not None:
+            assert np.allclose(cov, m.covariance)
+    headers = {"Authorization": f"Bearer {TOKEN}"}
+    files = {"image": ("f.jpg", _jpeg(frames[0][1])),
+             "camera": (None, CAMERA.read_text())}
+    r = httpx.post(f"{server.url}/v1/objects/cookie-box/pose?format=ros&mesh_unit=mm", files=files, headers=headers)
+    body = r.json()
+    assert r.status_code == 200 and body["found"]
+    pose, _ = trackio.pose_from_ros(body["ros"], "mm")
+    assert pose.allclose(Pose(body["pose"]["q_wxyz"], body["pose"]["t"]), atol=1e-9)
+    r = httpx.post(f"{server.url}/v1/objects/cookie-box/pose?format=ros", files=files, headers=headers)
+    assert r.status_code == 422 and r.json()["error"]["code"] == "bad_format"
+    plain = httpx.post(f"{server.url}/v1/objects/cookie-box/pose", files=files, headers=headers).json()
+    assert "ros" not in plain  # the contract's object unchanged without format=ros
+
+
+def _jpeg(image) -> bytes:
+    import cv2
+
+    return cv2.imencode(".jpg", image)[1].tobytes()
+
+
+def _run_example(name: str, *args: str) -> subprocess.CompletedProcess:
+    env = {**os.environ, "QUATRACK_API_TOKEN": TOKEN}
+    return subprocess.run([sys.executable, str(ROOT / "docs" / "examples" / name), *args], env=env,
+                          capture_output=True, text=True, timeout=300)
+
+
+def test_the_client_example_runs(server):
+    p = _run_example("client_track.py", "--url", server.url, "--frames", "6")
+    assert p.returncode == 0, p.stderr
+    lines = p.stdout.splitlines()
+    assert lines[0].startswith("pose: found=True") and len(lines) == 7
+    assert lines[1].startswith("frame 0 init") and all(" tracking " in x for x in lines[2:])
+
+
+def test_the_ros2_example_prints_messages_without_rclpy(server):
+    p = _run_example("ros2_republish.py", "--url", server.url, "--mesh-unit", "cm", "--max-frames", "3", "--dry-run")
+    assert p.returncode == 0, p.stderr
+    msgs = [json.loads(x) for x in p.stdout.splitlines()]
+    assert len(msgs) == 3 and all(len(m["pose"]["covariance"]) == 36 for m in msgs)
+    assert all(set(m["pose"]["pose"]["orientation"]) == {"x", "y", "z", "w"} for m in msgs)
+
+
+# --- quatrack demo -----------------------------------------------------------------------------
+
+def test_demo_against_a_server_from_any_folder(server, tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    empty = tmp_path / "empty-store"
+    rc = main(["demo", "--url", server.ws_url, "--token", TOKEN, "--store", str(empty), "--max-frames", "6", "--quiet"])
+    out = capsys.readouterr().out
+    assert rc == 0 and "6 frames sent, 6 tracked answers" in out
+    folder = tmp_path / "quatrack-demo"
+    assert sorted(p.name for p in folder.iterdir()) == ["overlay.mp4", "plot.png", "poses.csv"]  # mesh from the server
+    rows = (folder / "poses.csv").read_text().splitlines()
+    assert rows[0] == trackio.CSV_HEADER and len(rows) == 7 and rows[1].split(",")[2] == "init"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["quatrack-demo"]  # nothing else written
+
+
+@pytest.mark.parametrize("case, message", [
+    ("unknown-object", "--object no-such-box: the server has no such object"),
+    ("http-url-with-path", "without a path"),
+    ("no-token", "needs a token"),
+    ("not-a-url", "give the server's address"),
+    ("nobody-there", "no server answers there"),
+    ("local-untrained", "train it first"),
+])
+def test_demo_errors_are_one_line(server, tmp_path, monkeypatch, capsys, case, message):
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.delenv("QUATRACK_API_TOKEN", raising=False)
+    args = ["demo", "--url", server.url, "--token", TOKEN, "--store", str(tmp_path / "s"), "--max-frames", "2"]
+    if case == "unknown-object":
+        args += ["--object", "no-such-box"]
+    elif case == "http-url-with-path":
+        args[2] = server.url + "/v1/objects/cookie-box/track"
+    elif case == "no-token":
+        args = args[:3] + args[5:]
+    elif case == "not-a-url":
+        args[2] = "127.0.0.1:8000"
+    elif case == "nobody-there":
+        args[2] = f"ws://127.0.0.1:{free_port()}"
+    elif case == "local-untrained":
+        args = args[:1] + args[3:]
+    rc = main(args)
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and err.startswith("quatrack demo: error:") and message in err, err
+    assert "\n" not in err and "Traceback" not in err
+    assert not (tmp_path / "quatrack-demo").exists()
