@@ -62,13 +62,27 @@ def _add_bench(parser: argparse.ArgumentParser) -> None:
     track.add_argument("--json", action="store_true", help="print one JSON object instead of the report")
     serve = sub.add_parser(
         "serve",
-        help="the service under load: concurrent WebSocket streams at 30 fps, REST pose requests/s",
-        description="Start the service on loopback; N = 1, 2, 4, 8 WebSocket clients each stream box.mp4 at 30 fps "
-                    "(per-frame latency p50/p99, frames processed and skipped); REST pose requests/s at concurrency 4.",
+        help="the service under load: 1..16 concurrent 30 fps streams against 1 and N workers and two replicas behind nginx",
+        description="Start `quatrack serve` on loopback with 1 and N worker processes (and two replicas behind nginx "
+                    "when it is installed); 1, 2, 4, 8, 16 WebSocket clients each stream box.mp4 at 30 fps: per-stream "
+                    "fps, latency p50/p99, frames dropped, /healthz p99, RSS per worker; REST pose requests/s.",
     )
-    from quatrack.bench.serve import add_arguments as _add_serve_bench
-
-    _add_serve_bench(serve)
+    serve.add_argument("--store", metavar="DIR", help="model store with the object (default: train the example into a temp store)")
+    serve.add_argument("--object", default="cookie-box", metavar="NAME")
+    serve.add_argument("--video", default="examples/cookie-box/box.mp4")
+    serve.add_argument("--camera", default="examples/cookie-box/camera.json")
+    serve.add_argument("--spec", default="examples/cookie-box/object.json", help="spec trained when no --store is given")
+    serve.add_argument("--clients", default="1,2,4,8,16", help="numbers of concurrent streams (default 1,2,4,8,16)")
+    serve.add_argument("--workers", default=None, metavar="N,...",
+                       help="worker-process counts to compare (default 1 and the number of cores)")
+    serve.add_argument("--threads", type=int, default=1, metavar="N", help="CPU threads per worker process (default 1)")
+    serve.add_argument("--replicas", default="auto", choices=["auto", "yes", "no"],
+                       help="also two 1-worker replicas behind nginx (default: when nginx is installed)")
+    serve.add_argument("--seconds", type=float, default=5.0, help="length of each run: frames each client streams / fps (default 5)")
+    serve.add_argument("--fps", type=float, default=30.0, help="each client's frame rate (default 30)")
+    serve.add_argument("--rest-requests", type=int, default=40, help="REST pose requests (default 40; 0 to skip)")
+    serve.add_argument("--rest-concurrency", type=int, default=4)
+    serve.add_argument("--json", action="store_true", help="print one JSON object instead of the tables")
 
 
 def _run_bench(args: argparse.Namespace) -> int:
@@ -117,9 +131,17 @@ def _floats(text: str, option: str) -> tuple[float, ...]:
 
 
 def _add_train(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("spec", metavar="SPEC.json", help="object spec (see docs/contract.md)")
+    parser.add_argument("spec", nargs="+", metavar="SPEC.json",
+                        help="object spec(s) (see docs/contract.md); several are trained in parallel")
     parser.add_argument("--store", metavar="DIR", help="model store (default: $QUATRACK_STORE or the user data directory)")
-    parser.add_argument("--jobs", type=int, default=2, metavar="N", help="views built in parallel (default 2)")
+    parser.add_argument("--jobs", type=int, default=2, metavar="N",
+                        help="CPU budget (default 2): one spec builds N views in parallel; several specs train "
+                             "min(N, specs) at once in processes, the rest of N going to their views; with --ray, "
+                             "the CPUs each task asks of the cluster")
+    parser.add_argument("--ray", metavar="ADDRESS", default=None,
+                        help="train each spec as a task on this Ray cluster (host:port, 'auto', or 'local' for a "
+                             "private one); specs and store must be on a filesystem every node shares; "
+                             "needs pip install 'quatrack[ray]'")
     parser.add_argument("--no-overwrite", action="store_true", help="refuse to replace an existing model of that name")
     parser.add_argument("--skip-existing", action="store_true",
                         help="do nothing (exit 0) if the store already holds this object trained from this very spec")
@@ -186,7 +208,10 @@ def _run_train(args: argparse.Namespace) -> int:
     store = resolve_store(args.store)
     if store.exists() and not store.is_dir():
         raise UserError(f"--store {store}: not a directory")
-    spec = load_spec(args.spec)
+    if len(args.spec) > 1 or args.ray:
+        return _run_train_many(args, params, store)
+    spec_path = args.spec[0]
+    spec = load_spec(spec_path)
     if args.no_overwrite and model_path(store, spec.name).exists():
         raise UserError(f"object {spec.name!r} already exists in {store} (and --no-overwrite was given)")
     if args.skip_existing and model_path(store, spec.name).exists():
@@ -195,7 +220,7 @@ def _run_train(args: argparse.Namespace) -> int:
         except ValueError:
             trained_from = None  # unreadable: train it again
         if trained_from == spec.checksum:
-            print(f"{spec.name!r} is already trained from {args.spec} in {store}: nothing to do")
+            print(f"{spec.name!r} is already trained from {spec_path} in {store}: nothing to do")
             return 0
     bar = tqdm(total=0, desc=f"training {spec.name}", unit="view", file=sys.stderr, disable=None, leave=False)
 
@@ -221,6 +246,34 @@ def _run_train(args: argparse.Namespace) -> int:
     print(f"  RFCH: {r.n_clusters} clusters, {r.histogram.size} bins, d = {r.distance} px, scales {list(r.scales)}")
     print(f"  time: {time.perf_counter() - t0:.1f} s")
     return 0
+
+
+def _run_train_many(args: argparse.Namespace, params, store) -> int:
+    """Several specs (or --ray): :func:`quatrack.viewsets.batch.train_many`, one line per object.
+    Every spec is checked before any training; an object that fails is reported and the others
+    are still trained; the exit status is 2 if any failed."""
+    import time
+
+    from quatrack.viewsets.batch import train_many
+
+    t0 = time.perf_counter()
+
+    def done(r) -> None:
+        if r.error:
+            print(f"quatrack train: error: {r.spec}: {r.error}", file=sys.stderr)
+        elif r.skipped:
+            print(f"{r.name!r} is already trained from {r.spec} in {store}: nothing to do")
+        else:
+            s = r.summary
+            print(f"trained {r.name!r} -> {r.path}  ({s['viewsets']} viewsets, {s['points3d_total']} 3-D points, "
+                  f"{r.seconds:.1f} s)", flush=True)
+
+    results = train_many(args.spec, store, params, jobs=args.jobs, overwrite=not args.no_overwrite,
+                         skip_existing=args.skip_existing, ray_address=args.ray, on_done=done)
+    failed = sum(r.error is not None for r in results)
+    where = f"on Ray ({args.ray})" if args.ray else f"locally, --jobs {args.jobs}"
+    print(f"{len(results) - failed} of {len(results)} objects trained {where} in {time.perf_counter() - t0:.1f} s")
+    return 2 if failed else 0
 
 
 def _add_models(parser: argparse.ArgumentParser) -> None:

@@ -11,10 +11,6 @@ from __future__ import annotations
 
 import asyncio
 import json
-import os
-import re
-import shutil
-import subprocess
 import time
 from pathlib import Path
 
@@ -22,14 +18,15 @@ import httpx
 import pytest
 from prometheus_client.parser import text_string_to_metric_families
 
+from quatrack.bench.balancer import Nginx, find_nginx
 from quatrack.bench.scenes import example_store
-from quatrack.service.server import ServeProcess, free_port
+from quatrack.service.server import ServeProcess
 
 ROOT = Path(__file__).resolve().parent.parent
 DEPLOY = ROOT / "deploy"
 EXAMPLE = ROOT / "examples" / "cookie-box"
 CAMERA = json.loads((EXAMPLE / "camera.json").read_text())
-NGINX = shutil.which("nginx") or next((p for p in ("/usr/sbin/nginx", "/usr/local/sbin/nginx") if os.access(p, os.X_OK)), None)
+NGINX = find_nginx()
 
 
 def test_manifests_describe_replicas_with_readiness():
@@ -46,50 +43,6 @@ def test_manifests_describe_replicas_with_readiness():
     claim = dep["template"]["spec"]["volumes"][0]["persistentVolumeClaim"]["claimName"]
     assert docs["PersistentVolumeClaim"]["metadata"]["name"] == claim
     assert "ReadWriteMany" in docs["PersistentVolumeClaim"]["spec"]["accessModes"]
-
-
-def nginx_config(ports: list[int], listen: int) -> str:
-    """deploy/nginx.conf with the loopback replicas and port; ``user root`` when run as root (CI),
-    so that the workers may write the temp dirs of the private prefix."""
-    text = (DEPLOY / "nginx.conf").read_text()
-    servers = "\n".join(f"        server 127.0.0.1:{p} max_fails=1 fail_timeout=5s;" for p in ports)
-    text, n = re.subn(r"^\s*server quatrack:8000[^\n]*;", servers, text, flags=re.M)
-    assert n == 1
-    text, n = re.subn(r"listen 8080;", f"listen 127.0.0.1:{listen};", text)
-    assert n == 1
-    if os.geteuid() == 0:
-        text = "user root;\n" + text
-    return text
-
-
-class Nginx:
-    def __init__(self, prefix: Path, ports: list[int]) -> None:
-        self.prefix, self.port = prefix, free_port()
-        (prefix / "logs").mkdir(parents=True, exist_ok=True)
-        (prefix / "nginx.conf").write_text(nginx_config(ports, self.port))
-        self.cmd = [NGINX, "-p", str(prefix), "-c", "nginx.conf",
-                    "-g", f"daemon off; pid {prefix}/nginx.pid; error_log {prefix}/logs/error.log;"]
-
-    def __enter__(self):
-        check = subprocess.run(self.cmd + ["-t"], capture_output=True, text=True)
-        assert check.returncode == 0, check.stderr
-        self.proc = subprocess.Popen(self.cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        deadline = time.monotonic() + 60
-        while True:
-            try:
-                httpx.get(f"http://127.0.0.1:{self.port}/healthz", timeout=5)
-                return self
-            except httpx.TransportError:
-                assert self.proc.poll() is None and time.monotonic() < deadline, "nginx did not start"
-                time.sleep(0.1)
-
-    def __exit__(self, *exc):
-        self.proc.terminate()
-        try:
-            self.proc.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            self.proc.wait(timeout=20)
 
 
 def frames_jpeg(n: int) -> list[bytes]:
@@ -162,8 +115,8 @@ def test_two_replicas_behind_nginx_survive_one_stopping(tmp_path):
     a = ServeProcess(store, workers=1, env=env, log_path=tmp_path / "a.log")
     b = ServeProcess(store, workers=1, env=env, log_path=tmp_path / "b.log")
     with a, b, Nginx(tmp_path / "nginx", [a.port, b.port]) as lb:
-        base = f"http://127.0.0.1:{lb.port}"
-        ws_url = f"ws://127.0.0.1:{lb.port}/v1/objects/cookie-box/track"
+        base = lb.url
+        ws_url = f"{lb.ws_url}/v1/objects/cookie-box/track"
         frames = frames_jpeg(4)
         statuses: list[int] = []
 
@@ -207,6 +160,6 @@ def test_two_replicas_behind_nginx_survive_one_stopping(tmp_path):
 
         asyncio.run(scenario())
         assert statuses and all(code == 200 for code in statuses), sorted(set(statuses))
-        error_log = (tmp_path / "nginx" / "logs" / "error.log").read_text()
+        error_log = lb.error_log.read_text()
         # the balancer did see the dead replica, and retried on the live one (passive health check)
         assert "connect() failed" in error_log, error_log[-2000:]

@@ -1,0 +1,119 @@
+"""``quatrack train SPEC...``: several objects in one call, in local processes and as tasks on a
+Ray cluster (a real head node started by the test on loopback), each written atomically into one
+store. Training uses the registered view only (``--novel-views none --novel-scales none``) to
+stay cheap; what is checked is that each model lands whole and comes from its own spec."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import pytest
+
+from quatrack.cli import main
+from quatrack.service.server import free_port
+from quatrack.viewsets.spec import load_spec
+from quatrack.viewsets.store import list_models, load_manifest, load_model
+
+ROOT = Path(__file__).resolve().parent.parent
+EXAMPLE = ROOT / "examples" / "cookie-box"
+CHEAP = ["--novel-views", "none", "--novel-scales", "none"]
+
+
+def renamed_spec(tmp: Path, name: str) -> Path:
+    """The example spec under another object name, its files referred to by absolute paths."""
+    d = json.loads((EXAMPLE / "object.json").read_text())
+    d["name"] = name
+    d["mesh"] = str(EXAMPLE / d["mesh"])
+    for v in d["views"]:
+        for key in ("image", "mask"):
+            if v.get(key):
+                v[key] = str(EXAMPLE / v[key])
+    path = tmp / f"{name}.json"
+    path.write_text(json.dumps(d))
+    return path
+
+
+def check_store(store: Path, specs: list[Path]) -> None:
+    assert sorted(list_models(store)) == sorted(load_spec(s).name for s in specs)
+    for s in specs:
+        spec = load_spec(s)
+        assert load_manifest(store, spec.name)["spec"]["sha256"] == spec.checksum
+        assert len(load_model(store, spec.name).viewsets) >= 1
+    assert not [p for p in store.iterdir() if p.name.startswith(".")]  # no temporary left behind
+
+
+def test_several_specs_in_parallel_processes(tmp_path, capsys):
+    specs = [EXAMPLE / "object.json", renamed_spec(tmp_path, "box-two"), renamed_spec(tmp_path, "box-three")]
+    store = tmp_path / "store"
+    assert main(["train", *map(str, specs), "--store", str(store), "--jobs", "2", *CHEAP]) == 0
+    check_store(store, specs)
+    out = capsys.readouterr().out
+    assert "3 of 3 objects trained locally" in out
+    # the same call again with --skip-existing trains nothing
+    assert main(["train", *map(str, specs), "--store", str(store), "--skip-existing", *CHEAP]) == 0
+    assert capsys.readouterr().out.count("nothing to do") == 3
+
+
+def test_a_bad_spec_stops_the_batch_before_any_training(tmp_path, capsys):
+    bad = tmp_path / "bad.json"
+    bad.write_text("{not json")
+    store = tmp_path / "store"
+    assert main(["train", str(EXAMPLE / "object.json"), str(bad), "--store", str(store), *CHEAP]) == 2
+    err = capsys.readouterr().err
+    assert "bad.json" in err and len(err.strip().splitlines()) == 1 and "Traceback" not in err
+    assert not store.exists() or list_models(store) == []
+    # two specs of one object name are refused too
+    assert main(["train", str(EXAMPLE / "object.json"), str(EXAMPLE / "object.json"), "--store", str(store)]) == 2
+    assert "both define object" in capsys.readouterr().err
+
+
+@pytest.fixture()
+def ray_head():
+    """A Ray head node on loopback, started for this test and stopped after it."""
+    pytest.importorskip("ray", reason="Ray is not installed (pip install 'quatrack[ray]')")
+    ray_bin = Path(sys.executable).with_name("ray")
+    port = free_port()
+    temp = tempfile.mkdtemp(prefix="qt-ray-")  # short: Ray's unix socket paths must stay < 108 bytes
+    proc = subprocess.Popen(
+        [str(ray_bin), "start", "--head", "--port", str(port), "--num-cpus", "2", "--include-dashboard=false",
+         "--node-ip-address", "127.0.0.1", "--object-store-memory", str(100 * 1024 * 1024), "--temp-dir", temp,
+         "--block", "--disable-usage-stats"],
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    address = f"127.0.0.1:{port}"
+    probe = "import ray, sys; ray.init(address=sys.argv[1], logging_level='ERROR'); ray.shutdown()"
+    deadline = time.monotonic() + 240  # generous: a busy machine
+    try:
+        while subprocess.run([sys.executable, "-c", probe, address], capture_output=True).returncode != 0:
+            assert proc.poll() is None, "ray start exited"
+            assert time.monotonic() < deadline, "the Ray head did not come up"
+            time.sleep(1)
+        yield address
+    finally:
+        proc.send_signal(signal.SIGTERM)  # ray start stops its own processes in order
+        try:
+            proc.wait(timeout=60)
+        except subprocess.TimeoutExpired:
+            pass
+        try:
+            os.killpg(proc.pid, signal.SIGKILL)  # whatever is left of that process group
+        except ProcessLookupError:
+            pass
+        proc.wait(timeout=30)
+
+
+@pytest.mark.slow
+def test_specs_as_tasks_on_a_ray_cluster(tmp_path, ray_head):
+    specs = [EXAMPLE / "object.json", renamed_spec(tmp_path, "box-ray")]
+    store = tmp_path / "shared-store"
+    r = subprocess.run([sys.executable, "-m", "quatrack", "train", *map(str, specs), "--store", str(store),
+                        "--ray", ray_head, *CHEAP], capture_output=True, text=True, timeout=600, cwd=tmp_path)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert f"2 of 2 objects trained on Ray ({ray_head})" in r.stdout
+    check_store(store, specs)

@@ -1,0 +1,164 @@
+"""Training several objects in one call: in local processes, or as tasks on a Ray cluster.
+
+Every spec is loaded (and so checked) before any training starts, so a typo in the last spec
+costs no work. Each object is then trained by :func:`quatrack.viewsets.train.train_object` and
+written by :func:`quatrack.viewsets.store.save_model`, which renames a complete model into place:
+many trainings — on one machine or on many machines sharing the store (NFS, a cluster volume) —
+never leave a half-written model, and a replica reading the store sees the old model or the new.
+
+Locally, the CPU budget ``jobs`` is split: ``min(jobs, n_specs)`` processes train specs at once,
+each building ``max(1, jobs // processes)`` views in parallel (threads, ``TrainParams.jobs``).
+With one spec this is exactly the former meaning of ``--jobs``: views built in parallel.
+
+With Ray (``pip install 'quatrack[ray]'``), each spec is one task (``num_cpus = jobs`` per task)
+on an existing cluster (``ray.init(address=...)``); the spec's files and the store must be at the
+same paths on every node (a shared filesystem), as they are for any shared model store.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+from .errors import SpecError, StoreError
+from .spec import load_spec
+from .store import load_manifest, model_path, save_model
+from .train import TrainParams, train_object
+
+
+@dataclass(frozen=True)
+class Trained:
+    """The outcome of one spec: the model's path and training summary, or the error."""
+
+    spec: str
+    name: str
+    path: str | None = None
+    summary: dict | None = None
+    seconds: float = 0.0
+    skipped: bool = False  # already trained from this very spec (skip_existing)
+    error: str | None = None
+
+
+def _up_to_date(store: Path, name: str, checksum: str) -> bool:
+    if not model_path(store, name).exists():
+        return False
+    try:
+        return load_manifest(store, name).get("spec", {}).get("sha256") == checksum
+    except ValueError:
+        return False  # unreadable: train it again
+
+
+def train_one(spec_path: str, store: str, params: TrainParams, overwrite: bool = True,
+              skip_existing: bool = False) -> Trained:
+    """Train one spec into ``store`` (atomically). Errors of the spec's content come back in
+    :attr:`Trained.error` rather than raised, so that one bad object does not stop the others."""
+    t0 = time.perf_counter()
+    name = "?"
+    try:
+        spec = load_spec(spec_path)
+        name = spec.name
+        if skip_existing and _up_to_date(Path(store), name, spec.checksum):
+            return Trained(spec_path, name, str(model_path(store, name)), skipped=True)
+        model = train_object(spec, params)
+        path = save_model(store, model, overwrite=overwrite)
+    except (SpecError, StoreError, ValueError, OSError) as exc:
+        return Trained(spec_path, name, error=str(exc), seconds=time.perf_counter() - t0)
+    return Trained(spec_path, name, str(path), model.manifest["training_summary"], time.perf_counter() - t0)
+
+
+def check_specs(spec_paths: list[str], store: Path, no_overwrite: bool) -> list[str]:
+    """Absolute paths of the specs, after loading each (raises SpecError naming the culprit);
+    two specs of one object name, or an existing object with ``no_overwrite``, are refused."""
+    names: dict[str, str] = {}
+    out = []
+    for p in spec_paths:
+        spec = load_spec(p)
+        if spec.name in names:
+            raise SpecError(f"{p} and {names[spec.name]} both define object {spec.name!r}")
+        names[spec.name] = p
+        if no_overwrite and model_path(store, spec.name).exists():
+            raise StoreError(f"object {spec.name!r} already exists in {store} (and --no-overwrite was given)")
+        out.append(str(Path(p).resolve()))
+    return out
+
+
+def train_many(spec_paths: list[str], store: str | Path, params: TrainParams = TrainParams(), jobs: int = 2,
+               overwrite: bool = True, skip_existing: bool = False, ray_address: str | None = None,
+               on_done: Callable[[Trained], None] | None = None) -> list[Trained]:
+    """Train every spec into ``store``; results in the order of ``spec_paths``.
+
+    ``jobs`` is the CPU budget (see the module docstring); ``ray_address`` sends each spec to a
+    Ray cluster instead ("auto" finds a local one, "local" starts a private one for this call).
+    ``on_done`` is called as each spec finishes (for progress lines).
+    """
+    if jobs < 1:
+        raise ValueError("jobs must be at least 1")
+    store = str(Path(store).expanduser().resolve())
+    specs = check_specs(spec_paths, Path(store), not overwrite)
+    Path(store).mkdir(parents=True, exist_ok=True)
+    if ray_address is not None:
+        results = _on_ray(specs, store, dataclasses.replace(params, jobs=jobs), overwrite, skip_existing,
+                          ray_address, on_done)
+    else:
+        processes = min(jobs, len(specs))
+        per = dataclasses.replace(params, jobs=max(1, jobs // processes))
+        results = _local(specs, store, per, overwrite, skip_existing, processes, on_done)
+    return [results[p] for p in specs]
+
+
+def _local(specs, store, params, overwrite, skip_existing, processes, on_done) -> dict[str, Trained]:
+    if processes == 1:
+        out = {}
+        for p in specs:
+            out[p] = train_one(p, store, params, overwrite, skip_existing)
+            if on_done:
+                on_done(out[p])
+        return out
+    import multiprocessing
+
+    out = {}
+    # spawn, not fork: the parent may hold OpenCV/BLAS thread pools that fork would copy mid-use
+    with ProcessPoolExecutor(processes, mp_context=multiprocessing.get_context("spawn")) as pool:
+        futures = {pool.submit(train_one, p, store, params, overwrite, skip_existing): p for p in specs}
+        for f in as_completed(futures):
+            out[futures[f]] = f.result()
+            if on_done:
+                on_done(out[futures[f]])
+    return out
+
+
+def _on_ray(specs, store, params, overwrite, skip_existing, address, on_done) -> dict[str, Trained]:
+    try:
+        import ray
+    except ImportError:
+        raise ValueError("--ray needs Ray: pip install 'quatrack[ray]'") from None
+    started = not ray.is_initialized()
+    if started:
+        kwargs = {"address": None if address == "local" else address, "logging_level": "WARNING",
+                  "log_to_driver": False}
+        if address == "local":
+            kwargs.update(num_cpus=os.cpu_count() or 1, include_dashboard=False)
+        try:
+            ray.init(**kwargs)
+        except ConnectionError as exc:
+            raise ValueError(f"--ray {address}: cannot connect to a Ray cluster ({exc})") from None
+    try:
+        remote = ray.remote(num_cpus=params.jobs, max_retries=1)(train_one)
+        refs = {remote.remote(p, store, params, overwrite, skip_existing): p for p in specs}
+        out = {}
+        pending = list(refs)
+        while pending:
+            done, pending = ray.wait(pending, num_returns=1)
+            for ref in done:
+                out[refs[ref]] = ray.get(ref)
+                if on_done:
+                    on_done(out[refs[ref]])
+        return out
+    finally:
+        if started:
+            ray.shutdown()
