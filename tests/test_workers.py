@@ -88,6 +88,9 @@ def test_workers_are_processes_with_a_global_session_limit(server):
     assert statuses == answers
     assert any(name == "quatrack_track_stage_seconds_count" for name, _ in m)
     assert m[("quatrack_models_loaded", frozenset())] == 1
+    # each worker loaded the model once; the counters of both are summed
+    assert m[("quatrack_model_loads_total", frozenset({("result", "ok")}))] == 2
+    assert m.get(("quatrack_model_loads_total", frozenset({("result", "failed")})), 0) == 0
     # the sessions are gone: their slots are free again (bounded wait: closing is asynchronous)
     import time
 
