@@ -1,5 +1,7 @@
 # quatrack: a plain mirror of the README's steps (no Docker engine runs on the build machines).
 # Build: docker build -t quatrack .   Run: docker run -p 8000:8000 [-e QUATRACK_API_TOKEN=...] quatrack
+# One worker process per CPU the container may use (its --cpus quota; QUATRACK_WORKERS overrides).
+# docker stop sends SIGTERM: open tracking sessions are closed with code 1012. Replicas: deploy/.
 FROM python:3.11-slim
 ENV PYTHONDONTWRITEBYTECODE=1 PYTHONUNBUFFERED=1 \
     QUATRACK_STORE=/data/models QUATRACK_HOST=0.0.0.0 QUATRACK_PORT=8000

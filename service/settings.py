@@ -23,7 +23,20 @@ ENV_PREFIX = "QUATRACK_"
 
 
 def _cores() -> int:
-    return os.cpu_count() or 1
+    """CPUs this process may use: its affinity mask, capped by a cgroup v2 CPU quota (a container's
+    ``--cpus`` or Kubernetes limit), which ``os.cpu_count()`` ignores. Quota q µs per period p µs
+    gives ceil(q / p) CPUs."""
+    try:
+        n = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        n = os.cpu_count() or 1
+    try:
+        quota, period = Path("/sys/fs/cgroup/cpu.max").read_text().split()[:2]
+        if quota != "max":
+            n = min(n, max(1, -(-int(quota) // int(period))))
+    except (OSError, ValueError):
+        pass
+    return max(1, n)
 
 
 class Settings(BaseSettings):
