@@ -92,10 +92,14 @@ def _decode(data: bytes) -> np.ndarray:
 
 def run_sequence(tracker, frames, poses, fps: float, every: int = 1, mesh=None) -> dict:
     """Track frames ``0, every, 2·every, ...``; errors against the truth, statuses and timings."""
+    from quatrack.recognition.trackio import Progress
+
     t_err, r_err, statuses, measure_adjust, totals, stages = [], [], [], [], [], {}
+    progress = Progress(f"bench track (every {every})")  # a line on a terminal only
     for k in range(0, len(frames), every):
         step = tracker.step(_decode(frames[k]), k / fps)
         statuses.append(step.status)
+        progress.update(step.status)
         if step.t is not None:
             dt, dr = pose_errors(step.t, step.q_wxyz, poses[k], mesh)
             t_err.append(dt)
@@ -106,6 +110,7 @@ def run_sequence(tracker, frames, poses, fps: float, every: int = 1, mesh=None) 
             totals.append(ms["total"])
             for key, v in ms.items():
                 stages.setdefault(key, []).append(v)
+    progress.close()
     n_track = max(len(totals), 1)
     return {
         "frames": len(statuses),

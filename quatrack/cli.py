@@ -17,6 +17,7 @@ from typing import Callable
 import numpy as np
 
 from quatrack.recognition.runtime import tune_allocator
+from quatrack.recognition.trackio import quiet_ffmpeg
 
 
 class UserError(Exception):
@@ -429,6 +430,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     tune_allocator()
+    quiet_ffmpeg()  # no FFmpeg decoder chatter from any command reading a video (box.mp4's h264)
     run = COMMANDS[args.command][2]
     try:
         return run(args)
