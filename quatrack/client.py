@@ -12,7 +12,8 @@ a pose, :class:`TrackMessage` per tracked frame. Every error the server answers 
 :class:`QuatrackError` carrying its ``code`` (``unknown_object``, ``bad_camera``,
 ``unauthorized``, ...) and HTTP ``status``; an unreachable server is ``code="unreachable"``.
 
-``track`` is *lock-step*: it sends a frame, waits for its answer, yields it, then sends the
+:class:`AsyncClient` is the same for asyncio (``await client.pose(...)``, ``async for msg in
+client.track(...)``). ``track`` is *lock-step*: it sends a frame, waits for its answer, yields it, then sends the
 next, so every frame is tracked and answers arrive in order. :func:`stream` (asyncio) is the
 other protocol, for live sources: it sends at a fixed rate regardless and the server skips the
 frames it cannot keep up with (``quatrack demo --fps`` and ``quatrack bench serve`` use it).
@@ -208,6 +209,86 @@ class Client:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+class AsyncClient:
+    """:class:`Client` for asyncio: ``await client.pose(...)``, ``async for msg in
+    client.track(frames, camera)`` (``frames`` an iterable or an async iterable of images or
+    ``(time_s, image)`` pairs). Same arguments, results and errors as :class:`Client`."""
+
+    def __init__(self, url: str = "http://127.0.0.1:8000", object: str | None = None, token: str | None = None,
+                 timeout: float = 60.0) -> None:
+        import httpx
+
+        self.http_url, self.ws_url = base_urls(url)
+        self.object = object
+        self.token = token if token is not None else os.environ.get("QUATRACK_API_TOKEN") or None
+        self.timeout = timeout
+        headers = {"Authorization": f"Bearer {self.token}"} if self.token else {}
+        self._http = httpx.AsyncClient(base_url=self.http_url, headers=headers, timeout=timeout)
+
+    _name = Client._name
+
+    async def _request(self, method: str, path: str, **kw):
+        import httpx
+
+        try:
+            r = await self._http.request(method, path, **kw)
+        except httpx.TransportError as exc:
+            raise QuatrackError("unreachable", f"{self.http_url}: {exc}") from None
+        if r.status_code >= 400:
+            raise _error_of(r.status_code, r.content)
+        return r
+
+    async def objects(self) -> ObjectList:
+        return ObjectList.model_validate((await self._request("GET", "/v1/objects")).json())
+
+    async def pose(self, image: Any, camera: Any, object: str | None = None) -> LocateOut:
+        files = {"image": ("image", image_bytes(image), "application/octet-stream"),
+                 "camera": (None, json.dumps(camera_json(camera)))}
+        r = await self._request("POST", f"/v1/objects/{self._name(object)}/pose", files=files)
+        return LocateOut.model_validate(r.json())
+
+    async def track(self, frames, camera: Any, object: str | None = None, ros_mesh_unit: str | None = None):
+        import websockets
+        from urllib.parse import urlencode
+
+        url = f"{self.ws_url}/v1/objects/{self._name(object)}/track"
+        if ros_mesh_unit is not None:
+            url += "?" + urlencode({"format": "ros", "mesh_unit": ros_mesh_unit})
+        headers = {"Authorization": f"Bearer {self.token}"} if self.token else None
+        try:
+            ws = await websockets.connect(url, additional_headers=headers, max_size=None, open_timeout=self.timeout)
+        except Exception as exc:
+            raise _ws_error(exc) from None
+        async with ws:
+            await ws.send(json.dumps({**camera_json(camera), "ack": True}))
+            Client._expect(json.loads(await asyncio.wait_for(ws.recv(), self.timeout)), "ready")
+
+            async def items():
+                if hasattr(frames, "__aiter__"):
+                    async for item in frames:
+                        yield item
+                else:
+                    for item in frames:
+                        yield item
+
+            async for item in items():
+                if isinstance(item, tuple) and len(item) == 2:
+                    await ws.send(json.dumps({"type": "frame", "time_s": float(item[0])}))
+                    item = item[1]
+                await ws.send(image_bytes(item))
+                msg = json.loads(await asyncio.wait_for(ws.recv(), self.timeout))
+                yield TrackMessage.model_validate(Client._expect(msg, "pose"))
+
+    async def aclose(self) -> None:
+        await self._http.aclose()
+
+    async def __aenter__(self) -> "AsyncClient":
+        return self
+
+    async def __aexit__(self, *exc) -> None:
+        await self.aclose()
 
 
 # --- the streaming protocol (asyncio): lock-step or real time --------------------------------------

@@ -177,3 +177,23 @@ def test_demo_errors_are_one_line(server, tmp_path, monkeypatch, capsys, case, m
     assert rc == 2 and err.startswith("quatrack demo: error:") and message in err, err
     assert "\n" not in err and "Traceback" not in err
     assert not (tmp_path / "quatrack-demo").exists()
+
+
+def test_async_client_gives_the_same_answers(server, frames):
+    import asyncio
+
+    from quatrack.client import AsyncClient
+
+    async def go():
+        async with AsyncClient(server.url, object="cookie-box", token=TOKEN) as c:
+            found = await c.pose(frames[0][1], CAMERA)
+            msgs = [m async for m in c.track(frames[:5], CAMERA)]
+            try:
+                await c.pose(frames[0][1], CAMERA, object="no-such-box")
+            except QuatrackError as exc:
+                return found, msgs, exc.code
+        return found, msgs, None
+
+    found, msgs, code = asyncio.run(go())
+    assert found.found and code == "unknown_object"
+    assert [m.status for m in msgs] == ["init"] + ["tracking"] * 4 and [m.frame for m in msgs] == list(range(5))
