@@ -210,20 +210,20 @@ def step_message(step) -> dict:
     :class:`~recognition.video.TrackStep`: pose, velocity and 6×6 covariance are ``null`` when
     the status is ``lost``."""
     has_pose = step.status != "lost" and step.t is not None
-    has_vel = has_pose and step.v is not None and step.omega is not None
-    cov = step.covariance
+    v, omega, cov = (getattr(step, k, None) for k in ("v", "omega", "covariance"))  # a tracker may have none
+    has_vel = has_pose and v is not None and omega is not None
     return {
         "type": "pose",
         "frame": int(step.frame),
         "time_s": float(step.time_s),
         "status": step.status,
         "pose": {"t": _vec(step.t), "q_wxyz": _vec(step.q_wxyz)} if has_pose else None,
-        "velocity": {"v": _vec(step.v), "omega": _vec(step.omega)} if has_vel else None,
+        "velocity": {"v": _vec(v), "omega": _vec(omega)} if has_vel else None,
         "covariance": [[float(x) for x in row] for row in np.asarray(cov, float)[:6, :6]]
         if has_pose and cov is not None else None,
-        "inliers": int(step.inliers or 0),
-        "reason": step.reason,
-        "timings_ms": {k: round(float(v), 3) for k, v in (step.timings_ms or {}).items()},
+        "inliers": int(getattr(step, "inliers", 0) or 0),
+        "reason": getattr(step, "reason", None),
+        "timings_ms": {k: round(float(x), 3) for k, x in (getattr(step, "timings_ms", None) or {}).items()},
     }
 
 

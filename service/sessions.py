@@ -21,11 +21,11 @@ from concurrent.futures import Executor
 from dataclasses import dataclass, field
 from typing import Callable
 
-import numpy as np
 from pydantic import ValidationError
 from starlette.websockets import WebSocket, WebSocketDisconnect, WebSocketState
 
 from quatrack.recognition.images import ImageError
+from quatrack.recognition.trackio import step_message
 from quatrack.recognition.match import ModelIndex
 from quatrack.viewsets.store import ObjectModel
 from quatrack.viewsets.errors import SpecError
@@ -354,23 +354,7 @@ class TrackSession:
         return _message(item, step)
 
 
-def _vec(x) -> list[float] | None:
-    return None if x is None else [float(v) for v in np.asarray(x, float).ravel()]
-
-
 def _message(item: _Frame, step) -> dict:
-    has_pose = step.status != "lost" and step.t is not None
-    cov = getattr(step, "covariance", None)
-    v, omega = getattr(step, "v", None), getattr(step, "omega", None)
-    return {
-        "type": "pose",
-        "frame": item.number,
-        "time_s": item.time_s,
-        "status": step.status,
-        "pose": {"t": _vec(step.t), "q_wxyz": _vec(step.q_wxyz)} if has_pose else None,
-        "velocity": {"v": _vec(v), "omega": _vec(omega)} if has_pose and v is not None and omega is not None else None,
-        "covariance": [[float(x) for x in row] for row in np.asarray(cov, float)[:6, :6]] if has_pose and cov is not None else None,
-        "inliers": int(getattr(step, "inliers", 0) or 0),
-        "reason": getattr(step, "reason", None),
-        "timings_ms": {k: round(float(val), 3) for k, val in (getattr(step, "timings_ms", None) or {}).items()},
-    }
+    """The per-frame message (:func:`recognition.trackio.step_message`), numbered and timed as
+    the session received the frame."""
+    return {**step_message(step), "frame": item.number, "time_s": item.time_s}
