@@ -172,3 +172,46 @@ def test_viewer_tracks_the_fake_webcam_and_draws_the_pose(server, tmp_path):
     hit = _on_edges(green, on)
     shifted = _on_edges(green, on + [35.0, 25.0])
     assert hit > 0.8 and shifted < 0.35, (hit, shifted)
+
+
+def test_viewer_tracks_a_chosen_video_file(server, tmp_path):
+    """The other source: a video file given to the page's file input (what dropping one does)."""
+    video = tmp_path / "box.webm"  # VP8: a codec every Chromium build plays
+    cap = cv2.VideoCapture(str(EXAMPLE / "box.mp4"))
+    out = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"VP80"), 30, (640, 480))
+    assert out.isOpened()
+    for _ in range(150):
+        ok, f = cap.read()
+        out.write(f)
+    out.release()
+    cap.release()
+    y4m = tmp_path / "unused.y4m"
+    write_y4m(EXAMPLE / "box.mp4", y4m, 2)
+    driver = _driver(tmp_path, y4m)
+    try:
+        driver.get(f"{server.url}/viewer/")
+        driver.find_element("id", "token").send_keys(TOKEN)
+        driver.execute_script("document.getElementById('token').dispatchEvent(new Event('change'))")
+        _wait(driver, lambda: driver.execute_script("return document.getElementById('object').value") == "cookie-box",
+              "the objects")
+        driver.execute_script("document.getElementById('camera').value = arguments[0]", (EXAMPLE / "camera.json").read_text())
+        driver.find_element("id", "max-frames").send_keys("3")
+        driver.find_element("id", "file").send_keys(str(video))
+        _wait(driver, lambda: driver.find_element("id", "status").text == "stopped"
+              and int(driver.find_element("id", "pose-count").text) >= 1, "the poses")
+        count = int(driver.find_element("id", "pose-count").text)
+        last = json.loads(driver.find_element("id", "last-pose").text)
+        plotted = driver.execute_script(
+            "const c = document.getElementById('plot-position'), d = c.getContext('2d')"
+            ".getImageData(0, 0, c.width, c.height).data; let n = 0;"
+            "for (let i = 0; i < d.length; i += 4) {"  # coloured pixels: the series, not the grey frames and labels
+            "  const m = Math.max(d[i], d[i+1], d[i+2]), l = Math.min(d[i], d[i+1], d[i+2]); n += d[i+3] > 0 && m - l > 60; }"
+            "return n")
+    finally:
+        driver.quit()
+    # the video plays in real time while frames go lock-step: how many are tracked before it ends
+    # depends on the machine, so only the bounds are checked
+    assert 1 <= count <= 3 and last["status"] in ("init", "tracking") and (last["width"], last["height"]) == (640, 480)
+    assert 20 < last["pose"]["t"][2] < 200
+    assert count < 2 or plotted > 20 * count  # the series are drawn (colour, not the grey frames); a line needs 2 points
+    print(f"file source: {count} poses, {plotted} plotted pixels")
