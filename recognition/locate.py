@@ -1,8 +1,10 @@
 """Recognition and initial pose, the path behind ``quatrack locate`` and ``POST .../pose``.
 
 ``locate`` = localise (RFCH window) → SIFT in the window plus a margin → match to every viewset →
-the viewset with most matches → RANSAC PnP + refinement → verification. If the window yields no
-verified pose, the whole image is searched before giving up. Per-stage times are reported.
+the viewset with most matches → RANSAC PnP + refinement → verification (geometry, then evidence
+in the image a wrong pose cannot fake: :func:`quatrack.recognition.pose.verification`). If the
+window yields no verified pose, the whole image is searched before giving up. Per-stage times are
+reported. :func:`locate_all` searches every given model (``--object all``).
 """
 
 from __future__ import annotations
@@ -10,16 +12,18 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 
 from quatrack.tracking.camera import PinholeCamera
+from quatrack.tracking.pose import Pose
 from quatrack.viewsets.features import Features
 from quatrack.viewsets.store import ObjectModel
 
 from .images import DEFAULT_MAX_PIXELS, prepare_image
 from .localise import LocaliseParams, Window, localise
 from .match import ModelIndex, index_for, rank_viewsets
-from .pose import PoseEstimate, PoseParams, solve_pnp, verify
+from .pose import PnPSolution, PoseParams, Verification, rival_inliers, solve_pnp, verification, verify
 
 
 @dataclass(frozen=True)
@@ -51,10 +55,24 @@ class Located:
     time_ms: dict = field(default_factory=dict)
     reason: str | None = None  # why not found
     searched: str = "window"  # "window" or "image": where the pose came from
+    verification: dict | None = None  # the evidence for the last pose checked (issue 13)
+    object: str | None = None  # the model's name
+
+    @property
+    def pose(self) -> Pose | None:
+        """The pose (object → camera) when found."""
+        return Pose(self.q_wxyz, self.t) if self.found else None
+
+    @property
+    def confidence(self) -> float:
+        """The verification's calibrated confidence (0 when nothing was verified)."""
+        return float(self.verification["confidence"]) if self.found and self.verification else 0.0
 
     def to_json(self) -> dict:
-        """The contract's JSON object (``image`` is added by the caller)."""
+        """The contract's JSON object (``image`` is added by the caller), plus the extensions
+        ``reason``, ``searched``, ``object`` and ``verification``."""
         return {
+            "object": self.object,
             "found": self.found,
             "bbox": None if self.bbox is None else [round(float(v), 2) for v in self.bbox],
             "chi2": None if self.chi2 is None else float(self.chi2),
@@ -67,6 +85,7 @@ class Located:
             "time_ms": {k: round(v, 3) for k, v in self.time_ms.items()},
             "reason": self.reason,
             "searched": self.searched,
+            "verification": self.verification,
         }
 
 
@@ -79,13 +98,25 @@ def _crop_box(bbox, margin: float, w: int, h: int) -> tuple[int, int, int, int]:
     return x0, y0, x1, y1
 
 
+@dataclass
+class _Search:
+    """What the pose search found: the pose (None if none verified), the matches used, why not,
+    the viewset's label, the last verification."""
+
+    est: PnPSolution | None = None
+    matches: int = 0
+    reason: str | None = None
+    viewset: str | None = None
+    verification: Verification | None = None
+
+
 def _pose_from(
     features: Features, index: ModelIndex, model: ObjectModel, camera: PinholeCamera,
-    window: tuple | None, params: LocateParams, timer: dict,
-) -> tuple[PoseEstimate | None, int, str | None, str | None]:
+    window: tuple | None, params: LocateParams, timer: dict, grey: np.ndarray,
+) -> _Search:
     """Match, rank viewsets by votes, PnP on the best one's matches (then the runner-up's, then
-    all matches pooled); the first verified pose wins. Returns (pose, matches used, why not,
-    viewset label)."""
+    all matches pooled); the first pose that passes the geometric checks and the image evidence
+    wins (a rival consensus among the other matches counts against it)."""
     t0 = time.perf_counter()
     matches = index.match(features)
     ranked = rank_viewsets(matches, len(model.viewsets))
@@ -94,7 +125,9 @@ def _pose_from(
     trials = [(model.viewsets[v].label, np.flatnonzero(matches.viewset == v)) for v in ranked[: params.viewsets_tried]]
     if params.pool_all and ranked:
         trials.append((model.viewsets[ranked[0]].label, np.arange(len(matches))))
-    reason, n_best = "no viewset has enough matches", len(trials[0][1]) if trials else 0
+    out = _Search(None, len(trials[0][1]) if trials else 0, "no viewset has enough matches",
+                  trials[0][0] if trials else None)
+    uv_all = features.keypoints[matches.query_idx] if len(matches) else np.zeros((0, 2))
     try:
         for label, keep in trials:
             if len(keep) < params.pose.min_inliers:
@@ -102,15 +135,27 @@ def _pose_from(
             m = matches.subset(keep)
             vs = model.viewsets[int(np.bincount(m.viewset).argmax())]
             prior = (vs.pose.R, vs.pose.t, model.mesh.centre)
-            est = solve_pnp(camera, m.points3d, features.keypoints[m.query_idx], params.pose, prior)
+            uv = features.keypoints[m.query_idx]
+            est = solve_pnp(camera, m.points3d, uv, params.pose, prior)
             if est is None:
-                reason = f"PnP found no consensus ({len(keep)} matches, viewset {label})"
+                out.reason = f"PnP found no consensus ({len(keep)} matches, viewset {label})"
                 continue
-            why = verify(est, len(keep), camera, model.mesh.vertices, window, params.pose, m.points3d, m.normals, prior)
-            if why is None:
-                return est, len(keep), None, label
-            reason = f"{why} (viewset {label})"
-        return None, n_best, reason, trials[0][0] if trials else None
+            why = verify(est, len(keep), camera, model.mesh, window, params.pose, m.points3d, m.normals, prior)
+            if why is not None:
+                out.reason = f"{why} (viewset {label})"
+                continue
+            # a rival: the best other consensus among all matches that are not this pose's inliers
+            inl_all = keep[est.inliers]
+            rest = np.setdiff1d(np.arange(len(matches)), inl_all)
+            rival = rival_inliers(camera, matches.points3d, uv_all, PnPSolution(est.pose, est.covariance, inl_all, est.rms_px),
+                                  model.mesh, params.pose) if len(rest) >= params.pose.min_inliers else 0
+            ver = verification(est, grey, camera, model.mesh, uv, params.pose, rival)
+            out.verification = ver
+            if ver.passed:
+                out.est, out.matches, out.reason, out.viewset = est, len(keep), None, label
+                return out
+            out.reason = f"{ver.reason} (viewset {label})"
+        return out
     finally:
         timer["pnp"] = timer.get("pnp", 0.0) + (time.perf_counter() - t0) * 1e3
 
@@ -134,22 +179,28 @@ def locate(
         win = localise(img, cam, model, params.localise)
         timer["localise"] = (time.perf_counter() - t0) * 1e3
 
-    est, n_matches, reason, vs_label, searched = None, 0, "no object-like window", None, "window"
+    grey = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+    res, searched = _Search(reason="no object-like window"), "window"
     if win is not None and win.found:
         t0 = time.perf_counter()
         feats = index.describe(img, _crop_box(win.bbox, params.margin, w, h))
         timer["match"] += (time.perf_counter() - t0) * 1e3
-        est, n_matches, reason, vs_label = _pose_from(feats, index, model, cam, win.bbox, params, timer)
+        res = _pose_from(feats, index, model, cam, win.bbox, params, timer, grey)
     # the whole image is searched when there is no window search, or when the window looked
     # like the object but gave no verified pose; a window that is nothing like the object
     # (χ² beyond the gate) ends the search: "not found" stays fast
-    window_failed = win is not None and win.found and est is None
-    if est is None and (not params.use_window or (params.whole_image_fallback and window_failed)):
+    window_failed = win is not None and win.found and res.est is None
+    if res.est is None and (not params.use_window or (params.whole_image_fallback and window_failed)):
         searched = "image"
         t0 = time.perf_counter()
         feats = index.describe(img)
         timer["match"] += (time.perf_counter() - t0) * 1e3
-        est, n_matches, reason, vs_label = _pose_from(feats, index, model, cam, None, params, timer)
+        first = res
+        res = _pose_from(feats, index, model, cam, None, params, timer, grey)
+        if res.verification is None:
+            res.verification = first.verification
+    est = res.est
+    ver = None if res.verification is None else res.verification.to_json()
 
     timer["total"] = (time.perf_counter() - t_start) * 1e3
     inv = 1.0 / prep.scale
@@ -157,9 +208,35 @@ def locate(
     if win is not None:
         bbox = tuple(float((v + 0.5) * inv - 0.5) if i < 2 else float(v * inv) for i, v in enumerate(win.bbox))
     if est is None:
-        return Located(False, bbox, None if win is None else win.chi2, vs_label, n_matches, 0, None,
-                       time_ms=timer, reason=reason, searched=searched)
+        return Located(False, bbox, None if win is None else win.chi2, res.viewset, res.matches, 0, None,
+                       time_ms=timer, reason=res.reason, searched=searched, verification=ver, object=model.name)
     return Located(
-        True, bbox, None if win is None else win.chi2, vs_label, n_matches, len(est.inliers), est.rms_px * inv,
-        est.t, est.q, est.covariance, time_ms=timer, searched=searched,
+        True, bbox, None if win is None else win.chi2, res.viewset, res.matches, len(est.inliers), est.rms_px * inv,
+        np.array(est.t), np.array(est.q), est.covariance, time_ms=timer, searched=searched, verification=ver,
+        object=model.name,
     )
+
+
+def locate_all(
+    image: np.ndarray, camera: PinholeCamera, models: list[ObjectModel], params: LocateParams = LocateParams(),
+) -> list[Located]:
+    """Search every model in the image (Kragic & Kyrki's recognition among several objects):
+    one :class:`Located` per model, in the models' order. Each object is found or not on its own
+    evidence; when two found objects claim the same place (projected boxes overlapping by more
+    than half), only the more confident one is reported found."""
+    results = [locate(image, camera, m, params, index_for(m)) for m in models]
+    found = sorted((r for r in results if r.found), key=lambda r: -r.confidence)
+    kept: list[tuple] = []
+    from .pose import iou, projected_bbox
+
+    prep_cam = camera
+    for r in found:
+        model = next(m for m in models if m.name == r.object)
+        box = projected_bbox(prep_cam, model.mesh.vertices, r.t, r.q_wxyz)
+        if box is not None and any(iou(box, b) > 0.5 for b in kept):
+            r.found = False
+            r.reason = "another object was found at the same place with more confidence"
+            continue
+        if box is not None:
+            kept.append(box)
+    return results

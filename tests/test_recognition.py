@@ -12,8 +12,9 @@ from quatrack.recognition.images import ImageError, decode_image, prepare_image
 from quatrack.recognition.localise import localise
 from quatrack.recognition.locate import LocateParams, locate
 from quatrack.recognition.match import index_for
-from quatrack.recognition.pose import PoseParams, iou, solve_pnp, verify
+from quatrack.recognition.pose import PnPSolution, PoseParams, iou, solve_pnp, verify
 from quatrack.tracking import quaternion as quat
+from quatrack.tracking.pose import Pose
 from quatrack.viewsets.camera import load_camera
 from quatrack.viewsets.store import save_model
 
@@ -77,16 +78,16 @@ def test_verification_refuses_wrong_poses(model, scenes):
     X, uv = m.points3d, feats.keypoints[m.query_idx]
     est = solve_pnp(CAMERA, X, uv)
     assert est is not None
-    assert verify(est, len(m), CAMERA, model.mesh.vertices, None, PoseParams(), m.points3d, m.normals) is None
+    assert verify(est, len(m), CAMERA, model.mesh, None, PoseParams(), m.points3d, m.normals) is None
     # shuffled correspondences: no consensus, or a pose verification refuses
     rng = np.random.default_rng(0)
     bad = solve_pnp(CAMERA, X, uv[rng.permutation(len(uv))])
-    assert bad is None or verify(bad, len(m), CAMERA, model.mesh.vertices, None) is not None
+    assert bad is None or verify(bad, len(m), CAMERA, model.mesh, None) is not None
     # the object turned away: its matched surface is seen from behind
-    flipped = type(est)(est.t, quat.multiply(quat.from_rotvec([np.pi, 0, 0]), est.q), est.covariance, est.inliers, 0.5)
-    assert "face the camera" in verify(flipped, len(m), CAMERA, model.mesh.vertices, None, PoseParams(), m.points3d, m.normals)
+    flipped = PnPSolution(Pose(quat.multiply(quat.from_rotvec([np.pi, 0, 0]), est.q), est.t), est.covariance, est.inliers, 0.5)
+    assert "face the camera" in verify(flipped, len(m), CAMERA, model.mesh, None, PoseParams(), m.points3d, m.normals)
     # a window elsewhere in the image
-    assert "window" in verify(est, len(m), CAMERA, model.mesh.vertices, (0.0, 0.0, 30.0, 30.0))
+    assert "window" in verify(est, len(m), CAMERA, model.mesh, (0.0, 0.0, 30.0, 30.0))
 
 
 def test_downscaled_large_images_keep_the_pose(model, scenes):

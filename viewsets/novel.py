@@ -84,12 +84,14 @@ def render_textured_view(
     camera: PinholeCamera,
     pose: Pose,
     min_source_cos: float = 0.3,
+    src_mask: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, RenderBuffers]:
     """Render the object at ``pose`` in ``camera``, textured from the registered photo.
 
     Returns the image (background grey), the mask of textured pixels, and the z-buffer of the
     novel view. A pixel is textured only if its face is seen at |cos| ≥ ``min_source_cos`` in
-    the photo and the photo shows that same plane there (not occluded).
+    the photo and the photo shows that same plane there (not occluded by the object itself, nor
+    masked out by ``src_mask``, the user's mask of the photo: non-zero = the object is seen).
     """
     buf = render(mesh, camera, pose)
     h, w = buf.face.shape
@@ -123,6 +125,8 @@ def render_textured_view(
         inside = front & (ui >= 0) & (vi >= 0) & (ui < sw) & (vi < sh)
         seen = np.zeros(len(r), bool)
         seen[inside] = src_group[vi[inside], ui[inside]] == g
+        if src_mask is not None:
+            seen[inside] &= src_mask[vi[inside], ui[inside]] > 0
         map_x[vs[seen], us[seen]] = uv[seen, 0]
         map_y[vs[seen], us[seen]] = uv[seen, 1]
         textured[vs[seen], us[seen]] = True

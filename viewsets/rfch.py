@@ -44,6 +44,9 @@ class RFCHModel:
     size_max: tuple[int, int]
 
 
+CHROMA_STD_FLOOR = 0.03
+
+
 def _bgr(image: np.ndarray) -> np.ndarray:
     """float32 (H, W, 3) from a grey, BGR or BGRA image of any depth (values kept)."""
     img = np.asarray(image, np.float32)
@@ -206,7 +209,12 @@ def train_rfch(
         raise ValueError("RFCH training: the object covers no pixel in any view")
     X = np.concatenate(samples)
     mean = X.mean(axis=0)
-    std = np.maximum(X.std(axis=0), 1e-6)  # each dimension in units of its spread on the object
+    # each dimension in units of its spread on the object; the chromaticities' spread is floored:
+    # grey photos have none (r = g = ⅓ exactly), and a grey-trained model must still label a
+    # grey object seen by a colour camera (chromaticity within a few hundredths of ⅓)
+    floor = np.full(X.shape[1], 1e-6)
+    floor[:2] = CHROMA_STD_FLOOR
+    std = np.maximum(X.std(axis=0), floor)
     Xs = ((X - mean) / std).astype(np.float32)
     n = min(params.n_clusters, len(Xs))
     cv2.setRNGSeed(params.seed)

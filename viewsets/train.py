@@ -61,19 +61,26 @@ def _read_image(view: ViewSpec) -> np.ndarray:
     return img
 
 
-def check_pose(mesh: Mesh, view: ViewSpec, buffers: RenderBuffers | None = None, min_inside: float = 0.5) -> RenderBuffers:
-    """Refuse poses that put the object behind the camera or (mostly) outside the image."""
+MIN_VIEW_PIXELS = 1024  # object pixels a view must show to be worth learning from (32 × 32)
+
+
+def check_pose(mesh: Mesh, view: ViewSpec, buffers: RenderBuffers | None = None, min_pixels: int = MIN_VIEW_PIXELS) -> RenderBuffers:
+    """Refuse poses that put the object behind the camera, or a view that shows too little of it.
+
+    A view with part of the object outside the image (or covered, with a mask) is accepted: its
+    visible part is learned. Only a view whose visible silhouette has fewer than ``min_pixels``
+    pixels is refused, with the numbers (how much is inside, of how much)."""
     X = view.pose.apply(mesh.vertices)
     if np.any(X[:, 2] <= 0):
         raise SpecError(f"view {view.index}: pose puts the object (partly) behind the camera (min z = {X[:, 2].min():.3g})")
     buffers = buffers or render(mesh, view.camera, view.pose)
-    uv = view.camera.project(X).astype(np.float32)
-    hull_area = cv2.contourArea(cv2.convexHull(uv))
-    seen = float(np.count_nonzero(buffers.face >= 0))
-    if seen < 64 or seen < min_inside * hull_area:
+    seen = int(np.count_nonzero(buffers.face >= 0))
+    if seen < min_pixels:
+        uv = view.camera.project(X).astype(np.float32)
+        hull_area = cv2.contourArea(cv2.convexHull(uv))
         raise SpecError(
-            f"view {view.index}: pose puts the object outside the image "
-            f"({seen:.0f} of ~{hull_area:.0f} silhouette pixels inside)"
+            f"view {view.index}: the object shows only {seen} pixels inside the image (of ~{hull_area:.0f} "
+            f"for its whole silhouette; at least {min_pixels} are needed to learn from): is the pose right?"
         )
     return buffers
 
@@ -91,6 +98,12 @@ def _prepare_view(mesh: Mesh, view: ViewSpec) -> _View:
         mask = np.where(m > 0, 255, 0).astype(np.uint8)
         if not np.any(mask):
             raise SpecError(f"view {view.index}: mask {view.mask_path}: empty (no non-zero pixel)")
+        visible = int(np.count_nonzero((mask > 0) & (buffers.face >= 0)))
+        if visible < MIN_VIEW_PIXELS:
+            raise SpecError(
+                f"view {view.index}: mask {view.mask_path}: only {visible} pixels of the object are unmasked and "
+                f"inside the image (at least {MIN_VIEW_PIXELS} are needed to learn from)"
+            )
     return _View(view, image, mask, buffers)
 
 
@@ -114,16 +127,22 @@ def _run_task(mesh: Mesh, groups: np.ndarray, params: TrainParams, task) -> View
     cam = dataclasses.replace(v.spec.camera, dist_coeffs=np.zeros(5))  # novel views: ideal pinhole
     min_cos = params.novel.min_source_cos if params.novel else 0.3
     img, textured, buf = render_textured_view(mesh, groups, v.image, v.spec.camera, v.spec.pose, v.buffers,
-                                              cam, pose, min_cos)
+                                              cam, pose, min_cos, v.mask if v.spec.mask_path is not None else None)
     return build_viewset(label, v.spec.index, True, img, textured, cam, pose, mesh, buf, params.viewsets)
 
 
 def _versions() -> dict:
+    """Library versions for the manifest (the package's from its metadata: the viewsets layer does
+    not import the application package)."""
+    from importlib.metadata import PackageNotFoundError, version
+
     import trimesh
 
-    from quatrack import __version__
-
-    return {"quatrack": __version__, "numpy": np.__version__, "opencv": cv2.__version__,
+    try:
+        qv = version("quatrack")
+    except PackageNotFoundError:
+        qv = "unknown"
+    return {"quatrack": qv, "numpy": np.__version__, "opencv": cv2.__version__,
             "trimesh": trimesh.__version__, "python": platform.python_version()}
 
 

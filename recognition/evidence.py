@@ -1,0 +1,213 @@
+"""Evidence that a pose is right, measured on what is inside the image (issue 13).
+
+A wrong pose can gather PnP inliers (repeated texture, a consistent subset of wrong matches, a
+plane's mirror), but it cannot make the image agree with the model where the model has no
+matches: the model's *edges* (silhouette and creases) must lie on image edges of the same
+orientation. Everything here is judged on the part of the object inside the image, so a pose
+that puts half the object out of frame is judged on the half that is in.
+
+- :func:`silhouette_inside` — share of the object's silhouette inside the image (z-buffer in a
+  camera enlarged on every side, at reduced resolution) and its area in image pixels.
+- :func:`edge_samples` — points every few pixels along the visible model edges, with their image
+  normals: crease edges (adjacent faces turn by more than ``crease_deg``) and the silhouette
+  edges of the pose (one adjacent face towards the camera, the other away), each kept if its
+  depth matches the z-buffer (not hidden) and it lies in the image.
+- :func:`edge_agreement` — share of samples with an image gradient within ``radius`` px along
+  the normal whose orientation agrees (``|cos| ≥ cos_min``) and whose magnitude exceeds
+  ``min_grad``; and the same share with the samples displaced by ± a quarter of the object's
+  apparent size (the *chance* level of this image: textured clutter agrees by chance too).
+  The evidence is the lead over chance.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import cv2
+import numpy as np
+
+from quatrack.tracking.camera import PinholeCamera
+from quatrack.tracking.pose import Pose
+from quatrack.viewsets.mesh import Mesh
+from quatrack.viewsets.render import render
+
+
+def scaled_camera(camera: PinholeCamera, s: float, pad: int = 0) -> PinholeCamera:
+    """The camera of the image resized by ``s`` (pixel centres preserved), then enlarged by
+    ``pad`` pixels (of the resized image) on every side."""
+    w, h = max(1, int(round(camera.width * s))), max(1, int(round(camera.height * s)))
+    return replace(camera, fx=camera.fx * s, fy=camera.fy * s, cx=s * (camera.cx + 0.5) - 0.5 + pad,
+                   cy=s * (camera.cy + 0.5) - 0.5 + pad, width=w + 2 * pad, height=h + 2 * pad)
+
+
+def silhouette_inside(mesh: Mesh, camera: PinholeCamera, pose: Pose, scale: float = 0.25) -> tuple[float, float]:
+    """(share of the silhouette inside the image, silhouette area inside in image pixels).
+
+    Rendered at ``scale`` in a camera enlarged by one image size on every side, so the part
+    outside is counted too. 0, 0 if the object is behind the camera."""
+    if np.any(pose.apply(mesh.vertices)[:, 2] <= 1e-9):
+        return 0.0, 0.0
+    small = scaled_camera(camera, scale)
+    pw, ph = small.width, small.height
+    big = replace(small, cx=small.cx + pw, cy=small.cy + ph, width=3 * pw, height=3 * ph)
+    sil = render(mesh, big, pose).face >= 0
+    total = int(sil.sum())
+    if total == 0:
+        return 0.0, 0.0
+    inside = int(sil[ph : 2 * ph, pw : 2 * pw].sum())
+    return inside / total, inside / (scale * scale)
+
+
+@dataclass(frozen=True)
+class EdgeParams:
+    crease_deg: float = 30.0  # faces turning by more than this meet at a visible edge
+    step_px: float = 4.0  # sample spacing along projected edges
+    radius_px: float = 2.0  # search along the normal, ± (plus 1 % of the object's apparent size)
+    cos_min: float = 0.9  # gradient orientation within ~25° of the edge normal
+    min_grad: float = 6.0  # grey levels per pixel (Sobel of the σ=1 blurred image, /8)
+    depth_tol: float = 0.02  # × the mesh's extent: hidden edges fail the z-buffer test
+    border_px: int = 3  # samples nearer the image border are not judged
+
+
+def _edge_pairs(mesh: Mesh) -> tuple[np.ndarray, np.ndarray]:
+    """Unique edges (k, 2) vertex indices and their two adjacent faces (k, 2); -1 when open."""
+    F = mesh.faces
+    e = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
+    owner = np.tile(np.arange(len(F)), 3)
+    key = np.sort(e, axis=1)
+    order = np.lexsort((key[:, 1], key[:, 0]))
+    key, owner = key[order], owner[order]
+    new = np.r_[True, np.any(key[1:] != key[:-1], axis=1)]
+    starts = np.flatnonzero(new)
+    counts = np.diff(np.r_[starts, len(key)])
+    faces = np.full((len(starts), 2), -1)
+    faces[:, 0] = owner[starts]
+    two = counts >= 2
+    faces[two, 1] = owner[starts[two] + 1]
+    return key[starts], faces
+
+
+def edge_samples(mesh: Mesh, camera: PinholeCamera, pose: Pose, params: EdgeParams = EdgeParams(),
+                 depth: np.ndarray | None = None, depth_scale: float = 0.5):
+    """Visible model edge samples: pixels (n, 2) and unit image normals (n, 2).
+
+    ``depth``: a z-buffer of the pose rendered at ``depth_scale`` (rendered here if None)."""
+    pairs, faces = _edge_pairs(mesh)
+    N = mesh.face_normals
+    V = pose.apply(mesh.vertices)
+    if np.any(V[:, 2] <= 1e-9):
+        return np.zeros((0, 2)), np.zeros((0, 2))
+    centroid = pose.apply(mesh.triangles.mean(axis=1))
+    facing = np.einsum("ij,ij->i", N @ pose.R.T, centroid) < 0  # towards the camera
+    f0, f1 = faces[:, 0], faces[:, 1]
+    open_ = f1 < 0
+    f1s = np.where(open_, f0, f1)
+    crease = np.einsum("ij,ij->i", N[f0], N[f1s]) < np.cos(np.radians(params.crease_deg))
+    silhouette = facing[f0] != facing[f1s]
+    keep = open_ | (crease & (facing[f0] | facing[f1s])) | silhouette
+    if not keep.any():
+        return np.zeros((0, 2)), np.zeros((0, 2))
+    A, B = V[pairs[keep, 0]], V[pairs[keep, 1]]
+    ua, ub = camera.project(A), camera.project(B)
+    length = np.linalg.norm(ub - ua, axis=1)
+    n_s = np.maximum(1, np.ceil(length / params.step_px)).astype(int)
+    seg = np.repeat(np.arange(len(A)), n_s)
+    s = (np.concatenate([np.arange(k) for k in n_s]) + 0.5) / np.repeat(n_s, n_s)
+    P = A[seg] * (1 - s[:, None]) + B[seg] * s[:, None]  # 3-D samples, camera frame
+    uv = camera.project(P)
+    d = ub[seg] - ua[seg]
+    d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-9)
+    normal = np.column_stack([-d[:, 1], d[:, 0]])
+    w, h = camera.width, camera.height
+    b = params.border_px
+    ok = (uv[:, 0] >= b) & (uv[:, 1] >= b) & (uv[:, 0] <= w - 1 - b) & (uv[:, 1] <= h - 1 - b)
+    if depth is None:
+        small = scaled_camera(camera, depth_scale)
+        depth = render(mesh, small, pose).depth
+    dh, dw = depth.shape
+    sx, sy = dw / w, dh / h
+    ui = np.clip(np.rint((uv[:, 0] + 0.5) * sx - 0.5).astype(int), 0, dw - 1)
+    vi = np.clip(np.rint((uv[:, 1] + 0.5) * sy - 0.5).astype(int), 0, dh - 1)
+    near = cv2.erode(np.where(np.isfinite(depth), depth, np.inf).astype(np.float32), np.ones((3, 3), np.uint8))
+    ok &= P[:, 2] <= near[vi, ui] + params.depth_tol * mesh.extent
+    return uv[ok], normal[ok]
+
+
+def image_gradients(grey: np.ndarray, box: tuple[int, int, int, int] | None = None) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
+    """Sobel gradients (/8: grey levels per pixel) of the σ = 1 blurred image, of the crop ``box``
+    (x0, y0, x1, y1) only; returns gx, gy and the crop's origin."""
+    x0, y0 = 0, 0
+    if box is not None:
+        x0, y0, x1, y1 = box
+        grey = grey[y0:y1, x0:x1]
+    g = cv2.GaussianBlur(grey.astype(np.float32), (0, 0), 1.0)
+    gx = cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)
+    gy = cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)
+    return gx, gy, (x0, y0)
+
+
+def _supported(gx, gy, origin, uv, normal, radius: float, params: EdgeParams) -> np.ndarray:
+    """Per sample: an aligned, strong gradient within ``radius`` px along its normal."""
+    h, w = gx.shape
+    out = np.zeros(len(uv), bool)
+    if len(uv) == 0:
+        return out
+    offsets = np.arange(-np.ceil(radius), np.ceil(radius) + 1)
+    for o in offsets:
+        p = uv + normal * o - np.asarray(origin, float)
+        ui = np.rint(p[:, 0]).astype(int)
+        vi = np.rint(p[:, 1]).astype(int)
+        inside = (ui >= 0) & (vi >= 0) & (ui < w) & (vi < h)
+        ui, vi = np.clip(ui, 0, w - 1), np.clip(vi, 0, h - 1)
+        ex, ey = gx[vi, ui], gy[vi, ui]
+        mag = np.hypot(ex, ey)
+        cos = np.abs(ex * normal[:, 0] + ey * normal[:, 1]) / np.maximum(mag, 1e-6)
+        out |= inside & (mag >= params.min_grad) & (cos >= params.cos_min)
+    return out
+
+
+@dataclass(frozen=True)
+class EdgeEvidence:
+    samples: int  # visible model edge samples judged
+    agreement: float  # share supported by an aligned image edge
+    chance: float  # the same with the samples displaced (this image's clutter level)
+
+    @property
+    def lead(self) -> float:
+        return self.agreement - self.chance
+
+
+def edge_agreement(grey: np.ndarray, mesh: Mesh, camera: PinholeCamera, pose: Pose,
+                   params: EdgeParams = EdgeParams(), depth: np.ndarray | None = None,
+                   depth_scale: float = 0.5) -> EdgeEvidence:
+    """Agreement of the visible model edges at ``pose`` with the image's gradients, and chance."""
+    uv, normal = edge_samples(mesh, camera, pose, params, depth, depth_scale)
+    if len(uv) == 0:
+        return EdgeEvidence(0, 0.0, 0.0)
+    span = np.ptp(uv, axis=0)
+    size = float(max(np.hypot(*span), 8.0))
+    radius = params.radius_px + 0.01 * size
+    shift = 0.25 * size
+    h, w = grey.shape[:2]
+    pad = int(np.ceil(shift + radius + 2))
+    lo = np.floor(uv.min(axis=0)) - pad
+    hi = np.ceil(uv.max(axis=0)) + pad
+    box = (int(max(lo[0], 0)), int(max(lo[1], 0)), int(min(hi[0] + 1, w)), int(min(hi[1] + 1, h)))
+    gx, gy, origin = image_gradients(grey, box)
+    agree = float(_supported(gx, gy, origin, uv, normal, radius, params).mean())
+    chance = []
+    for dx, dy in ((1, 0), (-1, 0), (0, 1), (0, -1)):
+        moved = uv + shift * np.array([dx, dy], float)
+        inside = (moved[:, 0] >= 0) & (moved[:, 1] >= 0) & (moved[:, 0] <= w - 1) & (moved[:, 1] <= h - 1)
+        if inside.sum() >= 0.3 * len(uv):
+            chance.append(float(_supported(gx, gy, origin, moved[inside], normal[inside], radius, params).mean()))
+    return EdgeEvidence(len(uv), agree, float(np.mean(chance)) if chance else 0.0)
+
+
+def inlier_spread(uv: np.ndarray, area_px: float) -> float:
+    """Area of the inliers' convex hull over the object's visible area (0 … ~1): inliers bunched
+    on one patch constrain the pose far less than inliers spread over the object."""
+    if len(uv) < 3 or area_px <= 0:
+        return 0.0
+    hull = cv2.convexHull(np.asarray(uv, np.float32).reshape(-1, 1, 2))
+    return float(min(cv2.contourArea(hull) / area_px, 1.0))
