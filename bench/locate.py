@@ -22,7 +22,7 @@ import numpy as np
 
 from quatrack.recognition.locate import LocateParams, locate
 from quatrack.recognition.match import index_for
-from quatrack.recognition.overlay import draw_wireframe
+from quatrack.recognition.overlay import draw_label, draw_wireframe
 from quatrack.recognition.pose import iou
 from quatrack.recognition.visibility import mesh_edges
 from quatrack.tracking import quaternion as quat
@@ -132,8 +132,7 @@ def video(model, camera, every: int, sheet: str | None, progress: bool) -> dict:
                 if r.bbox:
                     x, y, w, h = (int(v) for v in r.bbox)
                     cv2.rectangle(g, (x, y), (x + w, y + h), (255, 128, 0), 2)
-                cv2.putText(g, f"{i} {'found' if r.found else 'not found'} {r.inliers} inliers", (8, 28),
-                            cv2.FONT_HERSHEY_SIMPLEX, 0.8, (0, 255, 255), 2)
+                draw_label(g, f"{i} {'found' if r.found else 'not found'} {r.inliers} inliers", colour=(0, 255, 255), scale=0.8)
                 thumbs.append(cv2.resize(g, (320, 240)))
         i += 1
     bar.close()
