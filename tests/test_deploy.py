@@ -132,7 +132,7 @@ def test_two_replicas_behind_nginx_survive_one_stopping(tmp_path):
             rest_task = asyncio.create_task(rest(stop_rest))
             old = [Session(ws_url, frames) for _ in range(4)]
             tasks = []
-            for s in old:  # one after the other: round robin spreads them over both replicas
+            for s in old:  # one after the other: least_conn spreads them over both replicas
                 tasks.append(asyncio.create_task(s.run()))
                 await asyncio.wait_for(s.started.wait(), 180)
             assert all(s.answers > 0 for s in old)
