@@ -76,7 +76,7 @@ def _add_bench(parser: argparse.ArgumentParser) -> None:
     serve.add_argument("--clients", default="1,2,4,8,16", help="numbers of concurrent streams (default 1,2,4,8,16)")
     serve.add_argument("--workers", default=None, metavar="N,...",
                        help="worker-process counts to compare (default 1 and the number of cores)")
-    serve.add_argument("--threads", type=int, default=1, metavar="N", help="CPU threads per worker process (default 1)")
+    serve.add_argument("--threads", type=int, default=2, metavar="N", help="CPU threads per worker process (default 2, as quatrack serve)")
     serve.add_argument("--replicas", default="auto", choices=["auto", "yes", "no"],
                        help="also two 1-worker replicas behind nginx (default: when nginx is installed)")
     serve.add_argument("--seconds", type=float, default=5.0, help="length of each run: frames each client streams / fps (default 5)")
@@ -316,7 +316,8 @@ def _run_models(args: argparse.Namespace) -> int:
 
 def _add_locate(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("images", nargs="+", metavar="IMAGE", help="image files (JPEG, PNG, WebP, TIFF, ...)")
-    parser.add_argument("--object", required=True, metavar="NAME", help="a trained object (see `quatrack models list`)")
+    parser.add_argument("--object", required=True, metavar="NAME",
+                        help="a trained object (see `quatrack models list`), or `all`: search every trained object")
     parser.add_argument("--camera", required=True, metavar="CAMERA", help="camera file of the images (JSON, or OpenCV YAML)")
     parser.add_argument("--store", metavar="DIR", help="model store (default: $QUATRACK_STORE or the user data directory)")
     parser.add_argument("--json", action="store_true", help="one JSON object per line, per image")
@@ -339,9 +340,11 @@ def _run_locate(args: argparse.Namespace) -> int:
     if args.max_pixels < 32 * 32:
         raise UserError("--max-pixels must be at least 1024")
     camera = load_camera(args.camera)
+    params = LocateParams(use_window=not args.whole_image, max_pixels=args.max_pixels)
+    if args.object == "all":
+        return _locate_all(args, camera, params)
     model = load_model(resolve_store(args.store), args.object)
     index = index_for(model)
-    params = LocateParams(use_window=not args.whole_image, max_pixels=args.max_pixels)
     failed = False
     for path in args.images:
         try:
@@ -362,6 +365,57 @@ def _run_locate(args: argparse.Namespace) -> int:
                   f"rms {result.reprojection_rms_px:.2f} px  viewset {result.viewset}  {result.time_ms['total']:.0f} ms")
         else:
             print(f"{path}: not found ({result.reason})  {result.time_ms['total']:.0f} ms")
+    return 1 if failed else 0
+
+
+def _locate_all(args: argparse.Namespace, camera, params) -> int:
+    """``--object all``: every trained object searched in each image; one line per image,
+    ``{"image", "found", "objects": [the locate object of each one found], "time_ms": {"total"}}``."""
+    import json
+    import time
+
+    from quatrack.recognition.images import ImageError, read_image
+    from quatrack.recognition.locate import locate_all
+    from quatrack.viewsets.store import list_models, load_model, resolve_store
+
+    store = resolve_store(args.store)
+    names = list_models(store)
+    if not names:
+        raise UserError(f"no trained object in {store}")
+    from quatrack.viewsets.errors import StoreError
+
+    models = []
+    for n in names:
+        try:
+            models.append(load_model(store, n))
+        except StoreError as exc:  # a broken model is skipped, said once; the others are searched
+            print(f"warning: {n}: {exc}", file=sys.stderr)
+    if not models:
+        raise UserError(f"no usable trained object in {store}")
+    failed = False
+    for path in args.images:
+        t0 = time.perf_counter()
+        try:
+            results = locate_all(read_image(path), camera, models, params)
+        except ImageError as exc:
+            failed = True
+            if args.json:
+                print(json.dumps({"image": path, "found": False, "error": str(exc)}), flush=True)
+            else:
+                print(f"{path}: error: {exc}", file=sys.stderr)
+            continue
+        found = [r for r in results if r.found]
+        total = (time.perf_counter() - t0) * 1e3
+        if args.json:
+            print(json.dumps({"image": path, "found": bool(found), "objects": [r.to_json() for r in found],
+                              "time_ms": {"total": round(total, 3)}}), flush=True)
+        elif not found:
+            print(f"{path}: none of {len(models)} objects found  {total:.0f} ms")
+        for r in found if not args.json else ():
+            t = ", ".join(f"{v:.2f}" for v in r.t)
+            q = ", ".join(f"{v:.4f}" for v in r.q_wxyz)
+            print(f"{path}: found {r.object}  t = [{t}]  q_wxyz = [{q}]  inliers {r.inliers}/{r.matches}  "
+                  f"confidence {r.confidence:.2f}  {total:.0f} ms")
     return 1 if failed else 0
 
 
