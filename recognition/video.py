@@ -63,23 +63,44 @@ def _anchor_pool() -> ThreadPoolExecutor:
             _ANCHOR_POOL = ThreadPoolExecutor(max_workers=1, thread_name_prefix="quatrack-anchor")
         return _ANCHOR_POOL
 
-# Per-model plant noise for a hand-held object at ~0.5 m, in mesh units (cm) and radians:
-# ude/m3 are random accelerations (units²/s³, rad²/s³), m1/m2 random walks (units²/s, rad²/s).
+# Plant noise per motion model, free of units: translation terms are per diameter² of the object
+# (its bounding-box diagonal, :attr:`Mesh.extent`), rotation terms in rad². A noise in diameters
+# moves the object's image by the same share of its apparent size whatever the mesh unit, the
+# object's size, distance or the focal length, so one default fits a die and a car, in mm or m.
+# ude/m3 are random accelerations (diameters²/s³, rad²/s³), m1/m2 random walks (diameters²/s,
+# rad²/s). (Measured on the 32.8 cm cookie box, hand-held: a = 2000 cm²/s³ = 1.85 diameters²/s³.)
 DEFAULT_MOTION_NOISE: dict[str, dict[str, float]] = {
-    "ude": {"a": 2000.0, "alpha": 20.0},
-    "m3": {"sigma_p2": 2000.0, "sigma_phi2": 20.0},
-    "m1": {"sigma_p2": 100.0, "sigma_phi2": 0.3},
-    "m2": {"sigma_p2": 100.0, "sigma_phi2": 0.3},
+    "ude": {"a": 1.85, "alpha": 20.0},
+    "m3": {"sigma_p2": 1.85, "sigma_phi2": 20.0},
+    "m1": {"sigma_p2": 0.093, "sigma_phi2": 0.3},
+    "m2": {"sigma_p2": 0.093, "sigma_phi2": 0.3},
 }
+_TRANSLATION_NOISE = {"a", "sigma_p2"}  # the terms in length², scaled by the diameter²
+# Velocities start unknown: standard deviation 100 diameters/s and 100 rad/s (Ude's 1e8 variance
+# was in his units; in diameters it is the same "unknown" for every mesh unit).
+INITIAL_VELOCITY_SIGMA = 100.0
+
+
+def motion_noise(motion_model: str, diameter: float, overrides: dict | None = None) -> dict[str, float]:
+    """The motion model's noise in mesh units: :data:`DEFAULT_MOTION_NOISE` with its translation
+    terms times ``diameter²``, overridden by ``overrides`` (given in mesh units, as the CLI's
+    ``--motion-noise``)."""
+    rel = DEFAULT_MOTION_NOISE[motion_model]
+    out = {k: v * (diameter**2 if k in _TRANSLATION_NOISE else 1.0) for k, v in rel.items()}
+    out.update({k: float(v) for k, v in (overrides or {}).items()})
+    return out
+
 
 STATUSES = ("init", "tracking", "lost")
 
 
 @dataclass(frozen=True)
 class TrackerParams:
-    """How the tracker runs. ``motion_noise`` overrides :data:`DEFAULT_MOTION_NOISE` of the model.
+    """How the tracker runs. ``motion_noise`` overrides the model's default noise, in mesh units
+    (:func:`motion_noise`).
 
-    Pixel quantities are for the image as given; lengths in mesh units.
+    No default carries a length: pixel quantities are for the image as given (measurement
+    noise and gates of image features), 3-D quantities are fractions of the object's diameter.
     """
 
     motion_model: str = "ude"
@@ -111,9 +132,11 @@ class TrackerParams:
     visibility: VisibilityParams = field(default_factory=VisibilityParams)
     locate: LocateParams = field(default_factory=LocateParams)
     adjust: AdjustOptions = field(
-        # Gauss–Newton from the prediction converges in 2–3 steps here; 4 is a measured margin
+        # Gauss–Newton from the prediction converges in 2–3 steps here; 4 is a measured margin.
+        # The stop rule ‖∇F‖ < ε mixes 1/length (position) and 1/rad terms, so ε is tiny: the
+        # iterations stop at convergence, not earlier in one mesh unit than in another.
         default_factory=lambda: AdjustOptions(method="gauss-newton", robust="huber", max_iterations=4,
-                                              gradient_tolerance=1e-3)
+                                              gradient_tolerance=1e-7)
     )
 
     def __post_init__(self) -> None:
@@ -125,9 +148,9 @@ class TrackerParams:
             raise ValueError(f"motion model {self.motion_model!r} has no parameter(s) {sorted(unknown)}; "
                              f"expected {sorted(noise)}")
 
-    def noise(self) -> dict[str, float]:
-        """The motion model's noise parameters: defaults overridden by ``motion_noise``."""
-        return {**DEFAULT_MOTION_NOISE[self.motion_model], **{k: float(v) for k, v in self.motion_noise.items()}}
+    def noise(self, diameter: float) -> dict[str, float]:
+        """The motion model's noise parameters (mesh units) for an object of this diameter."""
+        return motion_noise(self.motion_model, diameter, self.motion_noise)
 
 
 @dataclass
@@ -195,7 +218,7 @@ class Tracker:
         self.camera = camera
         self.params = params
         self.index = index
-        self.motion = make_motion_model(params.motion_model, **params.noise())
+        self.motion = make_motion_model(params.motion_model, **params.noise(model.mesh.extent))
         self.filter = PoseFilter(self.motion, params.adjust)
         pts = np.concatenate([vs.points3d for vs in model.viewsets]) if model.viewsets else np.zeros((0, 3))
         self.points = merge_points(pts, 0.005 * model.mesh.extent)
@@ -281,6 +304,14 @@ class Tracker:
         sa = np.radians(self.params.initial_sigma_deg)
         return np.diag([sp**2] * 3 + [sa**2] * 3)
 
+    def _unknown_velocity(self) -> None:
+        """Velocity variances in the object's scale (see :data:`INITIAL_VELOCITY_SIGMA`)."""
+        if self.motion.estimates_velocity:
+            s = INITIAL_VELOCITY_SIGMA
+            cov = self.filter.state.covariance
+            cov[6:9, 6:9] = (s * self.model.mesh.extent) ** 2 * np.eye(3)
+            cov[9:12, 9:12] = s**2 * np.eye(3)
+
     def _initialise(self, img: np.ndarray, pyr: Frame, time_s: float, timings: dict) -> TrackStep:
         """No state: the user's pose or recognition; then anchor model points and refine."""
         if self._pending is not None:
@@ -300,6 +331,7 @@ class Tracker:
             t, q, cov, how, time_s0 = loc.t, loc.q_wxyz, loc.covariance, "recognition", time_s
             cov = 0.5 * (cov + cov.T) + 1e-9 * np.eye(6)
         self.filter.initialize(time_s0, Pose(q, t), cov)
+        self._unknown_velocity()
         self.filter.predict(time_s)
         t0 = time.perf_counter()
         tracks, n_matches, _ = self._anchor(img, _Tracks.empty(), wide=True)
@@ -531,14 +563,17 @@ class Tracker:
         kp = feats.keypoints[m.query_idx].astype(np.float64)
         X = np.asarray(m.points3d, np.float64)
         cam = self.camera
+        # OpenCV's PnP stops on absolute tolerances: it is given lengths in diameters, so that
+        # the same scene in mm, cm or m gives the same consensus
+        d = self.model.mesh.extent
         rvec0 = cv2.Rodrigues(pose.R)[0]
         ok, rvec, tvec, inl = cv2.solvePnPRansac(
-            X, kp, cam.matrix, cam.dist_coeffs, rvec0.copy(), pose.t.reshape(3, 1).copy(), useExtrinsicGuess=True,
+            X / d, kp, cam.matrix, cam.dist_coeffs, rvec0.copy(), pose.t.reshape(3, 1) / d, useExtrinsicGuess=True,
             iterationsCount=100, reprojectionError=3.0, confidence=0.99, flags=cv2.SOLVEPNP_ITERATIVE)
         if not ok or inl is None or len(inl) < p.min_anchor_matches:
             return tracks, 0, False
         inl = inl.ravel()
-        pnp = Pose.from_rvec(rvec, tvec)
+        pnp = Pose.from_rvec(rvec, tvec * d)
         vis, _ = visible_points(self.model.mesh, cam, pnp, X[inl], p.visibility)
         X, kp = X[inl][vis], kp[inl][vis]
         if len(X) < p.min_anchor_matches:
