@@ -67,12 +67,13 @@ class ZooObject:
 
 ZOO: tuple[ZooObject, ...] = (
     ZooObject("cube-m", "box", (10.0, 10.0, 10.0), "m", "chelsea"),
-    ZooObject("flat-box-mm", "box", (24.0, 16.0, 4.0), "mm", "coffee"),
-    ZooObject("tall-box-cm", "box", (8.0, 6.0, 22.0), "cm", "astronaut"),
+    ZooObject("flat-box-mm", "box", (24.0, 16.0, 4.0), "mm", "ihc"),
+    ZooObject("tall-box-cm", "box", (8.0, 6.0, 22.0), "cm", "rocket"),  # weak texture: mostly night sky
     ZooObject("cookie-slab-cm", "box", (16.0, 11.0, 6.0), "cm", "cookie-box"),
-    ZooObject("cylinder-mm", "cylinder", (4.0, 12.0), "mm", "rocket", sides=24),
+    ZooObject("cylinder-mm", "cylinder", (4.0, 12.0), "mm", "coffee", sides=24),
     ZooObject("hex-prism-m", "prism", (5.0, 9.0), "m", "brick", sides=6),
     ZooObject("small-cube-cm", "box", (6.0, 6.0, 6.0), "cm", "camera"),
+    ZooObject("wide-box-cm", "box", (20.0, 14.0, 9.0), "cm", "astronaut"),
 )
 
 
