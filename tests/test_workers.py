@@ -9,6 +9,7 @@ import multiprocessing
 import os
 import re
 import signal
+import time
 from pathlib import Path
 
 import httpx
@@ -92,8 +93,6 @@ def test_workers_are_processes_with_a_global_session_limit(server):
     assert m[("quatrack_model_loads_total", frozenset({("result", "ok")}))] == 2
     assert m.get(("quatrack_model_loads_total", frozenset({("result", "failed")})), 0) == 0
     # the sessions are gone: their slots are free again (bounded wait: closing is asynchronous)
-    import time
-
     deadline = time.monotonic() + 30
     while samples(httpx.get(f"{server.url}/metrics", timeout=60).text)[("quatrack_ws_sessions_active", frozenset())] != 0:
         assert time.monotonic() < deadline, "sessions still counted after their sockets closed"
@@ -113,33 +112,33 @@ def test_health_answers_while_tracking(server):
             assert json.loads(ws.recv(timeout=120))["frame"] == k
 
 
-def _hold_slot(directory: str, ready, done) -> None:
+def _hold_slot(directory: str, conn) -> None:
     lim = SlotLimiter(Path(directory), 2)
-    assert lim.try_open() is not None
-    ready.set()
-    done.wait(60)
+    conn.send(lim.try_open() is not None)
+    time.sleep(120)  # until killed (no multiprocessing.Event: a process killed inside its wait()
+    # would leave the parent's set() waiting forever for its acknowledgement)
 
 
 def test_slots_are_freed_when_a_worker_dies(tmp_path):
     ctx = multiprocessing.get_context("spawn")
-    ready, done = ctx.Event(), ctx.Event()
-    child = ctx.Process(target=_hold_slot, args=(str(tmp_path), ready, done))
+    parent, child_end = ctx.Pipe()
+    child = ctx.Process(target=_hold_slot, args=(str(tmp_path), child_end), daemon=True)
     child.start()
     try:
-        assert ready.wait(60)
+        assert parent.poll(120) and parent.recv() is True
         lim = SlotLimiter(tmp_path, 2)
         assert lim.count() == 1
         sid = lim.try_open()
         assert sid is not None and lim.count() == 2
         assert lim.try_open() is None  # full: one slot here, one in the other process
         os.kill(child.pid, signal.SIGKILL)  # a crashed worker...
-        child.join(30)
+        child.join(60)
         assert lim.count() == 1  # ...holds nothing: the kernel dropped its lock
         assert lim.try_open() is not None
     finally:
-        done.set()
         if child.is_alive():
             child.kill()
+            child.join(60)
 
 
 def test_settings_from_environment(monkeypatch):
