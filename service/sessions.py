@@ -326,7 +326,7 @@ class TrackSession:
                 camera = cam_in.to_camera((w, h))
             except ApiError as exc:  # a camera without a size, implausible for this frame's
                 raise _SessionError(exc.code, exc.message) from None
-            self.tracker = make_tracker(model, camera, index, self.settings.locate_max_pixels)
+            self.tracker = make_tracker(model, camera, index, self.settings.locate_max_pixels, self.executor)
             self.tracker_camera = cam_in.model_copy(update={"width": w, "height": h})
         for op in item.controls:
             if op[0] == "init":

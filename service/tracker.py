@@ -6,6 +6,7 @@ One tracker per session, built on the session's first frame, when the image size
 
 from __future__ import annotations
 
+from concurrent.futures import Executor
 from dataclasses import replace
 
 from quatrack.recognition.video import Tracker, TrackerParams
@@ -13,10 +14,12 @@ from quatrack.recognition.video import Tracker, TrackerParams
 TRACKER_KIND = "recognition.video.Tracker"
 
 
-def make_tracker(model, camera, index, max_pixels: int) -> Tracker:
+def make_tracker(model, camera, index, max_pixels: int, executor: Executor | None = None) -> Tracker:
     """A fresh tracker sharing the model and its index (both read-only), set for live streams:
-    re-anchoring runs in the background between frames (``pipelined_refresh``) on a smaller
-    window with fewer features, so that no frame waits for SIFT (bench/RESULTS.md, service)."""
+    re-anchoring runs in the background on ``executor`` (the service's pool, owned by its
+    lifespan) between frames (``pipelined_refresh``) on a smaller window with fewer features,
+    so that no frame waits for SIFT (bench/RESULTS.md, service). Without an executor it runs
+    in the step."""
     params = TrackerParams(pipelined_refresh=True, anchor_max_side=320, anchor_max_features=400)
     params = replace(params, locate=replace(params.locate, max_pixels=max_pixels))
-    return Tracker(model, camera, params, index=index)
+    return Tracker(model, camera, params, index=index, executor=executor)

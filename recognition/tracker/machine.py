@@ -1,0 +1,325 @@
+"""The tracker: a small state machine over measurement sources, on Ude's quaternion filter.
+
+States and transitions (Kragic & Kyrki's Fig. 1 loop):
+
+- **init** (no filter state): the user's pose (:meth:`Tracker.init_pose`) or recognition
+  (:func:`recognition.locate.locate`) starts the filter with unknown velocities; SIFT anchors
+  model points near that pose and one adjustment checks them → *tracking*, or stays *init*
+  (the step answers ``lost``) when they do not agree.
+- **tracking**: each frame is *predict → measure → adjust*: the motion model gives the prior;
+  every source (:mod:`.sources`) measures its tracks in the frame (KLT from the previous frame,
+  starting from the projections at the prediction; gated by ``rᵀ(J P Jᵀ + C)⁻¹r < χ²``); one
+  adjustment (:meth:`PoseFilter.update`, eq. 24, Huber weights) takes every block; measurements
+  still off after it are outliers, removed and the adjustment redone. Re-anchoring
+  (:mod:`.anchor`) refreshes the trained points every ``refresh_every`` frames or when they
+  thin out, in the step or on the caller's executor.
+- **lost**: too few measurements agree, residuals too large, the pose implausible
+  (:func:`recognition.pose.plausible`: behind the camera, too little of it in the image), or
+  repeated refreshes find no texture → the state is dropped and the next frame is *init* again.
+"""
+
+from __future__ import annotations
+
+import time
+from concurrent.futures import Executor
+from dataclasses import replace
+
+import cv2
+import numpy as np
+
+from quatrack.tracking import quaternion as quat
+from quatrack.tracking.adjust import SingularProblemError
+from quatrack.tracking.camera import PinholeCamera
+from quatrack.tracking.filter import PoseFilter
+from quatrack.tracking.measurements import project_model_points
+from quatrack.tracking.motion import make_motion_model
+from quatrack.tracking.pose import Pose
+from quatrack.viewsets.store import ObjectModel
+
+from ..images import ImageError, to_bgr8
+from ..klt import Frame, make_frame
+from ..locate import locate
+from ..match import ModelIndex, index_for
+from ..pose import plausible
+from ..visibility import merge_points
+from .anchor import Anchor, AnchorJob
+from .params import INITIAL_VELOCITY_SIGMA, TrackerParams, TrackStep
+from .points import PointBlock, Tracks, mahalanobis2
+from .sources import FrameContext, MeasurementSource, TrainedPoints
+
+
+def _ms(t0: float) -> float:
+    return (time.perf_counter() - t0) * 1e3
+
+
+def _check_pose(t, q) -> Pose:
+    try:
+        return Pose(q, t)
+    except ValueError:
+        raise ValueError("the pose must be finite and its quaternion not zero") from None
+
+
+class Tracker:
+    """Tracks one object in the frames of one camera; not thread-safe (one per video stream).
+
+    ``executor``: where re-anchoring runs in the background when ``params.pipelined_refresh``
+    (the caller owns it: the service's pool; without one it runs in the step)."""
+
+    def __init__(self, model: ObjectModel, camera: PinholeCamera, params: TrackerParams = TrackerParams(),
+                 index: ModelIndex | None = None, executor: Executor | None = None) -> None:
+        self.model = model
+        self.camera = camera
+        self.params = params
+        self.index = index
+        self.executor = executor
+        self.diameter = float(model.mesh.extent)
+        self.motion = make_motion_model(params.motion_model, **params.noise(self.diameter))
+        self.filter = PoseFilter(self.motion, params.adjust)
+        pts = np.concatenate([vs.points3d for vs in model.viewsets]) if model.viewsets else np.zeros((0, 3))
+        self.points = merge_points(pts, params.merge_tol * self.diameter)
+        self.trained = TrainedPoints(model.mesh, params)
+        self.sources: list[MeasurementSource] = [self.trained]
+        self._anchor: Anchor | None = None
+        self._frame = -1
+        self._pending: tuple[Pose, float | None] | None = None
+        self.reset()
+        if params.pipelined_refresh and params.refresh_every and executor is not None:
+            executor.submit(lambda: self._index()._matcher())  # warm the anchor thread's index
+
+    # -- public -------------------------------------------------------------------------------
+    def reset(self) -> None:
+        """Forget the state: the next frame re-initialises (by recognition)."""
+        self.filter.state = None
+        self.filter.prior = None
+        for s in self.sources:
+            s.reset()
+        self._prev: Frame | None = None
+        self._since_refresh = 0
+        self._failed_refreshes = 0
+        self._pending = None
+        self._anchor_job: AnchorJob | None = None
+
+    def init_pose(self, t, q_wxyz, time_s: float | None = None) -> None:
+        """Start from a user-given pose (object → camera) at the next frame (or at ``time_s``)."""
+        pose = _check_pose(t, q_wxyz)
+        self.reset()
+        self._pending = (pose, None if time_s is None else float(time_s))
+
+    @property
+    def tracking(self) -> bool:
+        return self.filter.state is not None
+
+    @property
+    def phase(self) -> str:
+        """The machine's state: ``init`` (the next frame starts a track) or ``tracking``."""
+        return "tracking" if self.tracking else "init"
+
+    def step(self, image: np.ndarray, time_s: float) -> TrackStep:
+        """Process one frame taken at ``time_s`` (seconds, non-decreasing)."""
+        t_start = time.perf_counter()
+        time_s = float(time_s)
+        if not np.isfinite(time_s):
+            raise ValueError("time_s must be finite")
+        img = to_bgr8(image)
+        h, w = img.shape[:2]
+        cam = self.camera
+        if cam.width is not None and cam.height is not None and (cam.width, cam.height) != (w, h):
+            raise ImageError(f"the camera is for {cam.width}×{cam.height} px images but the frame is {w}×{h} px")
+        if cam.width is None or cam.height is None:
+            self.camera = cam = replace(cam, width=w, height=h)
+        state = self.filter.state
+        if state is not None and time_s < state.t:
+            raise ValueError(f"time goes backwards ({time_s} s after {state.t} s)")
+        self._frame += 1
+        timings: dict[str, float] = {}
+        frame = make_frame(cv2.cvtColor(img, cv2.COLOR_BGR2GRAY))
+        if self.phase == "init":
+            step = self._initialise(img, frame, time_s, timings)
+        else:
+            step = self._track(img, frame, time_s, timings)
+        self._prev = frame if step.status != "lost" else None
+        timings["total"] = _ms(t_start)
+        step.timings_ms = timings
+        return step
+
+    # -- internals ----------------------------------------------------------------------------
+    def _index(self) -> ModelIndex:
+        if self.index is None:
+            self.index = index_for(self.model)
+        return self.index
+
+    def _anchors(self) -> Anchor:
+        if self._anchor is None:
+            self._anchor = Anchor(self.model.mesh, self._index(), self.params)
+        return self._anchor
+
+    def _lost(self, time_s: float, reason: str, inliers: int = 0) -> TrackStep:
+        pending = self._pending
+        self.reset()
+        self._pending = pending
+        return TrackStep(self._frame, time_s, "lost", inliers=inliers, reason=reason)
+
+    def _pose_step(self, time_s: float, status: str, inliers: int, reason: str | None = None) -> TrackStep:
+        s = self.filter.state
+        return TrackStep(self._frame, time_s, status, s.p.copy(), quat.canonical(s.q), s.v.copy(), s.omega.copy(),
+                         s.pose_covariance.copy(), inliers, reason=reason)
+
+    def _initial_covariance(self) -> np.ndarray:
+        sp = self.params.initial_sigma_p * self.diameter
+        sa = np.radians(self.params.initial_sigma_deg)
+        return np.diag([sp**2] * 3 + [sa**2] * 3)
+
+    def _start_filter(self, time_s0: float, pose: Pose, cov: np.ndarray) -> None:
+        """Initialise the filter; velocities unknown in the object's scale
+        (:data:`~.params.INITIAL_VELOCITY_SIGMA` diameters/s and rad/s)."""
+        self.filter.initialize(time_s0, pose, cov)
+        if self.motion.estimates_velocity:
+            s = INITIAL_VELOCITY_SIGMA
+            c = self.filter.state.covariance
+            c[6:9, 6:9] = (s * self.diameter) ** 2 * np.eye(3)
+            c[9:12, 9:12] = s**2 * np.eye(3)
+
+    def _initialise(self, img: np.ndarray, frame: Frame, time_s: float, timings: dict) -> TrackStep:
+        """*init*: the user's pose or recognition; then anchor model points and refine."""
+        if self._pending is not None:
+            pose, t_given = self._pending
+            self._pending = None
+            cov, how = self._initial_covariance(), "given pose"
+            time_s0 = time_s if t_given is None or t_given > time_s else t_given
+        else:
+            t0 = time.perf_counter()
+            loc = locate(img, self.camera, self.model, self.params.locate, index=self._index())
+            timings["locate"] = _ms(t0)
+            if not loc.found:
+                return self._lost(time_s, f"not found: {loc.reason}")
+            pose, cov, how, time_s0 = Pose(loc.q_wxyz, loc.t), loc.covariance, "recognition", time_s
+            cov = 0.5 * (cov + cov.T) + 1e-9 * np.eye(6)
+        self._start_filter(time_s0, pose, cov)
+        prior = self.filter.predict(time_s)
+        t0 = time.perf_counter()
+        tracks, _, _ = self._anchors().now(img, self.camera, prior.pose, Tracks.empty(), wide=True)
+        timings["replenish"] = _ms(t0)
+        if len(tracks) < self.params.min_inliers:
+            return self._lost(time_s, f"{how}: only {len(tracks)} model points matched near the pose")
+        t0 = time.perf_counter()
+        block = PointBlock.isotropic(self.trained.name, tracks, self.params.sigma_px)
+        ok, why, inl = self._adjust(block)
+        timings["adjust"] = _ms(t0)
+        if not ok:
+            return self._lost(time_s, f"{how}: {why}", int(inl.sum()))
+        self.trained.tracks = tracks.keep(inl)
+        self._since_refresh = 0
+        return self._pose_step(time_s, "init", int(inl.sum()), reason=how)
+
+    def _track(self, img: np.ndarray, frame: Frame, time_s: float, timings: dict) -> TrackStep:
+        """*tracking*: predict → measure (every source) → adjust → settle → re-anchor."""
+        p = self.params
+        t0 = time.perf_counter()
+        posterior_before = self.filter.state.pose  # the previous frame's posterior
+        prior = self.filter.predict(time_s)
+        timings["predict"] = _ms(t0)
+        if np.any(prior.pose.apply(self.model.mesh.centre[None])[:, 2] < p.min_depth * self.diameter):
+            return self._lost(time_s, "prediction puts the object behind or at the camera")
+
+        if self._anchor_job is not None and self._anchor_job.future.done():
+            # a re-anchoring run in the background on an earlier frame: its matches join the
+            # tracks, which live in the previous frame, where KLT starts from
+            t0 = time.perf_counter()
+            job, self._anchor_job = self._anchor_job, None
+            feats, m = job.future.result()
+            pose_then = job.pose
+            if job.frame is not self._prev:  # found on an older frame: carry the keypoints over
+                feats, m, pose_then = self._anchors().carry(feats, m, self.camera, job.frame, self._prev, posterior_before)
+            self.trained.tracks, n, _ = self._anchors().merge(feats, m, self.camera, pose_then, self.trained.tracks, wide=False)
+            self._count_refresh(n)
+            timings["replenish"] = _ms(t0)
+            if self._failed_refreshes >= p.max_failed_refreshes:
+                return self._lost(time_s, "the object's texture is no longer found where it is tracked")
+
+        t0 = time.perf_counter()
+        ctx = FrameContext(img, frame, self._prev, self.camera, prior)
+        blocks = [s.measure(ctx, timings) for s in self.sources]
+        block = PointBlock.stack(blocks)
+        timings["measure"] = _ms(t0)  # visibility + KLT + gating
+        if len(block) < p.min_inliers:
+            return self._lost(time_s, f"only {len(block)} points tracked", len(block))
+
+        t0 = time.perf_counter()
+        good, why, inl = self._adjust(block)
+        timings["adjust"] = _ms(t0)
+        n_inl = int(inl.sum())
+        if not good:
+            return self._lost(time_s, why, n_inl)
+        why = plausible(self.camera, self.model.mesh, self.filter.state.pose)
+        if why:
+            return self._lost(time_s, f"pose: {why}", n_inl)
+        start = 0
+        for s, b in zip(self.sources, blocks):
+            s.settle(ctx, b, inl[start : start + len(b)], self.filter.state)
+            start += len(b)
+
+        self._since_refresh += 1
+        thin = len(self.trained) < p.min_points
+        due = p.refresh_every and self._since_refresh >= p.refresh_every
+        scarce = len(self.trained) < 2 * p.min_inliers  # too few to wait for the background
+        if (due or thin) and not scarce and p.pipelined_refresh and self.executor is not None:
+            if self._anchor_job is None:  # (one at a time: a busy executor is not queued up)
+                job = self._anchors().submit(self.executor, img, self.camera, self.filter.state.pose, frame)
+                if job is not None:
+                    self._anchor_job = job
+                    self._since_refresh = 0
+        elif thin or due:
+            t0 = time.perf_counter()
+            tracks, n, replaced = self._anchors().now(img, self.camera, self.filter.state.pose, self.trained.tracks, wide=False)
+            self.trained.tracks = tracks
+            if replaced:  # the KLT tracks had slid: adjust this frame again to the fresh matches
+                redo = PointBlock.isotropic(self.trained.name, tracks, p.sigma_px)
+                good, why, inl = self._adjust(redo)
+                n_inl = int(inl.sum())
+                if not good:
+                    timings["replenish"] = _ms(t0)
+                    return self._lost(time_s, f"re-anchoring: {why}", n_inl)
+                self.trained.tracks = tracks.keep(inl)
+            timings["replenish"] = _ms(t0)
+            self._since_refresh = 0
+            self._count_refresh(n)
+            if self._failed_refreshes >= p.max_failed_refreshes:
+                return self._lost(time_s, "the object's texture is no longer found where it is tracked", n_inl)
+        return self._pose_step(time_s, "tracking", n_inl)
+
+    def _adjust(self, block: PointBlock) -> tuple[bool, str | None, np.ndarray]:
+        """Adjust the prior to the block; redo without the outliers (posterior Mahalanobis
+        residual beyond ``outlier_px / sigma_px``). Returns ``(ok, why, inlier mask)``."""
+        p = self.params
+        n_all = len(block)
+        keep = np.ones(n_all, bool)
+        inl = keep
+        limit2 = (p.outlier_px / p.sigma_px) ** 2
+        m2 = np.zeros(n_all)
+        for _ in range(2):
+            if keep.sum() < p.min_inliers:
+                return False, f"only {int(keep.sum())} points agree", keep
+            try:
+                result = self.filter.update([block.keep(keep).measurements(self.camera)])
+            except (SingularProblemError, np.linalg.LinAlgError):
+                return False, "the points do not determine the pose", keep
+            s = result.state
+            uv, _ = project_model_points(self.camera, block.X, s.p, s.R, False)
+            m2 = mahalanobis2(uv - block.uv, block.C)
+            inl = m2 < limit2
+            if np.array_equal(inl, keep) or inl.sum() < p.min_inliers:
+                break
+            keep = inl
+        n = int(inl.sum())
+        if n < p.min_inliers:
+            return False, f"only {n} points agree", inl
+        rms = float(np.sqrt(np.mean(m2[inl]))) * p.sigma_px  # px at the trained points' noise
+        if rms > p.max_rms_px:
+            return False, f"residuals too large (RMS {rms:.1f} px)", inl
+        if not np.all(np.isfinite(s.covariance[:6, :6])):
+            return False, "the pose covariance is not finite", inl
+        return True, None, inl
+
+    def _count_refresh(self, n_matches: int) -> None:
+        ok = n_matches >= self.params.min_anchor_matches
+        self._failed_refreshes = 0 if ok else self._failed_refreshes + 1

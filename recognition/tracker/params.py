@@ -1,0 +1,128 @@
+"""What the tracker is told (:class:`TrackerParams`) and what it answers (:class:`TrackStep`).
+
+No default carries a length: pixel quantities are for the image as given (noise, gates and
+windows of image measurements); 3-D quantities are fractions of the object's diameter (the
+bounding-box diagonal, :attr:`~quatrack.viewsets.mesh.Mesh.extent`), so a mesh in mm, cm or m,
+a die or a car, gives the same track up to the unit (tests/test_tracker_units.py).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from quatrack.tracking.adjust import AdjustOptions
+
+from ..klt import KLTParams
+from ..locate import LocateParams
+from ..visibility import VisibilityParams
+
+# Plant noise per motion model, free of units: translation terms are per diameter² of the object,
+# rotation terms in rad². A noise in diameters moves the object's image by the same share of its
+# apparent size whatever the mesh unit, the object's size, its distance or the focal length.
+# ude/m3 are random accelerations (diameters²/s³, rad²/s³), m1/m2 random walks (diameters²/s,
+# rad²/s). (Measured on the 32.8 cm cookie box, hand-held: a = 2000 cm²/s³ = 1.85 diameters²/s³.)
+DEFAULT_MOTION_NOISE: dict[str, dict[str, float]] = {
+    "ude": {"a": 1.85, "alpha": 20.0},
+    "m3": {"sigma_p2": 1.85, "sigma_phi2": 20.0},
+    "m1": {"sigma_p2": 0.093, "sigma_phi2": 0.3},
+    "m2": {"sigma_p2": 0.093, "sigma_phi2": 0.3},
+}
+_TRANSLATION_NOISE = {"a", "sigma_p2"}  # the terms in length², scaled by the diameter²
+# Velocities start unknown: standard deviation 100 diameters/s and 100 rad/s (Ude's 1e8 variance
+# was in his units; in diameters it is the same "unknown" for every mesh unit).
+INITIAL_VELOCITY_SIGMA = 100.0
+
+STATUSES = ("init", "tracking", "lost")
+
+
+def motion_noise(motion_model: str, diameter: float, overrides: dict | None = None) -> dict[str, float]:
+    """The motion model's noise in mesh units: :data:`DEFAULT_MOTION_NOISE` with its translation
+    terms times ``diameter²``, overridden by ``overrides`` (given in mesh units, as the CLI's
+    ``--motion-noise``)."""
+    rel = DEFAULT_MOTION_NOISE[motion_model]
+    out = {k: v * (diameter**2 if k in _TRANSLATION_NOISE else 1.0) for k, v in rel.items()}
+    out.update({k: float(v) for k, v in (overrides or {}).items()})
+    return out
+
+
+@dataclass(frozen=True)
+class TrackerParams:
+    """How the tracker runs. ``motion_noise`` overrides the model's default noise, in mesh units
+    (:func:`motion_noise`). Pixel quantities are for the image as given; 3-D ones × diameter."""
+
+    motion_model: str = "ude"
+    motion_noise: dict = field(default_factory=dict)
+    sigma_px: float = 0.7  # standard deviation of a KLT measurement
+    gate_chi2: float = 13.8  # Mahalanobis gate on the innovation (χ²₂ at 99.9 %)
+    outlier_px: float = 3.0  # posterior residual (at sigma_px; Mahalanobis beyond) of an outlier
+    max_points: int = 200  # tracked model points at most
+    min_points: int = 120  # below this, replenish from the model
+    refresh_every: int = 10  # frames between SIFT re-anchorings (0: only when thin)
+    # Live streams (the service) re-anchor on the window shrunk to 320 px with its 400 strongest
+    # SIFT features: 45 → 32 ms per refresh; offline, full resolution and all features keep the
+    # rendered benchmark's error at 0.27 % instead of ~0.35 %. None = no limit.
+    anchor_max_side: int | None = None
+    anchor_max_features: int | None = None
+    # Live streams: re-anchoring runs on the caller's executor beside the next frames' steps, so
+    # no frame waits for SIFT (the service: p99 latency 65 → 34 ms at 30 fps). Offline, frames
+    # come back to back, the thread only competes for the cores, and late anchors cost accuracy
+    # (rendered benchmark: 0.27 → 0.41 % error, losses at 1/4 rate): off by default. Without an
+    # executor given to the tracker, re-anchoring runs in the step whatever this says.
+    pipelined_refresh: bool = False
+    anchor_radius_px: float = 6.0  # a SIFT match must project this close (at the current pose)
+    min_inliers: int = 12  # fewer agreeing points: lost
+    max_rms_px: float = 2.5  # larger inlier RMS residual: lost
+    max_failed_refreshes: int = 3  # consecutive refreshes finding no texture: lost
+    min_anchor_matches: int = 6
+    merge_tol: float = 0.005  # × diameter: the viewsets' 3-D points closer than this are one point
+    min_depth: float = 0.5  # × diameter: the object's centre nearer the camera is implausible
+    initial_sigma_p: float = 0.01  # × diameter, for init_pose without a covariance
+    initial_sigma_deg: float = 2.0
+    klt: KLTParams = field(default_factory=KLTParams)
+    visibility: VisibilityParams = field(default_factory=VisibilityParams)
+    locate: LocateParams = field(default_factory=LocateParams)
+    adjust: AdjustOptions = field(
+        # Gauss–Newton from the prediction converges in 2–3 steps here; 4 is a measured margin.
+        # The stop rule ‖∇F‖ < ε mixes 1/length (position) and 1/rad terms, so ε is tiny: the
+        # iterations stop at convergence, not earlier in one mesh unit than in another.
+        default_factory=lambda: AdjustOptions(method="gauss-newton", robust="huber", max_iterations=4,
+                                              gradient_tolerance=1e-7)
+    )
+
+    def __post_init__(self) -> None:
+        noise = DEFAULT_MOTION_NOISE.get(self.motion_model)
+        if noise is None:
+            raise ValueError(f"unknown motion model {self.motion_model!r}; expected one of {sorted(DEFAULT_MOTION_NOISE)}")
+        unknown = set(self.motion_noise) - set(noise)
+        if unknown:
+            raise ValueError(f"motion model {self.motion_model!r} has no parameter(s) {sorted(unknown)}; "
+                             f"expected {sorted(noise)}")
+
+    def noise(self, diameter: float) -> dict[str, float]:
+        """The motion model's noise parameters (mesh units) for an object of this diameter."""
+        return motion_noise(self.motion_model, diameter, self.motion_noise)
+
+
+@dataclass
+class TrackStep:
+    """One frame's answer. Pose object → camera (``t`` mesh units, ``q_wxyz`` with w ≥ 0),
+    ``v`` mesh units/s and ``omega`` rad/s in the camera frame; ``covariance`` 6×6 over
+    ``[p, δθ]``. Pose fields are None when ``status`` is ``lost``."""
+
+    frame: int
+    time_s: float
+    status: str  # "init" | "tracking" | "lost"
+    t: np.ndarray | None = None
+    q_wxyz: np.ndarray | None = None
+    v: np.ndarray | None = None
+    omega: np.ndarray | None = None
+    covariance: np.ndarray | None = None
+    inliers: int = 0
+    timings_ms: dict = field(default_factory=dict)
+    reason: str | None = None  # why lost (or how initialised)
+
+    @property
+    def has_pose(self) -> bool:
+        return self.status != "lost"

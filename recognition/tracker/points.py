@@ -1,0 +1,95 @@
+"""Point correspondences as the filter sees them: tracks, residual blocks, the innovation gate.
+
+A source's measurements for one frame are a :class:`PointBlock`: object points ``X`` (n, 3),
+their measured pixels ``uv`` (n, 2) and pixel covariances ``C`` (n, 2, 2). Sources differ only
+in ``C``: a trained model point is exact (``C = σ² I``); a point born on the mesh at an uncertain
+pose carries that pose's uncertainty too (recognition/tracker/mesh_points.py).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from quatrack.tracking.camera import PinholeCamera
+from quatrack.tracking.measurements import PointMeasurements, project_model_points
+from quatrack.tracking.state import FilterState
+
+
+@dataclass
+class Tracks:
+    """Tracked object points: object-frame points (n, 3) and their pixels in the last frame (n, 2)."""
+
+    X: np.ndarray
+    uv: np.ndarray
+
+    @classmethod
+    def empty(cls) -> "Tracks":
+        return cls(np.zeros((0, 3)), np.zeros((0, 2)))
+
+    def __len__(self) -> int:
+        return len(self.X)
+
+    def keep(self, mask: np.ndarray) -> "Tracks":
+        return Tracks(self.X[mask], self.uv[mask])
+
+    def __add__(self, other: "Tracks") -> "Tracks":
+        return Tracks(np.concatenate([self.X, other.X]), np.concatenate([self.uv, other.uv]))
+
+
+@dataclass
+class PointBlock:
+    """One source's correspondences in this frame, with pixel covariances ``C`` (n, 2, 2)."""
+
+    source: str
+    X: np.ndarray
+    uv: np.ndarray
+    C: np.ndarray
+
+    @classmethod
+    def isotropic(cls, source: str, tracks: Tracks, sigma_px: float) -> "PointBlock":
+        return cls(source, tracks.X, tracks.uv, np.broadcast_to(sigma_px**2 * np.eye(2), (len(tracks), 2, 2)).copy())
+
+    def __len__(self) -> int:
+        return len(self.X)
+
+    @property
+    def tracks(self) -> Tracks:
+        return Tracks(self.X, self.uv)
+
+    def keep(self, mask: np.ndarray) -> "PointBlock":
+        return PointBlock(self.source, self.X[mask], self.uv[mask], self.C[mask])
+
+    @staticmethod
+    def stack(blocks: list["PointBlock"]) -> "PointBlock":
+        if not blocks:
+            return PointBlock("", np.zeros((0, 3)), np.zeros((0, 2)), np.zeros((0, 2, 2)))
+        return PointBlock("+".join(b.source for b in blocks), np.concatenate([b.X for b in blocks]),
+                          np.concatenate([b.uv for b in blocks]), np.concatenate([b.C for b in blocks]))
+
+    def measurements(self, camera: PinholeCamera) -> PointMeasurements:
+        """The residual block of eq. 24 for :meth:`PoseFilter.update`."""
+        return PointMeasurements.create(camera, self.X, self.uv, self.C)
+
+
+def mahalanobis2(r: np.ndarray, S: np.ndarray) -> np.ndarray:
+    """``rᵀ S⁻¹ r`` for residuals (n, 2) and 2×2 covariances (n, 2, 2), in closed form."""
+    a, b, d = S[:, 0, 0], S[:, 0, 1], S[:, 1, 1]
+    det = a * d - b * b
+    return (d * r[:, 0] ** 2 - 2 * b * r[:, 0] * r[:, 1] + a * r[:, 1] ** 2) / det
+
+
+def gate(camera: PinholeCamera, block: PointBlock, prior: FilterState, chi2: float) -> np.ndarray:
+    """Innovation gate: ``rᵀ (J P Jᵀ + C)⁻¹ r < χ²`` per point, at the prediction."""
+    if len(block) == 0:
+        return np.zeros(0, bool)
+    uv, J = project_model_points(camera, block.X, prior.p, prior.R, True)
+    S = J @ prior.pose_covariance @ np.swapaxes(J, 1, 2) + block.C
+    return mahalanobis2(block.uv - uv, S) < chi2
+
+
+def pose_spread(camera: PinholeCamera, X: np.ndarray, state: FilterState) -> np.ndarray:
+    """``J P Jᵀ`` (n, 2, 2): how the pose's uncertainty spreads the projections of ``X``."""
+    _, J = project_model_points(camera, X, state.p, state.R, True)
+    return J @ state.pose_covariance @ np.swapaxes(J, 1, 2)
