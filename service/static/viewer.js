@@ -5,7 +5,7 @@
 "use strict";
 
 const $ = (id) => document.getElementById(id);
-const state = { ws: null, running: false, edges: [], bbox: null, camera: null, count: 0, history: [], t0: 0 };
+const state = { run: 0, ws: null, running: false, edges: [], bbox: null, camera: null, count: 0, history: [], t0: 0 };
 const HISTORY = 200;
 const COLOURS = { tracking: "rgb(0,220,0)", init: "rgb(255,215,0)" };
 const AXIS_RGB = [[221, 51, 51], [34, 153, 34], [51, 51, 221]];  // x, y, z
@@ -196,7 +196,7 @@ function nextMessage(ws) {
   });
 }
 
-async function start() {
+async function start(id) {  // id: this run; a newer run makes it stop quietly
   const name = $("object").value;
   if (!name) { message("pick an object"); return; }
   const v = $("video");
@@ -223,7 +223,8 @@ async function start() {
   const max = parseInt($("max-frames").value, 10);
   state.t0 = performance.now();
   let last = -1;
-  while (state.running && !(max > 0 && state.count >= max)) {
+  const current = () => state.running && state.run === id;
+  while (current() && !(max > 0 && state.count >= max)) {
     grab.getContext("2d").drawImage(v, 0, 0, w, h);
     const frame = document.createElement("canvas");  // keep the sent frame: the pose is drawn on it
     frame.width = w; frame.height = h;
@@ -236,7 +237,7 @@ async function start() {
     ws.send(JSON.stringify({ type: "frame", time_s: t }));
     ws.send(blob);
     const msg = await nextMessage(ws);
-    if (!state.running) break;
+    if (!current()) return;
     if (msg.type === "error") { message(msg.error.code + ": " + msg.error.message); continue; }
     drawFrame(frame, msg, performance.now() - sent);
     record(msg);
@@ -245,7 +246,10 @@ async function start() {
   stop(state.count ? "" : "no pose received");
 }
 
-function run() { start().catch((e) => stop(e.message)); }
+function run() {
+  const id = ++state.run;
+  start(id).catch((e) => { if (state.run === id) stop(e.message); });
+}
 
 $("webcam").onclick = async () => {
   stop();
