@@ -121,7 +121,7 @@ class FrameSource:
                 if self.live:
                     now = self._clock()
                     t0 = now if t0 is None else t0
-                    t = now - t0
+                    t = now - t0 if i == 0 else max(now - t0, t + 1e-6)  # strictly increasing for the filter
                 else:
                     t = i / self.rate
                 self.count += 1

@@ -91,3 +91,30 @@ def test_bad_live_options_are_one_line_errors(tmp_path, capsys, extra, message):
     rc = _track(tmp_path, *args, "--out", str(out))
     err = capsys.readouterr().err.strip()
     assert rc == 2 and message in err and "\n" not in err and not out.exists()
+
+
+def test_a_stream_url_on_loopback(tmp_path):
+    """A real URL source: box.mp4 served over HTTP on loopback, opened by OpenCV/FFmpeg as a stream
+    (timed by the clock), stopped by --max-frames."""
+    import functools
+    import http.server
+    import threading
+
+    class Quiet(http.server.SimpleHTTPRequestHandler):
+        def log_message(self, *args):
+            pass
+
+    srv = http.server.ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(Quiet, directory=str(EXAMPLE)))
+    threading.Thread(target=srv.serve_forever, daemon=True).start()
+    try:
+        out = tmp_path / "poses.csv"
+        url = f"http://127.0.0.1:{srv.server_address[1]}/box.mp4"
+        assert _track(tmp_path, "--video", url, "--max-frames", "5", "--out", str(out)) == 0
+    finally:
+        srv.shutdown()
+        srv.server_close()
+    rows = list(csv.reader(out.open()))[1:]
+    assert [r[0] for r in rows] == ["0", "1", "2", "3", "4"] and rows[0][2] == "init"
+    assert all(r[2] == "tracking" for r in rows[1:])
+    times = [float(r[1]) for r in rows]
+    assert times[0] == 0.0 and all(b > a for a, b in zip(times, times[1:]))
