@@ -19,11 +19,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from quatrack.cli import UserError  # one line, exit status 2
 from quatrack.recognition.trackio import FORMATS, UNIT_METRES
-
-
-class TrackInputError(ValueError):
-    """Bad input to ``quatrack track``: reported in one line, exit status 2."""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -68,7 +65,7 @@ def _noise(text: str) -> dict:
         except ValueError:
             sep = ""
         if not sep or not np.isfinite(out.get(key.strip(), np.nan)) or out[key.strip()] < 0:
-            raise TrackInputError(f"--motion-noise: expected KEY=VALUE with a finite value >= 0, got {item!r}")
+            raise UserError(f"--motion-noise: expected KEY=VALUE with a finite value >= 0, got {item!r}")
     return out
 
 
@@ -79,9 +76,9 @@ def _load_init_pose(path: str):
         with open(path, encoding="utf-8") as f:
             data = json.load(f)
     except OSError as exc:
-        raise TrackInputError(f"--init-pose {path}: {exc.strerror or exc}") from None
+        raise UserError(f"--init-pose {path}: {exc.strerror or exc}") from None
     except json.JSONDecodeError as exc:
-        raise TrackInputError(f"--init-pose {path}: not valid JSON ({exc.msg}, line {exc.lineno})") from None
+        raise UserError(f"--init-pose {path}: not valid JSON ({exc.msg}, line {exc.lineno})") from None
     if isinstance(data, dict) and isinstance(data.get("pose"), dict):
         data = data["pose"]
     return parse_pose(data, f"--init-pose {path}")
@@ -106,9 +103,9 @@ def _setup(args: argparse.Namespace) -> _Setup:
 
     for opt, path, ext in (("--overlay", args.overlay, ".mp4"), ("--plot", args.plot, ".png")):
         if path and not path.lower().endswith(ext):
-            raise TrackInputError(f"{opt} {path}: the file name must end in {ext}")
+            raise UserError(f"{opt} {path}: the file name must end in {ext}")
     if args.format == "bop" and args.mesh_unit is None:
-        raise TrackInputError("--format bop needs --mesh-unit (mm, cm or m): BOP's t is in millimetres")
+        raise UserError("--format bop needs --mesh-unit (mm, cm or m): BOP's t is in millimetres")
     params = TrackerParams(motion_model=args.motion_model, motion_noise=_noise(args.motion_noise))
     camera = load_camera(args.camera)
     init = _load_init_pose(args.init_pose) if args.init_pose else None
@@ -135,7 +132,7 @@ def _track_frames(s: _Setup, rows, video, progress) -> tuple[list, bool]:
             try:
                 step = s.tracker.step(image, t)
             except ValueError as exc:
-                raise TrackInputError(f"{s.source.where(i)}: {exc}") from None
+                raise UserError(f"{s.source.where(i)}: {exc}") from None
             rows.write(step)
             steps.append(step)
             progress.update(step.status)
@@ -173,7 +170,7 @@ def run(args: argparse.Namespace) -> int:
         if args.plot:
             with atomic_path(args.plot, "--plot") as tmp_png:
                 if not cv2.imwrite(tmp_png, plot_track(steps)):
-                    raise TrackInputError(f"--plot {args.plot}: cannot write the PNG")
+                    raise UserError(f"--plot {args.plot}: cannot write the PNG")
     if interrupted:
         print(f"quatrack track: stopped (Ctrl-C) after {len(steps)} frames; outputs complete", file=sys.stderr)
     if not args.quiet:
