@@ -75,7 +75,11 @@ def open_capture(target: int | str):
 
 def frame_rate(given: float | None, reported: float | None = None) -> float:
     """The module's rule: ``given`` (``--fps``) if set, else ``reported`` (the container's) if
-    finite and in (0, 1000], else 30 frames/s."""
+    finite and in (0, 1000], else 30 frames/s.
+
+    >>> frame_rate(None, 29.97), frame_rate(12.0, 29.97), frame_rate(None, 0.0), frame_rate(None, float("nan"))
+    (29.97, 12.0, 30.0, 30.0)
+    """
     if given is not None:
         return float(given)
     if reported is not None and math.isfinite(reported) and 0 < reported <= MAX_RATE:
@@ -85,7 +89,11 @@ def frame_rate(given: float | None, reported: float | None = None) -> float:
 
 def capture_target(video: str) -> int | str:
     """What ``--video`` names: a camera index (all digits) or a URL (has ``://``) as given; else a
-    file, which must exist."""
+    file, which must exist.
+
+    >>> capture_target("0"), capture_target("rtsp://10.0.0.2/stream")
+    (0, 'rtsp://10.0.0.2/stream')
+    """
     text = video.strip()
     if text.isdigit():
         return int(text)
@@ -285,7 +293,16 @@ def bop_row(step, mesh_unit: str, obj_id: int = 1, scene_id: int = 0) -> str | N
     """One line of a BOP results CSV (``scene_id,im_id,obj_id,score,R,t,time``): ``R`` row-major
     (9 numbers, space-separated), ``t`` in mm, ``im_id`` the frame index, ``score`` the inlier
     count, ``time`` the frame's processing time in seconds (-1 if unknown). ``None`` for a frame
-    without a pose (BOP lists estimates only). ``mesh_unit``: the unit of the mesh (mm, cm, m)."""
+    without a pose (BOP lists estimates only). ``mesh_unit``: the unit of the mesh (mm, cm, m).
+
+    >>> from quatrack.recognition.video import TrackStep
+    >>> step = TrackStep(frame=7, time_s=0.23, status="tracking", t=np.array([1.0, 2.0, 50.0]),
+    ...                  q_wxyz=np.array([1.0, 0.0, 0.0, 0.0]), inliers=80, timings_ms={"total": 12.0})
+    >>> bop_row(step, "cm")
+    '0,7,1,80,1 0 0 0 1 0 0 0 1,10 20 500,0.012000'
+    >>> pose_from_bop(bop_row(step, "cm"), "cm").t
+    array([ 1.,  2., 50.])
+    """
     if step.status == "lost" or step.t is None or step.q_wxyz is None:
         return None
     s = _unit_scale(mesh_unit, 1e-3)
