@@ -460,9 +460,9 @@ COMMANDS: dict[str, tuple[str, Callable[[argparse.ArgumentParser], None], Callab
     "train": ("train an object's model (RFCH + SIFT viewsets) from its spec into the model store", _add_train, _run_train),
     "models": ("list, show or delete the trained objects in the model store", _add_models, _run_models),
     "locate": ("find a trained object in images and estimate its initial pose", _add_locate, _run_locate),
-    "track": ("track a trained object through a video or an image sequence (poses to CSV)", _add_track, _run_track),
+    "track": ("track a trained object through a video, camera, stream or image sequence (poses to CSV, JSON lines or BOP)", _add_track, _run_track),
     "serve": ("run the HTTP/WebSocket service (pose of an image, tracking of a stream)", _add_serve, _run_serve),
-    "demo": ("stream a video through the service's WebSocket; write poses (CSV) and an overlay video", _add_demo, _run_demo),
+    "demo": ("stream a video through the service's WebSocket; write poses (CSV), an overlay video and a plot", _add_demo, _run_demo),
 }
 
 
