@@ -209,7 +209,7 @@ async function start(id) {  // id: this run; a newer run makes it stop quietly
   state.count = 0; state.history = []; state.running = true;
   $("drop").classList.add("hidden");
   $("stop").disabled = false;
-  message("");
+  message($("camera").value.trim() ? "" : "camera guessed (60° field of view): paste your calibration for accurate poses");
   const proto = location.protocol === "https:" ? "wss:" : "ws:";
   const q = token() ? "?token=" + encodeURIComponent(token()) : "";
   const ws = new WebSocket(`${proto}//${location.host}/v1/objects/${encodeURIComponent(name)}/track${q}`);
