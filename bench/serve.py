@@ -37,6 +37,7 @@ def _rss_mb(pids: list[int]) -> list[float]:
 async def _streams(url: str, http_url: str, camera: dict, frames: list, n: int, fps: float) -> dict:
     import asyncio
     import time
+    from collections import Counter
 
     import httpx
 
@@ -66,6 +67,7 @@ async def _streams(url: str, http_url: str, camera: dict, frames: list, n: int, 
     return {
         "clients": n, "refused": len(refused), "frames_sent": sent, "processed": processed,
         "dropped": sent - processed, "errors": sum(len(r.errors) for r in results),
+        "error_codes": dict(Counter(e.get("error", {}).get("code", "?") for r in results for e in r.errors)),
         "tracking": sum(m["status"] == "tracking" for r in results for m in r.poses.values()),
         "fps_per_stream_min": min(per_stream, default=0.0), "fps_per_stream_mean": sum(per_stream) / max(len(per_stream), 1),
         "total_fps": processed / wall,
@@ -200,7 +202,8 @@ def main(args: argparse.Namespace) -> int:
             print(f"| {s['setup']} | {r['clients']} | {r['fps_per_stream_min']:.1f} / {r['fps_per_stream_mean']:.1f} | "
                   f"{r['total_fps']:.1f} | {r['latency_p50_ms']:.0f} / {r['latency_p99_ms']:.0f} | "
                   f"{r['dropped']} of {r['frames_sent']} | {r['refused']} | {r['healthz_p50_ms']:.1f} / "
-                  f"{r['healthz_p99_ms']:.1f} | {', '.join(f'{x:.0f}' for x in r['rss_mb'])} |")
+                  f"{r['healthz_p99_ms']:.1f} | {', '.join(f'{x:.0f}' for x in r['rss_mb'])} |"
+                  + (f" errors: {r['error_codes']}" if r["error_codes"] else ""))
     for s in report["setups"]:
         r = s["rest"]
         if r:

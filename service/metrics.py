@@ -80,6 +80,7 @@ class Metrics:
                                    registry=reg)
         self.models.set(0)
         self._sessions_open = _Computed("quatrack_ws_sessions_active", "open tracking sessions (whole server)", sessions_open)
+        reg.register(self._sessions_open)
 
     def observe_stages(self, histogram: Histogram, timings_ms: dict | None) -> None:
         for stage, ms in (timings_ms or {}).items():
@@ -87,26 +88,14 @@ class Metrics:
 
     def render(self) -> bytes:
         """The text exposition: this process's metrics, or every worker's in multiprocess mode."""
-        if self.multiprocess:
-            from prometheus_client import multiprocess
+        if not self.multiprocess:
+            return generate_latest(self.registry)
+        from prometheus_client import multiprocess
 
-            reg = CollectorRegistry()
-            multiprocess.MultiProcessCollector(reg)
-        else:
-            reg = CollectorRegistry()
-            reg.register(_Forward(self.registry))
+        reg = CollectorRegistry()
+        multiprocess.MultiProcessCollector(reg)
         reg.register(self._sessions_open)
         return generate_latest(reg)
-
-
-class _Forward(Collector):
-    """The metrics of another registry (so that a computed gauge joins them in one scrape)."""
-
-    def __init__(self, registry: CollectorRegistry) -> None:
-        self.registry = registry
-
-    def collect(self):
-        return self.registry.collect()
 
 
 def worker_exit(pid: int | None = None) -> None:
