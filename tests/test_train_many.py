@@ -117,3 +117,12 @@ def test_specs_as_tasks_on_a_ray_cluster(tmp_path, ray_head):
     assert r.returncode == 0, r.stderr[-3000:]
     assert f"2 of 2 objects trained on Ray ({ray_head})" in r.stdout
     check_store(store, specs)
+
+
+def test_an_unreachable_ray_address_is_one_line(tmp_path, capsys):
+    pytest.importorskip("ray", reason="Ray is not installed (pip install 'quatrack[ray]')")
+    port = free_port()  # nobody listens there
+    assert main(["train", str(EXAMPLE / "object.json"), "--store", str(tmp_path / "s"), "--ray", f"127.0.0.1:{port}"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert f"--ray 127.0.0.1:{port}" in err and len(err.splitlines()) == 1
+    assert not (tmp_path / "s").exists() or list_models(tmp_path / "s") == []

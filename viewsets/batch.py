@@ -137,6 +137,7 @@ def _on_ray(specs, store, params, overwrite, skip_existing, address, on_done) ->
         import ray
     except ImportError:
         raise ValueError("--ray needs Ray: pip install 'quatrack[ray]'") from None
+    _reachable(address)
     started = not ray.is_initialized()
     if started:
         kwargs = {"address": None if address == "local" else address, "logging_level": "WARNING",
@@ -162,3 +163,17 @@ def _on_ray(specs, store, params, overwrite, skip_existing, address, on_done) ->
     finally:
         if started:
             ray.shutdown()
+
+
+def _reachable(address: str, timeout: float = 10.0) -> None:
+    """Refuse a ``host:port`` nobody listens on, in seconds: ``ray.init`` would retry for minutes."""
+    import socket
+
+    target = address.removeprefix("ray://")
+    host, sep, port = target.rpartition(":")
+    if address in ("auto", "local") or not sep or not port.isdigit():
+        return
+    try:
+        socket.create_connection((host, int(port)), timeout=timeout).close()
+    except OSError as exc:
+        raise ValueError(f"--ray {address}: no Ray cluster answers there ({exc.strerror or exc})") from None
