@@ -160,7 +160,9 @@ def main(args: argparse.Namespace) -> int:
     if replicas and find_nginx() is None:
         raise ValueError("--replicas yes: nginx is not installed (Debian: apt-get install nginx)")
     camera = camera_to_dict(load_camera(args.camera))
-    frames = list(video_frames(args.video, max(1, round(args.seconds * args.fps))))
+    if args.frames is not None and args.frames < 1:
+        raise ValueError("--frames must be at least 1")
+    frames = list(video_frames(args.video, args.frames or max(1, round(args.seconds * args.fps))))
     tmp = tempfile.TemporaryDirectory(prefix="quatrack-bench-serve-")
     store = args.store
     if not store:

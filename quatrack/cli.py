@@ -80,6 +80,7 @@ def _add_bench(parser: argparse.ArgumentParser) -> None:
     serve.add_argument("--replicas", default="auto", choices=["auto", "yes", "no"],
                        help="also two 1-worker replicas behind nginx (default: when nginx is installed)")
     serve.add_argument("--seconds", type=float, default=5.0, help="length of each run: frames each client streams / fps (default 5)")
+    serve.add_argument("--frames", type=int, default=None, metavar="N", help="frames each client streams (default: seconds × fps)")
     serve.add_argument("--fps", type=float, default=30.0, help="each client's frame rate (default 30)")
     serve.add_argument("--rest-requests", type=int, default=40, help="REST pose requests (default 40; 0 to skip)")
     serve.add_argument("--rest-concurrency", type=int, default=4)

@@ -308,9 +308,10 @@ def test_demo_and_bench_commands(store, tmp_path, capsys):
     assert rows[1].split(",")[2] == "init" and rows[-1].split(",")[2] == "tracking"
     assert overlay.stat().st_size > 1000
     assert main(["bench", "serve", "--store", str(store), "--video", video, "--camera", camera, "--clients", "1",
-                 "--frames", "6", "--rest-requests", "2", "--json"]) == 0
+                 "--frames", "6", "--workers", "1", "--replicas", "no", "--rest-requests", "2", "--json"]) == 0
     report = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
-    assert report["websocket"][0]["frames_sent"] == 6 and report["rest"]["ok"] == 2
+    (run,) = report["setups"]  # one set-up: 1 worker process
+    assert run["websocket"][0]["frames_sent"] == 6 and run["rest"]["ok"] == 2
 
 
 def test_deep_or_huge_json_is_a_typed_error_and_the_session_goes_on(server, frames):
