@@ -45,10 +45,18 @@ class VisibilityParams:
     margin_px: float = 12.0  # points closer to the image border are not used (KLT window)
 
 
+def visibility_buffers(mesh: Mesh, camera: PinholeCamera, pose: Pose, params: VisibilityParams = VisibilityParams()):
+    """The reduced-resolution z-buffer :func:`visible_points` tests against (one per frame and
+    pose serves every measurement source)."""
+    return render(mesh, scaled_camera(camera, params.scale), pose)
+
+
 def visible_points(
     mesh: Mesh, camera: PinholeCamera, pose: Pose, points: np.ndarray, params: VisibilityParams = VisibilityParams(),
+    buffers=None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Mask (n,) of the ``points`` (object frame) visible at ``pose``, and their pixels (n, 2)."""
+    """Mask (n,) of the ``points`` (object frame) visible at ``pose``, and their pixels (n, 2).
+    ``buffers``: :func:`visibility_buffers` of the same mesh, camera, pose and params, if at hand."""
     P = np.asarray(points, float).reshape(-1, 3)
     Xc = pose.apply(P)
     n = len(P)
@@ -63,7 +71,7 @@ def visible_points(
     if not ok.any():
         return ok, uv
     small = scaled_camera(camera, params.scale)
-    buf = render(mesh, small, pose)
+    buf = buffers if buffers is not None else render(mesh, small, pose)
     sx, sy = small.width / w, small.height / h
     ui = np.clip(np.rint((uv[:, 0] + 0.5) * sx - 0.5).astype(int), 0, small.width - 1)
     vi = np.clip(np.rint((uv[:, 1] + 0.5) * sy - 0.5).astype(int), 0, small.height - 1)

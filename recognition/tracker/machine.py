@@ -40,11 +40,13 @@ from ..images import ImageError, to_bgr8
 from ..klt import Frame, make_frame
 from ..locate import locate
 from ..match import ModelIndex, index_for
-from ..pose import plausible
+from ..evidence import edge_agreement
+from ..pose import PoseParams, plausible
 from ..visibility import merge_points
 from .anchor import Anchor, AnchorJob
 from .params import INITIAL_VELOCITY_SIGMA, TrackerParams, TrackStep
 from .points import PointBlock, Tracks, mahalanobis2
+from .mesh_points import MeshPoints
 from .sources import FrameContext, MeasurementSource, TrainedPoints
 
 
@@ -78,7 +80,10 @@ class Tracker:
         pts = np.concatenate([vs.points3d for vs in model.viewsets]) if model.viewsets else np.zeros((0, 3))
         self.points = merge_points(pts, params.merge_tol * self.diameter)
         self.trained = TrainedPoints(model.mesh, params)
-        self.sources: list[MeasurementSource] = [self.trained]
+        self.mesh_points = MeshPoints(model.mesh, params)
+        # the trained points always exist (re-anchoring and initialisation fill them); without
+        # "trained" in params.sources they are not measured after the first frame
+        self.sources: list[MeasurementSource] = [s for s in (self.trained, self.mesh_points) if s.name in params.sources]
         self._anchor: Anchor | None = None
         self._frame = -1
         self._pending: tuple[Pose, float | None] | None = None
@@ -91,7 +96,7 @@ class Tracker:
         """Forget the state: the next frame re-initialises (by recognition)."""
         self.filter.state = None
         self.filter.prior = None
-        for s in self.sources:
+        for s in (self.trained, self.mesh_points):
             s.reset()
         self._prev: Frame | None = None
         self._since_refresh = 0
@@ -209,6 +214,8 @@ class Tracker:
             return self._lost(time_s, f"{how}: {why}", int(inl.sum()))
         self.trained.tracks = tracks.keep(inl)
         self._since_refresh = 0
+        if self.mesh_points in self.sources:  # the first corners on the mesh, at the refined pose
+            self.mesh_points.spawn(FrameContext(img, frame, None, self.camera, prior), self.filter.state)
         return self._pose_step(time_s, "init", int(inl.sum()), reason=how)
 
     def _track(self, img: np.ndarray, frame: Frame, time_s: float, timings: dict) -> TrackStep:
@@ -233,7 +240,7 @@ class Tracker:
             self.trained.tracks, n, _ = self._anchors().merge(feats, m, self.camera, pose_then, self.trained.tracks, wide=False)
             self._count_refresh(n)
             timings["replenish"] = _ms(t0)
-            if self._failed_refreshes >= p.max_failed_refreshes:
+            if self._failed_refreshes >= p.max_failed_refreshes and not self._carried(None, None, None):
                 return self._lost(time_s, "the object's texture is no longer found where it is tracked")
 
         t0 = time.perf_counter()
@@ -250,7 +257,7 @@ class Tracker:
         n_inl = int(inl.sum())
         if not good:
             return self._lost(time_s, why, n_inl)
-        why = plausible(self.camera, self.model.mesh, self.filter.state.pose)
+        why = self._implausible(self.filter.state.pose)
         if why:
             return self._lost(time_s, f"pose: {why}", n_inl)
         start = 0
@@ -258,9 +265,13 @@ class Tracker:
             s.settle(ctx, b, inl[start : start + len(b)], self.filter.state)
             start += len(b)
 
+        if self.trained not in self.sources:  # (a source alone: nothing to re-anchor)
+            return self._pose_step(time_s, "tracking", n_inl)
         self._since_refresh += 1
-        thin = len(self.trained) < p.min_points
         due = p.refresh_every and self._since_refresh >= p.refresh_every
+        # thin: replenish now; but after a refresh that found no texture (a side no view shows),
+        # retry only when due: SIFT in every frame would find nothing at great cost
+        thin = len(self.trained) < p.min_points and (self._failed_refreshes == 0 or due)
         scarce = len(self.trained) < 2 * p.min_inliers  # too few to wait for the background
         if (due or thin) and not scarce and p.pipelined_refresh and self.executor is not None:
             if self._anchor_job is None:  # (one at a time: a busy executor is not queued up)
@@ -283,7 +294,7 @@ class Tracker:
             timings["replenish"] = _ms(t0)
             self._since_refresh = 0
             self._count_refresh(n)
-            if self._failed_refreshes >= p.max_failed_refreshes:
+            if self._failed_refreshes >= p.max_failed_refreshes and not self._carried(ctx, blocks, inl):
                 return self._lost(time_s, "the object's texture is no longer found where it is tracked", n_inl)
         return self._pose_step(time_s, "tracking", n_inl)
 
@@ -319,6 +330,42 @@ class Tracker:
         if not np.all(np.isfinite(s.covariance[:6, :6])):
             return False, "the pose covariance is not finite", inl
         return True, None, inl
+
+    def _implausible(self, pose: Pose) -> str | None:
+        """:func:`recognition.pose.plausible`, whose silhouette render is skipped when every
+        vertex projects well inside the image (then the whole object is in view) and the
+        projection is large (then its area passes): the common case costs no render."""
+        Xc = pose.apply(self.model.mesh.vertices)
+        if np.all(Xc[:, 2] > 1e-9):
+            uv = self.camera.project(Xc)
+            w, h = self.camera.width, self.camera.height
+            lo, hi = uv.min(axis=0), uv.max(axis=0)
+            inside = lo[0] >= 0 and lo[1] >= 0 and hi[0] <= w - 1 and hi[1] <= h - 1
+            if inside and np.prod(hi - lo) >= 0.05 * w * h:
+                return None
+        return plausible(self.camera, self.model.mesh, pose)
+
+    def _carried(self, ctx: FrameContext | None, blocks, inl) -> bool:
+        """SIFT no longer finds the trained texture: is the pose still carried by the points born
+        on the mesh (at least ``min_inliers`` of them agree) *and* confirmed by the object's
+        edges (:func:`recognition.evidence.edge_agreement`: the visible model edges lie on aligned
+        image gradients, well above this image's chance level)? Then the object has turned to
+        a side no view shows, and the track goes on; otherwise it is lost."""
+        if ctx is None or self.mesh_points not in self.sources:
+            return False
+        start, n_mesh = 0, 0
+        for s, b in zip(self.sources, blocks):
+            if s is self.mesh_points:
+                n_mesh = int(inl[start : start + len(b)].sum())
+            start += len(b)
+        if n_mesh < self.params.min_inliers:
+            return False
+        pp = PoseParams()
+        ev = edge_agreement(ctx.frame.gray, self.model.mesh, self.camera, self.filter.state.pose, pp.edges)
+        ok = ev.samples >= pp.min_edge_samples and ev.agreement >= pp.min_edge_agreement and ev.lead >= pp.min_edge_lead
+        if ok:
+            self._failed_refreshes = 0
+        return ok
 
     def _count_refresh(self, n_matches: int) -> None:
         ok = n_matches >= self.params.min_anchor_matches

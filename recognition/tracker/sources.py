@@ -24,12 +24,12 @@ from quatrack.tracking.state import FilterState
 from quatrack.viewsets.mesh import Mesh
 
 from ..klt import Frame, track_points
-from ..visibility import visible_points
+from ..visibility import visibility_buffers, visible_points
 from .params import TrackerParams
 from .points import PointBlock, Tracks, gate
 
 
-@dataclass(frozen=True)
+@dataclass
 class FrameContext:
     """What a source may look at in one step."""
 
@@ -38,6 +38,13 @@ class FrameContext:
     prev: Frame | None  # the previous frame (None right after initialisation)
     camera: PinholeCamera
     prior: FilterState  # the prediction for this frame
+    _zbuffer: object = None
+
+    def zbuffer(self, mesh: Mesh, params: TrackerParams):
+        """The visibility z-buffer at the prediction, rendered once for every source."""
+        if self._zbuffer is None:
+            self._zbuffer = visibility_buffers(mesh, self.camera, self.prior.pose, params.visibility)
+        return self._zbuffer
 
 
 class MeasurementSource(Protocol):
@@ -60,7 +67,8 @@ def klt_block(name: str, mesh: Mesh, ctx: FrameContext, tracks: Tracks, params: 
     import time
 
     t0 = time.perf_counter()
-    vis, uv_pred = visible_points(mesh, ctx.camera, ctx.prior.pose, tracks.X, params.visibility)
+    vis, uv_pred = visible_points(mesh, ctx.camera, ctx.prior.pose, tracks.X, params.visibility,
+                                  ctx.zbuffer(mesh, params) if len(tracks) else None)
     idx = np.flatnonzero(vis)
     timings["visibility"] = timings.get("visibility", 0.0) + (time.perf_counter() - t0) * 1e3
     t0 = time.perf_counter()

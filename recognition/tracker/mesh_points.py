@@ -1,0 +1,141 @@
+"""Points born on the mesh at the current pose: texture the training photos never showed.
+
+When the pose is confident, corners (``cv2.goodFeaturesToTrack``) are detected in the current
+frame inside the projected *visible* faces — away from the silhouette and self-occlusion
+boundaries, where a KLT window straddles the background or another face, and off faces seen
+at a grazing angle — and lifted to 3-D by casting their rays onto the mesh at the pose
+(:func:`viewsets.render.cast_rays`). KLT then follows them like the trained points.
+
+A born point inherits its birth pose's error ``δ`` (6-vector over ``[p, δθ]``, covariance
+``P_b``): it was placed where the ray met the mesh *at the estimated pose*, so at a later pose
+its projection is off by about ``J δ`` (``J = ∂uv/∂[δp, δθ]`` at that pose). Its measurement
+covariance is therefore ``C = σ² I + J P_b Jᵀ``: points born at an uncertain pose count
+less, and cannot pull the pose away from the trained (exact) points. Points whose posterior
+residual keeps growing (an exponential average above ``mesh_retire_px``) are retired: they
+sit on a wrong face, on specular texture, or slid.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from quatrack.tracking.measurements import project_model_points
+from quatrack.tracking.state import FilterState
+from quatrack.viewsets.mesh import Mesh
+from quatrack.viewsets.render import cast_rays, depth_edges, render, undistort_pixels
+
+from ..visibility import scaled_camera
+from .params import TrackerParams
+from .points import PointBlock, Tracks, gate
+from .sources import FrameContext, klt_block
+
+
+def confident(state: FilterState, diameter: float, sigma_p: float, sigma_deg: float) -> bool:
+    """The pose's 1-σ position error below ``sigma_p`` diameters and rotation below ``sigma_deg``."""
+    P = state.pose_covariance
+    sp = np.sqrt(max(np.linalg.eigvalsh(P[:3, :3])[-1], 0.0))
+    sr = np.degrees(np.sqrt(max(np.linalg.eigvalsh(P[3:, 3:])[-1], 0.0)))
+    return bool(sp < sigma_p * diameter and sr < sigma_deg)
+
+
+def birth_mask(mesh: Mesh, ctx_camera, pose, params: TrackerParams) -> np.ndarray:
+    """uint8 mask (image size) of pixels where a corner may be born: visible faces not seen
+    at a grazing angle, ``mesh_edge_margin_px`` away from silhouette and depth edges."""
+    cam = ctx_camera
+    small = scaled_camera(cam, 0.5)
+    buf = render(mesh, small, pose)
+    ok = buf.face >= 0
+    if not ok.any():
+        return np.zeros((cam.height, cam.width), np.uint8)
+    normals = mesh.face_normals @ pose.R.T  # camera frame
+    rays = np.dstack([*np.moveaxis(_rays(small), -1, 0), np.ones((small.height, small.width))])
+    rays /= np.linalg.norm(rays, axis=2, keepdims=True)
+    cosv = np.abs(np.einsum("hwk,hwk->hw", normals[np.maximum(buf.face, 0)], rays))
+    ok &= cosv >= params.visibility.min_cos
+    ok &= ~depth_edges(buf)
+    r = max(1, int(round(0.5 * params.mesh_edge_margin_px)))
+    ok = cv2.erode(ok.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1,) * 2))
+    return cv2.resize(ok * 255, (cam.width, cam.height), interpolation=cv2.INTER_NEAREST)
+
+
+def _rays(camera):
+    from quatrack.viewsets.render import pixel_rays
+
+    return pixel_rays(camera)
+
+
+class MeshPoints:
+    """Corners born on the mesh at the current pose, followed by KLT (see the module)."""
+
+    name = "mesh"
+
+    def __init__(self, mesh: Mesh, params: TrackerParams) -> None:
+        self.mesh, self.params = mesh, params
+        self.diameter = float(mesh.extent)
+        self.reset()
+
+    def __len__(self) -> int:
+        return len(self.tracks)
+
+    def reset(self) -> None:
+        self.tracks = Tracks.empty()
+        self.P_birth = np.zeros((0, 6, 6))
+        self.ema = np.zeros(0)
+        self._since_spawn = 10**9
+        self._idx = np.zeros(0, int)
+
+    def measure(self, ctx: FrameContext, timings: dict) -> PointBlock:
+        block, idx = klt_block(self.name, self.mesh, ctx, self.tracks, self.params, timings)
+        if len(block):
+            _, J = project_model_points(ctx.camera, block.X, ctx.prior.p, ctx.prior.R, True)
+            block.C = block.C + J @ self.P_birth[idx] @ np.swapaxes(J, 1, 2)
+            g = gate(ctx.camera, block, ctx.prior, self.params.gate_chi2)
+            block, idx = block.keep(g), idx[g]
+        self._idx = idx
+        return block
+
+    def settle(self, ctx: FrameContext, block: PointBlock, inliers: np.ndarray, state: FilterState) -> None:
+        p = self.params
+        idx = self._idx[inliers]
+        kept = block.keep(inliers)
+        if len(kept):
+            uv, _ = project_model_points(ctx.camera, kept.X, state.p, state.R, False)
+            err = np.linalg.norm(uv - kept.uv, axis=1)
+            ema = 0.7 * self.ema[idx] + 0.3 * err
+            alive = ema < p.mesh_retire_px
+            self.tracks, self.P_birth, self.ema = kept.tracks.keep(alive), self.P_birth[idx][alive], ema[alive]
+        else:
+            self.tracks, self.P_birth, self.ema = Tracks.empty(), np.zeros((0, 6, 6)), np.zeros(0)
+        self._since_spawn += 1
+        if (self._since_spawn >= p.mesh_spawn_every and len(self.tracks) < 0.7 * p.mesh_max_points
+                and confident(state, self.diameter, p.mesh_spawn_sigma_p, p.mesh_spawn_sigma_deg)):
+            self.spawn(ctx, state)
+
+    def spawn(self, ctx: FrameContext, state: FilterState) -> int:
+        """Detect corners on the visible mesh in this frame and lift them at ``state``'s pose."""
+        p = self.params
+        cam = ctx.camera
+        pose = state.pose
+        mask = birth_mask(self.mesh, cam, pose, p)
+        m = int(p.klt.win // 2 + 1)
+        mask[:m], mask[-m:], mask[:, :m], mask[:, -m:] = 0, 0, 0, 0
+        for u, v in np.rint(self.tracks.uv).astype(int):
+            cv2.circle(mask, (int(u), int(v)), int(p.mesh_min_distance_px), 0, -1)
+        n_new = p.mesh_max_points - len(self.tracks)
+        self._since_spawn = 0
+        if n_new <= 0 or not mask.any():
+            return 0
+        corners = cv2.goodFeaturesToTrack(ctx.frame.gray, n_new, p.mesh_quality, p.mesh_min_distance_px, mask=mask)
+        if corners is None:
+            return 0
+        uv = corners.reshape(-1, 2).astype(float)
+        X, face, cos = cast_rays(self.mesh, pose, undistort_pixels(cam, uv))
+        ok = (face >= 0) & (cos >= p.visibility.min_cos)
+        if not ok.any():
+            return 0
+        n = int(ok.sum())
+        self.tracks = self.tracks + Tracks(X[ok], uv[ok])
+        self.P_birth = np.concatenate([self.P_birth, np.broadcast_to(state.pose_covariance, (n, 6, 6))])
+        self.ema = np.concatenate([self.ema, np.zeros(n)])
+        return n
