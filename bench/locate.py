@@ -195,3 +195,209 @@ def main(scenes: int, seed: int, every: int, sheet: str | None, as_json: bool) -
     summary["wall_s"] = time.perf_counter() - t0
     print(json.dumps(summary) if as_json else format_report(summary))
     return 0
+
+
+# -- the zoo (issue 13): other objects, units, grey, out of frame, far from the training views -----
+
+ZOO_OUTSIDE = (0.0, 0.2, 0.4, 0.6)
+ZOO_ANGLES = (0.0, 15.0, 30.0, 45.0, 60.0)
+
+
+def _nearest_view_angle(pose, train_poses, centre) -> float:
+    from quatrack.recognition.pose import view_angle_deg
+
+    return min(view_angle_deg(pose.R, pose.t, p.R, p.t, centre) for p in train_poses)
+
+
+def _judge(r, pose, mesh) -> str:
+    """"correct" (≤ 5 % of the diameter and ≤ 5°), "wrong" or "missed"."""
+    if not r.found:
+        return "missed"
+    dt, dr = S.pose_errors(r.t, r.q_wxyz, pose, mesh)
+    return "correct" if dt <= 0.05 * mesh.extent and dr <= 5.0 else "wrong"
+
+
+def zoo_models(objects, views=(1, 4), greys=(False, True), progress: bool = False):
+    """Train every (object, n_views, grey) of the zoo once, in a temporary directory:
+    ``{(name, n_views, grey): (model, training poses)}``."""
+    import tempfile
+
+    from tqdm import tqdm
+
+    from quatrack.viewsets.spec import load_spec
+    from quatrack.viewsets.train import train_object
+
+    from . import zoo as Z
+
+    cam = Z.zoo_camera()
+    out = {}
+    jobs = [(o, v, g) for o in objects for v in views for g in greys]
+    with tempfile.TemporaryDirectory(prefix="quatrack-zoo-") as tmp:
+        for name, v, g in tqdm(jobs, desc="training zoo models", disable=not progress, unit="model"):
+            d = Path(tmp) / f"{name}-{v}-{'grey' if g else 'colour'}"
+            path = Z.write_spec(name, d, v, g, seed=len(out))
+            spec = load_spec(path)
+            out[(name, v, g)] = (train_object(spec), [vw.pose for vw in spec.views])
+    return out
+
+
+def zoo(models: dict, scenes_per_model: int, seed: int, progress: bool) -> dict:
+    """Per group: found and correct, found but wrong, not found, time p50/p95; plus scenes with no
+    object (every model searched) and scenes with two objects (``locate_all``)."""
+    from tqdm import tqdm
+
+    from quatrack.recognition.locate import locate_all
+
+    from . import zoo as Z
+
+    cam = Z.zoo_camera()
+    bgs = Z.real_backgrounds()
+    rng = np.random.default_rng(seed)
+    cv2.setRNGSeed(seed)  # OpenCV's RANSAC and FLANN draw from it
+    rows = []
+    for (name, views, grey), (model, train_poses) in tqdm(models.items(), desc="zoo scenes", disable=not progress, unit="model"):
+        obj = Z.textured(name)
+        index = index_for(model)
+        for k in range(scenes_per_model):
+            outside = ZOO_OUTSIDE[k % len(ZOO_OUTSIDE)]
+            angle = ZOO_ANGLES[(k // len(ZOO_OUTSIDE) + k) % len(ZOO_ANGLES)]
+            base = train_poses[int(rng.integers(len(train_poses)))]
+            sc = Z.random_scene(rng, obj, cam, base, bgs, angle, outside, grey)
+            r = locate(sc.image, cam, model, LocateParams(), index=index)
+            rows.append({
+                "object": name, "unit": obj.obj.unit, "views": views, "grey": grey, "outside": sc.outside,
+                "angle": _nearest_view_angle(sc.pose, train_poses, obj.mesh.centre),
+                "result": _judge(r, sc.pose, model.mesh), "ms": r.time_ms["total"],
+                "confidence": r.confidence, "verification": r.verification, "reason": r.reason, "searched": r.searched,
+            })
+    groups = {
+        "all": lambda row: True,
+        **{f"unit {u}": (lambda u: lambda row: row["unit"] == u)(u) for u in ("mm", "cm", "m")},
+        "colour": lambda row: not row["grey"], "grey": lambda row: row["grey"],
+        "1 photo": lambda row: row["views"] == 1, "4 photos": lambda row: row["views"] == 4,
+        **{f"outside {lo:.0%}–{hi:.0%}": (lambda lo, hi: lambda row: lo <= row["outside"] < hi)(lo, hi)
+           for lo, hi in ((0.0, 0.1), (0.1, 0.3), (0.3, 0.5), (0.5, 0.7))},
+        **{f"angle {lo}–{hi}°": (lambda lo, hi: lambda row: lo <= row["angle"] < hi)(lo, hi)
+           for lo, hi in ((0, 15), (15, 30), (30, 45), (45, 61))},
+        **{f"object {o}": (lambda o: lambda row: row["object"] == o)(o) for o in sorted({r["object"] for r in rows})},
+    }
+    table = {}
+    for g, sel in groups.items():
+        rs = [row for row in rows if sel(row)]
+        if not rs:
+            continue
+        n = len(rs)
+        table[g] = {
+            "scenes": n,
+            "correct": sum(r["result"] == "correct" for r in rs) / n,
+            "wrong": sum(r["result"] == "wrong" for r in rs) / n,
+            "missed": sum(r["result"] == "missed" for r in rs) / n,
+            "p50_ms": _pct([r["ms"] for r in rs], 50), "p95_ms": _pct([r["ms"] for r in rs], 95),
+        }
+    # calibration of the confidence on the reported poses
+    found = [r for r in rows if r["result"] != "missed"]
+    calib = []
+    for lo, hi in ((0.0, 0.5), (0.5, 0.8), (0.8, 0.95), (0.95, 1.01)):
+        rs = [r for r in found if lo <= r["confidence"] < hi]
+        calib.append({"from": lo, "to": min(hi, 1.0), "poses": len(rs),
+                      "correct": (sum(r["result"] == "correct" for r in rs) / len(rs)) if rs else None})
+    # no object: every colour model searched in plain backgrounds
+    colour1 = [(k, v) for k, v in models.items() if k[1] == 1 and not k[2]]
+    neg_found, neg_ms = 0, []
+    for bg in bgs[::4]:
+        for flip in (False, True):
+            img = np.ascontiguousarray(bg[:, ::-1]) if flip else bg
+            t0 = time.perf_counter()
+            res = locate_all(img, cam, [m for _, (m, _) in colour1])
+            neg_ms.append((time.perf_counter() - t0) * 1e3)
+            neg_found += sum(r.found for r in res)
+    # two objects side by side, every colour single-photo model searched
+    two = {"scenes": 0, "objects": 0, "correct": 0, "wrong": 0, "missed": 0, "false_reports": 0, "ms": []}
+    names = [k[0] for k, _ in colour1]
+    for k in range(min(len(names), 6)):
+        a, b = names[k], names[(k + 1) % len(names)]
+        if a == b:
+            continue
+        img, truths = _two_object_scene(rng, a, b, {kk[0]: v for kk, v in colour1}, cam, bgs)
+        t0 = time.perf_counter()
+        res = locate_all(img, cam, [m for _, (m, _) in colour1])
+        two["ms"].append((time.perf_counter() - t0) * 1e3)
+        two["scenes"] += 1
+        for r in res:
+            if r.object in truths:
+                two["objects"] += 1
+                two[_judge(r, truths[r.object], r_model(colour1, r.object).mesh)] += 1
+            elif r.found:
+                two["false_reports"] += 1
+    two["p50_ms"], two["p95_ms"] = _pct(two["ms"], 50), _pct(two["ms"], 95)
+    del two["ms"]
+    return {"groups": table, "calibration": calib,
+            "no_object": {"images": 2 * len(bgs[::4]), "models_searched": len(colour1), "false_reports": neg_found,
+                          "p50_ms": _pct(neg_ms, 50), "p95_ms": _pct(neg_ms, 95)},
+            "two_objects": two, "rows": rows}
+
+
+def r_model(models, name):
+    return next(v[0] for k, v in models if k[0] == name)
+
+
+def _two_object_scene(rng, a: str, b: str, trained: dict, cam, bgs):
+    """Objects ``a`` (left half) and ``b`` (right half), each at one of its training views turned
+    a little, composited over a background; returns the image and the true poses."""
+    from . import zoo as Z
+
+    img = None
+    truths = {}
+    sil_all = np.zeros((cam.height, cam.width), bool)
+    layers = []
+    for name, u in ((a, 0.3), (b, 0.7)):
+        obj = Z.textured(name)
+        _, poses = trained[name]
+        p = Z.turned(poses[0], obj.mesh.centre, 10.0, rng)
+        d = Z.viewing_distance(obj, cam, 0.3)
+        ray = np.array([(u * cam.width - cam.cx) / cam.fx, 0.0, 1.0])
+        from quatrack.tracking.pose import Pose
+
+        p = Pose(p.q_wxyz, ray * d - p.R @ obj.mesh.centre)
+        o_img, sil = obj.render(cam, p)
+        layers.append((o_img, sil))
+        truths[name] = p
+    bg = bgs[int(rng.integers(len(bgs)))]
+    img = bg.copy() if bg.shape[:2] == (cam.height, cam.width) else cv2.resize(bg, (cam.width, cam.height))
+    for o_img, sil in layers:
+        img[sil & ~sil_all] = o_img[sil & ~sil_all]
+        sil_all |= sil
+    return Z.degrade(img, rng), truths
+
+
+def format_zoo(z: dict) -> str:
+    lines = ["Zoo (found and correct / found but wrong / not found, time p50/p95):"]
+    for g, t in z["groups"].items():
+        lines.append(f"  {g:<24} {t['scenes']:>4} scenes  correct {100 * t['correct']:5.1f} %  wrong {100 * t['wrong']:4.1f} %  "
+                     f"not found {100 * t['missed']:5.1f} %  {t['p50_ms']:.0f}/{t['p95_ms']:.0f} ms")
+    lines.append("  confidence vs share correct: " + ", ".join(
+        f"[{c['from']:.2f}, {c['to']:.2f}): {c['poses']} poses, {_share(c['correct'])}" for c in z["calibration"]))
+    n = z["no_object"]
+    lines.append(f"  no object: {n['false_reports']} reports in {n['images']} images × {n['models_searched']} models; "
+                 f"p50 {n['p50_ms']:.0f} / p95 {n['p95_ms']:.0f} ms for all models")
+    t = z["two_objects"]
+    if t["scenes"]:
+        lines.append(f"  two objects: {t['scenes']} scenes, {t['objects']} objects: correct {t['correct']}, wrong {t['wrong']}, "
+                     f"not found {t['missed']}, other objects reported {t['false_reports']}; p50 {t['p50_ms']:.0f} / "
+                     f"p95 {t['p95_ms']:.0f} ms for all models")
+    return "\n".join(lines)
+
+
+def main_zoo(objects: list[str] | None, scenes: int, seed: int, as_json: bool) -> int:
+    from . import zoo as Z
+
+    t0 = time.perf_counter()
+    names = objects or [o.name for o in Z.ZOO]
+    models = zoo_models(names, progress=not as_json)
+    z = zoo(models, scenes, seed, progress=not as_json)
+    z["wall_s"] = time.perf_counter() - t0
+    if as_json:
+        print(json.dumps({k: v for k, v in z.items() if k != "rows"}))
+    else:
+        print(format_zoo(z))
+    return 0

@@ -287,30 +287,14 @@ def degrade(img: np.ndarray, rng: np.random.Generator, noise=(1.0, 3.0), blur=(0
     return cv2.imdecode(enc, cv2.IMREAD_UNCHANGED)
 
 
-@lru_cache(maxsize=2)
-def photo_backgrounds(n: int = 6, width: int = 640, height: int = 480) -> tuple[np.ndarray, ...]:
-    """Cheap real backgrounds: frames of the bundled ``box.mp4`` with the real box's side of the
-    frame blurred away is not needed here — the frames are cropped to the part of the room left
-    of the box (x < 40 % of the width) and scaled up. For the inpainted full frames (costlier:
-    they need the example trained) use :func:`bench.scenes.video_backgrounds`."""
-    cap = cv2.VideoCapture(str(example_dir() / "box.mp4"))
-    total = int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) or 455
-    wanted = {int(k * total / n) for k in range(n)}
-    frames, i = [], 0
-    while len(frames) < len(wanted):
-        ok, frame = cap.read()  # read in order: seeking an H.264 stream is noisy and slow
-        if not ok:
-            break
-        if i in wanted:
-            frames.append(frame)
-        i += 1
-    out = []
-    for k, frame in enumerate(frames):
-        fh, fw = frame.shape[:2]
-        crop = frame[:, : int(0.4 * fw)] if k % 2 == 0 else frame[: int(0.35 * fh)]
-        out.append(cv2.resize(crop, (width, height), interpolation=cv2.INTER_LINEAR))
-    cap.release()
-    return tuple(out)
+def real_backgrounds() -> tuple[np.ndarray, ...]:
+    """Real backgrounds: frames of the bundled ``box.mp4`` with the real box inpainted away
+    (:func:`bench.scenes.video_backgrounds`; computed once per process, ~25 s: it trains the
+    bundled example to find the box). Crops of the raw frames are no substitute: the box shows
+    up in them, and one zoo object is textured from a photo of that box."""
+    from .scenes import video_backgrounds
+
+    return video_backgrounds()
 
 
 # -- training specs --------------------------------------------------------------------------------
@@ -329,7 +313,7 @@ def write_spec(name: str, directory: str | Path, n_views: int = 1, grey: bool = 
     d.mkdir(parents=True, exist_ok=True)
     cam = camera or zoo_camera()
     poses = poses if poses is not None else training_poses(obj, cam, n_views)
-    bgs = backgrounds if backgrounds is not None else photo_backgrounds()
+    bgs = backgrounds if backgrounds is not None else real_backgrounds()
     rng = np.random.default_rng(seed)
     mesh_file = f"{name}.ply"
     trimesh.Trimesh(obj.mesh.vertices, obj.mesh.faces, process=False).export(str(d / mesh_file))

@@ -50,6 +50,11 @@ def _add_bench(parser: argparse.ArgumentParser) -> None:
     loc.add_argument("--seed", type=int, default=0, help="random seed of the scenes (default 0)")
     loc.add_argument("--every", type=int, default=3, help="use every N-th frame of box.mp4 (default 3)")
     loc.add_argument("--sheet", metavar="PNG", help="write a contact sheet of box.mp4 overlays")
+    loc.add_argument("--zoo", action="store_true",
+                     help="the object zoo instead (issue 13): other shapes, units, grey, out of frame, 1 and 4 photos, "
+                          "no object and two objects")
+    loc.add_argument("--zoo-objects", metavar="A,B", help="zoo objects to run (default: all; see bench/zoo.py)")
+    loc.add_argument("--zoo-scenes", type=int, default=12, metavar="N", help="scenes per trained zoo model (default 12)")
     loc.add_argument("--json", action="store_true", help="print one JSON object instead of the report")
     track = sub.add_parser(
         "track",
@@ -115,6 +120,16 @@ def _run_bench(args: argparse.Namespace) -> int:
 
         if args.scenes < 1 or args.every < 1:
             raise UserError("--scenes and --every must be at least 1")
+        if args.zoo:
+            from quatrack.bench import zoo
+
+            names = args.zoo_objects.split(",") if args.zoo_objects else None
+            for n in names or ():
+                if n not in {o.name for o in zoo.ZOO}:
+                    raise UserError(f"--zoo-objects: no zoo object {n!r} (known: {', '.join(o.name for o in zoo.ZOO)})")
+            if args.zoo_scenes < 1:
+                raise UserError("--zoo-scenes must be at least 1")
+            return bench_locate.main_zoo(names, args.zoo_scenes, args.seed, args.json)
         return bench_locate.main(args.scenes, args.seed, args.every, args.sheet, args.json)
     raise UserError(f"unknown benchmark {args.benchmark!r}")
 

@@ -62,11 +62,13 @@ def silhouette_inside(mesh: Mesh, camera: PinholeCamera, pose: Pose, scale: floa
 class EdgeParams:
     crease_deg: float = 30.0  # faces turning by more than this meet at a visible edge
     step_px: float = 4.0  # sample spacing along projected edges
-    radius_px: float = 2.0  # search along the normal, ± (plus 1 % of the object's apparent size)
+    radius_px: float = 1.5  # search along the normal, ± (plus radius_share of the object's apparent size)
+    radius_share: float = 0.005
     cos_min: float = 0.9  # gradient orientation within ~25° of the edge normal
     min_grad: float = 6.0  # grey levels per pixel (Sobel of the σ=1 blurred image, /8)
     depth_tol: float = 0.02  # × the mesh's extent: hidden edges fail the z-buffer test
     border_px: int = 3  # samples nearer the image border are not judged
+    min_edge_len: int = 6  # samples (× step_px) for an edge to be judged on its own
 
 
 def _edge_pairs(mesh: Mesh) -> tuple[np.ndarray, np.ndarray]:
@@ -89,14 +91,15 @@ def _edge_pairs(mesh: Mesh) -> tuple[np.ndarray, np.ndarray]:
 
 def edge_samples(mesh: Mesh, camera: PinholeCamera, pose: Pose, params: EdgeParams = EdgeParams(),
                  depth: np.ndarray | None = None, depth_scale: float = 0.5):
-    """Visible model edge samples: pixels (n, 2) and unit image normals (n, 2).
+    """Visible model edge samples: pixels (n, 2), unit image normals (n, 2) and the index of the
+    edge each lies on (n,).
 
     ``depth``: a z-buffer of the pose rendered at ``depth_scale`` (rendered here if None)."""
     pairs, faces = _edge_pairs(mesh)
     N = mesh.face_normals
     V = pose.apply(mesh.vertices)
     if np.any(V[:, 2] <= 1e-9):
-        return np.zeros((0, 2)), np.zeros((0, 2))
+        return np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, int)
     centroid = pose.apply(mesh.triangles.mean(axis=1))
     facing = np.einsum("ij,ij->i", N @ pose.R.T, centroid) < 0  # towards the camera
     f0, f1 = faces[:, 0], faces[:, 1]
@@ -106,7 +109,7 @@ def edge_samples(mesh: Mesh, camera: PinholeCamera, pose: Pose, params: EdgePara
     silhouette = facing[f0] != facing[f1s]
     keep = open_ | (crease & (facing[f0] | facing[f1s])) | silhouette
     if not keep.any():
-        return np.zeros((0, 2)), np.zeros((0, 2))
+        return np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, int)
     A, B = V[pairs[keep, 0]], V[pairs[keep, 1]]
     ua, ub = camera.project(A), camera.project(B)
     length = np.linalg.norm(ub - ua, axis=1)
@@ -130,7 +133,7 @@ def edge_samples(mesh: Mesh, camera: PinholeCamera, pose: Pose, params: EdgePara
     vi = np.clip(np.rint((uv[:, 1] + 0.5) * sy - 0.5).astype(int), 0, dh - 1)
     near = cv2.erode(np.where(np.isfinite(depth), depth, np.inf).astype(np.float32), np.ones((3, 3), np.uint8))
     ok &= P[:, 2] <= near[vi, ui] + params.depth_tol * mesh.extent
-    return uv[ok], normal[ok]
+    return uv[ok], normal[ok], seg[ok]
 
 
 def image_gradients(grey: np.ndarray, box: tuple[int, int, int, int] | None = None) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
@@ -171,6 +174,7 @@ class EdgeEvidence:
     samples: int  # visible model edge samples judged
     agreement: float  # share supported by an aligned image edge
     chance: float  # the same with the samples displaced (this image's clutter level)
+    weakest: float = 1.0  # the lowest agreement of one visible edge (of ≥ min_edge_len samples)
 
     @property
     def lead(self) -> float:
@@ -181,12 +185,12 @@ def edge_agreement(grey: np.ndarray, mesh: Mesh, camera: PinholeCamera, pose: Po
                    params: EdgeParams = EdgeParams(), depth: np.ndarray | None = None,
                    depth_scale: float = 0.5) -> EdgeEvidence:
     """Agreement of the visible model edges at ``pose`` with the image's gradients, and chance."""
-    uv, normal = edge_samples(mesh, camera, pose, params, depth, depth_scale)
+    uv, normal, seg = edge_samples(mesh, camera, pose, params, depth, depth_scale)
     if len(uv) == 0:
-        return EdgeEvidence(0, 0.0, 0.0)
+        return EdgeEvidence(0, 0.0, 0.0, 0.0)
     span = np.ptp(uv, axis=0)
     size = float(max(np.hypot(*span), 8.0))
-    radius = params.radius_px + 0.01 * size
+    radius = params.radius_px + params.radius_share * size
     shift = 0.25 * size
     h, w = grey.shape[:2]
     pad = int(np.ceil(shift + radius + 2))
@@ -194,14 +198,21 @@ def edge_agreement(grey: np.ndarray, mesh: Mesh, camera: PinholeCamera, pose: Po
     hi = np.ceil(uv.max(axis=0)) + pad
     box = (int(max(lo[0], 0)), int(max(lo[1], 0)), int(min(hi[0] + 1, w)), int(min(hi[1] + 1, h)))
     gx, gy, origin = image_gradients(grey, box)
-    agree = float(_supported(gx, gy, origin, uv, normal, radius, params).mean())
+    ok = _supported(gx, gy, origin, uv, normal, radius, params)
+    agree = float(ok.mean())
+    # every visible edge must show: a wrong pose that shares some true edges (the face its
+    # inliers lie on) puts its other edges where the image has none
+    count = np.bincount(seg)
+    per_edge = np.bincount(seg, weights=ok.astype(float))
+    long_ = count >= params.min_edge_len
+    weakest = float((per_edge[long_] / count[long_]).min()) if long_.any() else agree
     chance = []
     for dx, dy in ((1, 0), (-1, 0), (0, 1), (0, -1)):
         moved = uv + shift * np.array([dx, dy], float)
         inside = (moved[:, 0] >= 0) & (moved[:, 1] >= 0) & (moved[:, 0] <= w - 1) & (moved[:, 1] <= h - 1)
         if inside.sum() >= 0.3 * len(uv):
             chance.append(float(_supported(gx, gy, origin, moved[inside], normal[inside], radius, params).mean()))
-    return EdgeEvidence(len(uv), agree, float(np.mean(chance)) if chance else 0.0)
+    return EdgeEvidence(len(uv), agree, float(np.mean(chance)) if chance else 0.0, weakest)
 
 
 def inlier_spread(uv: np.ndarray, area_px: float) -> float:

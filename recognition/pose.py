@@ -49,14 +49,16 @@ class PoseParams:
     max_view_angle_deg: float = 60.0  # viewing direction vs the matched viewset's
     # evidence a wrong pose cannot fake (recognition/evidence.py), judged inside the image
     edges: EdgeParams = EdgeParams()
-    min_edge_agreement: float = 0.45  # share of visible model edge samples on aligned image edges
-    min_edge_lead: float = 0.2  # … above this image's chance level (edges displaced)
+    min_edge_agreement: float = 0.6  # share of visible model edge samples on aligned image edges
+    min_edge_lead: float = 0.25  # … above this image's chance level (edges displaced)
     min_edge_samples: int = 12
     min_spread: float = 0.02  # inliers' hull over the visible silhouette
     max_rival_ratio: float = 0.8  # a different pose with this share of the inliers is a rival
-    # confidence = σ(a + b·lead + c·agreement + d·log(inliers) + e·spread): logistic regression
-    # on the zoo benchmark's verified poses, right vs wrong (bench/RESULTS.md)
-    confidence_coef: tuple[float, ...] = (-6.0, 8.0, 3.0, 0.8, 2.0)
+    # confidence = σ(a + b·lead + c·agreement + d·ln(inliers) + e·spread). The coefficients were
+    # set by hand from ~90 zoo poses (right: agreement 0.7–1.0, lead ≥ 0.4, spread ≥ 0.3 mostly;
+    # wrong: agreement 0.57–0.70, spread 0.1–0.26), NOT fitted yet: the benchmark reports how
+    # well calibrated it is (bench/RESULTS.md, "confidence vs share correct")
+    confidence_coef: tuple[float, ...] = (-9.0, 6.0, 6.0, 0.6, 3.0)
 
 
 @dataclass(frozen=True)
@@ -333,6 +335,7 @@ class Verification:
             "edge_samples": int(self.edges.samples),
             "edge_agreement": round(self.edges.agreement, 4),
             "edge_chance": round(self.edges.chance, 4),
+            "edge_weakest": round(self.edges.weakest, 4),
             "inlier_spread": round(self.spread, 4),
             "inliers": int(self.inliers),
             "rival_inliers": int(self.rival_inliers),

@@ -23,7 +23,7 @@ from fastapi.middleware.cors import CORSMiddleware
 from quatrack import __version__
 from quatrack.recognition.runtime import tune_allocator
 
-from . import docs, errors, viewer
+from . import docs, errors, pose_all, viewer
 from .errors import ApiError, error_body
 from .metrics import Metrics, worker_exit
 from .models import ModelRegistry
@@ -173,6 +173,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(api)
     app.include_router(sockets)
     app.include_router(viewer.router)  # /viewer page + GET /v1/objects/{name}/mesh (service/viewer.py)
+    app.include_router(pose_all.router)  # POST /v1/pose: every trained object searched (service/pose_all.py)
     app.add_middleware(BodyLimit, limit=settings.max_body_bytes)
     if settings.cors_origins:
         app.add_middleware(CORSMiddleware, allow_origins=list(settings.cors_origins), allow_methods=["GET", "POST"],

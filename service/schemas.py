@@ -105,6 +105,9 @@ class LocateOut(BaseModel):
     time_ms: dict[str, float]
     reason: str | None = None
     searched: str | None = None
+    object: str | None = Field(None, description="the object's name")
+    verification: dict | None = Field(None, description="the evidence for the pose checked, with its calibrated "
+                                      "`confidence` (docs/contract.md, Extensions: issue 13)")
     model_config = ConfigDict(json_schema_extra={"examples": [{
         "found": True, "bbox": [201.0, 118.0, 232.0, 260.0], "chi2": 0.41, "viewset": "view0",
         "matches": 180, "inliers": 134, "reprojection_rms_px": 1.2,

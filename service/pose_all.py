@@ -1,0 +1,129 @@
+"""``POST /v1/pose``: which trained objects are in the image, and where (issue 13).
+
+Every model the store holds (and that can be loaded) is searched in the image, as
+``quatrack locate --object all`` does (:func:`quatrack.recognition.locate.locate_all`); each one
+found is returned with its pose and its verification. Objects that are not in the image are not
+listed. The request is the same as ``POST /v1/objects/{name}/pose`` (multipart ``image`` +
+``camera``, or the raw image with the camera in the query).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from typing import Annotated
+
+from fastapi import APIRouter, Depends, Query, Request
+from pydantic import BaseModel, Field
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+from quatrack.recognition.images import MIN_SIDE, ImageError
+from quatrack.recognition.locate import LocateParams, locate_all
+
+from .errors import ApiError
+from .imagein import decode_upload
+from .routes import ERRORS, MAX_CAMERA_BYTES, ServiceState, _camera_from_json, _camera_from_query, get_state, require_token
+from .schemas import CameraIn, LocateOut
+
+
+class LocateAllOut(BaseModel):
+    """The objects found in one image (each as ``POST /v1/objects/{name}/pose`` answers, with its
+    ``object`` name); ``searched``: the objects searched; ``failed``: models that cannot be loaded."""
+
+    found: bool
+    objects: list[LocateOut]
+    searched: list[str]
+    failed: dict[str, str] = Field(default_factory=dict)
+    time_ms: dict[str, float]
+
+
+router = APIRouter(prefix="/v1", tags=["pose"], dependencies=[Depends(require_token)], responses=ERRORS)
+
+
+async def _read_request(request: Request, camera: CameraIn | None) -> tuple[bytes, CameraIn]:
+    """The image bytes and the camera of a pose request (multipart or raw image body)."""
+    ctype = request.headers.get("content-type", "").split(";")[0].strip().lower()
+    if ctype == "multipart/form-data":
+        try:
+            form = await request.form(max_files=2, max_fields=8, max_part_size=MAX_CAMERA_BYTES)
+        except ApiError:
+            raise
+        except StarletteHTTPException as exc:
+            if "maximum size" in str(exc.detail):
+                raise ApiError(413, "too_large", f"a multipart text field (the camera) may have at most "
+                                                 f"{MAX_CAMERA_BYTES} bytes") from None
+            raise ApiError(400, "bad_request", f"malformed multipart body: {exc.detail}") from None
+        except Exception as exc:
+            raise ApiError(400, "bad_request", f"malformed multipart body ({exc.__class__.__name__})") from None
+        upload = form.get("image")
+        if upload is None or isinstance(upload, str):
+            raise ApiError(422, "missing_image", "multipart field 'image' (a file) is required")
+        data = await upload.read()
+        cam_field = form.get("camera")
+        if cam_field is not None:
+            if not isinstance(cam_field, str):
+                raw = await cam_field.read(MAX_CAMERA_BYTES + 1)
+                if len(raw) > MAX_CAMERA_BYTES:
+                    raise ApiError(413, "too_large", f"the camera may have at most {MAX_CAMERA_BYTES} bytes")
+                cam_field = raw.decode("utf-8", "replace")
+            camera = _camera_from_json(cam_field)
+    elif ctype.startswith("image/") or ctype == "application/octet-stream":
+        data = await request.body()
+    else:
+        raise ApiError(415, "unsupported_media_type",
+                       "send multipart/form-data (fields image, camera) or the raw image with an image/* content type")
+    if camera is None:
+        raise ApiError(422, "bad_camera", "a camera is required: multipart field 'camera' or query parameters fx, fy, cx, cy")
+    return data, camera
+
+
+@router.post("/pose", response_model=LocateAllOut,
+             summary="search every trained object in one image (as `quatrack locate --object all --json`)")
+async def pose_all(
+    request: Request, state: Annotated[ServiceState, Depends(get_state)],
+    fx: Annotated[float | None, Query(description="focal length x, px (when no `camera` form field)")] = None,
+    fy: Annotated[float | None, Query(description="focal length y, px")] = None,
+    cx: Annotated[float | None, Query(description="principal point x, px")] = None,
+    cy: Annotated[float | None, Query(description="principal point y, px")] = None,
+    width: Annotated[int | None, Query(gt=0, description="image width the camera is for (default: the image's)")] = None,
+    height: Annotated[int | None, Query(gt=0, description="image height the camera is for")] = None,
+    dist: Annotated[str | None, Query(description="distortion k1,k2,p1,p2[,k3], comma-separated")] = None,
+) -> dict:
+    data, camera = await _read_request(request, _camera_from_query(fx, fy, cx, cy, width, height, dist))
+    if camera.width is not None and camera.height is not None:
+        camera.to_camera()  # implausible intrinsics: 422 before any decoding
+    if state.pending >= state.settings.max_pending_requests:
+        raise ApiError(503, "busy", "too many pose requests in progress; retry later",
+                       {"Retry-After": str(state.settings.retry_after_s)})
+    state.pending += 1
+    try:
+        return await asyncio.get_running_loop().run_in_executor(state.executor, _locate_all, state, data, camera)
+    finally:
+        state.pending -= 1
+
+
+def _locate_all(state: ServiceState, data: bytes, camera: CameraIn) -> dict:
+    """Worker thread: decode, check the camera, search every loadable model."""
+    t0 = time.perf_counter()
+    image = decode_upload(data, state.settings.max_image_pixels)
+    h, w = image.shape[:2]
+    if min(h, w) < MIN_SIDE:
+        raise ApiError(422, "bad_image", f"the image is too small ({w}×{h} px; at least {MIN_SIDE} px a side)")
+    cam = camera.to_camera((w, h))
+    models, failed = [], {}
+    for name in state.registry.names():
+        try:
+            models.append(state.registry.get(name)[0])
+        except ApiError as exc:  # a broken model: the others are still searched
+            failed[name] = exc.message
+        except Exception as exc:  # noqa: BLE001 - a model that cannot be loaded is reported, not fatal
+            failed[name] = str(exc)
+    try:
+        results = locate_all(image, cam, models, LocateParams(max_pixels=state.settings.locate_max_pixels))
+    except ImageError as exc:
+        raise ApiError(422, "bad_image", str(exc)) from None
+    for r in results:
+        state.metrics.observe_stages(state.metrics.locate_stages, r.time_ms)
+    found = [r.to_json() for r in results if r.found]
+    return {"found": bool(found), "objects": found, "searched": [m.name for m in models], "failed": failed,
+            "time_ms": {"total": round((time.perf_counter() - t0) * 1e3, 3)}}
