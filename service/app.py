@@ -25,6 +25,7 @@ from quatrack.recognition.runtime import tune_allocator
 
 from . import docs, errors, pose_all, viewer
 from .errors import ApiError, error_body
+from .logs import install_filters
 from .metrics import Metrics, worker_exit
 from .models import ModelRegistry
 from .routes import ServiceState, api, health, ops, sockets
@@ -168,6 +169,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                   docs_url=None, redoc_url=None)
     errors.install(app)
     docs.install(app)  # /docs and /redoc with local assets (they work offline)
+    install_filters()  # no token in uvicorn's lines, refused handshakes not logged as errors
     app.include_router(health)
     app.include_router(ops)
     app.include_router(api)

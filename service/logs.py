@@ -52,6 +52,15 @@ class ServiceLogFilter(logging.Filter):
         return True
 
 
+def install_filters() -> None:
+    """Put the filter on uvicorn's own loggers too, whatever logging configuration is in force
+    (a handler's filter only sees what reaches that handler). Idempotent."""
+    for name in ("uvicorn.error", "uvicorn.access"):
+        logger = logging.getLogger(name)
+        if not any(isinstance(f, ServiceLogFilter) for f in logger.filters):
+            logger.addFilter(ServiceLogFilter())
+
+
 class JsonFormatter(logging.Formatter):
     def format(self, record: logging.LogRecord) -> str:
         out = {"ts": time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(record.created)) + f".{int(record.msecs):03d}Z",

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import logging
 import socket
 import threading
 import time
@@ -331,7 +332,12 @@ def test_deep_or_huge_json_is_a_typed_error_and_the_session_goes_on(server, fram
 def test_logs_hold_no_token_and_refusals_are_info(store, frames, capfd):
     secret = "s3cr3t-Token-value"
     settings = Settings(store=store, api_token=secret, max_sessions=1)
-    with BackgroundServer(settings, log_level="info") as srv:
+    server = BackgroundServer(settings, log_level="info")
+    seen: list[logging.LogRecord] = []  # what uvicorn's logger lets through, whatever handlers are configured
+    tap = logging.Handler(logging.DEBUG)
+    tap.emit = seen.append
+    logging.getLogger("uvicorn.error").addHandler(tap)
+    with server as srv:
         url = f"{srv.ws_url}/v1/objects/cookie-box/track"
         with connect(f"{url}?token={secret}", open_timeout=20) as ws:
             ws.send(CAM_ACK)
@@ -355,3 +361,5 @@ def test_logs_hold_no_token_and_refusals_are_info(store, frames, capfd):
     assert {(d["status"], d["code"]) for d in denials} == {(503, "too_many_sessions"), (401, "unauthorized"),
                                                            (404, "unknown_object")}
     assert all(d["level"] == "info" and d["reason"] for d in denials)
+    logging.getLogger("uvicorn.error").removeHandler(tap)
+    assert seen and not [r for r in seen if r.levelno >= logging.ERROR or secret in r.getMessage()]

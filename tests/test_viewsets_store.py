@@ -182,7 +182,7 @@ def _bad_inputs(tmp_path: Path) -> dict[str, tuple[Path, list[str], list[str]]]:
         ("non-positive focal", {"camera": {"width": 718, "height": 480, "fx": -1770.0, "fy": 1771.0, "cx": 359.0, "cy": 240.0}},
          ["view 0", "focal"]),
         ("behind camera", {"pose": {"rvec": [2.0269, -0.785, 0.3385], "tvec": [-0.6, 11.4, -116.5]}}, ["view 0", "behind the camera"]),
-        ("outside image", {"pose": {"rvec": [2.0269, -0.785, 0.3385], "tvec": [300.0, 11.4, 116.5]}}, ["view 0", "outside the image"]),
+        ("outside image", {"pose": {"rvec": [2.0269, -0.785, 0.3385], "tvec": [300.0, 11.4, 116.5]}}, ["view 0", "0 pixels inside the image"]),
         ("unknown pose format", {"pose": {"euler": [1, 2, 3], "position": [0, 0, 1]}}, ["view 0", "unknown pose format"]),
         ("no keypoints anywhere", {"image": str(grey)}, ["no keypoints"]),
     ]:
