@@ -460,13 +460,13 @@ def _run_serve(args: argparse.Namespace) -> int:
 
 
 def _add_demo(parser: argparse.ArgumentParser) -> None:
-    from quatrack.service.demo import add_arguments
+    from quatrack.demo import add_arguments
 
     add_arguments(parser)
 
 
 def _run_demo(args: argparse.Namespace) -> int:
-    from quatrack.service.demo import run
+    from quatrack.demo import run
 
     return run(args)
 

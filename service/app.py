@@ -16,11 +16,12 @@ import uuid
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import asynccontextmanager
 
+from importlib.metadata import version
+
 import cv2
 from fastapi import FastAPI
 from fastapi.middleware.cors import CORSMiddleware
 
-from quatrack import __version__
 from quatrack.recognition.runtime import tune_allocator
 
 from . import docs, errors, pose_all, viewer
@@ -165,7 +166,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             executor.shutdown(wait=False, cancel_futures=True)
             worker_exit()
 
-    app = FastAPI(title="quatrack", version=__version__, description=DESCRIPTION, lifespan=lifespan,
+    app = FastAPI(title="quatrack", version=version("quatrack"), description=DESCRIPTION, lifespan=lifespan,
                   docs_url=None, redoc_url=None)
     errors.install(app)
     docs.install(app)  # /docs and /redoc with local assets (they work offline)

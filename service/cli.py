@@ -1,4 +1,4 @@
-"""``quatrack serve``: the command-line side of the service (``quatrack demo`` is in :mod:`.demo`).
+"""``quatrack serve``: the command-line side of the service (``quatrack demo``, a client of the service, is in :mod:`quatrack.demo`).
 
 ``serve`` parses options into :class:`Settings`, prepares the run directory the worker processes
 share (:mod:`.workers`) and hands uvicorn the app factory: one worker process per ``--workers``

@@ -76,7 +76,7 @@ def _check(args: argparse.Namespace) -> _Plan:
     from quatrack.viewsets.camera import load_camera
     from quatrack.viewsets.store import list_models, load_model
 
-    from .settings import Settings
+    from quatrack.service.settings import Settings
 
     example = bundled_example()
     video = args.video or str(example / "box.mp4")
@@ -127,7 +127,7 @@ def _stream_video(plan: _Plan, args: argparse.Namespace):
     from quatrack.recognition.trackio import Progress, jpeg_frames, open_frames
     from quatrack.viewsets.camera import camera_to_dict
 
-    from .server import BackgroundServer
+    from quatrack.service.server import BackgroundServer
 
     times: dict[int, float] = {}  # every frame read, answered or not, for the CSV
     source = open_frames(video=plan.video, max_frames=args.max_frames)
