@@ -1,7 +1,9 @@
 """The application factory: ``create_app(settings)`` wires models, pool, limits and routes.
 
-One app per process normally; tests build several, so nothing here is global except OpenCV's
-thread count (a process-wide setting by nature).
+One app per process normally; tests build several, so each app owns its state (registry, pool,
+limits, metrics registry). What it sets for the whole process, because those settings are
+process-wide by nature: OpenCV's thread count, the allocator (``tune_allocator``), and the log
+filters that keep tokens out of uvicorn's lines (installed once, idempotent).
 """
 
 from __future__ import annotations
