@@ -7,7 +7,12 @@ coefficients are OpenCV's ``(k1, k2, p1, p2[, k3[, k4, k5, k6]])``.
 A camera may sit anywhere in a rig: ``R_rig, t_rig`` map the *reference* camera frame (the frame
 in which the filter's pose is expressed) into this camera, ``X_this = R_rig X_ref + t_rig``.
 That is the sum over cameras ``j`` in Ude's eq. 24.
+
+>>> cam = PinholeCamera(fx=800.0, fy=800.0, cx=320.0, cy=240.0, width=640, height=480)
+>>> cam.project([[0.1, -0.05, 2.0]])                 # u = fx·x/z + cx, v = fy·y/z + cy
+array([[360., 220.]])
 """
+
 
 from __future__ import annotations
 

@@ -11,7 +11,22 @@ Conventions, stated once for the whole project:
 - Outputs meant for users are made canonical with ``w ≥ 0`` (:func:`canonical`).
 
 Every function is vectorised over leading axes: quaternions are ``(..., 4)``, vectors ``(..., 3)``.
+
+Examples
+--------
+A quarter turn about z, as a full rotation vector, then as Ude's half-angle ``exp``:
+
+>>> q = from_rotvec([0.0, 0.0, np.pi / 2])
+>>> q.round(4)
+array([0.7071, 0.    , 0.    , 0.7071])
+>>> bool(np.allclose(q, exp([0.0, 0.0, np.pi / 4])))          # exp(r) turns by 2‖r‖
+True
+>>> rotate(q, [1.0, 0.0, 0.0]).round(6)                       # x goes to y
+array([0., 1., 0.])
+>>> float(np.degrees(angle_between(q, IDENTITY)).round(6))
+90.0
 """
+
 
 from __future__ import annotations
 
