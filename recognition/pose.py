@@ -49,7 +49,7 @@ class PoseParams:
     max_view_angle_deg: float = 60.0  # viewing direction vs the matched viewset's
     # evidence a wrong pose cannot fake (recognition/evidence.py), judged inside the image
     edges: EdgeParams = EdgeParams()
-    min_edge_agreement: float = 0.6  # share of visible model edge samples on aligned image edges
+    min_edge_agreement: float = 0.5  # share of visible model edge samples on aligned image edges
     min_edge_lead: float = 0.25  # … above this image's chance level (edges displaced)
     min_edge_samples: int = 12
     min_spread: float = 0.02  # inliers' hull over the visible silhouette

@@ -258,4 +258,6 @@ def test_service_pose_without_a_name(tmp_path, cube, flat_grey, bgs):
         r = client.post("/v1/pose", content=none.tobytes(), headers={"content-type": "image/png"}, params=cam)
         assert r.status_code == 200 and r.json()["objects"] == [] and not r.json()["found"]
         r = client.post("/v1/pose", content=b"not an image", headers={"content-type": "image/png"}, params=cam)
-        assert r.status_code == 422 and r.json()["error"]["code"] == "bad_image"
+        assert r.status_code in (415, 422) and set(r.json()["error"]) == {"code", "message"}, r.text
+        r = client.post("/v1/pose", content=none.tobytes(), headers={"content-type": "image/png"})
+        assert r.status_code == 422 and r.json()["error"]["code"] == "bad_camera"
