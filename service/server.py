@@ -78,6 +78,21 @@ class BackgroundServer:
         self.stop()
 
 
+def _die_with_parent():
+    """A ``preexec_fn`` that makes the child get SIGTERM when the process that started it dies
+    (Linux ``prctl(PR_SET_PDEATHSIG)``), so that a test or bench killed by a timeout leaves no
+    server behind; None where there is no such call (``stop()`` still ends the child). The libc
+    function is looked up here, in the parent: between fork and exec the child only calls it."""
+    import ctypes
+    import signal
+
+    try:
+        prctl = ctypes.CDLL("libc.so.6", use_errno=True).prctl
+    except (OSError, AttributeError):
+        return None
+    return lambda: prctl(1, int(signal.SIGTERM))  # 1 = PR_SET_PDEATHSIG
+
+
 class ServeProcess:
     """``quatrack serve`` in a child process on a loopback port: for the bench and the tests that
     need real worker processes or several replicas. ``env`` adds ``QUATRACK_*`` variables.
@@ -114,7 +129,7 @@ class ServeProcess:
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "quatrack", "serve", "--store", str(self.store), "--host", "127.0.0.1",
              "--port", str(self.port), "--workers", str(self.workers), "--log-level", self.log_level],
-            env=env, stdout=self._log, stderr=self._log, start_new_session=True)
+            env=env, stdout=self._log, stderr=self._log, start_new_session=True, preexec_fn=_die_with_parent())
         deadline = time.monotonic() + timeout  # generous: the machine may be busy
         while True:
             try:
