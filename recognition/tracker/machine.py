@@ -46,6 +46,7 @@ from ..visibility import merge_points
 from .anchor import Anchor, AnchorJob
 from .params import INITIAL_VELOCITY_SIGMA, TrackerParams, TrackStep
 from .points import PointBlock, Tracks, mahalanobis2
+from .edges import ModelEdges
 from .mesh_points import MeshPoints
 from .sources import FrameContext, MeasurementSource, TrainedPoints
 
@@ -83,7 +84,9 @@ class Tracker:
         self.mesh_points = MeshPoints(model.mesh, params)
         # the trained points always exist (re-anchoring and initialisation fill them); without
         # "trained" in params.sources they are not measured after the first frame
-        self.sources: list[MeasurementSource] = [s for s in (self.trained, self.mesh_points) if s.name in params.sources]
+        self.edges = ModelEdges(model.mesh, params)
+        self.sources: list[MeasurementSource] = [s for s in (self.trained, self.mesh_points, self.edges)
+                                                 if s.name in params.sources]
         self._anchor: Anchor | None = None
         self._frame = -1
         self._pending: tuple[Pose, float | None] | None = None
@@ -257,6 +260,11 @@ class Tracker:
         n_inl = int(inl.sum())
         if not good:
             return self._lost(time_s, why, n_inl)
+        # edges refine and carry the pose, but clutter has edges everywhere: the object's own
+        # texture (trained or mesh-born points) must still be there to vouch for it
+        n_points = self._inliers_of(blocks, inl, exclude=self.edges)
+        if n_points < p.min_inliers and len(blocks) > 1 and self.edges in self.sources:
+            return self._lost(time_s, f"only {n_points} textured points agree", n_inl)
         why = self._implausible(self.filter.state.pose)
         if why:
             return self._lost(time_s, f"pose: {why}", n_inl)
@@ -353,11 +361,7 @@ class Tracker:
         a side no view shows, and the track goes on; otherwise it is lost."""
         if ctx is None or self.mesh_points not in self.sources:
             return False
-        start, n_mesh = 0, 0
-        for s, b in zip(self.sources, blocks):
-            if s is self.mesh_points:
-                n_mesh = int(inl[start : start + len(b)].sum())
-            start += len(b)
+        n_mesh = self._inliers_of(blocks, inl, only=self.mesh_points)
         if n_mesh < self.params.min_inliers:
             return False
         pp = PoseParams()
@@ -366,6 +370,15 @@ class Tracker:
         if ok:
             self._failed_refreshes = 0
         return ok
+
+    def _inliers_of(self, blocks, inl, only=None, exclude=None) -> int:
+        """Inliers among the blocks of one source (``only``) or of all but one (``exclude``)."""
+        start, n = 0, 0
+        for s, b in zip(self.sources, blocks):
+            if (only is None or s is only) and s is not exclude:
+                n += int(inl[start : start + len(b)].sum())
+            start += len(b)
+        return n
 
     def _count_refresh(self, n_matches: int) -> None:
         ok = n_matches >= self.params.min_anchor_matches

@@ -79,8 +79,9 @@ class TrackerParams:
     merge_tol: float = 0.005  # × diameter: the viewsets' 3-D points closer than this are one point
     min_depth: float = 0.5  # × diameter: the object's centre nearer the camera is implausible
     # measurement sources (recognition/tracker/sources.py): "trained" (the viewsets' points, the
-    # anchors), "mesh" (corners born on the mesh at the current pose: recognition/tracker/mesh_points.py)
-    sources: tuple[str, ...] = ("trained", "mesh")
+    # anchors), "mesh" (corners born on the mesh at the current pose: recognition/tracker/mesh_points.py),
+    # "edges" (sharp model edges searched along their normals: recognition/tracker/edges.py)
+    sources: tuple[str, ...] = ("trained", "mesh", "edges")
     mesh_max_points: int = 100
     mesh_spawn_every: int = 5  # frames between births
     mesh_spawn_sigma_p: float = 0.01  # births only when the pose's 1-σ error is below (× diameter)
@@ -89,6 +90,10 @@ class TrackerParams:
     mesh_quality: float = 0.01  # goodFeaturesToTrack's quality level
     mesh_edge_margin_px: float = 8.0  # corners this far from silhouette and depth edges at least
     mesh_retire_px: float = 1.5  # a point whose average posterior residual exceeds this retires
+    edge_crease_deg: float = 30.0  # "edges": faces meeting at more than this make a sharp edge
+    edge_step_px: float = 6.0  # sample spacing along projected edges
+    edge_sigma_px: float = 1.0  # standard deviation across the edge
+    edge_min_grad: float = 6.0  # grey levels per pixel (Sobel /8 of the σ = 1 blurred image)
     initial_sigma_p: float = 0.01  # × diameter, for init_pose without a covariance
     initial_sigma_deg: float = 2.0
     klt: KLTParams = field(default_factory=KLTParams)
@@ -106,9 +111,9 @@ class TrackerParams:
         noise = DEFAULT_MOTION_NOISE.get(self.motion_model)
         if noise is None:
             raise ValueError(f"unknown motion model {self.motion_model!r}; expected one of {sorted(DEFAULT_MOTION_NOISE)}")
-        bad = set(self.sources) - {"trained", "mesh"}
+        bad = set(self.sources) - {"trained", "mesh", "edges"}
         if bad or not self.sources:
-            raise ValueError(f"unknown measurement source(s) {sorted(bad)}; expected 'trained' and/or 'mesh'")
+            raise ValueError(f"unknown measurement source(s) {sorted(bad)}; expected some of 'trained', 'mesh', 'edges'")
         unknown = set(self.motion_noise) - set(noise)
         if unknown:
             raise ValueError(f"motion model {self.motion_model!r} has no parameter(s) {sorted(unknown)}; "

@@ -1,0 +1,140 @@
+"""Model edges measured in the image: the moving-edges idea (Bouthemy 1989; ViSP's ``vpMe``).
+
+The mesh's sharp edges (faces meeting at more than ``edge_crease_deg``; on a box all twelve)
+are sampled every ``edge_step_px`` pixels at the predicted pose; samples hidden in the
+visibility z-buffer are dropped. From each visible sample a 1-D search along the projected
+edge's normal ``n`` finds the strongest image gradient whose direction agrees with ``n``
+(|cos| ≥ 0.9), within ``±r``, ``r = 3·√(nᵀ J P Jᵀ n)`` (the prediction's spread across the
+edge, 2–15 px), refined to sub-pixel by a parabola through the three gradient values.
+
+A sample measures only the edge's position *across* it: it becomes a point residual with the
+anisotropic covariance ``C = σ⊥² n nᵀ + σ∥² t tᵀ`` (``t`` along the edge, ``σ∥`` large), i.e.
+Ude's point-to-line distance in the form the other sources use (:class:`~.points.PointBlock`),
+gated and robustly weighted with them. Edges carry the pose where texture is weak or new.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from quatrack.tracking.measurements import project_model_points
+from quatrack.tracking.state import FilterState
+from quatrack.viewsets.mesh import Mesh
+
+from ..visibility import mesh_edges, scaled_camera
+from .params import TrackerParams
+from .points import PointBlock, gate
+from .sources import FrameContext
+
+_SIGMA_ALONG_PX = 50.0  # an edge sample says nothing along the edge
+
+
+def edge_points(mesh: Mesh, edges3d: np.ndarray, camera, state: FilterState, params: TrackerParams,
+                zbuffer) -> tuple[np.ndarray, np.ndarray]:
+    """Visible samples on the sharp model edges ``edges3d`` (k, 2, 3) at the pose of ``state``:
+    object points (n, 3) and unit image normals (n, 2) of their projected edges."""
+    E = edges3d
+    if len(E) == 0:
+        return np.zeros((0, 3)), np.zeros((0, 2))
+    pose = state.pose
+    A, B = pose.apply(E[:, 0]), pose.apply(E[:, 1])
+    front = (A[:, 2] > 1e-9) & (B[:, 2] > 1e-9)
+    E, A, B = E[front], A[front], B[front]
+    if len(E) == 0:
+        return np.zeros((0, 3)), np.zeros((0, 2))
+    ua, ub = camera.project(A), camera.project(B)
+    n_s = np.clip(np.ceil(np.linalg.norm(ub - ua, axis=1) / params.edge_step_px), 1, 400).astype(int)
+    seg = np.repeat(np.arange(len(E)), n_s)
+    s = (np.concatenate([np.arange(k) for k in n_s]) + 0.5) / np.repeat(n_s, n_s)
+    X = E[seg, 0] * (1 - s[:, None]) + E[seg, 1] * s[:, None]
+    Xc = pose.apply(X)
+    uv = camera.project(Xc)
+    d = ub[seg] - ua[seg]
+    d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-9)
+    normal = np.column_stack([-d[:, 1], d[:, 0]])
+    w, h = camera.width, camera.height
+    m = params.visibility.margin_px
+    ok = (uv[:, 0] >= m) & (uv[:, 1] >= m) & (uv[:, 0] <= w - 1 - m) & (uv[:, 1] <= h - 1 - m)
+    # visible: not behind the nearest surface around it (an edge lies on its faces' border, so
+    # the nearest depth in a 3×3 neighbourhood of the reduced z-buffer)
+    small = scaled_camera(camera, params.visibility.scale)
+    depth = np.where(zbuffer.face >= 0, zbuffer.depth, np.inf).astype(np.float32)
+    near = cv2.erode(depth, np.ones((3, 3), np.uint8))
+    ui = np.clip(np.rint((uv[:, 0] + 0.5) * small.width / w - 0.5).astype(int), 0, small.width - 1)
+    vi = np.clip(np.rint((uv[:, 1] + 0.5) * small.height / h - 0.5).astype(int), 0, small.height - 1)
+    ok &= Xc[:, 2] <= near[vi, ui] + params.visibility.depth_tol * mesh.extent
+    return X[ok], normal[ok]
+
+
+def search_edges(gx: np.ndarray, gy: np.ndarray, uv: np.ndarray, normal: np.ndarray, radius: np.ndarray,
+                 min_grad: float) -> tuple[np.ndarray, np.ndarray]:
+    """1-D search along ``normal`` from ``uv`` within ``±radius`` px for the strongest gradient
+    aligned with the normal; returns the measured points (n, 2) and a found mask (n,)."""
+    h, w = gx.shape
+    rmax = int(np.ceil(radius.max())) if len(radius) else 0
+    offs = np.arange(-rmax, rmax + 1, dtype=float)
+    P = uv[:, None, :] + offs[None, :, None] * normal[:, None, :]  # (n, k, 2)
+    ui = np.clip(np.rint(P[..., 0]).astype(int), 0, w - 1)
+    vi = np.clip(np.rint(P[..., 1]).astype(int), 0, h - 1)
+    ex, ey = gx[vi, ui], gy[vi, ui]
+    gn = np.abs(ex * normal[:, None, 0] + ey * normal[:, None, 1])
+    mag = np.hypot(ex, ey)
+    valid = (np.abs(offs)[None, :] <= radius[:, None]) & (gn >= 0.9 * mag) & (mag >= min_grad)
+    inside = (P[..., 0] >= 0) & (P[..., 1] >= 0) & (P[..., 0] <= w - 1) & (P[..., 1] <= h - 1)
+    score = np.where(valid & inside, gn, -1.0)
+    j = np.argmax(score, axis=1)
+    found = score[np.arange(len(j)), j] > 0
+    # sub-pixel: a parabola through the neighbours' aligned gradients
+    jl, jr = np.clip(j - 1, 0, len(offs) - 1), np.clip(j + 1, 0, len(offs) - 1)
+    a, b, c = (np.maximum(score[np.arange(len(j)), k], 0.0) for k in (jl, j, jr))
+    den = a - 2 * b + c
+    frac = np.where((jl != j) & (jr != j) & (den < 0), 0.5 * (a - c) / np.where(den < 0, den, -1.0), 0.0)
+    off = offs[j] + np.clip(frac, -0.5, 0.5)
+    return uv + off[:, None] * normal, found
+
+
+class ModelEdges:
+    """Measurement source: visible sharp model edges (see the module). It keeps no tracks: the
+    edges are searched afresh in every frame around their predicted position."""
+
+    name = "edges"
+
+    def __init__(self, mesh: Mesh, params: TrackerParams) -> None:
+        self.mesh, self.params = mesh, params
+        self.edges3d = mesh_edges(mesh, params.edge_crease_deg)
+
+    def __len__(self) -> int:
+        return 0
+
+    def reset(self) -> None:
+        pass
+
+    def measure(self, ctx: FrameContext, timings: dict) -> PointBlock:
+        import time
+
+        t0 = time.perf_counter()
+        p = self.params
+        X, normal = edge_points(self.mesh, self.edges3d, ctx.camera, ctx.prior, p, ctx.zbuffer(self.mesh, p))
+        empty = PointBlock(self.name, np.zeros((0, 3)), np.zeros((0, 2)), np.zeros((0, 2, 2)))
+        if len(X) == 0:
+            return empty
+        uv, J = project_model_points(ctx.camera, X, ctx.prior.p, ctx.prior.R, True)
+        S = J @ ctx.prior.pose_covariance @ np.swapaxes(J, 1, 2)
+        spread = np.sqrt(np.maximum(np.einsum("ni,nij,nj->n", normal, S, normal), 0.0))
+        radius = np.clip(3.0 * spread, 2.0, 15.0)
+        g = cv2.GaussianBlur(ctx.frame.gray.astype(np.float32), (0, 0), 1.0)
+        gx = cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)
+        gy = cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)
+        meas, found = search_edges(gx, gy, uv, normal, radius, p.edge_min_grad)
+        X, meas, normal = X[found], meas[found], normal[found]
+        t = np.column_stack([-normal[:, 1], normal[:, 0]])
+        C = (p.edge_sigma_px**2 * np.einsum("ni,nj->nij", normal, normal)
+             + _SIGMA_ALONG_PX**2 * np.einsum("ni,nj->nij", t, t))
+        block = PointBlock(self.name, X, meas, C)
+        block = block.keep(gate(ctx.camera, block, ctx.prior, p.gate_chi2))
+        timings["edges"] = (time.perf_counter() - t0) * 1e3
+        return block
+
+    def settle(self, ctx: FrameContext, block: PointBlock, inliers: np.ndarray, state: FilterState) -> None:
+        pass
