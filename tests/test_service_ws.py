@@ -301,7 +301,7 @@ def test_demo_and_bench_commands(store, tmp_path, capsys):
     video = str(Path(__file__).resolve().parent.parent / "examples" / "cookie-box" / "box.mp4")
     camera = str(Path(video).with_name("camera.json"))
     assert main(["demo", "--store", str(store), "--video", video, "--camera", camera, "--max-frames", "8",
-                 "--out", str(out), "--overlay", str(overlay)]) == 0
+                 "--out-dir", str(tmp_path), "--out", str(out), "--overlay", str(overlay)]) == 0
     rows = out.read_text().splitlines()
     assert rows[0] == "frame,time_s,status,tx,ty,tz,qw,qx,qy,qz,vx,vy,vz,wx,wy,wz,inliers"
     assert len(rows) == 9 and all(len(r.split(",")) == 17 for r in rows)
