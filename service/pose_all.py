@@ -15,14 +15,13 @@ from typing import Annotated
 
 from fastapi import APIRouter, Depends, Query, Request
 from pydantic import BaseModel, Field
-from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from quatrack.recognition.images import MIN_SIDE, ImageError
 from quatrack.recognition.locate import LocateParams, locate_all
 
 from .errors import ApiError
 from .imagein import decode_upload
-from .routes import ERRORS, MAX_CAMERA_BYTES, ServiceState, _camera_from_json, _camera_from_query, get_state, require_token
+from .routes import ERRORS, ServiceState, _camera_from_query, get_state, read_pose_request, require_token
 from .schemas import CameraIn, LocateOut
 
 
@@ -40,43 +39,6 @@ class LocateAllOut(BaseModel):
 router = APIRouter(prefix="/v1", tags=["pose"], dependencies=[Depends(require_token)], responses=ERRORS)
 
 
-async def _read_request(request: Request, camera: CameraIn | None) -> tuple[bytes, CameraIn]:
-    """The image bytes and the camera of a pose request (multipart or raw image body)."""
-    ctype = request.headers.get("content-type", "").split(";")[0].strip().lower()
-    if ctype == "multipart/form-data":
-        try:
-            form = await request.form(max_files=2, max_fields=8, max_part_size=MAX_CAMERA_BYTES)
-        except ApiError:
-            raise
-        except StarletteHTTPException as exc:
-            if "maximum size" in str(exc.detail):
-                raise ApiError(413, "too_large", f"a multipart text field (the camera) may have at most "
-                                                 f"{MAX_CAMERA_BYTES} bytes") from None
-            raise ApiError(400, "bad_request", f"malformed multipart body: {exc.detail}") from None
-        except Exception as exc:
-            raise ApiError(400, "bad_request", f"malformed multipart body ({exc.__class__.__name__})") from None
-        upload = form.get("image")
-        if upload is None or isinstance(upload, str):
-            raise ApiError(422, "missing_image", "multipart field 'image' (a file) is required")
-        data = await upload.read()
-        cam_field = form.get("camera")
-        if cam_field is not None:
-            if not isinstance(cam_field, str):
-                raw = await cam_field.read(MAX_CAMERA_BYTES + 1)
-                if len(raw) > MAX_CAMERA_BYTES:
-                    raise ApiError(413, "too_large", f"the camera may have at most {MAX_CAMERA_BYTES} bytes")
-                cam_field = raw.decode("utf-8", "replace")
-            camera = _camera_from_json(cam_field)
-    elif ctype.startswith("image/") or ctype == "application/octet-stream":
-        data = await request.body()
-    else:
-        raise ApiError(415, "unsupported_media_type",
-                       "send multipart/form-data (fields image, camera) or the raw image with an image/* content type")
-    if camera is None:
-        raise ApiError(422, "bad_camera", "a camera is required: multipart field 'camera' or query parameters fx, fy, cx, cy")
-    return data, camera
-
-
 @router.post("/pose", response_model=LocateAllOut,
              summary="search every trained object in one image (as `quatrack locate --object all --json`)")
 async def pose_all(
@@ -89,7 +51,7 @@ async def pose_all(
     height: Annotated[int | None, Query(gt=0, description="image height the camera is for")] = None,
     dist: Annotated[str | None, Query(description="distortion k1,k2,p1,p2[,k3], comma-separated")] = None,
 ) -> dict:
-    data, camera = await _read_request(request, _camera_from_query(fx, fy, cx, cy, width, height, dist))
+    data, camera = await read_pose_request(request, _camera_from_query(fx, fy, cx, cy, width, height, dist))
     if camera.width is not None and camera.height is not None:
         camera.to_camera()  # implausible intrinsics: 422 before any decoding
     if state.pending >= state.settings.max_pending_requests:

@@ -190,38 +190,22 @@ def _camera_from_json(text: str) -> CameraIn:
         raise ApiError(422, "bad_camera", f"camera{'.' + where if where else ''}: {e['msg']}") from None
 
 
-@api.post("/objects/{name}/pose", response_model=LocateOut, openapi_extra=_POSE_BODY,
-          summary="recognise the object in one image and estimate its pose (as `quatrack locate --json`)")
-async def pose(
-    name: str, request: Request, state: State,
-    fx: Annotated[float | None, Query(description="focal length x, px (when no `camera` form field)")] = None,
-    fy: Annotated[float | None, Query(description="focal length y, px")] = None,
-    cx: Annotated[float | None, Query(description="principal point x, px")] = None,
-    cy: Annotated[float | None, Query(description="principal point y, px")] = None,
-    width: Annotated[int | None, Query(gt=0, description="image width the camera is for (default: the image's)")] = None,
-    height: Annotated[int | None, Query(gt=0, description="image height the camera is for")] = None,
-    dist: Annotated[str | None, Query(description="distortion k1,k2,p1,p2[,k3], comma-separated")] = None,
-    format: Annotated[str, Query(description="json, or ros: also a geometry_msgs/PoseWithCovarianceStamped under \"ros\"")] = "json",
-    mesh_unit: Annotated[str | None, Query(description="with format=ros: the mesh's unit, mm, cm or m")] = None,
-) -> dict:
-    unit = ros.ros_unit({"format": format, "mesh_unit": mesh_unit})
-    registry = state.registry
-    registry.check_name(name)
-    if not registry.is_known(name):
-        raise ApiError(404, "unknown_object", f"no object named {name!r} in the store")
+
+async def read_pose_request(request: Request, camera: CameraIn | None) -> tuple[bytes, CameraIn]:
+    """The image bytes and the camera of a pose request (multipart fields ``image`` and ``camera``, or
+    a raw image body with the camera from the query, given as ``camera``); both pose endpoints."""
     ctype = request.headers.get("content-type", "").split(";")[0].strip().lower()
-    camera = _camera_from_query(fx, fy, cx, cy, width, height, dist)
     if ctype == "multipart/form-data":
         try:
             form = await request.form(max_files=2, max_fields=8, max_part_size=MAX_CAMERA_BYTES)
         except ApiError:
             raise
-        except StarletteHTTPException as exc:  # what Starlette's parser refused, with its reason
+        except StarletteHTTPException as exc:
             if "maximum size" in str(exc.detail):
                 raise ApiError(413, "too_large", f"a multipart text field (the camera) may have at most "
                                                  f"{MAX_CAMERA_BYTES} bytes") from None
             raise ApiError(400, "bad_request", f"malformed multipart body: {exc.detail}") from None
-        except Exception as exc:  # malformed multipart
+        except Exception as exc:
             raise ApiError(400, "bad_request", f"malformed multipart body ({exc.__class__.__name__})") from None
         upload = form.get("image")
         if upload is None or isinstance(upload, str):
@@ -242,6 +226,29 @@ async def pose(
                        "send multipart/form-data (fields image, camera) or the raw image with an image/* content type")
     if camera is None:
         raise ApiError(422, "bad_camera", "a camera is required: multipart field 'camera' or query parameters fx, fy, cx, cy")
+    return data, camera
+
+
+@api.post("/objects/{name}/pose", response_model=LocateOut, openapi_extra=_POSE_BODY,
+          summary="recognise the object in one image and estimate its pose (as `quatrack locate --json`)")
+async def pose(
+    name: str, request: Request, state: State,
+    fx: Annotated[float | None, Query(description="focal length x, px (when no `camera` form field)")] = None,
+    fy: Annotated[float | None, Query(description="focal length y, px")] = None,
+    cx: Annotated[float | None, Query(description="principal point x, px")] = None,
+    cy: Annotated[float | None, Query(description="principal point y, px")] = None,
+    width: Annotated[int | None, Query(gt=0, description="image width the camera is for (default: the image's)")] = None,
+    height: Annotated[int | None, Query(gt=0, description="image height the camera is for")] = None,
+    dist: Annotated[str | None, Query(description="distortion k1,k2,p1,p2[,k3], comma-separated")] = None,
+    format: Annotated[str, Query(description="json, or ros: also a geometry_msgs/PoseWithCovarianceStamped under \"ros\"")] = "json",
+    mesh_unit: Annotated[str | None, Query(description="with format=ros: the mesh's unit, mm, cm or m")] = None,
+) -> dict:
+    unit = ros.ros_unit({"format": format, "mesh_unit": mesh_unit})
+    registry = state.registry
+    registry.check_name(name)
+    if not registry.is_known(name):
+        raise ApiError(404, "unknown_object", f"no object named {name!r} in the store")
+    data, camera = await read_pose_request(request, _camera_from_query(fx, fy, cx, cy, width, height, dist))
     if camera.width is not None and camera.height is not None:
         camera.to_camera()  # implausible intrinsics: 422 before any decoding
     if state.pending >= state.settings.max_pending_requests:
