@@ -9,7 +9,6 @@ listed. The request is the same as ``POST /v1/objects/{name}/pose`` (multipart `
 
 from __future__ import annotations
 
-import asyncio
 import time
 from typing import Annotated
 
@@ -21,7 +20,7 @@ from quatrack.recognition.locate import LocateParams, locate_all
 
 from .errors import ApiError
 from .imagein import decode_upload
-from .routes import ERRORS, ServiceState, _camera_from_query, get_state, read_pose_request, require_token
+from .routes import ERRORS, ServiceState, _camera_from_query, get_state, in_pool, read_pose_request, require_token
 from .schemas import CameraIn, LocateOut
 
 
@@ -52,16 +51,7 @@ async def pose_all(
     dist: Annotated[str | None, Query(description="distortion k1,k2,p1,p2[,k3], comma-separated")] = None,
 ) -> dict:
     data, camera = await read_pose_request(request, _camera_from_query(fx, fy, cx, cy, width, height, dist))
-    if camera.width is not None and camera.height is not None:
-        camera.to_camera()  # implausible intrinsics: 422 before any decoding
-    if state.pending >= state.settings.max_pending_requests:
-        raise ApiError(503, "busy", "too many pose requests in progress; retry later",
-                       {"Retry-After": str(state.settings.retry_after_s)})
-    state.pending += 1
-    try:
-        return await asyncio.get_running_loop().run_in_executor(state.executor, _locate_all, state, data, camera)
-    finally:
-        state.pending -= 1
+    return await in_pool(state, _locate_all, state, data, camera)
 
 
 def _locate_all(state: ServiceState, data: bytes, camera: CameraIn) -> dict:

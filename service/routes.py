@@ -226,7 +226,22 @@ async def read_pose_request(request: Request, camera: CameraIn | None) -> tuple[
                        "send multipart/form-data (fields image, camera) or the raw image with an image/* content type")
     if camera is None:
         raise ApiError(422, "bad_camera", "a camera is required: multipart field 'camera' or query parameters fx, fy, cx, cy")
+    if camera.width is not None and camera.height is not None:
+        camera.to_camera()  # implausible intrinsics: 422 before any decoding
     return data, camera
+
+
+async def in_pool(state: ServiceState, fn, *args):
+    """Run one pose request's work in the CPU pool, refusing it (503 + Retry-After) when
+    ``max_pending_requests`` are already in progress; both pose endpoints."""
+    if state.pending >= state.settings.max_pending_requests:
+        raise ApiError(503, "busy", "too many pose requests in progress; retry later",
+                       {"Retry-After": str(state.settings.retry_after_s)})
+    state.pending += 1
+    try:
+        return await asyncio.get_running_loop().run_in_executor(state.executor, fn, *args)
+    finally:
+        state.pending -= 1
 
 
 @api.post("/objects/{name}/pose", response_model=LocateOut, openapi_extra=_POSE_BODY,
@@ -249,17 +264,8 @@ async def pose(
     if not registry.is_known(name):
         raise ApiError(404, "unknown_object", f"no object named {name!r} in the store")
     data, camera = await read_pose_request(request, _camera_from_query(fx, fy, cx, cy, width, height, dist))
-    if camera.width is not None and camera.height is not None:
-        camera.to_camera()  # implausible intrinsics: 422 before any decoding
-    if state.pending >= state.settings.max_pending_requests:
-        raise ApiError(503, "busy", "too many pose requests in progress; retry later",
-                       {"Retry-After": str(state.settings.retry_after_s)})
-    state.pending += 1
-    try:
-        result = await asyncio.get_running_loop().run_in_executor(state.executor, _locate, state, name, data, camera)
-        return JSONResponse(ros.add_to_locate(result, unit)) if unit else result  # "ros" added: LocateOut + ros
-    finally:
-        state.pending -= 1
+    result = await in_pool(state, _locate, state, name, data, camera)
+    return JSONResponse(ros.add_to_locate(result, unit)) if unit else result  # "ros" added: LocateOut + ros
 
 
 def _locate(state: ServiceState, name: str, data: bytes, camera: CameraIn) -> dict:
