@@ -251,3 +251,24 @@ def test_docs_are_served_locally_and_what_is_open_without_a_token(store):
             assert_error(c.get(path), 401, "unauthorized")
         assert_error(c.post("/v1/objects/cookie-box/reload"), 401, "unauthorized")
         assert c.get("/metrics", headers={"Authorization": "Bearer t0k"}).status_code == 200
+
+
+def test_both_pose_endpoints_refuse_work_beyond_max_pending(store):
+    """Admission is one rule for ``/v1/objects/{name}/pose`` and ``/v1/pose``: with
+    ``max_pending_requests`` in progress a request is 503 ``busy`` with Retry-After, and once
+    the pool has room it is served. (The pending count is set directly: no race with the pool.)"""
+    cam = {"fx": 669.7, "fy": 667.8, "cx": 320.0, "cy": 240.0}
+    image = jpeg(video_frames(1)[0])
+    with BackgroundServer(Settings(store=store, max_pending_requests=1)) as srv, \
+            httpx.Client(base_url=srv.url, timeout=120) as c:
+        state = srv.app.state.quatrack
+        state.pending = 1  # one request in progress
+        for path in ("/v1/objects/cookie-box/pose", "/v1/pose"):
+            r = c.post(path, content=image, params=cam, headers={"content-type": "image/jpeg"})
+            assert r.status_code == 503 and r.json()["error"]["code"] == "busy", (path, r.text)
+            assert int(r.headers["retry-after"]) > 0
+        assert state.pending == 1  # a refused request does not count
+        state.pending = 0
+        r = c.post("/v1/objects/cookie-box/pose", content=image, params=cam, headers={"content-type": "image/jpeg"})
+        assert r.status_code == 200 and r.json()["found"] is True, r.text
+        assert state.pending == 0
