@@ -96,7 +96,8 @@ class Session:
                     self.started.set()
                     k += 1
         except ConnectionClosed as exc:
-            self.close_code = exc.rcvd.code if exc.rcvd is not None else None
+            # 1006 (abnormal): the connection dropped without a close frame reaching the client
+            self.close_code = exc.rcvd.code if exc.rcvd is not None else 1006
         finally:
             self.started.set()
 
@@ -147,7 +148,12 @@ def test_two_replicas_behind_nginx_survive_one_stopping(tmp_path):
             await wait_for(lambda: all(s.answers > before[id(s)] + 2 for s in old if s.close_code is None),
                            "the other sessions to go on")
             closed = [s for s in old if s.close_code is not None]
-            assert len(closed) == on_a and all(s.close_code == 1012 for s in closed), [s.close_code for s in old]
+            # uvicorn closes every session with 1012 (service restart) on SIGTERM; on a loaded machine
+            # the replica's exit sometimes drops the connection first and the client sees 1006 (one
+            # CI run in five). Either way the session ends and the client may reconnect; what must
+            # not happen is a survivor on the live replica among them.
+            assert len(closed) == on_a and all(s.close_code in (1012, 1006) for s in closed), \
+                [s.close_code for s in old]
             # new sessions go to the live replica
             new = [Session(ws_url, frames) for _ in range(2)]
             new_tasks = [asyncio.create_task(s.run()) for s in new]
