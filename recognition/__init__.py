@@ -3,7 +3,7 @@ how does it move (Kragic & Kyrki's initialisation, Ude's filter in a video loop)
 
 Entry points:
 - ``locate.locate(image, camera, model) -> Located`` (``locate_all`` for every trained object):
-  RFCH window search (:mod:`.localise`) → SIFT matched to every viewset (:mod:`.match`) →
+  RFCH window search (:mod:`.window_search`) → SIFT matched to every viewset (:mod:`.match`) →
   RANSAC PnP, refinement and covariance (:mod:`.pose`) → verification on what lies inside the
   image (:mod:`.pose`, :mod:`.evidence`).
 - ``video.Tracker(model, camera, TrackerParams())`` and ``tracker.step(image, time_s) ->

@@ -1,6 +1,6 @@
 """Recognition and initial pose, the path behind ``quatrack locate`` and ``POST .../pose``.
 
-``locate`` = localise (RFCH window) → SIFT in the window plus a margin → match to every viewset →
+``locate`` = :func:`~quatrack.recognition.window_search.search_window` (RFCH window; its time is reported as ``localise``) → SIFT in the window plus a margin → match to every viewset →
 the viewset with most matches → RANSAC PnP + refinement → verification (geometry, then evidence
 in the image a wrong pose cannot fake: :func:`quatrack.recognition.pose.verification`). If the
 window yields no verified pose, the whole image is searched before giving up. Per-stage times are
@@ -21,14 +21,14 @@ from quatrack.viewsets.features import Features
 from quatrack.viewsets.store import ObjectModel
 
 from .images import DEFAULT_MAX_PIXELS, prepare_image
-from .localise import LocaliseParams, Window, localise
+from .window_search import Window, WindowSearchParams, search_window
 from .match import ModelIndex, index_for, rank_viewsets
 from .pose import PnPSolution, PoseParams, Verification, rival_inliers, solve_pnp, verification, verify
 
 
 @dataclass(frozen=True)
 class LocateParams:
-    localise: LocaliseParams = field(default_factory=LocaliseParams)
+    window: WindowSearchParams = field(default_factory=WindowSearchParams)
     pose: PoseParams = field(default_factory=PoseParams)
     margin: float = 0.25  # the window is enlarged by this fraction on every side for SIFT
     viewsets_tried: int = 2  # the best and the runner-up
@@ -176,7 +176,7 @@ def locate(
     win: Window | None = None
     if params.use_window:
         t0 = time.perf_counter()
-        win = localise(img, cam, model, params.localise)
+        win = search_window(img, cam, model, params.window)
         timer["localise"] = (time.perf_counter() - t0) * 1e3
 
     grey = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)

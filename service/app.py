@@ -30,7 +30,7 @@ from . import docs, errors, pose_all, viewer
 from .errors import ApiError, error_body
 from .logs import install_filters
 from .metrics import Metrics, worker_exit
-from .models import ModelRegistry
+from .registry import ModelRegistry
 from .routes import ServiceState, api, health, ops, sockets
 from .settings import Settings
 from .workers import count_open, session_limiter

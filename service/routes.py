@@ -30,11 +30,11 @@ from .errors import ApiError, error_body
 from .imagein import decode_upload
 from .logs import mark_refused
 from .metrics import CONTENT_TYPE, Metrics
-from .models import ModelRegistry
+from .registry import ModelRegistry
 from .schemas import CameraIn, ErrorResponse, Health, LocateOut, ObjectDetail, ObjectList, ObjectSummary, Ready, ReloadOut
 from .sessions import SessionLimiter, TrackSession
 from .settings import Settings
-from .tracker import TRACKER_KIND
+from .tracker_factory import TRACKER_KIND
 
 log = logging.getLogger("quatrack.service")
 

@@ -37,7 +37,7 @@ from .metrics import Metrics
 from .ros import add_to_track_message
 from .schemas import CameraIn
 from .settings import Settings
-from .tracker import TRACKER_KIND, make_tracker
+from .tracker_factory import TRACKER_KIND, make_tracker
 
 log = logging.getLogger("quatrack.service")
 MAX_CONTROLS = 32  # control messages waiting for a frame; more is a misbehaving client
@@ -63,7 +63,7 @@ class SessionLimiter:
 
 
 @dataclass
-class _Frame:
+class _PendingFrame:
     number: int
     time_s: float
     data: bytes
@@ -87,7 +87,7 @@ class TrackSession:
         self.model, self.settings, self.executor, self.metrics = model, settings, executor, metrics
         self.camera: CameraIn | None = None
         self.controls: list = []
-        self.pending: _Frame | None = None
+        self.pending: _PendingFrame | None = None
         self.skipped = 0
         self.next_frame = 0
         self.last_time: float | None = None
@@ -206,7 +206,7 @@ class TrackSession:
             self.skipped += 1
             self.metrics.frames.labels("skipped").inc()
             controls = self.pending.controls + controls
-        self.pending = _Frame(number, time_s, data, arrival, controls)
+        self.pending = _PendingFrame(number, time_s, data, arrival, controls)
         self.wakeup.set()
 
     async def _on_text(self, text: str) -> None:
@@ -305,7 +305,7 @@ class TrackSession:
             self.metrics.frame_latency.observe(out["latency_ms"] / 1e3)
             await self.send(out)
 
-    def _process(self, item: _Frame) -> dict:
+    def _process(self, item: _PendingFrame) -> dict:
         """Worker thread: apply the controls, decode, step the tracker. Raises _SessionError."""
         for op in item.controls:
             if op[0] == "camera":
@@ -354,7 +354,7 @@ class TrackSession:
         return _message(item, step)
 
 
-def _message(item: _Frame, step) -> dict:
+def _message(item: _PendingFrame, step) -> dict:
     """The per-frame message (:func:`recognition.trackio.step_message`), numbered and timed as
     the session received the frame."""
     return {**step_message(step), "frame": item.number, "time_s": item.time_s}

@@ -112,7 +112,7 @@ def test_models_share_one_interface(name):
     grown = out.covariance[:6, :6] - s.covariance[:6, :6]
     assert np.trace(grown) > 0
     if not model.estimates_velocity:
-        Q = model.noise(1 / 30, s.p) if name == "m2" else model.noise(1 / 30)
+        Q = model.process_covariance(1 / 30, s.p) if name == "m2" else model.process_covariance(1 / 30)
         np.testing.assert_allclose(grown, Q, atol=1e-12)
         assert np.linalg.eigvalsh(grown).min() > -1e-12 and np.trace(grown) > 1e-3
     still = model.predict(s, 0.0)
@@ -152,10 +152,10 @@ def test_model_2_couples_position_to_camera_rotation():
     dp = np.einsum("nij,j->ni", rodrigues(w), p) - p + w_p
     emp = np.cov(np.hstack([dp, w]).T)
     # whitened by the model, the sample covariance is the identity up to sampling error (~1/√n)
-    L = np.linalg.cholesky(np.linalg.inv(m.noise(dt, p)))
+    L = np.linalg.cholesky(np.linalg.inv(m.process_covariance(dt, p)))
     np.testing.assert_allclose(L.T @ emp @ L, np.eye(6), atol=0.015)
     # and the coupling is really there: without it, the whitened covariance is far from I
-    Q_uncoupled = m.noise(dt, p).copy()
+    Q_uncoupled = m.process_covariance(dt, p).copy()
     Q_uncoupled[:3, 3:] = Q_uncoupled[3:, :3] = 0.0
     L0 = np.linalg.cholesky(np.linalg.inv(Q_uncoupled))
     assert np.abs(L0.T @ emp @ L0 - np.eye(6)).max() > 0.5

@@ -9,7 +9,7 @@ import pytest
 from quatrack.bench import scenes as S
 from quatrack.cli import main
 from quatrack.recognition.images import ImageError, decode_image, prepare_image
-from quatrack.recognition.localise import localise
+from quatrack.recognition.window_search import search_window
 from quatrack.recognition.locate import LocateParams, locate
 from quatrack.recognition.match import index_for
 from quatrack.recognition.pose import PnPSolution, PoseParams, iou, solve_pnp, verify
@@ -39,7 +39,7 @@ def scenes(model):
 def test_window_lands_on_the_object(model, scenes):
     on, ious = 0, []
     for sc in scenes[0]:
-        w = localise(sc.image, CAMERA, model)
+        w = search_window(sc.image, CAMERA, model)
         cx, cy = int(w.bbox[0] + w.bbox[2] / 2), int(w.bbox[1] + w.bbox[3] / 2)
         on += bool(sc.mask[np.clip(cy, 0, 479), np.clip(cx, 0, 639)])
         ious.append(iou(w.bbox, sc.bbox))

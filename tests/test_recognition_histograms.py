@@ -6,7 +6,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from quatrack.recognition.localise import LocaliseParams, _Integral, _score_windows, cell_histograms, chi2_rows, compress
+from quatrack.recognition.window_search import WindowSearchParams, _Integral, _score_windows, cell_histograms, chi2_rows, compress
 from quatrack.viewsets.rfch import nearest_centres, neighbour_counts
 
 
@@ -81,7 +81,7 @@ def test_window_boxes_and_chi2_brute_force():
     rng = np.random.default_rng(0)
     C = rng.integers(0, 5, size=(6, 9, 4)).astype(np.float32)
     m = np.array([0.1, 0.2, 0.3, 0.4], np.float32)
-    params = LocaliseParams(ring=0.34, min_ring_inside=0.0, ring_weight_power=0.0)
+    params = WindowSearchParams(ring=0.34, min_ring_inside=0.0, ring_weight_power=0.0)
     I = _Integral.of(C, pad=3)
     y, x, w, h = (np.array(v) for v in ([0, 2, 3], [0, 4, 1], [3, 5, 2], [2, 4, 3]))
     score, c_in, c_ring = _score_windows(I, m, y, x, w, h, params)

@@ -88,13 +88,13 @@ class ObjectRandomWalk:
     def __post_init__(self) -> None:
         _check_positive(sigma_p2=self.sigma_p2, sigma_phi2=self.sigma_phi2)
 
-    def noise(self, dt: float) -> np.ndarray:
+    def process_covariance(self, dt: float) -> np.ndarray:
         """``Q1(dt)`` (eq. 5)."""
         return dt * np.diag([self.sigma_p2] * 3 + [self.sigma_phi2] * 3)
 
     def predict(self, state: FilterState, dt: float) -> FilterState:
         dt = _check_dt(dt)
-        return _zeroth_order(state, dt, self.noise(dt))
+        return _zeroth_order(state, dt, self.process_covariance(dt))
 
 
 @dataclass(frozen=True)
@@ -109,7 +109,7 @@ class CameraRandomWalk:
     def __post_init__(self) -> None:
         _check_positive(sigma_p2=self.sigma_p2, sigma_phi2=self.sigma_phi2)
 
-    def noise(self, dt: float, p: np.ndarray) -> np.ndarray:
+    def process_covariance(self, dt: float, p: np.ndarray) -> np.ndarray:
         """``Q2`` (eq. 9) with ``A = -X(p)`` (eq. 8), so that ``A w = w × p``.
 
         With ``δθ = w`` (our sign) the cross term is ``+dt σφ² A``; the paper writes
@@ -125,7 +125,7 @@ class CameraRandomWalk:
 
     def predict(self, state: FilterState, dt: float) -> FilterState:
         dt = _check_dt(dt)
-        return _zeroth_order(state, dt, self.noise(dt, state.p))
+        return _zeroth_order(state, dt, self.process_covariance(dt, state.p))
 
 
 @dataclass(frozen=True)

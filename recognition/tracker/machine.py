@@ -76,7 +76,7 @@ class Tracker:
         self.index = index
         self.executor = executor
         self.diameter = float(model.mesh.extent)
-        self.motion = make_motion_model(params.motion_model, **params.noise(self.diameter))
+        self.motion = make_motion_model(params.motion_model, **params.motion_noise_params(self.diameter))
         self.filter = PoseFilter(self.motion, params.adjust)
         pts = np.concatenate([vs.points3d for vs in model.viewsets]) if model.viewsets else np.zeros((0, 3))
         self.points = merge_points(pts, params.merge_tol * self.diameter)

@@ -119,7 +119,7 @@ class TrackerParams:
             raise ValueError(f"motion model {self.motion_model!r} has no parameter(s) {sorted(unknown)}; "
                              f"expected {sorted(noise)}")
 
-    def noise(self, diameter: float) -> dict[str, float]:
+    def motion_noise_params(self, diameter: float) -> dict[str, float]:
         """The motion model's noise parameters (mesh units) for an object of this diameter."""
         return motion_noise(self.motion_model, diameter, self.motion_noise)
 

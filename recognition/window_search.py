@@ -46,7 +46,7 @@ from quatrack.viewsets.store import ObjectModel
 
 
 @dataclass(frozen=True)
-class LocaliseParams:
+class WindowSearchParams:
     """``label_side``: the label map's longer side (px); ``cell``: the window grid (label px);
     ``stride``: pair centres sampled every stride-th label pixel;
     ``max_label_distance``: the cut-off (in units of the descriptor spread per dimension) beyond
@@ -95,7 +95,7 @@ class LabelMap:
     scale: float
 
 
-def label_map(image: np.ndarray, rfch: RFCHModel, params: LocaliseParams = LocaliseParams()) -> LabelMap:
+def label_map(image: np.ndarray, rfch: RFCHModel, params: WindowSearchParams = WindowSearchParams()) -> LabelMap:
     """RFCH labels of a reduced-resolution copy of ``image``, unlabelled beyond the cut-off.
 
     The model's Gaussian scales are in image pixels; in the reduced map they shrink with it, so
@@ -199,7 +199,7 @@ def chi2_rows(h: np.ndarray, m: np.ndarray) -> np.ndarray:
     return np.where(tot > 0, 2.0 - 4.0 * h.sum(axis=-1), 2.0)
 
 
-def window_shapes(model: ObjectModel, image_size: tuple[int, int], scale: float, grid, params: LocaliseParams):
+def window_shapes(model: ObjectModel, image_size: tuple[int, int], scale: float, grid, params: WindowSearchParams):
     """Window (w, h) in cells. The object's apparent sizes in the training views, as fractions of
     their image, are carried to the query image and widened by ``size_factors``: the training
     views (registered and synthetic, at several distances) bound the search."""
@@ -209,7 +209,7 @@ def window_shapes(model: ObjectModel, image_size: tuple[int, int], scale: float,
 
 
 @functools.lru_cache(maxsize=256)
-def _window_shapes(train_w: float, size_min, size_max, image_w: int, scale: float, grid, params: LocaliseParams):
+def _window_shapes(train_w: float, size_min, size_max, image_w: int, scale: float, grid, params: WindowSearchParams):
     zoom = image_w / train_w * scale / params.cell
     (w0, h0), (w1, h1) = size_min, size_max
     base_aspect = np.sqrt((w0 / h0) * (w1 / h1))
@@ -224,7 +224,7 @@ def _window_shapes(train_w: float, size_min, size_max, image_w: int, scale: floa
     return tuple(sorted(shapes))
 
 
-def _ring(w, h, params: LocaliseParams):
+def _ring(w, h, params: WindowSearchParams):
     """The surround's width and height in cells (scalars or arrays; round half to even)."""
     return np.maximum(1, np.round(params.ring * np.asarray(w))).astype(int), np.maximum(1, np.round(params.ring * np.asarray(h))).astype(int)
 
@@ -266,7 +266,7 @@ class _Integral:
 
 
 def _score_windows(I: _Integral, m: np.ndarray, y: np.ndarray, x: np.ndarray, w: np.ndarray, h: np.ndarray,
-                   params: LocaliseParams):
+                   params: WindowSearchParams):
     """Centre–surround scores (lower is better), χ² of the windows and of their rings, for the
     windows of w × h cells at (y, x), all given as (N,) arrays: one batch for every shape, so
     the cost is in the arithmetic, not in Python calls."""
@@ -304,8 +304,8 @@ def _coarse_windows(shapes: tuple, rows: int, cols: int) -> np.ndarray:
 _EDGE_MOVES = np.stack(np.meshgrid(*[np.arange(-1, 2)] * 4, indexing="ij")).reshape(4, -1)  # (dy0, dx0, dy1, dx1)
 
 
-def localise(
-    image: np.ndarray, camera: PinholeCamera, model: ObjectModel, params: LocaliseParams = LocaliseParams()
+def search_window(
+    image: np.ndarray, camera: PinholeCamera, model: ObjectModel, params: WindowSearchParams = WindowSearchParams()
 ) -> Window | None:
     """The window most likely to hold the object (``found`` says whether it passes the χ² gate),
     or None if nothing in the image carries an object label. ``image``: 8-bit BGR for ``camera``."""
