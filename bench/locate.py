@@ -2,7 +2,7 @@
 
 - **Rendered scenes** (ground truth): the bundled cookie box rendered at known poses turned up
   to 60° away from its registered view, over real room backgrounds, with colour casts, shading,
-  blur, noise, JPEG and occluders (:mod:`bench.scenes`). Success = centre translation error
+  blur, noise, JPEG and occluders (:mod:`quatrack.testing.scenes`). Success = centre translation error
   ≤ 5 % of the object's diameter and rotation error ≤ 5°; the curve over viewing angle; the
   localisation window's IoU with the true box.
 - **Negatives**: the same backgrounds without the box: how often a pose is (wrongly) reported.
@@ -25,12 +25,11 @@ from quatrack.recognition.match import index_for
 from quatrack.recognition.overlay import draw_label, draw_wireframe
 from quatrack.recognition.pose import iou
 from quatrack.recognition.visibility import mesh_edges
-from quatrack.tracking import quaternion as quat
 from quatrack.viewsets.camera import load_camera
 from quatrack.viewsets.render import render
 from quatrack.tracking.pose import Pose
 
-from . import scenes as S
+from quatrack.testing import scenes as S
 
 STAGES = ("localise", "match", "pnp", "total")
 ANGLE_BINS = (0, 10, 20, 30, 40, 50, 60)
@@ -227,9 +226,8 @@ def zoo_models(objects, views=(1, 4), greys=(False, True), progress: bool = Fals
     from quatrack.viewsets.spec import load_spec
     from quatrack.viewsets.train import train_object
 
-    from . import zoo as Z
+    from quatrack.testing import zoo as Z
 
-    cam = Z.zoo_camera()
     out = {}
     jobs = [(o, v, g) for o in objects for v in views for g in greys]
     with tempfile.TemporaryDirectory(prefix="quatrack-zoo-") as tmp:
@@ -248,7 +246,7 @@ def zoo(models: dict, scenes_per_model: int, seed: int, progress: bool) -> dict:
 
     from quatrack.recognition.locate import locate_all
 
-    from . import zoo as Z
+    from quatrack.testing import zoo as Z
 
     cam = Z.zoo_camera()
     bgs = Z.real_backgrounds()
@@ -318,7 +316,7 @@ def zoo(models: dict, scenes_per_model: int, seed: int, progress: bool) -> dict:
         a, b = names[k], names[(k + 1) % len(names)]
         if a == b:
             continue
-        img, truths = _two_object_scene(rng, a, b, {kk[0]: v for kk, v in colour1}, cam, bgs)
+        img, truths = Z.two_object_scene(rng, a, b, {kk[0]: v for kk, v in colour1}, cam, bgs)
         t0 = time.perf_counter()
         res = locate_all(img, cam, [m for _, (m, _) in colour1])
         two["ms"].append((time.perf_counter() - t0) * 1e3)
@@ -341,35 +339,6 @@ def r_model(models, name):
     return next(v[0] for k, v in models if k[0] == name)
 
 
-def _two_object_scene(rng, a: str, b: str, trained: dict, cam, bgs):
-    """Objects ``a`` (left half) and ``b`` (right half), each at one of its training views turned
-    a little, composited over a background; returns the image and the true poses."""
-    from . import zoo as Z
-
-    img = None
-    truths = {}
-    sil_all = np.zeros((cam.height, cam.width), bool)
-    layers = []
-    for name, u in ((a, 0.3), (b, 0.7)):
-        obj = Z.textured(name)
-        _, poses = trained[name]
-        p = Z.turned(poses[0], obj.mesh.centre, 10.0, rng)
-        d = Z.viewing_distance(obj, cam, 0.3)
-        ray = np.array([(u * cam.width - cam.cx) / cam.fx, 0.0, 1.0])
-        from quatrack.tracking.pose import Pose
-
-        p = Pose(p.q_wxyz, ray * d - p.R @ obj.mesh.centre)
-        o_img, sil = obj.render(cam, p)
-        layers.append((o_img, sil))
-        truths[name] = p
-    bg = bgs[int(rng.integers(len(bgs)))]
-    img = bg.copy() if bg.shape[:2] == (cam.height, cam.width) else cv2.resize(bg, (cam.width, cam.height))
-    for o_img, sil in layers:
-        img[sil & ~sil_all] = o_img[sil & ~sil_all]
-        sil_all |= sil
-    return Z.degrade(img, rng), truths
-
-
 def format_zoo(z: dict) -> str:
     lines = ["Zoo (found and correct / found but wrong / not found, time p50/p95):"]
     for g, t in z["groups"].items():
@@ -389,7 +358,7 @@ def format_zoo(z: dict) -> str:
 
 
 def main_zoo(objects: list[str] | None, scenes: int, seed: int, as_json: bool) -> int:
-    from . import zoo as Z
+    from quatrack.testing import zoo as Z
 
     t0 = time.perf_counter()
     names = objects or [o.name for o in Z.ZOO]

@@ -120,7 +120,7 @@ def _setups(store, workers: list[int], threads: int, max_sessions: int, replicas
 
     @contextlib.contextmanager
     def balanced():
-        from .balancer import Nginx
+        from quatrack.testing.balancer import Nginx
 
         with ServeProcess(store, workers=1, env=env) as a, ServeProcess(store, workers=1, env=env) as b, \
                 Nginx(Path(tmp) / "nginx", [a.port, b.port]) as lb:
@@ -142,7 +142,7 @@ def main(args: argparse.Namespace) -> int:
     from quatrack.client import video_frames
     from quatrack.viewsets.camera import camera_to_dict, load_camera
 
-    from .balancer import find_nginx
+    from quatrack.testing.balancer import find_nginx
 
     cores = os.cpu_count() or 1
     try:

@@ -14,76 +14,16 @@ from __future__ import annotations
 import json
 import os
 import time
-from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
+from quatrack.testing.scenes import EXAMPLE, Renderer, example_model, pose_errors
+from quatrack.testing.sequences import lively_trajectory, render_sequence
 from quatrack.tracking import quaternion as quat
-from quatrack.tracking.camera import PinholeCamera
-from quatrack.tracking.pose import Pose
-
-from .scenes import EXAMPLE, Renderer, example_model, pose_errors
 
 MODELS = ("ude", "m1", "m2", "m3")
 RATES = (1, 2, 3, 4, 5)
-
-
-@dataclass(frozen=True)
-class Trajectory:
-    """Object pose over time: the registered view's orientation turned about the object's centre
-    by a rotation vector (object frame), the centre at ``centre(t)`` in the camera frame."""
-
-    R0: np.ndarray
-    mesh_centre: np.ndarray
-    c0: np.ndarray
-    pos_amp: np.ndarray  # (3,) mesh units
-    pos_freq: np.ndarray  # (3,) Hz
-    pos_phase: np.ndarray
-    rot_amp: np.ndarray  # (3,) rad
-    rot_freq: np.ndarray
-    rot_phase: np.ndarray
-
-    def pose(self, t: float) -> Pose:
-        c = self.c0 + self.pos_amp * np.sin(2 * np.pi * self.pos_freq * t + self.pos_phase)
-        rv = self.rot_amp * np.sin(2 * np.pi * self.rot_freq * t + self.rot_phase)
-        R = self.R0 @ quat.to_matrix(quat.from_rotvec(rv))
-        return Pose.from_matrix(R, c - R @ self.mesh_centre)
-
-
-def lively_trajectory(renderer: Renderer, depth: float = 60.0, scale: float = 1.0, seed: int = 0) -> Trajectory:
-    """A smooth, lively trajectory near the registered view; ``scale`` multiplies the motion."""
-    rng = np.random.default_rng(seed)
-    R0 = renderer.spec.views[0].pose.R
-    return Trajectory(
-        R0, renderer.mesh.centre, np.array([0.0, 0.0, depth]),
-        scale * np.array([8.0, 5.0, 8.0]), np.array([0.23, 0.31, 0.17]), rng.uniform(0, 2 * np.pi, 3),
-        scale * np.radians([22.0, 22.0, 18.0]), np.array([0.27, 0.19, 0.33]), rng.uniform(0, 2 * np.pi, 3),
-    )
-
-
-def compose(renderer: Renderer, camera: PinholeCamera, pose: Pose, background: np.ndarray,
-            rng: np.random.Generator, noise: float = 2.0) -> np.ndarray:
-    """The rendered object over ``background`` with sensor noise."""
-    obj, sil = renderer.render(camera, pose)
-    img = cv2.resize(background, (camera.width, camera.height)).astype(np.float32)
-    img[sil] = obj[sil]
-    img += rng.normal(0.0, noise, img.shape).astype(np.float32)
-    return np.clip(img, 0, 255).astype(np.uint8)
-
-
-def render_sequence(renderer: Renderer, camera: PinholeCamera, trajectory: Trajectory, n: int, fps: float,
-                    background: np.ndarray, seed: int = 0, jpeg: int = 90) -> tuple[list[bytes], list[Pose]]:
-    """``n`` frames as JPEG bytes (the camera's compression, and compact in memory) and their
-    true poses."""
-    rng = np.random.default_rng(seed)
-    frames, poses = [], []
-    for k in range(n):
-        pose = trajectory.pose(k / fps)
-        img = compose(renderer, camera, pose, background, rng)
-        frames.append(cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, jpeg])[1].tobytes())
-        poses.append(pose)
-    return frames, poses
 
 
 def _decode(data: bytes) -> np.ndarray:
@@ -292,4 +232,4 @@ def main(as_json: bool = False, seconds: float = 10.0, locate_frames: int = 150,
     return 0
 
 
-__all__ = ["lively_trajectory", "render_sequence", "run_sequence", "study", "compose"]
+__all__ = ["run_sequence", "study", "real_video", "main"]

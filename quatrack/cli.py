@@ -53,7 +53,7 @@ def _add_bench(parser: argparse.ArgumentParser) -> None:
     loc.add_argument("--zoo", action="store_true",
                      help="the object zoo instead (issue 13): other shapes, units, grey, out of frame, 1 and 4 photos, "
                           "no object and two objects")
-    loc.add_argument("--zoo-objects", metavar="A,B", help="zoo objects to run (default: all; see bench/zoo.py)")
+    loc.add_argument("--zoo-objects", metavar="A,B", help="zoo objects to run (default: all; see testing/zoo.py)")
     loc.add_argument("--zoo-scenes", type=int, default=12, metavar="N", help="scenes per trained zoo model (default 12)")
     loc.add_argument("--json", action="store_true", help="print one JSON object instead of the report")
     track = sub.add_parser(
@@ -121,7 +121,7 @@ def _run_bench(args: argparse.Namespace) -> int:
         if args.scenes < 1 or args.every < 1:
             raise UserError("--scenes and --every must be at least 1")
         if args.zoo:
-            from quatrack.bench import zoo
+            from quatrack.testing import zoo
 
             names = args.zoo_objects.split(",") if args.zoo_objects else None
             for n in names or ():

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from quatrack.bench.scenes import EXAMPLE, example_store
+from quatrack.testing.scenes import EXAMPLE, example_store
 from quatrack.cli import main
 from quatrack.client import Client, QuatrackError, base_urls
 from quatrack.recognition import trackio

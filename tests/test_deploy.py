@@ -19,8 +19,8 @@ import httpx
 import pytest
 from prometheus_client.parser import text_string_to_metric_families
 
-from quatrack.bench.balancer import Nginx, find_nginx
-from quatrack.bench.scenes import example_store
+from quatrack.testing.balancer import Nginx, find_nginx
+from quatrack.testing.scenes import example_store
 from quatrack.service.server import ServeProcess
 
 ROOT = Path(__file__).resolve().parent.parent

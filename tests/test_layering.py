@@ -1,5 +1,5 @@
 """Imports point one way only (docs/architecture.md): tracking ← viewsets ← recognition ← service
-← quatrack (CLI, client) and bench. A lower layer importing a higher one is a layering leak."""
+← quatrack (CLI, client) and bench; the test fixtures (quatrack.testing) sit above recognition. A lower layer importing a higher one is a layering leak."""
 
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ ROOT = Path(__file__).resolve().parents[1]
 # folder → (package, rank); a module may import packages of its rank or lower
 LAYERS = {"tracking": ("quatrack.tracking", 0), "viewsets": ("quatrack.viewsets", 1),
           "recognition": ("quatrack.recognition", 2), "service": ("quatrack.service", 3),
+          "testing": ("quatrack.testing", 2.5),  # ground-truth fixtures: above recognition, below the service
           "quatrack": ("quatrack", 4), "bench": ("quatrack.bench", 4)}  # CLI and bench: both thin tops
 EVERYONE = {"quatrack.examples"}  # the bundled example data, below every layer
 

@@ -4,7 +4,7 @@ queries, wrong poses refused on crafted wrong matches, grey images, several obje
 
 Two small models are trained once for the module (a 10 cm cube in metres from one colour photo,
 a flat box in millimetres from one grey photo); scenes are rendered over the real backgrounds of
-``bench.scenes`` (shared with the recognition tests in the same process).
+``quatrack.testing.scenes`` (shared with the recognition tests in the same process).
 """
 
 from __future__ import annotations
@@ -15,12 +15,12 @@ import cv2
 import numpy as np
 import pytest
 
-from quatrack.bench import scenes as S
-from quatrack.bench import zoo as Z
 from quatrack.cli import main
-from quatrack.recognition.locate import LocateParams, locate, locate_all
+from quatrack.recognition.locate import locate, locate_all
 from quatrack.recognition.match import index_for
 from quatrack.recognition.pose import PnPSolution, PoseParams, plausible, solve_pnp, verification, verify
+from quatrack.testing import scenes as S
+from quatrack.testing import zoo as Z
 from quatrack.tracking.pose import Pose
 from quatrack.viewsets.errors import SpecError
 from quatrack.viewsets.rfch import descriptor_planes
@@ -193,10 +193,9 @@ def test_locate_never_reports_a_wrong_pose_on_zoo_scenes(cube, bgs):
 # -- several objects ---------------------------------------------------------------------------------
 
 def _two(cube, flat_grey, bgs, seed=3):
-    from quatrack.bench.locate import _two_object_scene
 
     trained = {"cube-m": (cube[0], [cube[1].views[0].pose]), "flat-box-mm": (flat_grey[0], [flat_grey[1].views[0].pose])}
-    return _two_object_scene(np.random.default_rng(seed), "cube-m", "flat-box-mm", trained, CAM, bgs)
+    return Z.two_object_scene(np.random.default_rng(seed), "cube-m", "flat-box-mm", trained, CAM, bgs)
 
 
 def test_locate_all_with_zero_one_and_two_objects(cube, flat_grey, bgs):

@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from quatrack.bench import scenes as S
+from quatrack.testing import scenes as S
 from quatrack.cli import main
 from quatrack.recognition.images import ImageError, decode_image, prepare_image
 from quatrack.recognition.window_search import search_window

@@ -1,7 +1,7 @@
 """End-to-end tests of the service's HTTP side: a real uvicorn server on a loopback port.
 
 The example object is trained once per test process into a temporary store (≈ 3 s), shared with
-the recognition tests (``quatrack.bench.scenes.example_store``).
+the recognition tests (``quatrack.testing.scenes.example_store``).
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ import httpx
 import numpy as np
 import pytest
 
-from quatrack.bench.scenes import example_store
+from quatrack.testing.scenes import example_store
 from quatrack.service.server import BackgroundServer
 from quatrack.service.settings import Settings
 

@@ -15,7 +15,7 @@ import pytest
 from websockets.exceptions import InvalidStatus
 from websockets.sync.client import connect
 
-from quatrack.bench.scenes import example_store
+from quatrack.testing.scenes import example_store
 from quatrack.cli import main
 from quatrack.service.server import BackgroundServer
 from quatrack.service.settings import Settings

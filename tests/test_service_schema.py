@@ -10,7 +10,7 @@ import pytest
 import schemathesis
 from hypothesis import HealthCheck, given, settings
 
-from quatrack.bench.scenes import example_store
+from quatrack.testing.scenes import example_store
 from quatrack.service.server import BackgroundServer
 from quatrack.service.settings import Settings
 

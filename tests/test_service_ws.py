@@ -16,7 +16,7 @@ import pytest
 from websockets.exceptions import ConnectionClosed, InvalidStatus
 from websockets.sync.client import connect
 
-from quatrack.bench.scenes import example_store
+from quatrack.testing.scenes import example_store
 from quatrack.service.server import BackgroundServer
 from quatrack.service.settings import Settings
 from test_service_http import CAMERA, jpeg, video_frames

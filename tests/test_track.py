@@ -14,8 +14,8 @@ import cv2
 import numpy as np
 import pytest
 
-from quatrack.bench.scenes import EXAMPLE, Renderer, example_model, pose_errors
-from quatrack.bench.track import compose, lively_trajectory
+from quatrack.testing.scenes import EXAMPLE, Renderer, example_model, pose_errors
+from quatrack.testing.sequences import compose, lively_trajectory
 from quatrack.cli import main
 from quatrack.recognition.klt import make_frame, track_points
 from quatrack.recognition.match import index_for

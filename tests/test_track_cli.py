@@ -13,7 +13,7 @@ import json
 import numpy as np
 import pytest
 
-from quatrack.bench.scenes import EXAMPLE, example_store
+from quatrack.testing.scenes import EXAMPLE, example_store
 from quatrack.cli import main
 from quatrack.recognition import trackio
 

@@ -9,8 +9,8 @@ import cv2
 import numpy as np
 import pytest
 
-from quatrack.bench.scenes import EXAMPLE, Renderer, example_model, pose_errors
-from quatrack.bench.track import compose, lively_trajectory
+from quatrack.testing.scenes import EXAMPLE, Renderer, example_model, pose_errors
+from quatrack.testing.sequences import compose, lively_trajectory
 from quatrack.recognition.evidence import silhouette_inside
 from quatrack.recognition.match import index_for
 from quatrack.recognition.video import Tracker, TrackerParams

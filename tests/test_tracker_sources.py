@@ -14,9 +14,9 @@ import cv2
 import numpy as np
 import pytest
 
-from quatrack.bench import zoo as Z
-from quatrack.bench.scenes import EXAMPLE, Renderer, example_model, pose_errors
-from quatrack.bench.track import compose, lively_trajectory
+from quatrack.testing import zoo as Z
+from quatrack.testing.scenes import EXAMPLE, Renderer, example_model, pose_errors
+from quatrack.testing.sequences import compose, lively_trajectory
 from quatrack.recognition.klt import make_frame
 from quatrack.recognition.match import index_for
 from quatrack.recognition.tracker.mesh_points import MeshPoints, birth_mask

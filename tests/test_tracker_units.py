@@ -13,8 +13,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from quatrack.bench.scenes import EXAMPLE, Renderer, example_model
-from quatrack.bench.track import compose, lively_trajectory
+from quatrack.testing.scenes import EXAMPLE, Renderer, example_model
+from quatrack.testing.sequences import compose, lively_trajectory
 from quatrack.recognition.match import index_for
 from quatrack.recognition.video import Tracker, TrackerParams, motion_noise
 from quatrack.tracking import quaternion as quat

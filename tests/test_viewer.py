@@ -19,7 +19,7 @@ import httpx
 import numpy as np
 import pytest
 
-from quatrack.bench.scenes import example_store
+from quatrack.testing.scenes import example_store
 from quatrack.service.server import BackgroundServer
 from quatrack.service.settings import Settings
 from quatrack.tracking import quaternion as quat

@@ -18,7 +18,7 @@ from prometheus_client.parser import text_string_to_metric_families
 from websockets.exceptions import InvalidStatus
 from websockets.sync.client import connect
 
-from quatrack.bench.scenes import example_store
+from quatrack.testing.scenes import example_store
 from quatrack.service.server import ServeProcess
 from quatrack.service.settings import Settings, env_name, settings_table
 from quatrack.service.workers import SlotLimiter

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from quatrack.bench import zoo as Z
+from quatrack.testing import zoo as Z
 from quatrack.viewsets.spec import load_spec
 
 

@@ -3,7 +3,7 @@ photographs, shared by ``quatrack bench locate`` and the tracking benchmark.
 
 Each :class:`ZooObject` is a closed mesh (a box of given proportions, a cube, a cylinder or a
 prism) built with trimesh in millimetres, centimetres or metres, and a texture atlas: every face
-maps to a region of one real photograph (``bench/data/textures/``, licences in the README there;
+maps to a region of one real photograph (``testing/data/textures/``, licences in the README there;
 the cookie box's registered photo is one). :class:`TexturedObject` renders it at any pose through
 the project's own z-buffer (:func:`quatrack.viewsets.render.render`), so the ground truth is the
 same geometry recognition uses. :func:`write_spec` writes a training spec (``object.json`` +
@@ -189,7 +189,7 @@ class TexturedObject:
 
     def render(self, camera: PinholeCamera, pose: Pose) -> tuple[np.ndarray, np.ndarray]:
         """The object alone (BGR uint8, black background) and its silhouette mask (bool): the
-        same interface as :class:`bench.scenes.Renderer`."""
+        same interface as :class:`quatrack.testing.scenes.Renderer`."""
         buf = render(self.mesh, camera, pose)
         sil = buf.face >= 0
         out = np.zeros((int(camera.height), int(camera.width), 3), np.uint8)
@@ -289,7 +289,7 @@ def degrade(img: np.ndarray, rng: np.random.Generator, noise=(1.0, 3.0), blur=(0
 
 def real_backgrounds() -> tuple[np.ndarray, ...]:
     """Real backgrounds: frames of the bundled ``box.mp4`` with the real box inpainted away
-    (:func:`bench.scenes.video_backgrounds`; computed once per process, ~25 s: it trains the
+    (:func:`quatrack.testing.scenes.video_backgrounds`; computed once per process, ~25 s: it trains the
     bundled example to find the box). Crops of the raw frames are no substitute: the box shows
     up in them, and one zoo object is textured from a photo of that box."""
     from .scenes import video_backgrounds
@@ -410,3 +410,27 @@ def random_scene(rng: np.random.Generator, obj: TexturedObject, camera: PinholeC
     bg = backgrounds[int(rng.integers(len(backgrounds)))]
     image = degrade(compose(img, sil, bg, grey), rng)
     return ZooScene(image, p, sil, share, float(angle_deg))
+
+
+def two_object_scene(rng, a: str, b: str, trained: dict, cam, bgs):
+    """Objects ``a`` (left half) and ``b`` (right half), each at one of its training views turned
+    a little, composited over a background; returns the image and the true poses."""
+    truths = {}
+    sil_all = np.zeros((cam.height, cam.width), bool)
+    layers = []
+    for name, u in ((a, 0.3), (b, 0.7)):
+        obj = textured(name)
+        _, poses = trained[name]
+        p = turned(poses[0], obj.mesh.centre, 10.0, rng)
+        d = viewing_distance(obj, cam, 0.3)
+        ray = np.array([(u * cam.width - cam.cx) / cam.fx, 0.0, 1.0])
+        p = Pose(p.q_wxyz, ray * d - p.R @ obj.mesh.centre)
+        o_img, sil = obj.render(cam, p)
+        layers.append((o_img, sil))
+        truths[name] = p
+    bg = bgs[int(rng.integers(len(bgs)))]
+    img = bg.copy() if bg.shape[:2] == (cam.height, cam.width) else cv2.resize(bg, (cam.width, cam.height))
+    for o_img, sil in layers:
+        img[sil & ~sil_all] = o_img[sil & ~sil_all]
+        sil_all |= sil
+    return degrade(img, rng), truths

@@ -1,0 +1,16 @@
+"""Ground truth to test and measure against: objects rendered at known poses.
+
+Tests and benchmarks share these fixtures, and they live here, in the product's namespace but
+outside every pipeline layer, so that neither ``tests/`` nor ``bench/`` owns what the other needs
+and a non-editable install (the Dockerfile's) still finds them:
+
+- :mod:`.scenes`: the bundled cookie box (``example_store``, ``example_model``, ``Renderer``),
+  real room backgrounds from ``box.mp4`` with the box inpainted away, random scenes and
+  ``pose_errors`` (centre distance and rotation angle to the truth);
+- :mod:`.zoo`: eight more objects (boxes, cubes, a cylinder, a prism; meshes in mm, cm and m)
+  textured from real photographs, their training specs and degraded scenes;
+- :mod:`.sequences`: smooth trajectories and rendered video sequences with their true poses;
+- :mod:`.balancer`: Debian's nginx started in front of local replicas (deployment test, bench).
+
+No pipeline layer (tracking, viewsets, recognition, service) imports it (``tests/test_layering.py``).
+"""
