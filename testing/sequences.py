@@ -74,3 +74,44 @@ def render_sequence(renderer: Renderer, camera: PinholeCamera, trajectory: Traje
         frames.append(cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, jpeg])[1].tobytes())
         poses.append(pose)
     return frames, poses
+
+
+def clutter_background(seed: int, height: int = 480, width: int = 640, blobs: int = 25) -> np.ndarray:
+    """A cluttered but deterministic background: blurred colour noise stretched to 30–220, plus
+    ``blobs`` filled circles of random colours (texture that is not the object's)."""
+    rng = np.random.default_rng(seed)
+    img = cv2.GaussianBlur(rng.uniform(0, 255, (height, width, 3)).astype(np.float32), (0, 0), 3.0)
+    img = cv2.normalize(img, None, 30, 220, cv2.NORM_MINMAX)
+    for _ in range(blobs):
+        c = tuple(int(v) for v in rng.uniform(0, 255, 3))
+        cv2.circle(img, (int(rng.uniform(0, width)), int(rng.uniform(0, height))), int(rng.uniform(5, 40)), c, -1)
+    return img.astype(np.uint8)
+
+
+@dataclass(frozen=True)
+class BoxSequence:
+    """The bundled cookie box along a lively trajectory: the trained model, the camera, the
+    renderer, and per frame the true pose and the rendered image (decoded, BGR)."""
+
+    model: object
+    camera: PinholeCamera
+    renderer: Renderer
+    poses: list
+    frames: list
+
+
+def box_sequence(n: int, trajectory_seed: int, noise_seed: int, background: np.ndarray,
+                 fps: float = 30.0) -> BoxSequence:
+    """``n`` frames of the cookie box moving along :func:`lively_trajectory` (``trajectory_seed``)
+    over ``background``, with sensor noise drawn from ``noise_seed``; the tracking tests' scene."""
+    from quatrack.viewsets.camera import load_camera
+
+    from .scenes import EXAMPLE, example_model
+
+    camera = load_camera(EXAMPLE / "camera.json")
+    renderer = Renderer.from_spec(EXAMPLE / "object.json")
+    trajectory = lively_trajectory(renderer, seed=trajectory_seed)
+    rng = np.random.default_rng(noise_seed)
+    poses = [trajectory.pose(k / fps) for k in range(n)]
+    frames = [compose(renderer, camera, p, background, rng) for p in poses]
+    return BoxSequence(example_model(), camera, renderer, poses, frames)

@@ -14,15 +14,14 @@ import cv2
 import numpy as np
 import pytest
 
-from quatrack.testing.scenes import EXAMPLE, Renderer, example_model, pose_errors
-from quatrack.testing.sequences import compose, lively_trajectory
+from quatrack.testing.scenes import EXAMPLE, pose_errors
+from quatrack.testing.sequences import box_sequence, clutter_background
 from quatrack.cli import main
 from quatrack.recognition.klt import make_frame, track_points
 from quatrack.recognition.match import index_for
 from quatrack.recognition.video import Tracker, TrackerParams
 from quatrack.recognition.visibility import visible_points
 from quatrack.tracking import quaternion as quat
-from quatrack.viewsets.camera import load_camera
 from quatrack.viewsets.novel import rotate_about_centre
 from quatrack.viewsets.render import render
 from quatrack.viewsets.store import save_model
@@ -31,29 +30,12 @@ FPS = 30.0
 N = 36
 
 
-def _background(seed: int = 1) -> np.ndarray:
-    """A cluttered but deterministic background: blurred colour noise plus a few blobs."""
-    rng = np.random.default_rng(seed)
-    img = cv2.GaussianBlur(rng.uniform(0, 255, (480, 640, 3)).astype(np.float32), (0, 0), 3.0)
-    img = cv2.normalize(img, None, 30, 220, cv2.NORM_MINMAX)
-    for _ in range(25):
-        c = tuple(int(v) for v in rng.uniform(0, 255, 3))
-        cv2.circle(img, (int(rng.uniform(0, 640)), int(rng.uniform(0, 480))), int(rng.uniform(5, 40)), c, -1)
-    return img.astype(np.uint8)
-
-
 @pytest.fixture(scope="module")
 def world():
-    model = example_model()
-    camera = load_camera(EXAMPLE / "camera.json")
-    renderer = Renderer.from_spec(EXAMPLE / "object.json")
-    traj = lively_trajectory(renderer, seed=3)
-    bg = _background()
-    rng = np.random.default_rng(0)
-    poses = [traj.pose(k / FPS) for k in range(N)]
-    frames = [compose(renderer, camera, p, bg, rng) for p in poses]
-    return {"model": model, "camera": camera, "renderer": renderer, "poses": poses, "frames": frames,
-            "bg": bg, "index": index_for(model)}
+    bg = clutter_background(1)
+    seq = box_sequence(N, trajectory_seed=3, noise_seed=0, background=bg, fps=FPS)
+    return {"model": seq.model, "camera": seq.camera, "renderer": seq.renderer, "poses": seq.poses,
+            "frames": seq.frames, "bg": bg, "index": index_for(seq.model)}
 
 
 def _run(world, frames, params=TrackerParams(), init=True, perturb=True):

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from quatrack.testing.scenes import EXAMPLE, Renderer, example_model, pose_errors
-from quatrack.testing.sequences import compose, lively_trajectory
+from quatrack.testing.sequences import clutter_background, compose, lively_trajectory
 from quatrack.recognition.evidence import silhouette_inside
 from quatrack.recognition.match import index_for
 from quatrack.recognition.video import Tracker, TrackerParams
@@ -23,12 +23,6 @@ OUT = range(6, 27)  # sliding out and back
 HAND = range(32, 46)  # the occluder
 
 
-def _background(seed: int) -> np.ndarray:
-    rng = np.random.default_rng(seed)
-    img = cv2.GaussianBlur(rng.uniform(0, 255, (480, 640, 3)).astype(np.float32), (0, 0), 3.0)
-    return cv2.normalize(img, None, 30, 220, cv2.NORM_MINMAX).astype(np.uint8)
-
-
 @pytest.fixture(scope="module")
 def run():
     model = example_model()
@@ -36,7 +30,7 @@ def run():
     renderer = Renderer.from_spec(EXAMPLE / "object.json")
     traj = lively_trajectory(renderer, seed=11)
     rng = np.random.default_rng(3)
-    bg = _background(8)
+    bg = clutter_background(8, blobs=0)
     poses, frames, inside = [], [], []
     for k in range(N):
         p = traj.pose(k / FPS)

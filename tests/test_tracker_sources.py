@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 
 from quatrack.testing import zoo as Z
-from quatrack.testing.scenes import EXAMPLE, Renderer, example_model, pose_errors
-from quatrack.testing.sequences import compose, lively_trajectory
+from quatrack.testing.scenes import pose_errors
+from quatrack.testing.sequences import box_sequence, clutter_background
 from quatrack.recognition.klt import make_frame
 from quatrack.recognition.match import index_for
 from quatrack.recognition.tracker.mesh_points import MeshPoints, birth_mask
@@ -24,7 +24,6 @@ from quatrack.recognition.tracker.points import pose_spread
 from quatrack.recognition.tracker.sources import FrameContext
 from quatrack.recognition.video import Tracker, TrackerParams
 from quatrack.tracking.state import initial_state
-from quatrack.viewsets.camera import load_camera
 from quatrack.viewsets.render import render
 from quatrack.viewsets.spec import load_spec
 from quatrack.viewsets.train import TrainParams, train_object
@@ -32,27 +31,10 @@ from quatrack.viewsets.train import TrainParams, train_object
 FPS = 30.0
 
 
-def _background(seed: int, h: int = 480, w: int = 640) -> np.ndarray:
-    rng = np.random.default_rng(seed)
-    img = cv2.GaussianBlur(rng.uniform(0, 255, (h, w, 3)).astype(np.float32), (0, 0), 3.0)
-    img = cv2.normalize(img, None, 30, 220, cv2.NORM_MINMAX)
-    for _ in range(25):
-        c = tuple(int(v) for v in rng.uniform(0, 255, 3))
-        cv2.circle(img, (int(rng.uniform(0, w)), int(rng.uniform(0, h))), int(rng.uniform(5, 40)), c, -1)
-    return img.astype(np.uint8)
-
-
 @pytest.fixture(scope="module")
 def box():
-    model = example_model()
-    camera = load_camera(EXAMPLE / "camera.json")
-    renderer = Renderer.from_spec(EXAMPLE / "object.json")
-    traj = lively_trajectory(renderer, seed=7)
-    rng = np.random.default_rng(1)
-    bg = _background(2)
-    poses = [traj.pose(k / FPS) for k in range(24)]
-    frames = [compose(renderer, camera, p, bg, rng) for p in poses]
-    return model, camera, poses, frames
+    seq = box_sequence(24, trajectory_seed=7, noise_seed=1, background=clutter_background(2), fps=FPS)
+    return seq.model, seq.camera, seq.poses, seq.frames
 
 
 def test_corners_are_born_on_visible_faces_away_from_the_silhouette(box):
@@ -110,10 +92,10 @@ def cube(tmp_path_factory):
     it by 120° in 1.5 s: the photo shows three faces; the last frames show two it never did."""
     name = "small-cube-cm"
     cam = Z.zoo_camera(640, 480)
-    spec = Z.write_spec(name, tmp_path_factory.mktemp("cube"), n_views=1, backgrounds=(_background(4),))
+    spec = Z.write_spec(name, tmp_path_factory.mktemp("cube"), n_views=1, backgrounds=(clutter_background(4),))
     model = train_object(load_spec(spec), TrainParams(novel=None))
     obj = Z.textured(name)
-    bg = _background(5)
+    bg = clutter_background(5)
     n = 45
     poses = [Z.orbit_pose(obj, cam, 35.0 + 120.0 * k / (n - 1), 25.0 + 10.0 * np.sin(np.pi * k / n)) for k in range(n)]
     frames = [Z.compose(*obj.render(cam, p), bg) for p in poses]

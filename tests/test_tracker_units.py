@@ -13,13 +13,11 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from quatrack.testing.scenes import EXAMPLE, Renderer, example_model
-from quatrack.testing.sequences import compose, lively_trajectory
+from quatrack.testing.sequences import box_sequence
 from quatrack.recognition.match import index_for
 from quatrack.recognition.video import Tracker, TrackerParams, motion_noise
 from quatrack.tracking import quaternion as quat
 from quatrack.tracking.pose import Pose
-from quatrack.viewsets.camera import load_camera
 from quatrack.viewsets.mesh import Mesh
 from quatrack.viewsets.store import ObjectModel
 
@@ -46,15 +44,9 @@ def scaled_index(index, model: ObjectModel, s: float):
 
 @pytest.fixture(scope="module")
 def scene():
-    model = example_model()
-    camera = load_camera(EXAMPLE / "camera.json")
-    renderer = Renderer.from_spec(EXAMPLE / "object.json")
-    traj = lively_trajectory(renderer, seed=5)
-    rng = np.random.default_rng(2)
-    bg = (rng.uniform(40, 200, (480, 640, 3))).astype(np.uint8)
-    poses = [traj.pose(k / FPS) for k in range(N)]
-    frames = [compose(renderer, camera, p, bg, rng) for p in poses]
-    return model, camera, poses, frames
+    bg = np.random.default_rng(2).uniform(40, 200, (480, 640, 3)).astype(np.uint8)
+    seq = box_sequence(N, trajectory_seed=5, noise_seed=2, background=bg, fps=FPS)
+    return seq.model, seq.camera, seq.poses, seq.frames
 
 
 def _track(model, camera, frames, p0: Pose, s: float, params: TrackerParams, index):
