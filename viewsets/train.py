@@ -157,15 +157,27 @@ def train_object(
 
     ``on_total(n)`` is told the number of viewsets to build and ``progress(1)`` is called after
     each one (for a progress bar); ``warn`` receives non-fatal problems (a view with few keypoints).
+    Three steps: the views are read and checked against the mesh, the viewsets (registered and
+    synthetic) are built, then the RFCH model, sized by the viewsets' boxes.
     """
     t0 = time.perf_counter()
     mesh = load_mesh(spec.mesh_path)
     views = [_prepare_view(mesh, v) for v in spec.views]
+    viewsets = _build_viewsets(mesh, views, params, progress, warn, on_total)
+    rfch = _train_rfch(views, viewsets, params)
+    if progress:
+        progress(1)
+    manifest = _manifest(spec, params, mesh, views, viewsets, rfch, time.perf_counter() - t0)
+    return ObjectModel(spec.name, rfch, viewsets, mesh, manifest)
+
+
+def _build_viewsets(mesh: Mesh, views: list[_View], params: TrainParams, progress, warn, on_total) -> list[Viewset]:
+    """One viewset per registered view and per synthetic view (``params.novel``), built on
+    ``params.jobs`` threads (OpenCV releases the GIL); empty ones are dropped, thin ones warned of."""
     groups = planar_groups(mesh)
     tasks = _tasks(mesh, views, params.novel)
     if on_total:
-        on_total(len(tasks) + 1)
-    jobs = max(1, int(params.jobs))
+        on_total(len(tasks) + 1)  # + the RFCH model
 
     def run(task):
         vs = _run_task(mesh, groups, params, task)
@@ -173,6 +185,7 @@ def train_object(
             progress(1)
         return vs
 
+    jobs = max(1, int(params.jobs))
     if jobs == 1:
         viewsets = [run(t) for t in tasks]
     else:
@@ -183,14 +196,21 @@ def train_object(
     for vs in viewsets:
         if len(vs) < params.min_keypoints and warn:
             warn(f"viewset {vs.label}: only {len(vs)} keypoints with 3-D points (fewer than {params.min_keypoints})")
-    viewsets = [vs for vs in viewsets if len(vs) > 0]
+    return [vs for vs in viewsets if len(vs) > 0]
+
+
+def _train_rfch(views: list[_View], viewsets: list[Viewset], params: TrainParams):
+    """The RFCH model of the registered views' object pixels, with the window sizes the search
+    may try: from the smallest to the largest viewset box."""
     rfch = train_rfch([v.image for v in views], [v.mask for v in views], params.rfch)
     sizes = np.array([vs.bbox[2:] for vs in viewsets])
-    rfch = dataclasses.replace(rfch, size_min=tuple(int(x) for x in sizes.min(0)),
+    return dataclasses.replace(rfch, size_min=tuple(int(x) for x in sizes.min(0)),
                                size_max=tuple(int(x) for x in sizes.max(0)))
-    if progress:
-        progress(1)
-    elapsed = time.perf_counter() - t0
+
+
+def _manifest(spec: ObjectSpec, params: TrainParams, mesh: Mesh, views: list[_View], viewsets: list[Viewset],
+              rfch, elapsed: float) -> dict:
+    """What was trained from what, with which parameters and libraries (the store's manifest.json)."""
     summary = {
         "views": len(views),
         "viewsets": len(viewsets),
@@ -200,18 +220,17 @@ def train_object(
         "histogram_bins": int(rfch.histogram.size),
         "train_seconds": round(elapsed, 3),
     }
-    manifest = {
+    return {
         "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         "spec": {"path": str(spec.path), "sha256": spec.checksum},
         "parameters": {
             "rfch": dataclasses.asdict(params.rfch),
             "viewsets": dataclasses.asdict(params.viewsets),
             "novel_views": dataclasses.asdict(params.novel) if params.novel else None,
-            "jobs": jobs,
+            "jobs": max(1, int(params.jobs)),
         },
         "rfch": {"size_min": list(rfch.size_min), "size_max": list(rfch.size_max)},
         "library_versions": _versions(),
         "training_summary": summary,
         "mesh": {"path": str(spec.mesh_path), "vertices": len(mesh.vertices), "faces": len(mesh.faces)},
     }
-    return ObjectModel(spec.name, rfch, viewsets, mesh, manifest)
