@@ -195,25 +195,24 @@ def from_matrix(R: np.ndarray) -> np.ndarray:
 
 def left_matrix(q: np.ndarray) -> np.ndarray:
     """``L(q)`` with ``q * p = L(q) p``. Shape (..., 4, 4)."""
-    q = _f(q)
-    w, u = q[..., 0], q[..., 1:]
-    out = np.empty(q.shape[:-1] + (4, 4))
-    out[..., 0, 0] = w
-    out[..., 0, 1:] = -u
-    out[..., 1:, 0] = u
-    out[..., 1:, 1:] = w[..., None, None] * np.eye(3) + skew(u)
-    return out
+    return _product_matrix(q, 1.0)
 
 
 def right_matrix(q: np.ndarray) -> np.ndarray:
     """``R(q)`` with ``p * q = R(q) p``. Shape (..., 4, 4)."""
+    return _product_matrix(q, -1.0)
+
+
+def _product_matrix(q: np.ndarray, side: float) -> np.ndarray:
+    """``[[w, -uᵀ], [u, w I + side·[u]×]]``: the Hamilton product with ``q`` as a matrix, on the
+    left (side +1) or on the right (side −1): only the cross-product term changes sign."""
     q = _f(q)
     w, u = q[..., 0], q[..., 1:]
     out = np.empty(q.shape[:-1] + (4, 4))
     out[..., 0, 0] = w
     out[..., 0, 1:] = -u
     out[..., 1:, 0] = u
-    out[..., 1:, 1:] = w[..., None, None] * np.eye(3) - skew(u)
+    out[..., 1:, 1:] = w[..., None, None] * np.eye(3) + side * skew(u)
     return out
 
 
