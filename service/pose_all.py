@@ -12,15 +12,15 @@ from __future__ import annotations
 import time
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, Query, Request
+from fastapi import APIRouter, Depends, Request
 from pydantic import BaseModel, Field
 
-from quatrack.recognition.images import MIN_SIDE, ImageError
+from quatrack.recognition.images import ImageError
 from quatrack.recognition.locate import LocateParams, locate_all
 
 from .errors import ApiError
-from .imagein import decode_upload
-from .routes import ERRORS, ServiceState, _camera_from_query, get_state, in_pool, read_pose_request, require_token
+from .routes import (ERRORS, CameraQuery, ServiceState, decode_with_camera, get_state, in_pool, read_pose_request,
+                     require_token)
 from .schemas import CameraIn, LocateOut
 
 
@@ -41,27 +41,16 @@ router = APIRouter(prefix="/v1", tags=["pose"], dependencies=[Depends(require_to
 @router.post("/pose", response_model=LocateAllOut,
              summary="search every trained object in one image (as `quatrack locate --object all --json`)")
 async def pose_all(
-    request: Request, state: Annotated[ServiceState, Depends(get_state)],
-    fx: Annotated[float | None, Query(description="focal length x, px (when no `camera` form field)")] = None,
-    fy: Annotated[float | None, Query(description="focal length y, px")] = None,
-    cx: Annotated[float | None, Query(description="principal point x, px")] = None,
-    cy: Annotated[float | None, Query(description="principal point y, px")] = None,
-    width: Annotated[int | None, Query(gt=0, description="image width the camera is for (default: the image's)")] = None,
-    height: Annotated[int | None, Query(gt=0, description="image height the camera is for")] = None,
-    dist: Annotated[str | None, Query(description="distortion k1,k2,p1,p2[,k3], comma-separated")] = None,
+    request: Request, state: Annotated[ServiceState, Depends(get_state)], query_camera: CameraQuery,
 ) -> dict:
-    data, camera = await read_pose_request(request, _camera_from_query(fx, fy, cx, cy, width, height, dist))
+    data, camera = await read_pose_request(request, query_camera)
     return await in_pool(state, _locate_all, state, data, camera)
 
 
 def _locate_all(state: ServiceState, data: bytes, camera: CameraIn) -> dict:
     """Worker thread: decode, check the camera, search every loadable model."""
     t0 = time.perf_counter()
-    image = decode_upload(data, state.settings.max_image_pixels)
-    h, w = image.shape[:2]
-    if min(h, w) < MIN_SIDE:
-        raise ApiError(422, "bad_image", f"the image is too small ({w}×{h} px; at least {MIN_SIDE} px a side)")
-    cam = camera.to_camera((w, h))
+    image, cam = decode_with_camera(state, data, camera)
     models, failed = [], {}
     for name in state.registry.names():
         try:

@@ -162,7 +162,17 @@ _POSE_BODY = {
 }
 
 
-def _camera_from_query(fx, fy, cx, cy, width, height, dist) -> CameraIn | None:
+def camera_query(
+    fx: Annotated[float | None, Query(description="focal length x, px (when no `camera` form field)")] = None,
+    fy: Annotated[float | None, Query(description="focal length y, px")] = None,
+    cx: Annotated[float | None, Query(description="principal point x, px")] = None,
+    cy: Annotated[float | None, Query(description="principal point y, px")] = None,
+    width: Annotated[int | None, Query(gt=0, description="image width the camera is for (default: the image's)")] = None,
+    height: Annotated[int | None, Query(gt=0, description="image height the camera is for")] = None,
+    dist: Annotated[str | None, Query(description="distortion k1,k2,p1,p2[,k3], comma-separated")] = None,
+) -> CameraIn | None:
+    """The camera given in the query (a dependency of both pose endpoints), or None when the
+    request gives none there (it may come as the multipart field ``camera``)."""
     given = [v is not None for v in (fx, fy, cx, cy)]
     if not any(given):
         return None
@@ -179,6 +189,9 @@ def _camera_from_query(fx, fy, cx, cy, width, height, dist) -> CameraIn | None:
     except ValidationError as exc:
         e = exc.errors()[0]
         raise ApiError(422, "bad_camera", f"{'.'.join(map(str, e['loc']))}: {e['msg']}") from None
+
+
+CameraQuery = Annotated[CameraIn | None, Depends(camera_query)]
 
 
 def _camera_from_json(text: str) -> CameraIn:
@@ -231,6 +244,16 @@ async def read_pose_request(request: Request, camera: CameraIn | None) -> tuple[
     return data, camera
 
 
+def decode_with_camera(state: ServiceState, data: bytes, camera: CameraIn):
+    """The decoded image and the camera checked against its size (worker thread; both pose
+    endpoints). A too-small image is said before the camera is checked against its size."""
+    image = decode_upload(data, state.settings.max_image_pixels)
+    h, w = image.shape[:2]
+    if min(h, w) < MIN_SIDE:
+        raise ApiError(422, "bad_image", f"the image is too small ({w}×{h} px; at least {MIN_SIDE} px a side)")
+    return image, camera.to_camera((w, h))
+
+
 async def in_pool(state: ServiceState, fn, *args):
     """Run one pose request's work in the CPU pool, refusing it (503 + Retry-After) when
     ``max_pending_requests`` are already in progress; both pose endpoints."""
@@ -247,14 +270,7 @@ async def in_pool(state: ServiceState, fn, *args):
 @api.post("/objects/{name}/pose", response_model=LocateOut, openapi_extra=_POSE_BODY,
           summary="recognise the object in one image and estimate its pose (as `quatrack locate --json`)")
 async def pose(
-    name: str, request: Request, state: State,
-    fx: Annotated[float | None, Query(description="focal length x, px (when no `camera` form field)")] = None,
-    fy: Annotated[float | None, Query(description="focal length y, px")] = None,
-    cx: Annotated[float | None, Query(description="principal point x, px")] = None,
-    cy: Annotated[float | None, Query(description="principal point y, px")] = None,
-    width: Annotated[int | None, Query(gt=0, description="image width the camera is for (default: the image's)")] = None,
-    height: Annotated[int | None, Query(gt=0, description="image height the camera is for")] = None,
-    dist: Annotated[str | None, Query(description="distortion k1,k2,p1,p2[,k3], comma-separated")] = None,
+    name: str, request: Request, state: State, query_camera: CameraQuery,
     format: Annotated[str, Query(description="json, or ros: also a geometry_msgs/PoseWithCovarianceStamped under \"ros\"")] = "json",
     mesh_unit: Annotated[str | None, Query(description="with format=ros: the mesh's unit, mm, cm or m")] = None,
 ) -> dict:
@@ -263,18 +279,14 @@ async def pose(
     registry.check_name(name)
     if not registry.is_known(name):
         raise ApiError(404, "unknown_object", f"no object named {name!r} in the store")
-    data, camera = await read_pose_request(request, _camera_from_query(fx, fy, cx, cy, width, height, dist))
+    data, camera = await read_pose_request(request, query_camera)
     result = await in_pool(state, _locate, state, name, data, camera)
     return JSONResponse(ros.add_to_locate(result, unit)) if unit else result  # "ros" added: LocateOut + ros
 
 
 def _locate(state: ServiceState, name: str, data: bytes, camera: CameraIn) -> dict:
     """Worker thread: decode, check the camera against the image, recognise."""
-    image = decode_upload(data, state.settings.max_image_pixels)
-    h, w = image.shape[:2]
-    if min(h, w) < MIN_SIDE:  # said before the camera is checked against this size
-        raise ApiError(422, "bad_image", f"the image is too small ({w}×{h} px; at least {MIN_SIDE} px a side)")
-    cam = camera.to_camera((w, h))
+    image, cam = decode_with_camera(state, data, camera)
     model, index = state.registry.get(name)
     try:
         result = locate(image, cam, model, LocateParams(max_pixels=state.settings.locate_max_pixels), index=index)
