@@ -111,7 +111,72 @@ def _ws_error(exc: BaseException) -> QuatrackError:
     return QuatrackError("protocol", str(exc))
 
 
-class Client:
+class _Endpoint:
+    """What :class:`Client` and :class:`AsyncClient` share: the server's URLs, the default object,
+    the token (default ``$QUATRACK_API_TOKEN``), the request bodies and the reading of answers.
+    Only the transport (blocking or asyncio) differs between the two."""
+
+    def __init__(self, url: str, object: str | None, token: str | None, timeout: float) -> None:
+        self.http_url, self.ws_url = base_urls(url)
+        self.object = object
+        self.token = token if token is not None else os.environ.get("QUATRACK_API_TOKEN") or None
+        self.timeout = timeout
+
+    @property
+    def _headers(self) -> dict[str, str]:
+        return {"Authorization": f"Bearer {self.token}"} if self.token else {}
+
+    def _name(self, object: str | None) -> str:
+        name = object or self.object
+        if not name:
+            raise ValueError(f"which object? give object=NAME here or to {type(self).__name__}(...)")
+        return name
+
+    def _unreachable(self, exc: Exception) -> QuatrackError:
+        return QuatrackError("unreachable", f"{self.http_url}: {exc}")
+
+    @staticmethod
+    def _answer(r):
+        """``r``, or the server's error as a :class:`QuatrackError`."""
+        if r.status_code >= 400:
+            raise _error_of(r.status_code, r.content)
+        return r
+
+    @staticmethod
+    def _pose_files(image: Any, camera: Any) -> dict:
+        return {"image": ("image", image_bytes(image), "application/octet-stream"),
+                "camera": (None, json.dumps(camera_json(camera)))}
+
+    def _track_url(self, object: str | None, ros_mesh_unit: str | None) -> str:
+        from urllib.parse import urlencode
+
+        url = f"{self.ws_url}/v1/objects/{self._name(object)}/track"
+        if ros_mesh_unit is not None:
+            url += "?" + urlencode({"format": "ros", "mesh_unit": ros_mesh_unit})
+        return url
+
+    @staticmethod
+    def _hello(camera: Any) -> str:
+        return json.dumps({**camera_json(camera), "ack": True})
+
+    @staticmethod
+    def _frame_parts(item: Any) -> tuple[str | None, bytes]:
+        """A frame as sent: an optional ``{"type": "frame", "time_s"}`` text, then the image bytes."""
+        if isinstance(item, tuple) and len(item) == 2:
+            return json.dumps({"type": "frame", "time_s": float(item[0])}), image_bytes(item[1])
+        return None, image_bytes(item)
+
+    @staticmethod
+    def _expect(msg: dict, kind: str) -> dict:
+        if msg.get("type") == "error":
+            e = msg.get("error", {})
+            raise QuatrackError(e.get("code", "error"), e.get("message", ""))
+        if msg.get("type") != kind:
+            raise QuatrackError("protocol", f"expected a {kind!r} message, got {str(msg)[:120]}")
+        return msg
+
+
+class Client(_Endpoint):
     """A synchronous client of one server (``http://HOST:PORT``; ``ws://`` is accepted too).
     ``object`` is the default object name of :meth:`pose` and :meth:`track`; ``token`` the
     bearer token (default ``$QUATRACK_API_TOKEN``). Use as a context manager, or :meth:`close`."""
@@ -120,30 +185,17 @@ class Client:
                  timeout: float = 60.0) -> None:
         import httpx
 
-        self.http_url, self.ws_url = base_urls(url)
-        self.object = object
-        self.token = token if token is not None else os.environ.get("QUATRACK_API_TOKEN") or None
-        self.timeout = timeout
-        headers = {"Authorization": f"Bearer {self.token}"} if self.token else {}
-        self._http = httpx.Client(base_url=self.http_url, headers=headers, timeout=timeout)
+        super().__init__(url, object, token, timeout)
+        self._http = httpx.Client(base_url=self.http_url, headers=self._headers, timeout=timeout)
 
     # --- REST -------------------------------------------------------------------------------------
     def _request(self, method: str, path: str, **kw):
         import httpx
 
         try:
-            r = self._http.request(method, path, **kw)
+            return self._answer(self._http.request(method, path, **kw))
         except httpx.TransportError as exc:
-            raise QuatrackError("unreachable", f"{self.http_url}: {exc}") from None
-        if r.status_code >= 400:
-            raise _error_of(r.status_code, r.content)
-        return r
-
-    def _name(self, object: str | None) -> str:
-        name = object or self.object
-        if not name:
-            raise ValueError("which object? give object=NAME here or to Client(...)")
-        return name
+            raise self._unreachable(exc) from None
 
     def objects(self) -> ObjectList:
         """The server's trained objects."""
@@ -151,9 +203,7 @@ class Client:
 
     def pose(self, image: Any, camera: Any, object: str | None = None) -> LocateOut:
         """Recognise the object in one image and estimate its pose (``found`` False if absent)."""
-        files = {"image": ("image", image_bytes(image), "application/octet-stream"),
-                 "camera": (None, json.dumps(camera_json(camera)))}
-        r = self._request("POST", f"/v1/objects/{self._name(object)}/pose", files=files)
+        r = self._request("POST", f"/v1/objects/{self._name(object)}/pose", files=self._pose_files(image, camera))
         return LocateOut.model_validate(r.json())
 
     def mesh_edges(self, object: str | None = None) -> np.ndarray:
@@ -170,36 +220,22 @@ class Client:
         ``(time_s, image)`` (seconds, increasing). ``ros_mesh_unit`` (mm, cm, m: the mesh's unit) asks for
         ``format=ros``: each message's ``ros`` is then a ``geometry_msgs/PoseWithCovarianceStamped``
         (metres). A per-frame error ends the iteration with a QuatrackError."""
-        from urllib.parse import urlencode
-
         from websockets.sync.client import connect
 
-        url = f"{self.ws_url}/v1/objects/{self._name(object)}/track"
-        if ros_mesh_unit is not None:
-            url += "?" + urlencode({"format": "ros", "mesh_unit": ros_mesh_unit})
-        headers = {"Authorization": f"Bearer {self.token}"} if self.token else None
+        url = self._track_url(object, ros_mesh_unit)
         try:
-            ws = connect(url, additional_headers=headers, max_size=None, open_timeout=self.timeout)
+            ws = connect(url, additional_headers=self._headers or None, max_size=None, open_timeout=self.timeout)
         except Exception as exc:  # refused handshake or no server: typed, with the server's code
             raise _ws_error(exc) from None
         with ws:
-            ws.send(json.dumps({**camera_json(camera), "ack": True}))
+            ws.send(self._hello(camera))
             self._expect(json.loads(ws.recv(self.timeout)), "ready")
             for item in frames:
-                if isinstance(item, tuple) and len(item) == 2:
-                    ws.send(json.dumps({"type": "frame", "time_s": float(item[0])}))
-                    item = item[1]
-                ws.send(image_bytes(item))
+                header, data = self._frame_parts(item)
+                if header is not None:
+                    ws.send(header)
+                ws.send(data)
                 yield TrackMessage.model_validate(self._expect(json.loads(ws.recv(self.timeout)), "pose"))
-
-    @staticmethod
-    def _expect(msg: dict, kind: str) -> dict:
-        if msg.get("type") == "error":
-            e = msg.get("error", {})
-            raise QuatrackError(e.get("code", "error"), e.get("message", ""))
-        if msg.get("type") != kind:
-            raise QuatrackError("protocol", f"expected a {kind!r} message, got {str(msg)[:120]}")
-        return msg
 
     def close(self) -> None:
         self._http.close()
@@ -211,7 +247,7 @@ class Client:
         self.close()
 
 
-class AsyncClient:
+class AsyncClient(_Endpoint):
     """:class:`Client` for asyncio: ``await client.pose(...)``, ``async for msg in
     client.track(frames, camera)`` (``frames`` an iterable or an async iterable of images or
     ``(time_s, image)`` pairs). Same arguments, results and errors as :class:`Client`."""
@@ -220,50 +256,36 @@ class AsyncClient:
                  timeout: float = 60.0) -> None:
         import httpx
 
-        self.http_url, self.ws_url = base_urls(url)
-        self.object = object
-        self.token = token if token is not None else os.environ.get("QUATRACK_API_TOKEN") or None
-        self.timeout = timeout
-        headers = {"Authorization": f"Bearer {self.token}"} if self.token else {}
-        self._http = httpx.AsyncClient(base_url=self.http_url, headers=headers, timeout=timeout)
-
-    _name = Client._name
+        super().__init__(url, object, token, timeout)
+        self._http = httpx.AsyncClient(base_url=self.http_url, headers=self._headers, timeout=timeout)
 
     async def _request(self, method: str, path: str, **kw):
         import httpx
 
         try:
-            r = await self._http.request(method, path, **kw)
+            return self._answer(await self._http.request(method, path, **kw))
         except httpx.TransportError as exc:
-            raise QuatrackError("unreachable", f"{self.http_url}: {exc}") from None
-        if r.status_code >= 400:
-            raise _error_of(r.status_code, r.content)
-        return r
+            raise self._unreachable(exc) from None
 
     async def objects(self) -> ObjectList:
         return ObjectList.model_validate((await self._request("GET", "/v1/objects")).json())
 
     async def pose(self, image: Any, camera: Any, object: str | None = None) -> LocateOut:
-        files = {"image": ("image", image_bytes(image), "application/octet-stream"),
-                 "camera": (None, json.dumps(camera_json(camera)))}
-        r = await self._request("POST", f"/v1/objects/{self._name(object)}/pose", files=files)
+        r = await self._request("POST", f"/v1/objects/{self._name(object)}/pose", files=self._pose_files(image, camera))
         return LocateOut.model_validate(r.json())
 
     async def track(self, frames, camera: Any, object: str | None = None, ros_mesh_unit: str | None = None):
         import websockets
-        from urllib.parse import urlencode
 
-        url = f"{self.ws_url}/v1/objects/{self._name(object)}/track"
-        if ros_mesh_unit is not None:
-            url += "?" + urlencode({"format": "ros", "mesh_unit": ros_mesh_unit})
-        headers = {"Authorization": f"Bearer {self.token}"} if self.token else None
+        url = self._track_url(object, ros_mesh_unit)
         try:
-            ws = await websockets.connect(url, additional_headers=headers, max_size=None, open_timeout=self.timeout)
+            ws = await websockets.connect(url, additional_headers=self._headers or None, max_size=None,
+                                          open_timeout=self.timeout)
         except Exception as exc:
             raise _ws_error(exc) from None
         async with ws:
-            await ws.send(json.dumps({**camera_json(camera), "ack": True}))
-            Client._expect(json.loads(await asyncio.wait_for(ws.recv(), self.timeout)), "ready")
+            await ws.send(self._hello(camera))
+            self._expect(json.loads(await asyncio.wait_for(ws.recv(), self.timeout)), "ready")
 
             async def items():
                 if hasattr(frames, "__aiter__"):
@@ -274,12 +296,12 @@ class AsyncClient:
                         yield item
 
             async for item in items():
-                if isinstance(item, tuple) and len(item) == 2:
-                    await ws.send(json.dumps({"type": "frame", "time_s": float(item[0])}))
-                    item = item[1]
-                await ws.send(image_bytes(item))
+                header, data = self._frame_parts(item)
+                if header is not None:
+                    await ws.send(header)
+                await ws.send(data)
                 msg = json.loads(await asyncio.wait_for(ws.recv(), self.timeout))
-                yield TrackMessage.model_validate(Client._expect(msg, "pose"))
+                yield TrackMessage.model_validate(self._expect(msg, "pose"))
 
     async def aclose(self) -> None:
         await self._http.aclose()
