@@ -7,6 +7,11 @@ come from :mod:`recognition.trackio` and :mod:`recognition.overlay`, shared with
 the client. Every output (poses, overlay video, plot) is written to a temporary file next to its
 target and renamed into place only when the run ends — normally, at ``--max-frames`` or on Ctrl-C
 (which stops a live source cleanly) — so an error never leaves a half-written file behind.
+
+``--learn`` (issue 12): the tracker keeps views of the sides the training photos never showed
+(:mod:`quatrack.viewsets.learn`); when the run ends normally or by Ctrl-C they are merged into the
+stored model, atomically and under the store's lock (:func:`~quatrack.viewsets.learn.merge_learned`),
+and one line says how many and where. A run that ends in an error stores nothing.
 """
 
 from __future__ import annotations
@@ -53,6 +58,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="stop after N frames (Ctrl-C also stops cleanly, with complete outputs)")
     parser.add_argument("--overlay", metavar="OUT.mp4", help="also write the video with the wireframe, axes and status")
     parser.add_argument("--plot", metavar="OUT.png", help="also draw position and orientation with 3σ bands over time")
+    parser.add_argument("--learn", action="store_true",
+                        help="learn views of the sides the training photos do not show while tracking confidently, "
+                             "and add them to the stored model at the end (also after Ctrl-C), so that recognition "
+                             "finds the object from those sides too")
     parser.add_argument("--quiet", action="store_true", help="no summary on stdout, no progress line")
 
 
@@ -92,6 +101,7 @@ class _Setup:
     camera: object
     tracker: object
     source: object
+    store: object = None
 
 
 def _setup(args: argparse.Namespace) -> _Setup:
@@ -106,17 +116,19 @@ def _setup(args: argparse.Namespace) -> _Setup:
             raise UserError(f"{opt} {path}: the file name must end in {ext}")
     if args.format == "bop" and args.mesh_unit is None:
         raise UserError("--format bop needs --mesh-unit (mm, cm or m): BOP's t is in millimetres")
-    params = TrackerParams(motion_model=args.motion_model, motion_noise=_noise(args.motion_noise))
+    params = TrackerParams(motion_model=args.motion_model, motion_noise=_noise(args.motion_noise),
+                           learn=bool(getattr(args, "learn", False)))
     camera = load_camera(args.camera)
     init = _load_init_pose(args.init_pose) if args.init_pose else None
-    model = load_model(resolve_store(args.store), args.object)
+    store = resolve_store(args.store)
+    model = load_model(store, args.object)
     source = open_frames(args.video, args.images, args.fps, args.max_frames)
     tracker = Tracker(model, camera, params, index=index_for(model))
     if init is not None:
         from quatrack.tracking import quaternion as quat
 
         tracker.init_pose(init.t, quat.from_matrix(init.R), 0.0)
-    return _Setup(model, camera, tracker, source)
+    return _Setup(model, camera, tracker, source, store)
 
 
 def _track_frames(s: _Setup, rows, video, progress) -> tuple[list, bool]:
@@ -173,9 +185,26 @@ def run(args: argparse.Namespace) -> int:
                     raise UserError(f"--plot {args.plot}: cannot write the PNG")
     if interrupted:
         print(f"quatrack track: stopped (Ctrl-C) after {len(steps)} frames; outputs complete", file=sys.stderr)
+    if s.tracker.params.learn:
+        _store_learned(s, args.object)
     if not args.quiet:
         _summary(steps, args.out)
     return 0
+
+
+def _store_learned(s: _Setup, name: str) -> None:
+    """Merge the views learned in this run into the stored model (atomic, under the store's
+    lock: a concurrent writer's views are kept) and say so in one line on stderr."""
+    from quatrack.viewsets.learn import merge_learned
+
+    learned = s.tracker.learned_viewsets()
+    folder, added, total = merge_learned(s.store, name, learned, s.model.mesh,
+                                         s.tracker.params.learn_max_views, s.tracker.params.learn_min_angle_deg)
+    if added:
+        print(f"quatrack track: learned {added} new view(s) -> {folder} ({total} learned in all)", file=sys.stderr)
+    else:
+        why = "none seen from a new direction with a confident pose" if not learned else "none new to the stored model"
+        print(f"quatrack track: learned no new views ({why}); {folder} unchanged", file=sys.stderr)
 
 
 def _summary(steps, out: str) -> None:

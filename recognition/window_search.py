@@ -202,8 +202,10 @@ def chi2_rows(h: np.ndarray, m: np.ndarray) -> np.ndarray:
 def window_shapes(model: ObjectModel, image_size: tuple[int, int], scale: float, grid, params: WindowSearchParams):
     """Window (w, h) in cells. The object's apparent sizes in the training views, as fractions of
     their image, are carried to the query image and widened by ``size_factors``: the training
-    views (registered and synthetic, at several distances) bound the search."""
-    train_w = float(np.median([vs.camera.width for vs in model.viewsets])) if model.viewsets else float(image_size[0])
+    views (registered and synthetic, at several distances) bound the search; views learned
+    while tracking have their boxes in those units already (quatrack.viewsets.learn)."""
+    widths = [vs.camera.width for vs in model.viewsets if not vs.learned]
+    train_w = float(np.median(widths)) if widths else float(image_size[0])
     rf = model.rfch
     return _window_shapes(train_w, tuple(rf.size_min), tuple(rf.size_max), image_size[0], float(scale), tuple(grid), params)
 

@@ -33,6 +33,7 @@ from quatrack.viewsets.spec import parse_pose
 
 from .errors import ApiError, error_body
 from .imagein import decode_upload, sniff
+from .learning import learns, store_session_views
 from .metrics import Metrics
 from .ros import add_to_track_message
 from .schemas import CameraIn
@@ -159,6 +160,7 @@ class TrackSession:
                     await self.ws.close(1000)
                 except (RuntimeError, OSError):
                     pass
+            await store_session_views(self)  # QUATRACK_LEARN_VIEWS (service/learning.py)
         return outcome
 
     def _take_token(self) -> bool:
@@ -326,7 +328,8 @@ class TrackSession:
                 camera = cam_in.to_camera((w, h))
             except ApiError as exc:  # a camera without a size, implausible for this frame's
                 raise _SessionError(exc.code, exc.message) from None
-            self.tracker = make_tracker(model, camera, index, self.settings.locate_max_pixels, self.executor)
+            self.tracker = make_tracker(model, camera, index, self.settings.locate_max_pixels, self.executor,
+                                        learn=learns(self.settings, self.name))
             self.tracker_camera = cam_in.model_copy(update={"width": w, "height": h})
         for op in item.controls:
             if op[0] == "init":

@@ -67,10 +67,13 @@ class Settings(BaseSettings):
     preload: bool = Field(True, description="load every model of the store at start-up (`/readyz` waits for it)")
     model_poll_s: float = Field(2.0, ge=0, description="how often the store is checked for retrained, new and deleted models "
                                                       "(new sessions get them; 0: never, `POST /v1/objects/{name}/reload` still works)")
+    learn_views: Annotated[tuple[str, ...], NoDecode] = Field(
+        (), description="comma-separated objects whose tracking sessions learn views of the sides their photos do not "
+                        "show, added to the stored model when the session ends (`*`: every object; default: none)")
     run_dir: Path | None = Field(None, description="directory the worker processes share (session slots, Prometheus "
                                                     "multiprocess files); `quatrack serve` makes a fresh one and wipes it on start")
 
-    @field_validator("cors_origins", mode="before")
+    @field_validator("cors_origins", "learn_views", mode="before")
     @classmethod
     def _split_origins(cls, v):
         if isinstance(v, str):

@@ -1,5 +1,9 @@
 """The model store: one folder per object, ``NAME/manifest.json`` + ``NAME/model.npz``.
 
+Views learned while tracking (:mod:`quatrack.viewsets.learn`) are stored like trained ones, with
+``"learned": true`` in their manifest entry: the format stays schema 1, older code reads them as
+trained views and models without the key load as before.
+
 Writes are atomic: a model is built in a temporary folder inside the store and renamed into
 place only when complete, so readers never see a partial model and a failed retraining leaves
 the old one intact. Folders whose names start with ``.`` are temporary and never listed; those
@@ -109,7 +113,8 @@ def save_model(store: str | Path, model: ObjectModel, overwrite: bool = True) ->
         manifest["schema_version"] = SCHEMA_VERSION
         manifest["name"] = model.name
         manifest["viewsets"] = [
-            {"label": v.label, "source_view": v.source_view, "synthetic": v.synthetic, "keypoints": len(v)}
+            {"label": v.label, "source_view": v.source_view, "synthetic": v.synthetic, "keypoints": len(v),
+             **({"learned": True} if v.learned else {})}  # (older readers ignore the key: a learned view reads as trained)
             for v in model.viewsets
         ]
         with open(tmp / ARRAYS, "wb") as f:
@@ -237,7 +242,7 @@ def _build_model(name: str, manifest: dict, a: dict[str, np.ndarray]) -> ObjectM
         viewsets.append(Viewset(
             str(meta["label"]), int(a["vs_source"][i]), bool(a["vs_synthetic"][i]), cam,
             Pose.from_matrix(a["vs_R"][i], a["vs_t"][i]), a["vs_keypoints"][s], a["vs_descriptors"][s],
-            a["vs_points3d"][s], tuple(int(x) for x in a["vs_bbox"][i]),
+            a["vs_points3d"][s], tuple(int(x) for x in a["vs_bbox"][i]), learned=meta.get("learned") is True,
         ))
     mesh = Mesh(a["mesh_vertices"], a["mesh_faces"])
     if manifest.get("name", name) != name:

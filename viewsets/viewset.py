@@ -31,7 +31,12 @@ class ViewsetParams:
 class Viewset:
     """One view's model points. ``keypoints`` (n, 2) px in that view, ``descriptors`` (n, 128)
     float32, ``points3d`` (n, 3) in mesh units (object frame); ``pose`` is object → camera of the
-    view; ``bbox`` = (x, y, w, h) of the object's silhouette in the view, pixels."""
+    view; ``bbox`` = (x, y, w, h) of the object's silhouette in the view, pixels.
+
+    ``learned``: the view was learned while tracking a video (:mod:`quatrack.viewsets.learn`),
+    not trained from a registered photo; its 3-D points were lifted at the tracked pose.
+    ``cooccurrence``: a learned view's RFCH label co-occurrence counts (normalised), folded into
+    the model's RFCH histogram when the view joins the model; never stored (None once it has)."""
 
     label: str
     source_view: int
@@ -42,6 +47,8 @@ class Viewset:
     descriptors: np.ndarray
     points3d: np.ndarray
     bbox: tuple[int, int, int, int]
+    learned: bool = False
+    cooccurrence: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.keypoints)

@@ -13,6 +13,12 @@ States and transitions (Kragic & Kyrki's Fig. 1 loop):
   still off after it are outliers, removed and the adjustment redone. Re-anchoring
   (:mod:`.anchor`) refreshes the trained points every ``refresh_every`` frames or when they
   thin out, in the step or on the caller's executor.
+- **learning** (``params.learn``, not a state: a side job of *tracking*): when the pose is
+  confident, the frame's SIFT keypoints on the visible faces, lifted onto the mesh at the pose,
+  become a *learned viewset* if they see the object from a new direction
+  (:mod:`quatrack.viewsets.learn`); the tracker's model then holds it, so re-anchoring and
+  re-initialisation (recognition) search the trained and the learned views
+  (:meth:`Tracker.learned_viewsets` gives them to the caller, which may store them).
 - **lost**: too few measurements agree, residuals too large, the pose implausible
   (:func:`recognition.pose.plausible`: behind the camera, too little of it in the image), or
   repeated refreshes find no texture → the state is dropped and the next frame is *init* again.
@@ -34,7 +40,9 @@ from quatrack.tracking.filter import PoseFilter
 from quatrack.tracking.measurements import project_model_points
 from quatrack.tracking.motion import make_motion_model
 from quatrack.tracking.pose import Pose
+from quatrack.viewsets.learn import is_new_direction, learned_viewset, with_learned
 from quatrack.viewsets.store import ObjectModel
+from quatrack.viewsets.viewset import Viewset, params_from_manifest
 
 from ..images import ImageError, to_bgr8
 from ..klt import Frame, make_frame
@@ -47,7 +55,7 @@ from .anchor import Anchor, AnchorJob
 from .params import INITIAL_VELOCITY_SIGMA, TrackerParams, TrackStep
 from .points import PointBlock, Tracks, mahalanobis2
 from .edges import ModelEdges
-from .mesh_points import MeshPoints
+from .mesh_points import MeshPoints, birth_mask, confident
 from .sources import FrameContext, MeasurementSource, TrainedPoints
 
 
@@ -88,6 +96,8 @@ class Tracker:
         self.sources: list[MeasurementSource] = [s for s in (self.trained, self.mesh_points, self.edges)
                                                  if s.name in params.sources]
         self._anchor: Anchor | None = None
+        self.learned: list[Viewset] = []  # learned in this run (also in self.model once learned)
+        self._learn_wait = 0
         self._frame = -1
         self._pending: tuple[Pose, float | None] | None = None
         self.reset()
@@ -106,6 +116,11 @@ class Tracker:
         self._failed_refreshes = 0
         self._pending = None
         self._anchor_job: AnchorJob | None = None
+        self._tracked = 0  # frames tracked since the last (re-)initialisation
+
+    def learned_viewsets(self) -> list[Viewset]:
+        """The viewsets learned so far in this run (``params.learn``), oldest first."""
+        return list(self.learned)
 
     def init_pose(self, t, q_wxyz, time_s: float | None = None) -> None:
         """Start from a user-given pose (object → camera) at the next frame (or at ``time_s``)."""
@@ -263,6 +278,7 @@ class Tracker:
         # edges refine and carry the pose, but clutter has edges everywhere: the object's own
         # texture (trained or mesh-born points) must still be there to vouch for it
         n_points = self._inliers_of(blocks, inl, exclude=self.edges)
+        n_textured = sum(len(b) for s, b in zip(self.sources, blocks) if s is not self.edges)
         if n_points < p.min_inliers and len(blocks) > 1 and self.edges in self.sources:
             return self._lost(time_s, f"only {n_points} textured points agree", n_inl)
         why = self._implausible(self.filter.state.pose)
@@ -273,7 +289,9 @@ class Tracker:
             s.settle(ctx, b, inl[start : start + len(b)], self.filter.state)
             start += len(b)
 
+        self._tracked += 1
         if self.trained not in self.sources:  # (a source alone: nothing to re-anchor)
+            self._learn(ctx, n_points, n_textured, timings)
             return self._pose_step(time_s, "tracking", n_inl)
         self._since_refresh += 1
         due = p.refresh_every and self._since_refresh >= p.refresh_every
@@ -289,22 +307,74 @@ class Tracker:
                     self._since_refresh = 0
         elif thin or due:
             t0 = time.perf_counter()
+            before, kept = self.filter.state, self.trained.tracks
             tracks, n, replaced = self._anchors().now(img, self.camera, self.filter.state.pose, self.trained.tracks, wide=False)
             self.trained.tracks = tracks
             if replaced:  # the KLT tracks had slid: adjust this frame again to the fresh matches
                 redo = PointBlock.isotropic(self.trained.name, tracks, p.sigma_px)
-                good, why, inl = self._adjust(redo)
-                n_inl = int(inl.sum())
-                if not good:
+                good, why, inl_redo = self._adjust(redo)
+                if good:
+                    inl, n_inl = inl_redo, int(inl_redo.sum())
+                    self.trained.tracks = tracks.keep(inl_redo)
+                elif self._inliers_of(blocks, inl, only=self.mesh_points) >= p.min_inliers:
+                    # the fresh matches agree among themselves but not with this frame (texture
+                    # repeated on another face matched them) while the points born on the mesh
+                    # carry the pose every source agreed on: it stays, and the refresh found
+                    # nothing (repeated failures go to the edges' judgement, _carried)
+                    self.filter.state, self.trained.tracks, n = before, kept, 0
+                else:
                     timings["replenish"] = _ms(t0)
-                    return self._lost(time_s, f"re-anchoring: {why}", n_inl)
-                self.trained.tracks = tracks.keep(inl)
+                    return self._lost(time_s, f"re-anchoring: {why}", int(inl_redo.sum()))
             timings["replenish"] = _ms(t0)
             self._since_refresh = 0
             self._count_refresh(n)
             if self._failed_refreshes >= p.max_failed_refreshes and not self._carried(ctx, blocks, inl):
                 return self._lost(time_s, "the object's texture is no longer found where it is tracked", n_inl)
+        self._learn(ctx, n_points, n_textured, timings)
         return self._pose_step(time_s, "tracking", n_inl)
+
+    def _learn(self, ctx: FrameContext, n_points: int, n_textured: int, timings: dict) -> Viewset | None:
+        """Learn this frame's view (``params.learn``) when it sees the object from a new direction
+        and the pose is confident: small covariance, ``learn_min_inliers`` textured points agree
+        and are ``learn_min_share`` of those measured, the model's edges agree with the image.
+        The cheap tests come first; SIFT and the lifting run at most every ``learn_every`` frames."""
+        p = self.params
+        if not p.learn:
+            return None
+        self._learn_wait -= 1
+        if self._learn_wait > 0 or self._tracked < p.learn_after:
+            return None
+        state = self.filter.state
+        pose = state.pose
+        mesh = self.model.mesh
+        if sum(vs.learned for vs in self.model.viewsets) >= p.learn_max_views:
+            return None
+        if not is_new_direction(pose, mesh.centre, self.model.viewsets, p.learn_min_angle_deg):
+            return None
+        if not confident(state, self.diameter, p.learn_sigma_p, p.learn_sigma_deg):
+            return None
+        if n_points < p.learn_min_inliers or n_points < p.learn_min_share * n_textured:
+            return None
+        t0 = time.perf_counter()
+        self._learn_wait = p.learn_every
+        pp = PoseParams()
+        ev = edge_agreement(ctx.frame.gray, mesh, self.camera, pose, pp.edges)
+        if not (ev.samples >= pp.min_edge_samples and ev.agreement >= pp.min_edge_agreement and ev.lead >= pp.min_edge_lead):
+            timings["learn"] = _ms(t0)
+            return None
+        mask = birth_mask(mesh, self.camera, pose, p)
+        vs = learned_viewset(f"learned{len(self.learned) + 1}", ctx.image, mask, self.camera, pose, mesh,
+                             params_from_manifest(self.model.manifest), p.learn_min_cos, self.model.rfch)
+        timings["learn"] = _ms(t0)
+        if len(vs) < p.learn_min_keypoints:
+            return None
+        model = with_learned(self.model, [vs], p.learn_max_views, p.learn_min_angle_deg)
+        if model is self.model:
+            return None
+        self.model = model
+        self.learned.append(replace(model.viewsets[-1], cooccurrence=vs.cooccurrence))  # (as labelled in the model)
+        self.index, self._anchor = None, None  # rebuilt with the learned view when next needed
+        return vs
 
     def _adjust(self, block: PointBlock) -> tuple[bool, str | None, np.ndarray]:
         """Adjust the prior to the block; redo without the outliers (posterior Mahalanobis

@@ -94,6 +94,24 @@ class TrackerParams:
     edge_step_px: float = 6.0  # sample spacing along projected edges
     edge_sigma_px: float = 1.0  # standard deviation across the edge
     edge_min_grad: float = 6.0  # grey levels per pixel (Sobel /8 of the σ = 1 blurred image)
+    # views learned while tracking (quatrack.viewsets.learn; Tracker.learned_viewsets()): when the
+    # pose is confident (1-σ below learn_sigma_p × diameter and learn_sigma_deg), at least
+    # learn_min_inliers textured points agree and are learn_min_share of those measured (nothing
+    # covers the object), and the model's edges agree (recognition.evidence.edge_agreement), the
+    # frame's SIFT keypoints on the visible faces become a learned viewset, if it sees the object
+    # from ≥ learn_min_angle_deg away from every viewset so far; at most learn_max_views per model;
+    # an attempt (SIFT + lifting) at most every learn_every frames
+    learn: bool = False
+    learn_max_views: int = 24
+    learn_min_angle_deg: float = 25.0
+    learn_sigma_p: float = 0.005  # × diameter
+    learn_sigma_deg: float = 0.5
+    learn_min_inliers: int = 30
+    learn_min_share: float = 0.8
+    learn_min_keypoints: int = 30  # lifted keypoints a learned view needs
+    learn_min_cos: float = 0.4  # its points' rays meet their faces within ~66° of the normal
+    learn_every: int = 5
+    learn_after: int = 5  # frames of tracking before the first (the velocities settle)
     initial_sigma_p: float = 0.01  # × diameter, for init_pose without a covariance
     initial_sigma_deg: float = 2.0
     klt: KLTParams = field(default_factory=KLTParams)

@@ -1,0 +1,310 @@
+"""Views learned while tracking (issue 12, item 3; quatrack.viewsets.learn).
+
+A 6 cm cube (zoo "small-cube-cm", texture from a real photo) is trained from ONE rendered photo
+(azimuth 35°, elevation 25°: three of its faces) without synthetic views. A rendered camera then
+orbits it by 180°, round to two faces the photo never shows, tracked with ``learn=True`` from the
+true first pose. Then:
+
+- the learned views are few, far apart, and right (their 3-D points project onto their
+  keypoints at the true pose);
+- recognition without any pose (``locate``) on a view no photo shows finds the object with the
+  learned model (within 5 % of the diameter and 5°) and not with the original one; a tracker on
+  the learned model re-initialises there by itself;
+- ``quatrack track --learn`` stores them into a temporary store (the model reloads with more
+  viewsets, the trained ones intact); an error stores nothing, Ctrl-C while tracking stores what
+  was learned, Ctrl-C while storing leaves the previous model whole;
+- the stored format stays loadable both ways; concurrent writers keep each other's views;
+- the service's option (two sessions of one object, each storing what it learned).
+
+Everything is rendered and seeded; the orbit is short (66 frames at 640×480).
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+import threading
+from pathlib import Path
+from types import SimpleNamespace
+
+import cv2
+import numpy as np
+import pytest
+
+from quatrack.cli import main
+from quatrack.recognition.locate import locate
+from quatrack.recognition.match import index_for
+from quatrack.recognition.video import Tracker, TrackerParams
+from quatrack.testing import zoo as Z
+from quatrack.testing.scenes import pose_errors
+from quatrack.testing.sequences import clutter_background
+from quatrack.tracking.pose import Pose
+from quatrack.viewsets import learn as L
+from quatrack.viewsets import store as S
+from quatrack.viewsets.spec import load_spec
+from quatrack.viewsets.train import TrainParams, train_object
+
+NAME = "small-cube-cm"
+FPS = 30.0
+N_FRAMES = 66
+SPAN_DEG = 180.0
+QUERY = (200.0, 32.0)  # azimuth, elevation of the test view: faces −x and −y, which the photo never shows
+
+
+def _orbit_pose(obj, cam, k: int) -> Pose:
+    return Z.orbit_pose(obj, cam, 35.0 + SPAN_DEG * k / (N_FRAMES - 1), 25.0 + 10.0 * np.sin(np.pi * k / N_FRAMES))
+
+
+@pytest.fixture(scope="module")
+def cube(tmp_path_factory):
+    root = tmp_path_factory.mktemp("learn")
+    cam = Z.zoo_camera(640, 480)
+    spec = Z.write_spec(NAME, root / "spec", n_views=1, backgrounds=(clutter_background(4),))
+    model = train_object(load_spec(spec), TrainParams(novel=None))
+    obj = Z.textured(NAME)
+    bg = clutter_background(5)
+    poses = [_orbit_pose(obj, cam, k) for k in range(N_FRAMES)]
+    frames = [Z.compose(*obj.render(cam, p), bg) for p in poses]
+    return SimpleNamespace(root=root, cam=cam, model=model, obj=obj, poses=poses, frames=frames)
+
+
+@pytest.fixture(scope="module")
+def run(cube):
+    """The orbit tracked with learning on, from the true first pose."""
+    tracker = Tracker(cube.model, cube.cam, TrackerParams(learn=True), index=index_for(cube.model))
+    tracker.init_pose(cube.poses[0].t, cube.poses[0].q_wxyz)
+    steps = [tracker.step(f, k / FPS) for k, f in enumerate(cube.frames)]
+    return SimpleNamespace(tracker=tracker, steps=steps, learned=tracker.learned_viewsets())
+
+
+def _query(cube, azimuth: float, elevation: float, seed: int):
+    pose = Z.orbit_pose(cube.obj, cube.cam, azimuth, elevation)
+    img = Z.degrade(Z.compose(*cube.obj.render(cube.cam, pose), clutter_background(seed)), np.random.default_rng(seed))
+    return img, pose
+
+
+def _correct(t, q, pose, mesh) -> bool:
+    dp, da = pose_errors(t, q, pose, mesh)
+    return dp < 0.05 * mesh.extent and da < 5.0
+
+
+def test_views_are_learned_while_tracking_round_to_unseen_faces(cube, run):
+    d = cube.model.mesh.extent
+    assert all(s.has_pose for s in run.steps), [(s.frame, s.reason) for s in run.steps if not s.has_pose][:3]
+    learned = run.learned
+    assert 3 <= len(learned) <= TrackerParams().learn_max_views
+    assert all(vs.learned and len(vs) >= TrackerParams().learn_min_keypoints for vs in learned)
+    assert len({vs.label for vs in learned}) == len(learned)
+    # each sees the object from ≥ 25° away from the photo and from every other learned view
+    centre = cube.model.mesh.centre
+    views = list(cube.model.viewsets)
+    for vs in learned:
+        assert L.view_angles_deg(vs.pose, centre, views).min() >= 25.0 - 1e-9
+        views.append(vs)
+    # each was learned at a tracked pose close to the truth, and its points lie where the truth puts them
+    by_t = {tuple(np.round(s.t, 9)): k for k, s in enumerate(run.steps) if s.has_pose}
+    for vs in learned:
+        k = by_t[tuple(np.round(vs.pose.t, 9))]
+        dp, da = pose_errors(vs.pose.t, vs.pose.q_wxyz, cube.poses[k], cube.model.mesh)
+        assert dp < 0.01 * d and da < 1.0
+        uv = cube.cam.project(cube.poses[k].apply(vs.points3d))
+        assert np.median(np.linalg.norm(uv - vs.keypoints, axis=1)) < 1.5
+    # the last learned views see the faces the photo never showed: more than 90° round
+    assert L.view_angles_deg(learned[-1].pose, centre, cube.model.viewsets).min() > 90.0
+
+
+def test_with_learned_is_a_new_bounded_deduplicated_model(cube, run):
+    model = cube.model
+    n0 = len(model.viewsets)
+    merged = L.with_learned(model, run.learned)
+    assert len(model.viewsets) == n0 and not any(vs.learned for vs in model.viewsets)  # untouched
+    assert len(merged.viewsets) == n0 + len(run.learned)
+    for a, b in zip(merged.viewsets, model.viewsets):
+        assert a.label == b.label and not a.learned and np.array_equal(a.descriptors, b.descriptors)
+    # the same views again are not new; a bound of 2 keeps 2
+    assert L.with_learned(merged, run.learned) is merged
+    two = L.with_learned(model, run.learned, max_learned=2)
+    assert sum(vs.learned for vs in two.viewsets) == 2
+    # a view turned by 10° about the line of sight of a learned one is no new direction
+    vs = run.learned[0]
+    c = model.mesh.centre
+    spun = dataclasses.replace(vs, pose=Pose.from_matrix(cv2.Rodrigues(np.array([0, 0, 0.17]))[0] @ vs.pose.R,
+                                                         cv2.Rodrigues(np.array([0, 0, 0.17]))[0] @ vs.pose.t))
+    assert L.view_angles_deg(spun.pose, c, [vs])[0] < 1e-6
+    assert L.with_learned(merged, [spun]) is merged
+    # the window search learns the sizes and colours of the new sides
+    assert merged.rfch.histogram.shape == model.rfch.histogram.shape
+    assert abs(merged.rfch.histogram.sum() - 1.0) < 1e-9 and not np.allclose(merged.rfch.histogram, model.rfch.histogram)
+    assert all(vs.cooccurrence is None for vs in merged.viewsets)
+
+
+def test_learned_views_find_the_object_from_sides_no_photo_shows(cube, run):
+    """Recognition without a pose, on views 65°–125° from the photo's: the learned model finds
+    the object (right within 5 % / 5°) in at least 3 of 4, the original model in none."""
+    merged = L.with_learned(cube.model, run.learned)
+    found_new, found_old = [], []
+    for seed, az in enumerate((110.0, 140.0, 170.0, QUERY[0])):
+        img, truth = _query(cube, az, QUERY[1], 20 + seed)
+        new = locate(img, cube.cam, merged)
+        found_new.append(new.found and _correct(new.t, new.q_wxyz, truth, merged.mesh))
+        old = locate(img, cube.cam, cube.model)
+        found_old.append(old.found and _correct(old.t, old.q_wxyz, truth, cube.model.mesh))
+    assert sum(found_new) >= 3, found_new
+    assert not any(found_old), found_old
+
+
+def test_a_tracker_on_the_learned_model_reinitialises_from_an_unseen_side(cube, run):
+    merged = L.with_learned(cube.model, run.learned)
+    img, truth = _query(cube, *QUERY, 30)
+    step = Tracker(merged, cube.cam, TrackerParams()).step(img, 0.0)
+    assert step.status == "init" and step.reason == "recognition"
+    assert _correct(step.t, step.q_wxyz, truth, merged.mesh)
+    assert not Tracker(cube.model, cube.cam, TrackerParams()).step(img, 0.0).has_pose
+
+
+# -- the store ------------------------------------------------------------------------------------
+
+def test_the_store_keeps_learned_views_in_its_old_format(cube, run, tmp_path):
+    store = tmp_path / "store"
+    S.save_model(store, cube.model)
+    folder = L.save_learned(store, NAME, run.learned, cube.model.mesh)
+    assert folder == store / NAME
+    back = S.load_model(store, NAME)
+    assert [vs.learned for vs in back.viewsets] == [False] * len(cube.model.viewsets) + [True] * len(run.learned)
+    for a, b in zip(back.viewsets, cube.model.viewsets):  # the trained views intact
+        assert a.label == b.label and np.array_equal(a.descriptors, b.descriptors) and np.array_equal(a.points3d, b.points3d)
+    # the format older code reads: schema 1, the same arrays, the old keys of every manifest entry
+    manifest = json.loads((folder / S.MANIFEST).read_text())
+    assert manifest["schema_version"] == 1 == S.SCHEMA_VERSION
+    with np.load(folder / S.ARRAYS) as z:
+        assert set(z.files) == set(S._ARRAY_SPEC)
+    assert all({"label", "source_view", "synthetic", "keypoints"} <= set(m) for m in manifest["viewsets"])
+    # a reader that knows nothing of "learned" (the manifest without it) still loads every view,
+    # and a model stored before learning existed loads with none learned
+    for m in manifest["viewsets"]:
+        m.pop("learned", None)
+    (folder / S.MANIFEST).write_text(json.dumps(manifest))
+    old = S.load_model(store, NAME)
+    assert len(old.viewsets) == len(back.viewsets) and not any(vs.learned for vs in old.viewsets)
+
+
+def test_concurrent_writers_keep_each_others_views(cube, run, tmp_path):
+    store = tmp_path / "store"
+    S.save_model(store, cube.model)
+    halves = [run.learned[0::2], run.learned[1::2]]
+    errors = []
+    barrier = threading.Barrier(2)
+
+    def write(views):
+        try:
+            barrier.wait()
+            L.merge_learned(store, NAME, views, cube.model.mesh)
+        except Exception as exc:  # pragma: no cover - reported below
+            errors.append(exc)
+
+    threads = [threading.Thread(target=write, args=(h,)) for h in halves]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors
+    back = S.load_model(store, NAME)
+    assert sum(vs.learned for vs in back.viewsets) == len(run.learned)
+    assert not [p for p in store.iterdir() if p.name.startswith((".tmp-", ".old-"))]
+
+
+def test_views_learned_on_another_mesh_are_refused(cube, run, tmp_path):
+    store = tmp_path / "store"
+    S.save_model(store, cube.model)
+    other = Z.textured("cube-m").mesh
+    with pytest.raises(S.StoreError, match="another mesh"):
+        L.merge_learned(store, NAME, run.learned, other)
+    assert not any(vs.learned for vs in S.load_model(store, NAME).viewsets)
+
+
+# -- the command line -----------------------------------------------------------------------------
+
+def _cli_inputs(cube, tmp_path: Path, n: int) -> tuple[Path, list[str]]:
+    store = tmp_path / "store"
+    S.save_model(store, cube.model)
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for k in range(n):
+        cv2.imwrite(str(frames / f"{k:04d}.png"), cube.frames[k])
+    cam = tmp_path / "camera.json"
+    c = cube.cam
+    cam.write_text(json.dumps({"width": c.width, "height": c.height, "fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy,
+                               "dist_coeffs": [0.0] * 5}))
+    init = tmp_path / "init.json"
+    p = cube.poses[0]
+    init.write_text(json.dumps({"q_wxyz": [float(x) for x in p.q_wxyz], "t": [float(x) for x in p.t]}))
+    args = ["track", "--object", NAME, "--camera", str(cam), "--images", str(frames / "*.png"), "--store", str(store),
+            "--init-pose", str(init), "--out", str(tmp_path / "poses.csv"), "--quiet", "--learn"]
+    return store, args
+
+
+def test_cli_learn_stores_the_views_into_the_model(cube, tmp_path, capsys):
+    n = 40  # 35° → 141°: the views at ≥ 60° and beyond
+    store, args = _cli_inputs(cube, tmp_path, n)
+    assert main(args) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    line = [e for e in err if "learned" in e]
+    assert len(line) == 1 and f"-> {store / NAME}" in line[0], err
+    k = int(line[0].split("learned ")[1].split()[0])
+    back = S.load_model(store, NAME)
+    assert k >= 2 and len(back.viewsets) == len(cube.model.viewsets) + k
+    assert sum(vs.learned for vs in back.viewsets) == k
+    for a, b in zip(back.viewsets, cube.model.viewsets):
+        assert a.label == b.label and np.array_equal(a.descriptors, b.descriptors)
+    rows = list(csv.DictReader(open(tmp_path / "poses.csv")))
+    assert len(rows) == n and all(r["status"] != "lost" for r in rows)
+
+
+def _with_fake_steps(monkeypatch, learned, fail_at: int | None, exc):
+    """Tracker steps that have 'learned' ``learned`` at once, and raise ``exc`` after ``fail_at`` frames."""
+    calls = {"n": 0}
+    real_step = Tracker.step
+
+    def step(self, image, t):
+        calls["n"] += 1
+        if fail_at is not None and calls["n"] > fail_at:
+            raise exc
+        self.learned = list(learned)
+        return real_step(self, image, t)
+
+    monkeypatch.setattr(Tracker, "step", step)
+
+
+def test_cli_learn_stores_nothing_after_an_error(cube, run, tmp_path, monkeypatch, capsys):
+    store, args = _cli_inputs(cube, tmp_path, 4)
+    before = S.model_stamp(store, NAME)
+    _with_fake_steps(monkeypatch, run.learned, 2, ValueError("a broken frame"))
+    assert main(args) == 2
+    assert "a broken frame" in capsys.readouterr().err
+    assert S.model_stamp(store, NAME) == before and not (tmp_path / "poses.csv").exists()
+
+
+def test_cli_learn_stores_what_was_learned_when_ctrl_c_stops_tracking(cube, run, tmp_path, monkeypatch, capsys):
+    store, args = _cli_inputs(cube, tmp_path, 4)
+    _with_fake_steps(monkeypatch, run.learned, 2, KeyboardInterrupt())
+    assert main(args) == 0
+    err = capsys.readouterr().err
+    assert "stopped (Ctrl-C) after 2 frames" in err and f"learned {len(run.learned)} new view(s)" in err
+    assert sum(vs.learned for vs in S.load_model(store, NAME).viewsets) == len(run.learned)
+
+
+def test_ctrl_c_while_storing_leaves_the_model_whole(cube, run, tmp_path, monkeypatch, capsys):
+    store, args = _cli_inputs(cube, tmp_path, 2)
+    before = S.model_stamp(store, NAME)
+    _with_fake_steps(monkeypatch, run.learned, None, None)
+
+    def interrupted(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(S.np, "savez_compressed", interrupted)
+    assert main(args) == 130
+    assert S.model_stamp(store, NAME) == before
+    back = S.load_model(store, NAME)
+    assert len(back.viewsets) == len(cube.model.viewsets) and not any(vs.learned for vs in back.viewsets)
+    assert not [p for p in store.iterdir() if p.name.startswith((".tmp-", ".old-"))]

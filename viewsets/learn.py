@@ -1,0 +1,246 @@
+"""Views learned while tracking (issue 12, item 3): new viewsets from video frames at tracked poses.
+
+A model trained from one photo knows only the sides that photo shows: recognition (and so the
+tracker's re-initialisation after a loss) cannot find the object from any other side. While
+the tracker follows the object round to those sides with a confident pose, the frame's SIFT
+keypoints on the object, lifted to 3-D by casting their rays onto the mesh at that pose
+(:func:`~quatrack.viewsets.viewset.build_viewset`, the training path: same SIFT parameters,
+same ray caster), make a viewset like a trained one, flagged ``learned``.
+
+Rules kept here, so that the tracker, the CLI and the service agree:
+
+- **direction**: a view is new only when the direction it sees the object from (object frame,
+  from the centre to the camera; roll ignored, SIFT is blind to it) is at least
+  ``min_angle_deg`` from that of every viewset already in the model, trained or learned
+  (:func:`view_angles_deg`);
+- **bound**: at most ``max_learned`` learned viewsets per model (the FLANN index and each
+  re-initialisation grow with them);
+- **well-conditioned depth**: a keypoint on a face seen at a grazing angle has a badly
+  conditioned lifted depth (an error δ across the ray moves the point δ/cos along the face),
+  so learned views lift only points whose ray meets the face with ``|cos| ≥ min_cos``.
+
+:func:`with_learned` merges learned viewsets into a model (a new model; the input untouched);
+:func:`save_learned` merges them into the stored model under a lock and writes it atomically
+(:func:`~quatrack.viewsets.store.save_model`), so concurrent writers (two service sessions of
+one object, a CLI run) never lose each other's views nor leave a half-written model. The store's
+format is unchanged (schema 1): a learned viewset is stored like a trained one, with
+``"learned": true`` in its manifest entry, which older code ignores.
+
+The model's RFCH histogram (the window search's colour co-occurrence statistics) is trained on
+the registered photos' object pixels; a learned view brings its frame's co-occurrence counts
+(labelled with the model's own cluster centres), averaged in with equal weight per view:
+``H ← (n·H + Σ hᵢ) / (n + k)`` for ``n`` views already in it and ``k`` new ones, so the window
+search also knows the colours of the sides the photos never showed. The window sizes it tries
+widen to the learned views' boxes (carried to the training camera's width).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import os
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+
+from quatrack.tracking.camera import PinholeCamera
+from quatrack.tracking.pose import Pose
+
+from .errors import StoreError
+from .mesh import Mesh
+from .render import RenderBuffers, render
+from .rfch import RFCHModel, cooccurrence, descriptor_planes, label_planes
+from .store import ObjectModel, load_model, model_path, save_model
+from .viewset import Viewset, ViewsetParams, build_viewset
+
+MAX_LEARNED = 24  # learned viewsets per model at most
+MIN_ANGLE_DEG = 25.0  # a learned view sees the object from at least this far from every other view
+MIN_COS = 0.4  # learned points: the ray meets the face within ~66° of its normal
+
+
+def viewing_direction(pose: Pose, centre: np.ndarray) -> np.ndarray:
+    """Unit vector, in the object frame, from the object's ``centre`` towards the camera:
+    ``d = −Rᵀ(R c + t) / ‖·‖``. Unlike the rotation it ignores the camera's roll."""
+    d = -pose.R.T @ (pose.R @ np.asarray(centre, float) + pose.t)
+    return d / np.linalg.norm(d)
+
+
+def view_angles_deg(pose: Pose, centre: np.ndarray, viewsets: list[Viewset]) -> np.ndarray:
+    """Angle (degrees) between the direction ``pose`` sees the object from and each viewset's."""
+    if not viewsets:
+        return np.zeros(0)
+    a = viewing_direction(pose, centre)
+    b = np.array([viewing_direction(vs.pose, centre) for vs in viewsets])
+    return np.degrees(np.arccos(np.clip(b @ a, -1.0, 1.0)))
+
+
+def is_new_direction(pose: Pose, centre: np.ndarray, viewsets: list[Viewset], min_angle_deg: float = MIN_ANGLE_DEG) -> bool:
+    """True when ``pose`` sees the object from at least ``min_angle_deg`` away from every viewset."""
+    ang = view_angles_deg(pose, centre, viewsets)
+    return bool(len(ang) == 0 or ang.min() >= min_angle_deg)
+
+
+def learned_viewset(label: str, image: np.ndarray, feature_mask: np.ndarray, camera: PinholeCamera, pose: Pose,
+                    mesh: Mesh, params: ViewsetParams, min_cos: float = MIN_COS,
+                    rfch: RFCHModel | None = None) -> Viewset:
+    """The viewset of one video frame at a tracked ``pose``: SIFT inside ``feature_mask`` (the
+    visible faces, away from the silhouette), described with the model's ``params``, each
+    keypoint's ray cast onto the mesh (:func:`~quatrack.viewsets.viewset.build_viewset`), only
+    where it meets the face with ``|cos| ≥ min_cos``. With ``rfch``, the frame's object pixels'
+    label co-occurrence (:attr:`Viewset.cooccurrence`) comes along for the window search.
+
+    The work is done on the object's box (plus a margin for SIFT's and the RFCH's
+    neighbourhoods) seen by the same camera with its principal point shifted — the same rays,
+    so the same lifted points — and the keypoints are returned in the frame's pixels."""
+    buffers = render(mesh, camera, pose)
+    obj = buffers.face >= 0
+    empty = Viewset(label, -1, False, camera, pose, np.zeros((0, 2), np.float32), np.zeros((0, 128), np.float32),
+                    np.zeros((0, 3)), (0, 0, 0, 0), learned=True)
+    if not obj.any():
+        return empty
+    h, w = obj.shape
+    ys, xs = np.nonzero(obj)
+    m = 16 + (int(np.ceil(3 * max(rfch.scales))) + rfch.distance if rfch is not None else 0)
+    x0, y0 = max(int(xs.min()) - m, 0), max(int(ys.min()) - m, 0)
+    x1, y1 = min(int(xs.max()) + m + 1, w), min(int(ys.max()) + m + 1, h)
+    crop = np.ascontiguousarray(image[y0:y1, x0:x1])
+    cam = dataclasses.replace(camera, cx=camera.cx - x0, cy=camera.cy - y0, width=x1 - x0, height=y1 - y0)
+    buf = RenderBuffers(buffers.depth[y0:y1, x0:x1], buffers.face[y0:y1, x0:x1])
+    mask = np.where((np.asarray(feature_mask)[y0:y1, x0:x1] > 0) & (buf.face >= 0), 255, 0).astype(np.uint8)
+    p = dataclasses.replace(params, min_cos=max(params.min_cos, float(min_cos)))
+    vs = build_viewset(label, -1, False, crop, mask, cam, pose, mesh, buf, p)
+    if len(vs) == 0:
+        return empty
+    co = None
+    if rfch is not None:
+        planes = descriptor_planes(crop, tuple(rfch.scales))
+        labels = label_planes(planes, rfch.centres, rfch.desc_mean, rfch.desc_std)
+        co = cooccurrence(labels.reshape(crop.shape[:2]), buf.mask, len(rfch.centres), rfch.distance)
+    bx, by, bw, bh = vs.bbox
+    return dataclasses.replace(vs, camera=camera, keypoints=(vs.keypoints + np.array([x0, y0], np.float32)).astype(np.float32),
+                               bbox=(bx + x0, by + y0, bw, bh), learned=True, cooccurrence=co)
+
+
+def _train_width(model: ObjectModel) -> float:
+    """The median width of the trained views' images: the unit of the RFCH window sizes."""
+    widths = [vs.camera.width for vs in model.viewsets if not vs.learned and vs.camera.width]
+    return float(np.median(widths)) if widths else 0.0
+
+
+def _rfch_with(model: ObjectModel, added: list[Viewset]) -> RFCHModel:
+    """The model's RFCH with the added views' co-occurrence averaged in and their boxes in the
+    window sizes (see the module)."""
+    rfch = model.rfch
+    hists = [vs.cooccurrence for vs in added
+             if vs.cooccurrence is not None and vs.cooccurrence.shape == rfch.histogram.shape and vs.cooccurrence.sum() > 0]
+    if hists:
+        n = int(model.manifest.get("rfch_views", model.manifest.get("training_summary", {}).get("views", 1)) or 1)
+        H = (n * rfch.histogram + sum(h / h.sum() for h in hists)) / (n + len(hists))
+        rfch = dataclasses.replace(rfch, histogram=H / max(H.sum(), 1e-12))
+    tw = _train_width(model)
+    if tw > 0:
+        lo, hi = np.array(rfch.size_min, float), np.array(rfch.size_max, float)
+        for vs in added:
+            if vs.camera.width and vs.bbox[2] > 0 and vs.bbox[3] > 0:
+                wh = np.array(vs.bbox[2:], float) * tw / vs.camera.width
+                lo, hi = np.minimum(lo, wh), np.maximum(hi, wh)
+        rfch = dataclasses.replace(rfch, size_min=tuple(int(np.floor(x)) for x in lo),
+                                   size_max=tuple(int(np.ceil(x)) for x in hi))
+    return rfch
+
+
+def with_learned(model: ObjectModel, viewsets, max_learned: int = MAX_LEARNED,
+                 min_angle_deg: float = MIN_ANGLE_DEG) -> ObjectModel:
+    """A new model whose viewsets are ``model``'s (trained and already learned) plus those of
+    ``viewsets`` that see the object from a new direction (:func:`is_new_direction`, against
+    every viewset kept so far), in order, while fewer than ``max_learned`` are learned. Added
+    views are labelled ``learnedK`` (K continues the model's numbering); their co-occurrence
+    joins the RFCH histogram. ``model`` itself is not changed. Same model back if none is new."""
+    kept = list(model.viewsets)
+    centre = model.mesh.centre
+    n_learned = sum(vs.learned for vs in kept)
+    used = {vs.label for vs in kept}
+    added = []
+    for vs in viewsets:
+        if n_learned >= max_learned:
+            break
+        if len(vs) == 0 or not is_new_direction(vs.pose, centre, kept, min_angle_deg):
+            continue
+        k = n_learned + 1
+        while f"learned{k}" in used:
+            k += 1
+        vs = dataclasses.replace(vs, label=f"learned{k}", learned=True)
+        used.add(vs.label)
+        kept.append(vs)
+        added.append(vs)
+        n_learned += 1
+    if not added:
+        return model
+    rfch = _rfch_with(model, added)
+    stored = [dataclasses.replace(vs, cooccurrence=None) for vs in kept]  # folded into the RFCH now
+    manifest = dict(model.manifest)
+    n_views = int(manifest.get("rfch_views", manifest.get("training_summary", {}).get("views", 1)) or 1)
+    manifest["rfch_views"] = n_views + sum(vs.cooccurrence is not None for vs in added)
+    manifest["learned_viewsets"] = n_learned
+    manifest["learned_updated"] = datetime.now(timezone.utc).isoformat(timespec="seconds")
+    return dataclasses.replace(model, rfch=rfch, viewsets=stored, manifest=manifest)
+
+
+@contextlib.contextmanager
+def store_lock(store: str | Path, name: str):
+    """An exclusive lock on ``store/.learn-NAME.lock`` (``flock``; released when the holder
+    exits, even killed), so that read-merge-write sequences on one object never interleave."""
+    store = Path(store)
+    store.mkdir(parents=True, exist_ok=True)
+    path = store / f".learn-{model_path(store, name).name}.lock"
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            import fcntl
+        except ImportError:  # (not POSIX: no lock; the write is still atomic)
+            fcntl = None
+        if fcntl is not None:
+            fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)  # closing releases the flock
+
+
+def merge_learned(store: str | Path, name: str, viewsets, mesh: Mesh | None = None, max_learned: int = MAX_LEARNED,
+                  min_angle_deg: float = MIN_ANGLE_DEG) -> tuple[Path, int, int]:
+    """Merge ``viewsets`` into the *stored* model ``name`` (re-read under :func:`store_lock`, so a
+    concurrent writer's views are kept) and write it atomically. Returns ``(folder, views added,
+    learned views in the model)``; nothing is written when none is new. Raises
+    :class:`StoreError` if the object is missing or its mesh is not ``mesh``, the one they were
+    learned on (the object was retrained on another mesh meanwhile)."""
+    viewsets = list(viewsets)
+    with store_lock(store, name):
+        model = load_model(store, name)
+        folder = model_path(Path(store), name)
+        if viewsets and mesh is not None and not same_mesh(mesh, model.mesh):
+            raise StoreError(f"object {name!r} in {store} has another mesh than the views were learned on "
+                             "(retrained meanwhile?); the learned views were not saved")
+        if not viewsets:
+            return folder, 0, sum(vs.learned for vs in model.viewsets)
+        merged = with_learned(model, viewsets, max_learned, min_angle_deg)
+        n_added = len(merged.viewsets) - len(model.viewsets)
+        if n_added:
+            save_model(store, merged, overwrite=True)
+        return folder, n_added, sum(vs.learned for vs in merged.viewsets)
+
+
+def save_learned(store: str | Path, name: str, viewsets, mesh: Mesh | None = None) -> Path:
+    """Write the object's stored model with ``viewsets`` learned (:func:`merge_learned`) atomically
+    into ``store``; returns its folder."""
+    return merge_learned(store, name, viewsets, mesh)[0]
+
+
+def same_mesh(a: Mesh, b: Mesh) -> bool:
+    """The same vertices and faces (learned 3-D points only make sense on their own mesh)."""
+    return a.vertices.shape == b.vertices.shape and a.faces.shape == b.faces.shape \
+        and np.allclose(a.vertices, b.vertices, rtol=0, atol=1e-9 * max(a.extent, 1e-12)) and np.array_equal(a.faces, b.faces)
+
+
+__all__ = ["MAX_LEARNED", "MIN_ANGLE_DEG", "MIN_COS", "viewing_direction", "view_angles_deg", "is_new_direction",
+           "learned_viewset", "with_learned", "merge_learned", "save_learned", "store_lock", "same_mesh"]
