@@ -16,7 +16,7 @@ from typing import Callable
 
 import numpy as np
 
-from quatrack.recognition.runtime import tune_allocator
+from quatrack.recognition.runtime import limit_blas_threads, tune_allocator
 from quatrack.recognition.trackio import quiet_ffmpeg
 
 
@@ -500,6 +500,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     tune_allocator()
+    limit_blas_threads()  # recognition's small BLAS products: one thread (runtime.py says why)
     quiet_ffmpeg()  # no FFmpeg decoder chatter from any command reading a video (box.mp4's h264)
     run = COMMANDS[args.command][2]
     try:

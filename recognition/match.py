@@ -79,30 +79,34 @@ class ModelIndex:
         self.normals = surface_normals(model.mesh, self.points3d)
         self._local = threading.local()  # cv2 matchers are not safe to share across threads
 
-    def _matcher(self):
+    def _matcher(self) -> cv2.flann_Index:
+        """This thread's FLANN k-d forest over all descriptors (built on first use)."""
         m = getattr(self._local, "matcher", None)
         if m is None:
-            m = cv2.FlannBasedMatcher({"algorithm": _FLANN_KDTREE, "trees": self.params.trees}, {"checks": self.params.checks})
-            m.add([self.descriptors])
-            m.train()
+            m = cv2.flann_Index(self.descriptors, {"algorithm": _FLANN_KDTREE, "trees": self.params.trees})
             self._local.matcher = m
         return m
 
     def describe(self, image: np.ndarray, box: tuple[int, int, int, int] | None = None, max_side: int | None = None,
-                 max_features: int | None = None) -> Features:
+                 max_features: int | None = None, scale: float | None = None) -> Features:
         """SIFT features of ``image`` (or of its crop ``box`` = x0, y0, x1, y1, in image pixels),
         extracted exactly as the viewsets' were. Cropping, not masking, saves the pyramid.
         ``max_side``: shrink the crop to at most this many pixels on its longer side first
         (SIFT's cost grows with the area; the viewsets hold the object at several scales);
         ``max_features``: keep only the strongest (fewer descriptors to compute and to search);
-        keypoints are returned in the image's pixels either way."""
+        ``scale`` (< 1): shrink the crop by this factor (the smaller of the two shrinks wins);
+        keypoints are returned in the image's pixels either way.
+
+        SIFT (OpenCV) doubles its input before the first octave, so its cost is ≈ 4 × the crop's
+        area × the pyramid: a crop shrunk by ½ costs ¼."""
         x0, y0 = 0, 0
         if box is not None:
             x0, y0, x1, y1 = box
             image = image[y0:y1, x0:x1]
-        s = 1.0
+        s = 1.0 if scale is None else min(1.0, float(scale))
         if max_side is not None and max(image.shape[:2]) > max_side:
-            s = max_side / max(image.shape[:2])
+            s = min(s, max_side / max(image.shape[:2]))
+        if s < 1.0:
             image = cv2.resize(image, (max(1, round(image.shape[1] * s)), max(1, round(image.shape[0] * s))),
                                interpolation=cv2.INTER_AREA)
         params = self.viewset_params if max_features is None else replace(self.viewset_params, max_features=max_features)
@@ -119,20 +123,20 @@ class ModelIndex:
         if len(features) == 0 or len(self.descriptors) < 2:
             return empty
         k = min(self.params.k, len(self.descriptors))
-        knn = self._matcher().knnMatch(np.ascontiguousarray(features.descriptors, np.float32), k=k)
-        rows = np.full((len(knn), k), -1, int)
-        dist = np.full((len(knn), k), np.inf, np.float32)
-        for i, nn in enumerate(knn):
-            for j, m in enumerate(nn):
-                rows[i, j] = m.trainIdx
-                dist[i, j] = m.distance
+        # one vectorised search (arrays, not k DMatch objects per query); FLANN's k-d tree
+        # returns squared L2 distances, and -1 rows where it found fewer than k neighbours
+        rows, dist = self._matcher().knnSearch(np.ascontiguousarray(features.descriptors, np.float32), k,
+                                                params={"checks": self.params.checks})
+        rows = np.asarray(rows, int).reshape(len(features), k)
+        dist = np.sqrt(np.maximum(np.asarray(dist, np.float32).reshape(len(features), k), 0.0))
+        dist[rows < 0] = np.inf
         ok = rows[:, 0] >= 0
         # the nearest neighbour of another 3-D point: the ratio test's second
         P = self.points3d[np.maximum(rows, 0)]
         other = (np.linalg.norm(P - P[:, :1], axis=-1) > self.point_tol) & (rows >= 0)
         other[:, 0] = False
         has_other = other.any(axis=1)
-        second = np.where(has_other, dist[np.arange(len(knn)), np.argmax(other, axis=1)], np.inf)
+        second = np.where(has_other, dist[np.arange(len(rows)), np.argmax(other, axis=1)], np.inf)
         good = ok & (dist[:, 0] < self.params.ratio * second)
         q = np.flatnonzero(good)
         r = rows[q, 0]

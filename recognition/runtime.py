@@ -1,5 +1,6 @@
 """Process-wide tuning for numpy-heavy, latency-bound work: the per-frame recognition and tracking
-loops allocate frame-sized arrays. Lives in the recognition layer so that both the command line
+loops allocate frame-sized arrays (:func:`tune_allocator`) and run many small BLAS products
+(:func:`limit_blas_threads`). Lives in the recognition layer so that both the command line
 and the service (the layers above) import it downward."""
 
 from __future__ import annotations
@@ -11,6 +12,7 @@ import os
 _M_TRIM_THRESHOLD = -1  # glibc mallopt parameters (malloc.h)
 _M_MMAP_THRESHOLD = -3
 _ENV = ("MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_")
+_BLAS_ENV = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "BLIS_NUM_THREADS")
 
 
 def tune_allocator(mmap_threshold: int = 16 << 20, trim_threshold: int = 64 << 20) -> bool:
@@ -38,3 +40,30 @@ def tune_allocator(mmap_threshold: int = 16 << 20, trim_threshold: int = 64 << 2
         return False
     mallopt.argtypes, mallopt.restype = (ctypes.c_int, ctypes.c_int), ctypes.c_int
     return bool(mallopt(_M_MMAP_THRESHOLD, int(mmap_threshold)) and mallopt(_M_TRIM_THRESHOLD, int(trim_threshold)))
+
+
+def limit_blas_threads(threads: int = 1) -> bool:
+    """Let the BLAS libraries behind numpy and scipy use at most ``threads`` threads.
+
+    Why: recognition's BLAS products are small — the RFCH labelling multiplies a (32 × 10) by a
+    (10 × 2048) matrix per block of pixels, 38 blocks per 640×480 frame — and OpenBLAS splits
+    each across every core, whose threads then wait for each other. Measured on the 2-core
+    machine with other jobs running (load 7): 1.7 ms per product with two threads, 0.14 ms with
+    one, which made the window search 5× slower; the quiet machine's localisation went from
+    ≈ 26 to ≈ 12 ms (bench/RESULTS.md, "Speed (issue 13)"). OpenCV and the service's workers use
+    the cores instead.
+
+    Libraries already loaded are limited now (threadpoolctl); ``OPENBLAS_NUM_THREADS`` is set
+    for those loaded later (scipy's own OpenBLAS, say). Returns whether the limit was applied:
+    not when the user set ``OPENBLAS_NUM_THREADS``, ``OMP_NUM_THREADS``, ``MKL_NUM_THREADS`` or
+    ``BLIS_NUM_THREADS`` (theirs wins).
+    """
+    if int(threads) < 1:
+        raise ValueError(f"BLAS threads {threads} < 1")
+    if any(v in os.environ for v in _BLAS_ENV):
+        return False
+    from threadpoolctl import threadpool_limits
+
+    os.environ["OPENBLAS_NUM_THREADS"] = str(int(threads))
+    threadpool_limits(int(threads), user_api="blas")
+    return True

@@ -24,7 +24,7 @@ import cv2
 from fastapi import FastAPI
 from fastapi.middleware.cors import CORSMiddleware
 
-from quatrack.recognition.runtime import tune_allocator
+from quatrack.recognition.runtime import limit_blas_threads, tune_allocator
 
 from . import docs, errors, pose_all, viewer
 from .errors import ApiError, error_body
@@ -143,6 +143,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     # worker processes × threads × OpenCV threads ≈ cores
     cv2.setNumThreads(max(1, cores // (settings.workers * settings.threads)))
     tune_allocator()  # no page faults from re-allocated frame-sized arrays
+    limit_blas_threads()  # small BLAS products: one thread each, the cores go to OpenCV and the workers
     sessions = session_limiter(settings)  # shared by all worker processes when run_dir is set
     metrics = Metrics(lambda: count_open(sessions))
 
