@@ -31,6 +31,12 @@ class LocateParams:
     window: WindowSearchParams = field(default_factory=WindowSearchParams)
     pose: PoseParams = field(default_factory=PoseParams)
     margin: float = 0.25  # the window is enlarged by this fraction on every side for SIFT
+    # SIFT sees the window (plus margin) shrunk so that the window's longer side is at most this
+    # many pixels (never enlarged; None: full resolution). SIFT's cost grows with the area (it
+    # doubles its input first), and the viewsets hold the object at 0.6–1.4× the registered
+    # photos' size, so a shrunk object still matches (bench/RESULTS.md, "Speed (issue 13)")
+    sift_object_px: float | None = 200.0
+    retry_full_resolution: bool = True  # a shrunk window without a verified pose is described again at full size
     viewsets_tried: int = 2  # the best and the runner-up
     pool_all: bool = True  # then all matches of every viewset together
     whole_image_fallback: bool = True
@@ -160,12 +166,76 @@ def _pose_from(
         timer["pnp"] = timer.get("pnp", 0.0) + (time.perf_counter() - t0) * 1e3
 
 
+def sift_scale(window: tuple, object_px: float | None) -> float:
+    """The factor (≤ 1) by which SIFT's crop is shrunk: the window's longer side to at most
+    ``object_px`` pixels; 1 when ``object_px`` is None or the window is smaller already.
+
+    >>> sift_scale((10, 20, 400, 300), 200.0), sift_scale((0, 0, 150, 90), 200.0), sift_scale((0, 0, 400, 300), None)
+    (0.5, 1.0, 1.0)
+    """
+    side = max(float(window[2]), float(window[3]))
+    if object_px is None or side <= object_px:
+        return 1.0
+    return float(object_px) / side
+
+
+def _describe_and_pose(img, box, scale: float, index: ModelIndex, model: ObjectModel, camera: PinholeCamera,
+                       window: tuple | None, params: LocateParams, timer: dict, grey: np.ndarray) -> _Search:
+    """SIFT of ``img`` (its crop ``box``, or all of it) shrunk by ``scale``, then the pose search."""
+    t0 = time.perf_counter()
+    feats = index.describe(img, box, scale=scale)
+    timer["match"] += (time.perf_counter() - t0) * 1e3
+    return _pose_from(feats, index, model, camera, window, params, timer, grey)
+
+
 def locate(
     image: np.ndarray, camera: PinholeCamera, model: ObjectModel, params: LocateParams = LocateParams(),
     index: ModelIndex | None = None,
 ) -> Located:
     """Find ``model`` in ``image`` (any bit depth/channels) seen by ``camera``; never raises for
-    an image without the object (``found`` is False), raises ImageError for an unusable image."""
+    an image without the object (``found`` is False), raises ImageError for an unusable image.
+
+    ``index``: the model's matching index (:func:`~quatrack.recognition.match.index_for`, built
+    once per loaded model and cached); pass it when calling in a loop.
+
+    Examples
+    --------
+    Train the bundled cookie box from its registered photo (no synthetic views, to keep this
+    quick) into a model store, load it back as a service would, and find the box in the first
+    frame of its video:
+
+    >>> import shutil, tempfile
+    >>> import cv2
+    >>> from quatrack.examples import example_dir
+    >>> from quatrack.viewsets.camera import load_camera
+    >>> from quatrack.viewsets.spec import load_spec
+    >>> from quatrack.viewsets.store import load_model, save_model
+    >>> from quatrack.viewsets.train import TrainParams, train_object
+    >>> ex = example_dir()
+    >>> store = tempfile.mkdtemp()
+    >>> path = save_model(store, train_object(load_spec(ex / "object.json"), TrainParams(novel=None)))
+    >>> model = load_model(store, "cookie-box")
+    >>> camera = load_camera(ex / "camera.json")
+    >>> ok, frame = cv2.VideoCapture(str(ex / "box.mp4")).read()
+    >>> r = locate(frame, camera, model)
+    >>> r.found, r.searched  # found in the RFCH window, not by searching the whole image
+    (True, 'window')
+
+    The pose maps the object's frame to the camera's, in the mesh's units (cm here): the box
+    is about 70 cm in front of the camera. Each stage's time is reported in milliseconds:
+
+    >>> bool(60 < np.linalg.norm(r.pose.t) < 80), r.pose.q_wxyz.shape, r.covariance.shape
+    (True, (4,), (6, 6))
+    >>> sorted(r.time_ms)
+    ['localise', 'match', 'pnp', 'total']
+
+    An image without the object is an answer too, with the reason:
+
+    >>> empty = locate(np.full((480, 640, 3), 128, np.uint8), camera, model)
+    >>> empty.found, empty.reason
+    (False, 'no object-like window')
+    >>> shutil.rmtree(store)
+    """
     t_start = time.perf_counter()
     prep = prepare_image(image, camera, params.max_pixels)
     img, cam = prep.image, prep.camera
@@ -181,22 +251,26 @@ def locate(
 
     grey = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
     res, searched = _Search(reason="no object-like window"), "window"
+    scale = 1.0
     if win is not None and win.found:
-        t0 = time.perf_counter()
-        feats = index.describe(img, _crop_box(win.bbox, params.margin, w, h))
-        timer["match"] += (time.perf_counter() - t0) * 1e3
-        res = _pose_from(feats, index, model, cam, win.bbox, params, timer, grey)
+        box = _crop_box(win.bbox, params.margin, w, h)
+        scale = sift_scale(win.bbox, params.sift_object_px)
+        res = _describe_and_pose(img, box, scale, index, model, cam, win.bbox, params, timer, grey)
+        if res.est is None and scale < 1.0 and params.retry_full_resolution:
+            first = res
+            res = _describe_and_pose(img, box, 1.0, index, model, cam, win.bbox, params, timer, grey)
+            if res.verification is None:
+                res.verification = first.verification
     # the whole image is searched when there is no window search, or when the window looked
     # like the object but gave no verified pose; a window that is nothing like the object
-    # (χ² beyond the gate) ends the search: "not found" stays fast
+    # (χ² beyond the gate) ends the search: "not found" stays fast. It is described at the
+    # window's scale: the window's size is the best guess of the object's, even when its place
+    # was wrong; with no window search, at full resolution
     window_failed = win is not None and win.found and res.est is None
     if res.est is None and (not params.use_window or (params.whole_image_fallback and window_failed)):
         searched = "image"
-        t0 = time.perf_counter()
-        feats = index.describe(img)
-        timer["match"] += (time.perf_counter() - t0) * 1e3
         first = res
-        res = _pose_from(feats, index, model, cam, None, params, timer, grey)
+        res = _describe_and_pose(img, None, scale, index, model, cam, None, params, timer, grey)
         if res.verification is None:
             res.verification = first.verification
     est = res.est
