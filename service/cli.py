@@ -39,11 +39,14 @@ def run_serve(args: argparse.Namespace) -> int:
         import uvicorn
 
         from .logs import configure
+        from .shutdown import GracefulWebSocketProtocol
 
         # frames up to max_body_bytes are answered; up to twice that get a "too_large" error message
         # and the session goes on; beyond, the server closes the socket (1009) without buffering it.
-        # On SIGTERM every open session is closed with code 1012 (service restart).
+        # On SIGTERM every open session is closed with code 1012 (service restart), and its
+        # closing handshake completes before the connection is closed (service/shutdown.py).
         uvicorn.run("quatrack.service.workers:app_from_env", factory=True, workers=settings.workers,
+                    ws=GracefulWebSocketProtocol,
                     host=settings.host, port=settings.port, log_config=configure(args.log_level),
                     ws_max_size=2 * settings.max_body_bytes, timeout_graceful_shutdown=5, server_header=False)
     finally:

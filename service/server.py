@@ -2,34 +2,36 @@
 
 ``uvicorn.Server`` in a thread, not a subprocess: starting is fast (the model store is loaded
 once), and the caller can stop it deterministically. Port 0 picks a free port.
+:class:`ServeProcess` runs ``quatrack serve`` itself (worker processes, signals), and
+``testing.balancer.Nginx`` a balancer in front; all three share ``testing.loopback`` (their
+addresses and their start-up wait), which sits below both layers.
 """
 
 from __future__ import annotations
 
-import socket
 import threading
 import time
+
 import uvicorn
+
+from quatrack.testing.loopback import Loopback, free_port, wait_for_http
 
 from .app import create_app
 from .logs import configure
 from .settings import Settings
+from .shutdown import GracefulWebSocketProtocol
+
+__all__ = ["BackgroundServer", "ServeProcess", "Loopback", "free_port", "wait_for_http"]
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-class BackgroundServer:
+class BackgroundServer(Loopback):
     """``with BackgroundServer(settings) as srv: srv.url`` — serves until the block ends."""
 
     def __init__(self, settings: Settings, port: int = 0, log_level: str = "warning", wait_ready: bool = True) -> None:
-        port = port or free_port()
+        port = self.port = port or free_port()
         self.settings = settings.replace(host="127.0.0.1", port=port)
         self.app = create_app(self.settings)
-        config = uvicorn.Config(self.app, host="127.0.0.1", port=port, log_config=configure(log_level),
+        config = uvicorn.Config(self.app, host="127.0.0.1", port=port, log_config=configure(log_level), ws=GracefulWebSocketProtocol,
                                 ws_max_size=2 * self.settings.max_body_bytes, lifespan="on", timeout_graceful_shutdown=2)
         self.server = uvicorn.Server(config)
         self.thread = threading.Thread(target=self._run, name=f"quatrack-serve-{port}", daemon=True)
@@ -42,29 +44,16 @@ class BackgroundServer:
         except BaseException as exc:  # reported by start(), not lost in a thread
             self.error = exc
 
-    @property
-    def url(self) -> str:
-        return f"http://127.0.0.1:{self.settings.port}"
-
-    @property
-    def ws_url(self) -> str:
-        return f"ws://127.0.0.1:{self.settings.port}"
-
     def start(self) -> "BackgroundServer":
         self.thread.start()
-        deadline = time.monotonic() + 120  # generous: the machine may be busy
-        while not self.server.started:
-            if not self.thread.is_alive() or time.monotonic() > deadline:
-                raise RuntimeError(f"the service did not start ({self.error!r})")
-            time.sleep(0.02)
-        if self.wait_ready:
-            import httpx
-
-            headers = {"Authorization": f"Bearer {self.settings.api_token}"} if self.settings.api_token else {}
-            while httpx.get(f"{self.url}/readyz", headers=headers).status_code != 200:
-                if time.monotonic() > deadline:
-                    raise RuntimeError("the service did not become ready")
-                time.sleep(0.05)
+        alive = self.thread.is_alive
+        try:  # listening (any answer), then ready if asked
+            wait_for_http(f"{self.url}/healthz", "the service", 120, alive, accept=lambda status: True)
+            if self.wait_ready:
+                wait_for_http(f"{self.url}/readyz", "the service", 120, alive)
+        except RuntimeError as exc:
+            self.stop()
+            raise RuntimeError(f"{exc} {self.error!r}" if self.error else str(exc)) from None
         return self
 
     def stop(self) -> None:
@@ -93,7 +82,7 @@ def _die_with_parent():
     return lambda: prctl(1, int(signal.SIGTERM))  # 1 = PR_SET_PDEATHSIG
 
 
-class ServeProcess:
+class ServeProcess(Loopback):
     """``quatrack serve`` in a child process on a loopback port: for the bench and the tests that
     need real worker processes or several replicas. ``env`` adds ``QUATRACK_*`` variables.
 
@@ -108,20 +97,10 @@ class ServeProcess:
         self.proc = None
         self._log = None
 
-    @property
-    def url(self) -> str:
-        return f"http://127.0.0.1:{self.port}"
-
-    @property
-    def ws_url(self) -> str:
-        return f"ws://127.0.0.1:{self.port}"
-
     def start(self, timeout: float = 180.0) -> "ServeProcess":
         import os
         import subprocess
         import sys
-
-        import httpx
 
         env = {k: v for k, v in os.environ.items() if not k.startswith("QUATRACK_") and k != "PROMETHEUS_MULTIPROC_DIR"}
         env.update(self.env)
@@ -130,17 +109,13 @@ class ServeProcess:
             [sys.executable, "-m", "quatrack", "serve", "--store", str(self.store), "--host", "127.0.0.1",
              "--port", str(self.port), "--workers", str(self.workers), "--log-level", self.log_level],
             env=env, stdout=self._log, stderr=self._log, start_new_session=True, preexec_fn=_die_with_parent())
-        deadline = time.monotonic() + timeout  # generous: the machine may be busy
-        while True:
-            try:
-                if httpx.get(f"{self.url}/readyz", timeout=5).status_code == 200:
-                    return self
-            except httpx.TransportError:
-                pass
-            if self.proc.poll() is not None or time.monotonic() > deadline:
-                self.stop()
-                raise RuntimeError(f"quatrack serve on port {self.port} did not become ready")
-            time.sleep(0.1)
+        try:
+            wait_for_http(f"{self.url}/readyz", f"quatrack serve on port {self.port}", timeout,
+                          alive=lambda: self.proc.poll() is None)
+        except RuntimeError:
+            self.stop()
+            raise
+        return self
 
     def worker_pids(self) -> list[int]:
         """The worker processes (children of the uvicorn supervisor), from /proc (Linux)."""

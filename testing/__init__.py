@@ -10,7 +10,9 @@ and a non-editable install (the Dockerfile's) still finds them:
 - :mod:`.zoo`: eight more objects (boxes, cubes, a cylinder, a prism; meshes in mm, cm and m)
   textured from real photographs, their training specs and degraded scenes;
 - :mod:`.sequences`: smooth trajectories and rendered video sequences with their true poses;
-- :mod:`.balancer`: Debian's nginx started in front of local replicas (deployment test, bench).
+- :mod:`.balancer`: Debian's nginx started in front of local replicas (deployment test, bench);
+- :mod:`.loopback`: a free port, addresses and the start-up wait of anything run on loopback.
 
-No pipeline layer (tracking, viewsets, recognition, service) imports it (``tests/test_layering.py``).
+No pipeline layer (tracking, viewsets, recognition) imports it (``tests/test_layering.py``); the
+service's loopback runners (``service.server``, for tests, the demo and the bench) use :mod:`.loopback`.
 """

@@ -11,8 +11,9 @@ import os
 import re
 import shutil
 import subprocess
-import time
 from pathlib import Path
+
+from .loopback import Loopback, free_port, wait_for_http
 
 ROOT = Path(__file__).resolve().parent.parent
 NGINX_CONF = ROOT / "deploy" / "nginx.conf"
@@ -42,12 +43,10 @@ def nginx_config(ports: list[int], listen: int, template: Path = NGINX_CONF) -> 
     return text
 
 
-class Nginx:
+class Nginx(Loopback):
     """``with Nginx(prefix, [port_a, port_b]) as lb: lb.url`` — nginx in the foreground, stopped after."""
 
     def __init__(self, prefix: Path, ports: list[int], port: int | None = None) -> None:
-        from quatrack.service.server import free_port
-
         binary = find_nginx()
         if binary is None:
             raise RuntimeError("nginx is not installed (Debian: apt-get install nginx)")
@@ -59,31 +58,18 @@ class Nginx:
                     "-g", f"daemon off; pid {self.prefix}/nginx.pid; error_log {self.error_log};"]
         self.proc = None
 
-    @property
-    def url(self) -> str:
-        return f"http://127.0.0.1:{self.port}"
-
-    @property
-    def ws_url(self) -> str:
-        return f"ws://127.0.0.1:{self.port}"
-
     def __enter__(self) -> "Nginx":
-        import httpx
-
         check = subprocess.run(self.cmd + ["-t"], capture_output=True, text=True)
         if check.returncode != 0:
             raise RuntimeError(f"nginx -t: {check.stderr.strip()}")
         self.proc = subprocess.Popen(self.cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        deadline = time.monotonic() + 60
-        while True:
-            try:
-                httpx.get(f"{self.url}/healthz", timeout=5)
-                return self
-            except httpx.TransportError:
-                if self.proc.poll() is not None or time.monotonic() > deadline:
-                    self.__exit__()
-                    raise RuntimeError(f"nginx did not start (see {self.error_log})") from None
-                time.sleep(0.1)
+        try:  # any answer: nginx listens (what the replicas answer is theirs)
+            wait_for_http(f"{self.url}/healthz", f"nginx (see {self.error_log})", 60,
+                          alive=lambda: self.proc.poll() is None, accept=lambda status: True)
+        except RuntimeError:
+            self.__exit__()
+            raise
+        return self
 
     def __exit__(self, *exc) -> None:
         if self.proc is None or self.proc.poll() is not None:
