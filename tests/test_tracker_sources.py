@@ -64,7 +64,8 @@ def test_a_born_point_carries_its_birth_pose_uncertainty(box):
     assert np.abs(uv - src.tracks.uv).max() < 1e-6
     block = src.measure(ctx, {})  # the same frame: KLT stays put
     assert len(block) > 0.9 * n
-    expected = params.sigma_px**2 * np.eye(2) + pose_spread(camera, block.X, state)
+    # born together, they share one error: each carries it × their number (mesh_points.py)
+    expected = params.sigma_px**2 * np.eye(2) + len(block) * pose_spread(camera, block.X, state)
     assert np.allclose(block.C, expected, rtol=1e-9)
     # 0.2 cm and 1° at ~60 cm spread a projection by a few pixels: far above σ² = 0.49 px²
     assert np.median(np.trace(block.C, axis1=1, axis2=2)) > 5 * 2 * params.sigma_px**2
@@ -81,9 +82,10 @@ def test_mesh_points_alone_follow_a_known_motion(box):
     assert err[:, 0].mean() < 0.01 * d and err[:, 0].max() < 0.02 * d
     assert err[:, 1].mean() < 1.0 and err[:, 1].max() < 2.0
     assert len(tracker.mesh_points) >= 30 and steps[-1].inliers >= 30
-    # they are measured right: at the true pose the tracked points project within ~1 px
+    # they are measured right: at the true pose the tracked points project within ~1 px (0.99 px
+    # when born points counted as independent; 1.06 px since a cohort counts as its birth pose)
     uv = camera.project(poses[-1].apply(tracker.mesh_points.tracks.X))
-    assert np.median(np.linalg.norm(uv - tracker.mesh_points.tracks.uv, axis=1)) < 1.0
+    assert np.median(np.linalg.norm(uv - tracker.mesh_points.tracks.uv, axis=1)) < 1.2
 
 
 @pytest.fixture(scope="module")

@@ -6,13 +6,26 @@ boundaries, where a KLT window straddles the background or another face, and off
 at a grazing angle — and lifted to 3-D by casting their rays onto the mesh at the pose
 (:func:`viewsets.render.cast_rays`). KLT then follows them like the trained points.
 
-A born point inherits its birth pose's error ``δ`` (6-vector over ``[p, δθ]``, covariance
-``P_b``): it was placed where the ray met the mesh *at the estimated pose*, so at a later pose
-its projection is off by about ``J δ`` (``J = ∂uv/∂[δp, δθ]`` at that pose). Its measurement
-covariance is therefore ``C = σ² I + J P_b Jᵀ``: points born at an uncertain pose count
-less, and cannot pull the pose away from the trained (exact) points. Points whose posterior
-residual keeps growing (an exponential average above ``mesh_retire_px``) are retired: they
-sit on a wrong face, on specular texture, or slid.
+A born point inherits its birth pose's error ``δ = [δp, δθ]`` (covariance ``P_b``): it was
+placed where the ray through its corner met the mesh *at the estimated pose* ``(R_b, p_b)``.
+Had the pose been right, the same corner would lie at ``X + G δ`` with
+``G = R_bᵀ [−I | [R_b X]×]`` (the rigid part), slid back along the ray ``d`` (object frame) onto
+the face of normal ``n``: ``Q = I − d nᵀ / (nᵀ d)``. So the point's own uncertainty, in the object
+frame, is ``Σ_X = Q G P_b Gᵀ Qᵀ`` (3×3, rank ≤ 2: in the face's plane), and at any later pose
+``(R, p)`` its pixel is off by ``J_X Σ_X J_Xᵀ`` with ``J_X = ∂uv/∂X_cam · R``. At the birth pose
+this is exactly ``J P_b Jᵀ``; later it follows the object as it turns (the birth covariance is
+over the birth camera's axes, not the current one's).
+
+The points born together share one ``δ``: their errors are one error, not ``n`` independent
+ones, and treating them as independent makes the pose ``n`` times too sure of itself (NEES far
+above its 6 degrees of freedom on faces no photo shows). For ``n`` perfectly correlated errors
+``Cov(Σ eᵢ) ≤ n Σ Cov(eᵢ)`` (Cauchy–Schwarz), so each point of a birth *cohort* with ``n``
+members measured in this frame gets the inherited part inflated ``n`` times:
+``C = σ² I + n J_X Σ_X J_Xᵀ``; the cohort then tells the pose about as much as its birth pose
+knew, which is the truth. Points born at an uncertain pose count less, and cannot pull the pose
+away from the trained (exact) points. Points whose posterior residual keeps growing (an
+exponential average above ``mesh_retire_px``) are retired: they sit on a wrong face, on
+specular texture, or slid.
 """
 
 from __future__ import annotations
@@ -59,6 +72,44 @@ def birth_mask(mesh: Mesh, ctx_camera, pose, params: TrackerParams) -> np.ndarra
     return cv2.resize(ok * 255, (cam.width, cam.height), interpolation=cv2.INTER_NEAREST)
 
 
+def lift_jacobian(pose, X: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """``Q G`` (n, 3, 6): how points ``X`` lifted by rays at ``pose`` onto faces of object-frame
+    ``normals`` move (object frame) when the pose is off by ``δ = [δp, δθ]`` (see the module:
+    ``G = Rᵀ [−I | [R X]×]``, ``Q = I − d nᵀ / (nᵀ d)``)."""
+    R = pose.R
+    RX = X @ R.T
+    G = np.zeros((len(X), 3, 6))
+    G[:, :, :3] = -R.T
+    # [a]× column by column: [a]× e_k = a × e_k
+    skew = np.zeros((len(X), 3, 3))
+    skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -RX[:, 2], RX[:, 1], -RX[:, 0]
+    skew[:, 1, 0], skew[:, 2, 0], skew[:, 2, 1] = RX[:, 2], -RX[:, 1], RX[:, 0]
+    G[:, :, 3:] = R.T @ skew
+    d = X - (-R.T @ pose.t)  # the rays, object frame
+    nd = np.einsum("ni,ni->n", normals, d)
+    Q = np.eye(3) - np.einsum("ni,nj->nij", d, normals) / nd[:, None, None]
+    return Q @ G
+
+
+def lifted_covariance(pose, X: np.ndarray, normals: np.ndarray, P: np.ndarray) -> np.ndarray:
+    """``Σ_X = Q G P Gᵀ Qᵀ`` (n, 3, 3): the object-frame uncertainty of points ``X`` lifted at
+    ``pose`` whose covariance over ``[p, δθ]`` is ``P`` (:func:`lift_jacobian`)."""
+    QG = lift_jacobian(pose, X, normals)
+    return QG @ P @ np.swapaxes(QG, 1, 2)
+
+
+def inherited_spread(camera, X: np.ndarray, cov_X: np.ndarray, cohort: np.ndarray, state: FilterState) -> np.ndarray:
+    """``n_c J_X Σ_X J_Xᵀ`` (m, 2, 2) at the pose of ``state``: the pixel spread of the points'
+    inherited uncertainty, each inflated by the number ``n_c`` of its cohort's points among
+    ``X`` (one shared birth error, see the module)."""
+    if len(X) == 0:
+        return np.zeros((0, 2, 2))
+    _, J = project_model_points(camera, X, state.p, state.R, True)
+    JX = J[:, :, :3] @ state.R
+    _, inv, counts = np.unique(cohort, return_inverse=True, return_counts=True)
+    return counts[inv.ravel()][:, None, None] * (JX @ cov_X @ np.swapaxes(JX, 1, 2))
+
+
 def _rays(camera):
     from quatrack.viewsets.render import pixel_rays
 
@@ -80,16 +131,17 @@ class MeshPoints:
 
     def reset(self) -> None:
         self.tracks = Tracks.empty()
-        self.P_birth = np.zeros((0, 6, 6))
+        self.cov_X = np.zeros((0, 3, 3))  # Σ_X: each point's inherited uncertainty, object frame
+        self.cohort = np.zeros(0, int)  # which birth (one shared pose error per cohort)
         self.ema = np.zeros(0)
         self._since_spawn = 10**9
+        self._births = 0
         self._idx = np.zeros(0, int)
 
     def measure(self, ctx: FrameContext, timings: dict) -> PointBlock:
         block, idx = klt_block(self.name, self.mesh, ctx, self.tracks, self.params, timings)
         if len(block):
-            _, J = project_model_points(ctx.camera, block.X, ctx.prior.p, ctx.prior.R, True)
-            block.C = block.C + J @ self.P_birth[idx] @ np.swapaxes(J, 1, 2)
+            block.C = block.C + inherited_spread(ctx.camera, block.X, self.cov_X[idx], self.cohort[idx], ctx.prior)
             g = gate(ctx.camera, block, ctx.prior, self.params.gate_chi2)
             block, idx = block.keep(g), idx[g]
         self._idx = idx
@@ -104,9 +156,11 @@ class MeshPoints:
             err = np.linalg.norm(uv - kept.uv, axis=1)
             ema = 0.7 * self.ema[idx] + 0.3 * err
             alive = ema < p.mesh_retire_px
-            self.tracks, self.P_birth, self.ema = kept.tracks.keep(alive), self.P_birth[idx][alive], ema[alive]
+            self.tracks, self.ema = kept.tracks.keep(alive), ema[alive]
+            self.cov_X, self.cohort = self.cov_X[idx][alive], self.cohort[idx][alive]
         else:
-            self.tracks, self.P_birth, self.ema = Tracks.empty(), np.zeros((0, 6, 6)), np.zeros(0)
+            self.tracks, self.ema = Tracks.empty(), np.zeros(0)
+            self.cov_X, self.cohort = np.zeros((0, 3, 3)), np.zeros(0, int)
         self._since_spawn += 1
         if (self._since_spawn >= p.mesh_spawn_every and len(self.tracks) < 0.7 * p.mesh_max_points
                 and confident(state, self.diameter, p.mesh_spawn_sigma_p, p.mesh_spawn_sigma_deg)):
@@ -136,6 +190,9 @@ class MeshPoints:
             return 0
         n = int(ok.sum())
         self.tracks = self.tracks + Tracks(X[ok], uv[ok])
-        self.P_birth = np.concatenate([self.P_birth, np.broadcast_to(state.pose_covariance, (n, 6, 6))])
+        self.cov_X = np.concatenate([self.cov_X, lifted_covariance(pose, X[ok], self.mesh.face_normals[face[ok]],
+                                                                  state.pose_covariance)])
+        self.cohort = np.concatenate([self.cohort, np.full(n, self._births)])
+        self._births += 1
         self.ema = np.concatenate([self.ema, np.zeros(n)])
         return n
