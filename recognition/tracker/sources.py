@@ -26,7 +26,7 @@ from quatrack.viewsets.mesh import Mesh
 from ..klt import Frame, track_points
 from ..visibility import visibility_buffers, visible_points
 from .params import TrackerParams
-from .points import PointBlock, Tracks, gate
+from .points import PointBlock, Tracks, VarianceFactor, gate, posterior_m2
 
 
 @dataclass
@@ -87,20 +87,24 @@ class TrainedPoints:
     def __init__(self, mesh: Mesh, params: TrackerParams) -> None:
         self.mesh, self.params = mesh, params
         self.tracks = Tracks.empty()
+        self.factor = VarianceFactor(2)
 
     def __len__(self) -> int:
         return len(self.tracks)
 
     def reset(self) -> None:
         self.tracks = Tracks.empty()
+        self.factor.reset()
 
     def measure(self, ctx: FrameContext, timings: dict) -> PointBlock:
         p = self.params
         block, _ = klt_block(self.name, self.mesh, ctx, self.tracks, p, timings)
+        block.C = block.C * self.factor.value
         g = gate(ctx.camera, block, ctx.prior, p.gate_chi2)
         if g.sum() >= p.min_inliers:  # (too few pass: the prediction is off, let the adjustment judge)
             block = block.keep(g)
         return block
 
     def settle(self, ctx: FrameContext, block: PointBlock, inliers: np.ndarray, state: FilterState) -> None:
+        self.factor.update(posterior_m2(ctx.camera, block.keep(inliers), state))
         self.tracks = block.tracks.keep(inliers)
