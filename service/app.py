@@ -2,8 +2,10 @@
 
 One app per process normally; tests build several, so each app owns its state (registry, pool,
 limits, metrics registry). What it sets for the whole process, because those settings are
-process-wide by nature: OpenCV's thread count, the allocator (``tune_allocator``), and the log
-filters that keep tokens out of uvicorn's lines (installed once, idempotent).
+process-wide by nature: OpenCV's thread count, the allocator (``tune_allocator``), the
+interpreter's switch interval (the event loop gets the lock sooner), and the log filters that
+keep tokens out of uvicorn's lines (installed once, idempotent). The clean close of sessions on
+SIGTERM is uvicorn's WebSocket protocol's business (``shutdown.py``, given as ``ws=``).
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ import asyncio
 import json
 import logging
 import os
+import sys
 import threading
 import time
 import uuid
@@ -33,9 +36,46 @@ from .metrics import Metrics, worker_exit
 from .registry import ModelRegistry
 from .routes import ServiceState, api, health, ops, sockets
 from .settings import Settings
-from .workers import count_open, session_limiter
+from .workers import ReadyBoard, count_open, ready_board, session_limiter
 
 log = logging.getLogger("quatrack.service")
+CPU_THREAD_NICE = 5  # tracking threads yield the CPU to the event loop (weight 335 vs 1024 under Linux CFS)
+SWITCH_INTERVAL_S = 0.001  # the interpreter lock changes hands after ≤ 1 ms of Python (default 5 ms)
+
+
+def _cpu_thread_start() -> None:
+    """Each CPU thread runs at a lower priority than the event loop thread of its process.
+
+    Why: ``/healthz`` p99 and the frames' own latency are made on the event loop (it reads the
+    frames, answers probes, sends the poses). On a loaded machine the kernel scheduled the loop
+    behind the tracking threads of every session; a nice value of +5 on the tracking threads
+    (per thread: Linux ``setpriority(PRIO_PROCESS, tid)``) lets the loop run first whenever it
+    is runnable, while tracking still gets every cycle the loop leaves. Ignored where the call
+    is refused."""
+    try:
+        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), CPU_THREAD_NICE)
+    except (AttributeError, OSError):
+        pass
+
+
+class ServerRegistry(ModelRegistry):
+    """The model registry whose ``ready`` (what ``/readyz`` answers) is true only when this
+    process has loaded its models *and*, with several worker processes, every one of them has
+    (:class:`workers.ReadyBoard`): whichever worker answers, the answer is the server's."""
+
+    def __init__(self, store, on_load=None, board: ReadyBoard | None = None) -> None:
+        self.board = board
+        self._loaded = False
+        super().__init__(store, on_load=on_load)
+
+    @property
+    def ready(self) -> bool:
+        return self._loaded and (self.board is None or self.board.all_ready())
+
+    @ready.setter
+    def ready(self, value: bool) -> None:  # ModelRegistry sets it when loading is done
+        self._loaded = bool(value)
+
 
 DESCRIPTION = """Find a trained object in an image and estimate its 6-DoF pose (`POST /v1/objects/{name}/pose`),
 or track it through a video stream over the WebSocket `/v1/objects/{name}/track`.
@@ -134,6 +174,8 @@ def _warm(state: ServiceState) -> None:
     futures = [state.executor.submit(one) for _ in range(n)]
     for f in futures:
         f.result()
+    if isinstance(state.registry, ServerRegistry) and state.registry.board is not None:
+        state.registry.board.mark_ready()  # this worker counts for the server's /readyz
     log.info("ready: %d object(s) loaded from %s", len(state.registry.loaded()), state.registry.store)
 
 
@@ -144,13 +186,19 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     cv2.setNumThreads(max(1, cores // (settings.workers * settings.threads)))
     tune_allocator()  # no page faults from re-allocated frame-sized arrays
     limit_blas_threads()  # small BLAS products: one thread each, the cores go to OpenCV and the workers
+    # The event loop needs the interpreter lock for every message and probe; with tracking
+    # threads running Python it waits up to one switch interval each time it asks (5 ms by
+    # default, several times per request): ask them to hand it over sooner.
+    sys.setswitchinterval(min(sys.getswitchinterval(), SWITCH_INTERVAL_S))
     sessions = session_limiter(settings)  # shared by all worker processes when run_dir is set
     metrics = Metrics(lambda: count_open(sessions))
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
-        executor = ThreadPoolExecutor(settings.threads, thread_name_prefix="quatrack-cpu")
-        registry = ModelRegistry(settings.store, on_load=lambda result: metrics.model_loads.labels(result).inc())
+        executor = ThreadPoolExecutor(settings.threads, thread_name_prefix="quatrack-cpu", initializer=_cpu_thread_start)
+        board = ready_board(settings)
+        registry = ServerRegistry(settings.store, on_load=lambda result: metrics.model_loads.labels(result).inc(),
+                                  board=board)
         state = ServiceState(settings, registry, executor, metrics, sessions)
         app.state.quatrack = state
         loop = asyncio.get_running_loop()
@@ -158,11 +206,15 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             warm = loop.run_in_executor(None, _warm, state)  # readyz says 503 until done
         else:
             state.registry.ready = True
+            if board is not None:
+                board.mark_ready()
             warm = None
         registry.start_watching(settings.model_poll_s)  # retrained, new and deleted models, live
         try:
             yield
         finally:
+            if board is not None:
+                board.withdraw()
             registry.stop()
             if warm is not None and not warm.done():
                 warm.cancel()

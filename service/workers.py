@@ -14,6 +14,10 @@ What the workers share lives in one *run directory* (``Settings.run_dir``), wipe
 - ``sessions/slot-K`` (K < ``max_sessions``): a session holds an exclusive ``flock`` on one slot
   file for its lifetime, so the limit holds for the whole server; the kernel drops the locks of a
   worker that dies, so a crash never leaks a slot.
+- ``ready/PID``: a worker whose models are loaded holds an exclusive ``flock`` on its file
+  (:class:`ReadyBoard`); ``/readyz`` answers 200 only when ``workers`` such locks are held, so a
+  request that lands on a ready worker does not report the server ready while another one is
+  still loading (or has died and is being restarted), and a stopping worker withdraws its file.
 - ``prometheus/``: ``$PROMETHEUS_MULTIPROC_DIR`` for prometheus-client's multiprocess mode.
 
 ``max_pending_requests`` (REST) stays a per-worker limit: a worker's own queue is what it bounds.
@@ -92,6 +96,76 @@ class SlotLimiter:
         return held
 
 
+class ReadyBoard:
+    """Which worker processes of one server have their models loaded: ``directory/PID``, each
+    exclusively ``flock``-ed by its worker while it is ready. The kernel drops the lock of a worker
+    that dies, so a crash withdraws it too; a file whose lock a reader can share is stale.
+
+    A worker makes its file under a hidden name, locks it, then renames it into place, so a reader
+    never sees a ready file that is not yet locked (and may delete stale ones safely)."""
+
+    def __init__(self, directory: Path, workers: int) -> None:
+        self.dir = Path(directory)
+        self.dir.mkdir(parents=True, exist_ok=True)
+        self.workers = workers
+        self._fd: int | None = None
+        self._path: Path | None = None
+
+    def mark_ready(self) -> None:
+        if self._fd is not None:
+            return
+        pid = os.getpid()
+        tmp = self.dir / f".{pid}.tmp"
+        fd = os.open(tmp, os.O_RDWR | os.O_CREAT | os.O_TRUNC, 0o600)
+        fcntl.flock(fd, fcntl.LOCK_EX)  # blocks only while a reader probes this very file
+        os.replace(tmp, self.dir / str(pid))
+        self._fd, self._path = fd, self.dir / str(pid)
+
+    def withdraw(self) -> None:
+        """This worker is no longer ready (it is stopping)."""
+        if self._fd is None:
+            return
+        try:
+            self._path.unlink()
+        except FileNotFoundError:
+            pass
+        os.close(self._fd)
+        self._fd = self._path = None
+
+    def count(self) -> int:
+        """Workers ready now (stale files of dead workers are removed on the way)."""
+        held = 0
+        for path in self.dir.iterdir():
+            if path.name.startswith("."):
+                continue
+            try:
+                fd = os.open(path, os.O_RDONLY)
+            except FileNotFoundError:
+                continue
+            try:
+                fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+            except BlockingIOError:
+                held += 1  # its worker holds it
+            else:
+                try:
+                    path.unlink()  # nobody holds it: a worker that died
+                except FileNotFoundError:
+                    pass
+            finally:
+                os.close(fd)
+        return held
+
+    def all_ready(self) -> bool:
+        return self.count() >= self.workers
+
+
+def ready_board(settings: Settings) -> ReadyBoard | None:
+    """The board of the server's workers when they share a run directory, else None."""
+    if settings.run_dir is None:
+        return None
+    return ReadyBoard(Path(settings.run_dir) / "ready", settings.workers)
+
+
 def prepare_run_dir(settings: Settings) -> tuple[Settings, Path, bool]:
     """Settings with a fresh, empty run directory (made in the temp dir unless given), and whether
     the caller made it (then it removes it on exit). Sets ``$PROMETHEUS_MULTIPROC_DIR`` for the
@@ -99,7 +173,7 @@ def prepare_run_dir(settings: Settings) -> tuple[Settings, Path, bool]:
     made = settings.run_dir is None
     run = Path(tempfile.mkdtemp(prefix="quatrack-run-")) if made else Path(settings.run_dir)
     run.mkdir(parents=True, exist_ok=True)
-    for sub in ("sessions", "prometheus"):
+    for sub in ("sessions", "ready", "prometheus"):
         shutil.rmtree(run / sub, ignore_errors=True)
         (run / sub).mkdir()
     os.environ[MULTIPROC_ENV] = str(run / "prometheus")
