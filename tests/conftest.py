@@ -28,3 +28,44 @@ settings.register_profile("dev", deadline=None, print_blob=True)
 settings.register_profile("explore", deadline=None, print_blob=True, max_examples=2000,
                           suppress_health_check=[HealthCheck.too_slow])
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE") or ("ci" if os.environ.get("CI") else "dev"))
+
+
+# --- helpers shared by the tests of real servers (test_workers.py, test_deploy.py) ----------------
+# plain functions, imported with ``from conftest import ...`` (pytest puts tests/ on the path)
+
+def metric_samples(text: str) -> dict:
+    """{(name, frozenset(labels)): value} of a Prometheus text exposition, read by
+    prometheus-client's own parser."""
+    from prometheus_client.parser import text_string_to_metric_families
+
+    out = {}
+    for family in text_string_to_metric_families(text):
+        for s in family.samples:
+            out[(s.name, frozenset(s.labels.items()))] = s.value
+    return out
+
+
+def sessions_active(url: str) -> float:
+    """``quatrack_ws_sessions_active`` of the server at ``url`` (all its workers)."""
+    import httpx
+
+    found = metric_samples(httpx.get(f"{url}/metrics", timeout=60).text).get(("quatrack_ws_sessions_active", frozenset()))
+    assert found is not None, f"no quatrack_ws_sessions_active in {url}/metrics"
+    return found
+
+
+def box_frames_jpeg(n: int) -> list[bytes]:
+    """The first ``n`` frames of the bundled ``box.mp4`` as JPEG bytes."""
+    from pathlib import Path
+
+    import cv2
+
+    cap = cv2.VideoCapture(str(Path(__file__).resolve().parent.parent / "examples" / "cookie-box" / "box.mp4"))
+    out = []
+    while len(out) < n:
+        ok, img = cap.read()
+        if not ok:
+            break
+        out.append(cv2.imencode(".jpg", img)[1].tobytes())
+    cap.release()
+    return out

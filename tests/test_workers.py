@@ -14,41 +14,18 @@ from pathlib import Path
 
 import httpx
 import pytest
-from prometheus_client.parser import text_string_to_metric_families
 from websockets.exceptions import InvalidStatus
 from websockets.sync.client import connect
 
+from conftest import box_frames_jpeg, metric_samples, sessions_active
 from quatrack.testing.scenes import example_store
-from quatrack.service.server import ServeProcess
+from quatrack.service.server import BackgroundServer, ServeProcess
 from quatrack.service.settings import Settings, env_name, settings_table
-from quatrack.service.workers import SlotLimiter
+from quatrack.service.workers import ReadyBoard, SlotLimiter
 
 ROOT = Path(__file__).resolve().parent.parent
 EXAMPLE = ROOT / "examples" / "cookie-box"
 CAMERA = json.loads((EXAMPLE / "camera.json").read_text())
-
-
-def samples(text: str) -> dict:
-    """{(name, frozenset(labels)): value} from the Prometheus text, by prometheus-client's parser."""
-    out = {}
-    for family in text_string_to_metric_families(text):
-        for s in family.samples:
-            out[(s.name, frozenset(s.labels.items()))] = s.value
-    return out
-
-
-def frames_jpeg(n: int) -> list[bytes]:
-    import cv2
-
-    cap = cv2.VideoCapture(str(EXAMPLE / "box.mp4"))
-    out = []
-    while len(out) < n:
-        ok, img = cap.read()
-        if not ok:
-            break
-        out.append(cv2.imencode(".jpg", img)[1].tobytes())
-    cap.release()
-    return out
 
 
 @pytest.fixture(scope="module")
@@ -62,7 +39,7 @@ def server(tmp_path_factory):
 
 def test_workers_are_processes_with_a_global_session_limit(server):
     assert len(server.worker_pids()) == 2  # two uvicorn worker processes under one supervisor
-    frames = frames_jpeg(3)
+    frames = box_frames_jpeg(3)
     url = f"{server.ws_url}/v1/objects/cookie-box/track"
     answers = 0
     # the limit (2) holds for the whole server, whichever workers the kernel gave the connections to
@@ -80,10 +57,9 @@ def test_workers_are_processes_with_a_global_session_limit(server):
             with connect(url, open_timeout=60):
                 pass
         assert exc.value.response.status_code == 503
-        m = samples(httpx.get(f"{server.url}/metrics", timeout=60).text)
-        assert m[("quatrack_ws_sessions_active", frozenset())] == 2
+        assert sessions_active(server.url) == 2
     # frames of both sessions are counted, whichever worker served them (multiprocess mode)
-    m = samples(httpx.get(f"{server.url}/metrics", timeout=60).text)
+    m = metric_samples(httpx.get(f"{server.url}/metrics", timeout=60).text)
     assert m[("quatrack_ws_frames_total", frozenset({("result", "processed")}))] == answers
     statuses = sum(v for (name, labels), v in m.items() if name == "quatrack_track_frames_total")
     assert statuses == answers
@@ -94,14 +70,14 @@ def test_workers_are_processes_with_a_global_session_limit(server):
     assert m.get(("quatrack_model_loads_total", frozenset({("result", "failed")})), 0) == 0
     # the sessions are gone: their slots are free again (bounded wait: closing is asynchronous)
     deadline = time.monotonic() + 30
-    while samples(httpx.get(f"{server.url}/metrics", timeout=60).text)[("quatrack_ws_sessions_active", frozenset())] != 0:
+    while sessions_active(server.url) != 0:
         assert time.monotonic() < deadline, "sessions still counted after their sockets closed"
         time.sleep(0.1)
 
 
 def test_health_answers_while_tracking(server):
     """/healthz and /readyz are answered (by either worker) while both sessions track."""
-    frames = frames_jpeg(2)
+    frames = box_frames_jpeg(2)
     url = f"{server.ws_url}/v1/objects/cookie-box/track"
     with connect(url, open_timeout=60) as ws:
         ws.send(json.dumps(CAMERA))
@@ -139,6 +115,48 @@ def test_slots_are_freed_when_a_worker_dies(tmp_path):
         if child.is_alive():
             child.kill()
             child.join(60)
+
+
+def _ready_worker(directory: str, conn) -> None:
+    ReadyBoard(Path(directory), 2).mark_ready()
+    conn.send(True)
+    time.sleep(120)  # until killed
+
+
+def _wait(pred, what: str, timeout: float = 120.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not pred():
+        assert time.monotonic() < deadline, f"timed out waiting for {what}"
+        time.sleep(0.05)
+
+
+def test_readyz_waits_for_every_worker(tmp_path):
+    """With 2 workers, /readyz says ready only when both have loaded their models, whichever one
+    answers: here one real worker (the app, in a thread) and a stand-in for the other (a process
+    that reports ready through the run directory, then dies)."""
+    run = tmp_path / "run"
+    board = ReadyBoard(run / "ready", 2)
+    settings = Settings(store=example_store(), workers=2, threads=1, run_dir=run, model_poll_s=0)
+    with BackgroundServer(settings, wait_ready=False) as srv:
+        _wait(lambda: board.count() == 1, "this worker to load its models")
+        r = httpx.get(f"{srv.url}/readyz", timeout=60)
+        assert r.status_code == 503 and r.json()["ready"] is False and r.json()["models"] == ["cookie-box"]
+        ctx = multiprocessing.get_context("spawn")
+        parent, child_end = ctx.Pipe()
+        other = ctx.Process(target=_ready_worker, args=(str(run / "ready"), child_end), daemon=True)
+        other.start()
+        try:
+            assert parent.poll(120) and parent.recv() is True
+            r = httpx.get(f"{srv.url}/readyz", timeout=60)
+            assert r.status_code == 200 and r.json()["ready"] is True
+            os.kill(other.pid, signal.SIGKILL)  # a worker that dies (uvicorn restarts it) is not ready
+            other.join(60)
+            r = httpx.get(f"{srv.url}/readyz", timeout=60)
+            assert r.status_code == 503 and board.count() == 1
+        finally:
+            if other.is_alive():
+                other.kill()
+                other.join(60)
 
 
 def test_settings_from_environment(monkeypatch):
