@@ -21,10 +21,12 @@ Everything is rendered and seeded; the orbit is short (66 frames at 640×480).
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import dataclasses
 import json
 import threading
+import time
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -308,3 +310,83 @@ def test_ctrl_c_while_storing_leaves_the_model_whole(cube, run, tmp_path, monkey
     back = S.load_model(store, NAME)
     assert len(back.viewsets) == len(cube.model.viewsets) and not any(vs.learned for vs in back.viewsets)
     assert not [p for p in store.iterdir() if p.name.startswith((".tmp-", ".old-"))]
+
+
+# -- the service ----------------------------------------------------------------------------------
+
+def _azimuth_deg(vs, centre) -> float:
+    d = L.viewing_direction(vs.pose, centre)
+    return float(np.degrees(np.arctan2(d[1], d[0])) % 360.0)
+
+
+def test_service_sessions_store_what_they_learn_and_new_sessions_find_it(cube, tmp_path):
+    """QUATRACK_LEARN_VIEWS: two sessions of the cube, walking round different arcs at the same
+    time, each store their learned views when they end; neither loses the other's; a new session
+    (no pose given) then finds the cube from a side the photo never showed."""
+    from websockets.sync.client import connect
+
+    from quatrack.service.server import BackgroundServer
+    from quatrack.service.settings import Settings
+
+    store = tmp_path / "store"
+    S.save_model(store, cube.model)
+    c = cube.cam
+    camera = json.dumps({"width": c.width, "height": c.height, "fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy,
+                         "dist_coeffs": [0.0] * 5, "ack": True})
+    n = 26  # both start at the photo's view and walk round opposite ways: 35° → 106° and 35° → −36°
+    bg = clutter_background(5)
+    back = [Z.orbit_pose(cube.obj, c, 35.0 - SPAN_DEG * k / (N_FRAMES - 1), 25.0 + 10.0 * np.sin(np.pi * k / N_FRAMES))
+            for k in range(n)]
+    walks = {"a": (cube.poses[:n], cube.frames[:n]), "b": (back, [Z.compose(*cube.obj.render(c, p), bg) for p in back])}
+    jpg = {k: [cv2.imencode(".jpg", f, [cv2.IMWRITE_JPEG_QUALITY, 92])[1].tobytes() for f in w[1]] for k, w in walks.items()}
+    settings = Settings(store=store, learn_views=(NAME,), max_sessions=3, model_poll_s=0.5)
+    with BackgroundServer(settings) as srv:
+        url = f"{srv.ws_url}/v1/objects/{NAME}/track"
+        with contextlib.ExitStack() as stack:
+            socks = {k: stack.enter_context(connect(url, open_timeout=30)) for k in walks}
+            for k, ws in socks.items():
+                ws.send(camera)
+                assert json.loads(ws.recv(timeout=60))["type"] == "ready"
+                p = walks[k][0][0]
+                ws.send(json.dumps({"type": "init", "pose": {"q_wxyz": [float(x) for x in p.q_wxyz],
+                                                             "t": [float(x) for x in p.t]}}))
+            statuses = {k: [] for k in walks}
+            for i in range(n):  # both sessions at once, frame by frame
+                for k, ws in socks.items():
+                    ws.send(json.dumps({"type": "frame", "time_s": i / FPS}))
+                    ws.send(jpg[k][i])
+                for k, ws in socks.items():
+                    msg = json.loads(ws.recv(timeout=120))
+                    statuses[k].append(msg["status"] if msg.get("type") != "error" else msg)
+        for k in walks:
+            assert statuses[k].count("lost") == 0, (k, statuses[k])
+
+        def learned():
+            try:
+                return [vs for vs in S.load_model(store, NAME).viewsets if vs.learned]
+            except S.StoreError:
+                return []
+
+        deadline = time.monotonic() + 120  # a bound, not a speed requirement
+        azimuths: list[float] = []
+        while time.monotonic() < deadline:
+            azimuths = [_azimuth_deg(vs, cube.model.mesh.centre) for vs in learned()]
+            if any(45 < a < 130 for a in azimuths) and any(a > 270 or a < 25 for a in azimuths):
+                break
+            time.sleep(0.5)
+        assert any(45 < a < 130 for a in azimuths) and any(a > 270 or a < 25 for a in azimuths), azimuths  # both sessions'
+        assert len(azimuths) >= 3
+        # a new session finds the cube, with no pose given, from sides the photo never showed
+        found = []
+        with connect(url, open_timeout=30) as ws:
+            ws.send(camera)
+            assert json.loads(ws.recv(timeout=60))["type"] == "ready"
+            for i, az in enumerate((100.0, 330.0, 80.0)):
+                img, truth = _query(cube, az, QUERY[1], 40 + i)
+                ws.send(json.dumps({"type": "reset"}))
+                ws.send(json.dumps({"type": "frame", "time_s": float(i)}))
+                ws.send(cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 92])[1].tobytes())
+                msg = json.loads(ws.recv(timeout=120))
+                found.append(msg["status"] == "init"
+                             and _correct(np.array(msg["pose"]["t"]), np.array(msg["pose"]["q_wxyz"]), truth, cube.model.mesh))
+        assert any(found), found

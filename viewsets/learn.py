@@ -114,9 +114,13 @@ def learned_viewset(label: str, image: np.ndarray, feature_mask: np.ndarray, cam
         return empty
     co = None
     if rfch is not None:
-        planes = descriptor_planes(crop, tuple(rfch.scales))
-        labels = label_planes(planes, rfch.centres, rfch.desc_mean, rfch.desc_std)
-        co = cooccurrence(labels.reshape(crop.shape[:2]), buf.mask, len(rfch.centres), rfch.distance)
+        # the descriptors of the whole frame (their intensity is normalised over the image, as
+        # in training and in the window search), labelled only on the object: only its pixels pair up
+        planes = descriptor_planes(image, tuple(rfch.scales))[:, y0:y1, x0:x1]
+        inside = buf.face >= 0
+        labels = np.full(inside.shape, -1, np.int32)
+        labels[inside] = label_planes(planes[:, inside][:, :, None], rfch.centres, rfch.desc_mean, rfch.desc_std).ravel()
+        co = cooccurrence(labels, buf.mask, len(rfch.centres), rfch.distance)
     bx, by, bw, bh = vs.bbox
     return dataclasses.replace(vs, camera=camera, keypoints=(vs.keypoints + np.array([x0, y0], np.float32)).astype(np.float32),
                                bbox=(bx + x0, by + y0, bw, bh), learned=True, cooccurrence=co)
