@@ -1,7 +1,9 @@
 """``quatrack bench serve``: the service under load, on loopback only.
 
 Set-ups: ``quatrack serve`` with 1 worker process, with N (default: the number of cores), and —
-when nginx is installed — two 1-worker replicas behind nginx with ``deploy/nginx.conf``. Against
+when nginx is installed — two 1-worker replicas behind nginx with ``deploy/nginx.conf``.
+``--workers 1,2,p2`` adds the other process model as a prototype (:mod:`.serve_pool`: one event
+loop process with a pool of 2 tracking processes behind it), to compare the two. Against
 each, S = 1, 2, 4, 8, 16 WebSocket clients stream the first frames of ``box.mp4`` at 30 fps in real
 time, as cameras would; the server tracks the newest frame of each session and drops the stale
 ones. Reported per run: per-stream achieved fps (answers / s), latency (send → answer) p50/p99,
@@ -126,7 +128,15 @@ def _setups(store, workers: list[int], threads: int, max_sessions: int, replicas
                 Nginx(Path(tmp) / "nginx", [a.port, b.port]) as lb:
             yield lb.url, lb.ws_url, lambda: a.worker_pids() + b.worker_pids()
 
-    out = [(f"{n} worker{'s' if n > 1 else ''}", lambda n=n: single(n)) for n in workers]
+    @contextlib.contextmanager
+    def pool(n):
+        from quatrack.bench.serve_pool import PoolServer
+
+        with PoolServer(store, n, env=env) as srv:
+            yield srv.url, srv.ws_url, srv.pids
+
+    out = [(f"{n} worker{'s' if n > 1 else ''}", lambda n=n: single(n)) if isinstance(n, int) else
+           (f"1 loop + pool of {n[1:]} (prototype)", lambda n=n: pool(int(n[1:]))) for n in workers]
     if replicas:
         out.append(("2 replicas + nginx", balanced))
     return out
@@ -147,12 +157,14 @@ def main(args: argparse.Namespace) -> int:
     cores = os.cpu_count() or 1
     try:
         counts = [int(x) for x in args.clients.split(",") if x.strip()]
-        workers = [int(x) for x in args.workers.split(",") if x.strip()] if args.workers else sorted({1, cores})
+        workers = [x.strip() if x.strip().startswith("p") else int(x) for x in args.workers.split(",") if x.strip()] \
+            if args.workers else sorted({1, cores})
+        sizes = [int(w[1:]) if isinstance(w, str) else w for w in workers]
     except ValueError:
-        raise ValueError("--clients and --workers: comma-separated whole numbers") from None
+        raise ValueError("--clients and --workers: comma-separated whole numbers (pN: the pool prototype)") from None
     if not counts or min(counts) < 1 or max(counts) > 64:
         raise ValueError("--clients: numbers between 1 and 64")
-    if not workers or min(workers) < 1 or max(workers) > 64:
+    if not workers or min(sizes) < 1 or max(sizes) > 64:
         raise ValueError("--workers: numbers between 1 and 64")
     if not 0.5 <= args.seconds <= 600 or not 0 < args.fps <= 240 or args.threads < 1 or args.rest_requests < 0:
         raise ValueError("--seconds must be 0.5-600, --fps 0-240, --threads ≥ 1, --rest-requests ≥ 0")
