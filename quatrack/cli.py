@@ -66,6 +66,15 @@ def _add_bench(parser: argparse.ArgumentParser) -> None:
                        help="box.mp4 frames also given to per-frame recognition, for comparison (default 150)")
     track.add_argument("--sheet", default="track_contact_sheet.png", metavar="PNG", help="contact sheet of overlays")
     track.add_argument("--json", action="store_true", help="print one JSON object instead of the report")
+    tz = sub.add_parser(
+        "track-zoo",
+        help="tracking any object from any side: zoo objects trained from one photo, a camera walking round them",
+        description="Rendered 360° walks round zoo objects (mm, cm, m) trained from ONE photo, with ground truth: "
+                    "losses, errors, NEES, step times, and re-initialisation with and without learned viewsets.",
+    )
+    tz.add_argument("--sequences", metavar="A,B", help="zoo objects to walk round (default: six; see testing/zoo.py)")
+    tz.add_argument("--seconds", type=float, default=10.0, help="length of each sequence at 30 fps (default 10)")
+    tz.add_argument("--json", action="store_true", help="print one JSON object instead of the report")
     serve = sub.add_parser(
         "serve",
         help="the service under load: 1..16 concurrent 30 fps streams against 1 and N workers and two replicas behind nginx",
@@ -115,6 +124,17 @@ def _run_bench(args: argparse.Namespace) -> int:
         if not args.sheet.lower().endswith(".png"):
             raise UserError("--sheet must name a .png file")
         return track.main(args.json, args.seconds, args.locate_frames, args.sheet)
+    if args.benchmark == "track-zoo":
+        from quatrack.bench import track_zoo
+        from quatrack.testing import zoo
+
+        names = args.sequences.split(",") if args.sequences else None
+        for n in names or ():
+            if n not in {o.name for o in zoo.ZOO}:
+                raise UserError(f"--sequences: no zoo object {n!r} (known: {', '.join(o.name for o in zoo.ZOO)})")
+        if not 1.0 <= args.seconds <= 60.0:
+            raise UserError("--seconds must be between 1 and 60")
+        return track_zoo.main(args.json, args.seconds, names)
     if args.benchmark == "locate":
         from quatrack.bench import locate as bench_locate
 
