@@ -216,14 +216,16 @@ def _judge(r, pose, mesh) -> str:
     return "correct" if dt <= 0.05 * mesh.extent and dr <= 5.0 else "wrong"
 
 
-def zoo_models(objects, views=(1, 4), greys=(False, True), progress: bool = False):
+def zoo_models(objects, views=(1, 4), greys=(False, True), progress: bool = False, cache: str | Path | None = None):
     """Train every (object, n_views, grey) of the zoo once, in a temporary directory:
-    ``{(name, n_views, grey): (model, training poses)}``."""
+    ``{(name, n_views, grey): (model, training poses)}``. ``cache``: a directory where trained
+    models are kept (a model store per variant) and reused by later runs."""
     import tempfile
 
     from tqdm import tqdm
 
     from quatrack.viewsets.spec import load_spec
+    from quatrack.viewsets.store import load_model, save_model
     from quatrack.viewsets.train import train_object
 
     from quatrack.testing import zoo as Z
@@ -232,42 +234,73 @@ def zoo_models(objects, views=(1, 4), greys=(False, True), progress: bool = Fals
     jobs = [(o, v, g) for o in objects for v in views for g in greys]
     with tempfile.TemporaryDirectory(prefix="quatrack-zoo-") as tmp:
         for name, v, g in tqdm(jobs, desc="training zoo models", disable=not progress, unit="model"):
-            d = Path(tmp) / f"{name}-{v}-{'grey' if g else 'colour'}"
-            path = Z.write_spec(name, d, v, g, seed=len(out))
-            spec = load_spec(path)
-            out[(name, v, g)] = (train_object(spec), [vw.pose for vw in spec.views])
+            tag = f"{name}-{v}-{'grey' if g else 'colour'}"
+            seed = len(out)
+            poses = Z.training_poses(Z.textured(name), Z.zoo_camera(), v)
+            store = None if cache is None else Path(cache) / f"{tag}-s{seed}"
+            if store is not None and (store / name).is_dir():
+                out[(name, v, g)] = (load_model(store, name), poses)
+                continue
+            spec = load_spec(Z.write_spec(name, Path(tmp) / tag, v, g, seed=seed))
+            model = train_object(spec)
+            if store is not None:
+                save_model(store, model)
+            out[(name, v, g)] = (model, [vw.pose for vw in spec.views])
     return out
 
 
-def zoo(models: dict, scenes_per_model: int, seed: int, progress: bool) -> dict:
-    """Per group: found and correct, found but wrong, not found, time p50/p95; plus scenes with no
-    object (every model searched) and scenes with two objects (``locate_all``)."""
+def zoo_scenes(models: dict, scenes_per_model: int, seed: int, progress: bool = False, bgs=None, rng=None):
+    """The zoo's scenes, deterministic for a seed: per trained model, ``scenes_per_model`` scenes
+    cycling through the out-of-frame shares and the angles from a training view. Yields
+    ``(key, model, scene, row)``, ``row`` describing the scene (object, unit, views, grey,
+    outside, angle from the nearest training view, seed and scene number)."""
     from tqdm import tqdm
-
-    from quatrack.recognition.locate import locate_all
 
     from quatrack.testing import zoo as Z
 
     cam = Z.zoo_camera()
-    bgs = Z.real_backgrounds()
-    rng = np.random.default_rng(seed)
+    bgs = Z.real_backgrounds() if bgs is None else bgs
+    rng = np.random.default_rng(seed) if rng is None else rng
     cv2.setRNGSeed(seed)  # OpenCV's RANSAC and FLANN draw from it
-    rows = []
-    for (name, views, grey), (model, train_poses) in tqdm(models.items(), desc="zoo scenes", disable=not progress, unit="model"):
+    for key, (model, train_poses) in tqdm(models.items(), desc="zoo scenes", disable=not progress, unit="model"):
+        name, views, grey = key
         obj = Z.textured(name)
-        index = index_for(model)
         for k in range(scenes_per_model):
             outside = ZOO_OUTSIDE[k % len(ZOO_OUTSIDE)]
             angle = ZOO_ANGLES[(k // len(ZOO_OUTSIDE) + k) % len(ZOO_ANGLES)]
             base = train_poses[int(rng.integers(len(train_poses)))]
             sc = Z.random_scene(rng, obj, cam, base, bgs, angle, outside, grey)
-            r = locate(sc.image, cam, model, LocateParams(), index=index)
-            rows.append({
+            yield key, model, sc, {
                 "object": name, "unit": obj.obj.unit, "views": views, "grey": grey, "outside": sc.outside,
-                "angle": _nearest_view_angle(sc.pose, train_poses, obj.mesh.centre),
-                "result": _judge(r, sc.pose, model.mesh), "ms": r.time_ms["total"],
-                "confidence": r.confidence, "verification": r.verification, "reason": r.reason, "searched": r.searched,
-            })
+                "angle": _nearest_view_angle(sc.pose, train_poses, obj.mesh.centre), "seed": seed, "scene": k,
+            }
+
+
+def located_row(r, pose, mesh) -> dict:
+    """One locate answer judged against the truth: result, errors (% of the diameter, degrees),
+    time, confidence, the verification's evidence, why not found."""
+    dt, dr = S.pose_errors(r.t, r.q_wxyz, pose, mesh) if r.found else (None, None)
+    return {"result": _judge(r, pose, mesh), "dt_pct": None if dt is None else float(100 * dt / mesh.extent),
+            "dr_deg": None if dr is None else float(dr), "ms": r.time_ms["total"],
+            "pnp_ms": r.time_ms.get("pnp", 0.0), "confidence": r.confidence,
+            "verification": r.verification, "reason": r.reason, "searched": r.searched}
+
+
+def zoo(models: dict, scenes_per_model: int, seed: int, progress: bool, params: LocateParams | None = None) -> dict:
+    """Per group: found and correct, found but wrong, not found, time p50/p95; plus scenes with no
+    object (every model searched) and scenes with two objects (``locate_all``)."""
+    from quatrack.recognition.locate import locate_all
+
+    from quatrack.testing import zoo as Z
+
+    params = params or LocateParams()
+    cam = Z.zoo_camera()
+    bgs = Z.real_backgrounds()
+    rng = np.random.default_rng(seed)
+    rows = []
+    for key, model, sc, row in zoo_scenes(models, scenes_per_model, seed, progress, bgs, rng):
+        r = locate(sc.image, cam, model, params, index=index_for(model))
+        rows.append({**row, **located_row(r, sc.pose, model.mesh)})
     groups = {
         "all": lambda row: True,
         **{f"unit {u}": (lambda u: lambda row: row["unit"] == u)(u) for u in ("mm", "cm", "m")},
@@ -291,6 +324,7 @@ def zoo(models: dict, scenes_per_model: int, seed: int, progress: bool) -> dict:
             "wrong": sum(r["result"] == "wrong" for r in rs) / n,
             "missed": sum(r["result"] == "missed" for r in rs) / n,
             "p50_ms": _pct([r["ms"] for r in rs], 50), "p95_ms": _pct([r["ms"] for r in rs], 95),
+            "pnp_p50_ms": _pct([r["pnp_ms"] for r in rs], 50), "pnp_p95_ms": _pct([r["pnp_ms"] for r in rs], 95),
         }
     # calibration of the confidence on the reported poses
     found = [r for r in rows if r["result"] != "missed"]
@@ -332,7 +366,9 @@ def zoo(models: dict, scenes_per_model: int, seed: int, progress: bool) -> dict:
     return {"groups": table, "calibration": calib,
             "no_object": {"images": 2 * len(bgs[::4]), "models_searched": len(colour1), "false_reports": neg_found,
                           "p50_ms": _pct(neg_ms, 50), "p95_ms": _pct(neg_ms, 95)},
-            "two_objects": two, "rows": rows}
+            "two_objects": two, "rows": rows,
+            "wrong": [{k: r[k] for k in ("object", "views", "grey", "outside", "angle", "seed", "scene", "dt_pct",
+                                         "dr_deg", "confidence", "verification")} for r in rows if r["result"] == "wrong"]}
 
 
 def r_model(models, name):
@@ -344,6 +380,16 @@ def format_zoo(z: dict) -> str:
     for g, t in z["groups"].items():
         lines.append(f"  {g:<24} {t['scenes']:>4} scenes  correct {100 * t['correct']:5.1f} %  wrong {100 * t['wrong']:4.1f} %  "
                      f"not found {100 * t['missed']:5.1f} %  {t['p50_ms']:.0f}/{t['p95_ms']:.0f} ms")
+    lines.append(f"  pnp stage (PnP + verification): p50 {z['groups']['all']['pnp_p50_ms']:.1f} / "
+                 f"p95 {z['groups']['all']['pnp_p95_ms']:.1f} ms")
+    for w in z.get("wrong", []):
+        v = w["verification"] or {}
+        lines.append(f"  wrong: {w['object']} {w['views']} photo{'s' if w['views'] > 1 else ''} "
+                     f"{'grey' if w['grey'] else 'colour'} scene {w['scene']} (seed {w['seed']}): {w['dt_pct']:.1f} % / "
+                     f"{w['dr_deg']:.1f}° off, {100 * w['outside']:.0f} % outside, {w['angle']:.0f}° from a view; "
+                     f"confidence {w['confidence']:.2f}, " + ", ".join(
+                         f"{k} {v[k]}" for k in ("inliers", "inlier_faces", "edge_agreement", "edge_chance", "edge_weakest",
+                                                 "inlier_spread", "sd_ratio", "rival_inliers") if k in v))
     lines.append("  confidence vs share correct: " + ", ".join(
         f"[{c['from']:.2f}, {c['to']:.2f}): {c['poses']} poses, {_share(c['correct'])}" for c in z["calibration"]))
     n = z["no_object"]
@@ -357,12 +403,13 @@ def format_zoo(z: dict) -> str:
     return "\n".join(lines)
 
 
-def main_zoo(objects: list[str] | None, scenes: int, seed: int, as_json: bool) -> int:
+def main_zoo(objects: list[str] | None, scenes: int, seed: int, as_json: bool, cache: str | None = None) -> int:
+    """``cache``: keep the trained models there and reuse them (``zoo_models``)."""
     from quatrack.testing import zoo as Z
 
     t0 = time.perf_counter()
     names = objects or [o.name for o in Z.ZOO]
-    models = zoo_models(names, progress=not as_json)
+    models = zoo_models(names, progress=not as_json, cache=cache)
     z = zoo(models, scenes, seed, progress=not as_json)
     z["wall_s"] = time.perf_counter() - t0
     if as_json:

@@ -43,18 +43,23 @@ def scaled_camera(camera: PinholeCamera, s: float, pad: int = 0) -> PinholeCamer
 def silhouette_inside(mesh: Mesh, camera: PinholeCamera, pose: Pose, scale: float = 0.25) -> tuple[float, float]:
     """(share of the silhouette inside the image, silhouette area inside in image pixels).
 
-    Rendered at ``scale`` in a camera enlarged by one image size on every side, so the part
-    outside is counted too. 0, 0 if the object is behind the camera."""
-    if np.any(pose.apply(mesh.vertices)[:, 2] <= 1e-9):
+    The projected triangles are filled (their union is the silhouette of a closed mesh; no
+    z-buffer is needed for it) at ``scale`` in a canvas enlarged by one image size on every
+    side, so the part outside is counted too. 0, 0 if the object is behind the camera."""
+    V = pose.apply(mesh.vertices)
+    if np.any(V[:, 2] <= 1e-9):
         return 0.0, 0.0
     small = scaled_camera(camera, scale)
     pw, ph = small.width, small.height
-    big = replace(small, cx=small.cx + pw, cy=small.cy + ph, width=3 * pw, height=3 * ph)
-    sil = render(mesh, big, pose).face >= 0
-    total = int(sil.sum())
+    uv = np.clip(small.project(V) + [pw + 0.5, ph + 0.5], -4 * pw, 7 * pw)  # pixel corners, bounded
+    canvas = np.zeros((3 * ph, 3 * pw), np.uint8)
+    tris = np.rint(uv[mesh.faces] * 16.0).astype(np.int32)  # 4 fractional bits
+    for tri in tris:  # one by one: fillPoly would XOR the overlaps of several contours
+        cv2.fillConvexPoly(canvas, tri, 1, lineType=cv2.LINE_8, shift=4)
+    total = int(np.count_nonzero(canvas))
     if total == 0:
         return 0.0, 0.0
-    inside = int(sil[ph : 2 * ph, pw : 2 * pw].sum())
+    inside = int(np.count_nonzero(canvas[ph : 2 * ph, pw : 2 * pw]))
     return inside / total, inside / (scale * scale)
 
 

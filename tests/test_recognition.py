@@ -171,3 +171,65 @@ def test_cli_locate(tmp_path, model, scenes, capsys):
     assert main(["locate", "--object", model.name, "--camera", str(bad_cam), "--store", str(store), str(img)]) == 2
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "fx" in err
+
+
+# -- the evidence's pieces (issue 13) -----------------------------------------------------------------
+
+def _cube_mesh():
+    import trimesh
+
+    from quatrack.viewsets.mesh import make_mesh, outward_faces
+
+    tm = trimesh.creation.box(extents=(2.0, 2.0, 2.0))
+    V = np.asarray(tm.vertices)
+    return make_mesh(V, outward_faces(V, np.asarray(tm.faces)))
+
+
+def test_pose_sd_propagates_the_covariance_to_the_centre_and_the_rotation():
+    from quatrack.recognition.pose import pose_sd, pose_sd_ratio
+
+    c0 = np.array([0.0, 0.0, 1.0])
+    pose = Pose(np.array([1.0, 0.0, 0.0, 0.0]), np.array([0.0, 0.0, 10.0]))
+    cov = np.diag([0.01, 0.04, 0.09, 0.0, 0.0, 0.0])
+    sc, sr = pose_sd(PnPSolution(pose, cov, np.arange(3), 0.1), c0)
+    assert sc == pytest.approx(0.3) and sr == pytest.approx(0.0, abs=1e-9)
+    # a rotation about x moves a centre at R·c₀ = (0, 0, 1) along y by |R·c₀| σ
+    cov = np.diag([0.0, 0.0, 0.0, np.radians(2.0) ** 2, 0.0, 0.0])
+    sc, sr = pose_sd(PnPSolution(pose, cov, np.arange(3), 0.1), c0)
+    assert sc == pytest.approx(np.radians(2.0)) and sr == pytest.approx(2.0)
+    assert pose_sd_ratio(0.05, 1.0, 1.0) == pytest.approx(1.0)  # σ = 5 % of the diameter
+    assert pose_sd_ratio(0.0, 10.0, 1.0) == pytest.approx(2.0)  # σ = 10°
+    bad = PnPSolution(pose, np.full((6, 6), np.nan), np.arange(3), 0.1)
+    assert pose_sd(bad, c0) == (np.inf, np.inf)
+
+
+def test_inlier_faces_counts_differently_oriented_surfaces():
+    from quatrack.recognition.pose import inlier_faces
+
+    mesh = _cube_mesh()
+    N = mesh.face_normals
+    sides = {tuple(np.round(n).astype(int)): np.flatnonzero(np.all(np.isclose(N, n), axis=1)) for n in N}
+    a, b, c = (sides[k] for k in ((1, 0, 0), (0, 1, 0), (0, 0, 1)))
+    assert inlier_faces(np.repeat(a, 10), mesh) == 1  # both triangles of one side: one surface
+    assert inlier_faces(np.r_[np.repeat(a, 10), np.repeat(b, 8)], mesh) == 2
+    assert inlier_faces(np.r_[np.repeat(a, 10), np.repeat(b, 8), np.repeat(c, 6)], mesh) == 3
+    assert inlier_faces(np.r_[np.repeat(a, 40), b[:1], c[:1]], mesh) == 1  # stray inliers do not count
+    assert inlier_faces(np.full(10, -1), mesh) == 0
+
+
+def test_confidence_is_a_probability_monotone_in_the_evidence():
+    from quatrack.recognition.pose import CONFIDENCE_FEATURES, confidence, confidence_features
+
+    base = dict(lead=0.4, agreement=0.75, weakest=0.5, inliers=30, spread=0.3, faces=2, sd_ratio=0.3, rival=3)
+    grid = {"lead": np.linspace(-1, 1, 9), "agreement": np.linspace(0, 1, 9), "weakest": np.linspace(0, 1, 9),
+            "inliers": [1, 6, 12, 30, 100, 1000], "spread": np.linspace(0, 1, 9), "faces": [0, 1, 2, 3, 4],
+            "sd_ratio": [1e-3, 0.1, 0.5, 1.0, 3.0, 100.0], "rival": [0, 3, 10, 30, 100]}
+    falling = {"sd_ratio", "rival"}
+    for name, values in grid.items():
+        c = [confidence(confidence_features(**{**base, name: v})) for v in values]
+        assert all(0.0 <= x <= 1.0 for x in c)
+        d = np.diff(c)
+        assert np.all(d <= 1e-12) if name in falling else np.all(d >= -1e-12), (name, c)
+    assert set(confidence_features(**base)) == set(CONFIDENCE_FEATURES)
+    assert confidence(confidence_features(1.0, 1.0, 1.0, 10_000, 1.0, 3, 1e-9, 0)) <= 1.0
+    assert confidence(confidence_features(-1.0, 0.0, 0.0, 1, 0.0, 0, 1e9, 10**6)) >= 0.0
