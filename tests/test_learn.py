@@ -41,6 +41,7 @@ from quatrack.recognition.video import Tracker, TrackerParams
 from quatrack.testing import zoo as Z
 from quatrack.testing.scenes import pose_errors
 from quatrack.testing.sequences import clutter_background
+from quatrack.tracking import quaternion as quat
 from quatrack.tracking.pose import Pose
 from quatrack.viewsets import learn as L
 from quatrack.viewsets import store as S
@@ -163,6 +164,25 @@ def test_a_tracker_on_the_learned_model_reinitialises_from_an_unseen_side(cube, 
     assert step.status == "init" and step.reason == "recognition"
     assert _correct(step.t, step.q_wxyz, truth, merged.mesh)
     assert not Tracker(cube.model, cube.cam, TrackerParams()).step(img, 0.0).has_pose
+
+
+def test_a_walk_may_start_from_a_given_pose_on_a_side_no_photo_shows(cube):
+    """SIFT anchors nothing there: the tracker starts on corners born on the mesh at the user's
+    pose once the model's edges confirm it, follows the walk and learns; a pose 10° off is refused."""
+    ks = range(36, 52)  # 134° → 167°, faces the photo never showed
+    p0 = cube.poses[ks[0]]
+    tracker = Tracker(cube.model, cube.cam, TrackerParams(learn=True))
+    tracker.init_pose(p0.t, p0.q_wxyz)
+    steps = [tracker.step(cube.frames[k], i / FPS) for i, k in enumerate(ks)]
+    assert steps[0].status == "init" and "born on the mesh" in steps[0].reason
+    assert all(s.status == "tracking" for s in steps[1:]), [(s.frame, s.reason) for s in steps if not s.has_pose][:3]
+    err = np.array([pose_errors(s.t, s.q_wxyz, cube.poses[k], cube.model.mesh) for s, k in zip(steps, ks)])
+    assert err[:, 0].max() < 0.02 * cube.model.mesh.extent and err[:, 1].max() < 2.0
+    assert len(tracker.learned_viewsets()) >= 1
+    turned = Pose(quat.multiply(quat.from_rotvec(np.radians([0.0, 0.0, 10.0])), p0.q_wxyz), p0.t)
+    wrong = Tracker(cube.model, cube.cam, TrackerParams())
+    wrong.init_pose(turned.t, turned.q_wxyz)
+    assert not wrong.step(cube.frames[ks[0]], 0.0).has_pose
 
 
 # -- the store ------------------------------------------------------------------------------------

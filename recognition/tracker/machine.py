@@ -223,6 +223,9 @@ class Tracker:
         tracks, _, _ = self._anchors().now(img, self.camera, prior.pose, Tracks.empty(), wide=True)
         timings["replenish"] = _ms(t0)
         if len(tracks) < self.params.min_inliers:
+            if how == "given pose" and self._start_on_mesh(img, frame, prior, tracks):
+                return self._pose_step(time_s, "init", len(self.mesh_points), reason="given pose: no trained view "
+                                       "shows this side; points born on the mesh, confirmed by its edges")
             return self._lost(time_s, f"{how}: only {len(tracks)} model points matched near the pose")
         t0 = time.perf_counter()
         block = PointBlock.isotropic(self.trained.name, tracks, self.params.sigma_px)
@@ -235,6 +238,25 @@ class Tracker:
         if self.mesh_points in self.sources:  # the first corners on the mesh, at the refined pose
             self.mesh_points.spawn(FrameContext(img, frame, None, self.camera, prior), self.filter.state)
         return self._pose_step(time_s, "init", int(inl.sum()), reason=how)
+
+    def _start_on_mesh(self, img: np.ndarray, frame: Frame, prior, tracks: Tracks) -> bool:
+        """A user's pose on a side no trained view shows (SIFT anchors nothing there): start on
+        corners born on the mesh at that pose, if at least ``min_inliers`` are born and the
+        model's edges at the pose lie on the image's edges (:func:`recognition.evidence.edge_agreement`,
+        the test a track carried by mesh points passes, :meth:`_carried`); a wrong pose fails it."""
+        if self.mesh_points not in self.sources or self.edges not in self.sources:
+            return False
+        pp = PoseParams()
+        ev = edge_agreement(frame.gray, self.model.mesh, self.camera, prior.pose, pp.edges)
+        if not (ev.samples >= pp.min_edge_samples and ev.agreement >= pp.min_edge_agreement and ev.lead >= pp.min_edge_lead):
+            return False
+        n = self.mesh_points.spawn(FrameContext(img, frame, None, self.camera, prior), self.filter.state)
+        if n < self.params.min_inliers:
+            self.mesh_points.reset()
+            return False
+        self.trained.tracks = tracks
+        self._since_refresh = 0
+        return True
 
     def _track(self, img: np.ndarray, frame: Frame, time_s: float, timings: dict) -> TrackStep:
         """*tracking*: predict → measure (every source) → adjust → settle → re-anchor."""
