@@ -200,9 +200,11 @@ def _turned_about_centre(pose, centre, rotvec, shift=np.zeros(3)):
 
 
 def test_a_pose_carried_by_one_face_and_wrong_is_refused(cube, bgs):
-    """Inliers on one face only, fitting (with a real keypoint's noise) a pose 12 % of the
-    diameter further away and turned 8° about an axis in that face: one face hardly fixes depth
-    and tilt, so PnP accepts it; the other faces' edges and the pose's spread refuse it."""
+    """25 inliers on one face only (the zoo's wrong poses had 12–36), fitting with a real
+    keypoint's noise a pose 12 % of the diameter further away and turned 8° about an axis in
+    that face: one face fixes depth and tilt weakly, PnP accepts the pose and half the model's
+    edges agree with the image; its covariance, wide against the 5 %/5° criterion for a pose
+    carried by one face, refuses it."""
     model, spec = cube
     mesh = model.mesh
     sc = _scene("cube-m", spec, bgs, 11, angle=5.0)
@@ -212,15 +214,16 @@ def test_a_pose_carried_by_one_face_and_wrong_is_refused(cube, bgs):
     facing = n_cam[:, 2] < -0.3
     labels = np.round(m.normals).astype(int)
     keys, counts = np.unique(labels[facing], axis=0, return_counts=True)
-    face = np.all(labels == keys[np.argmax(counts)], axis=1) & facing
-    assert face.sum() >= 20
+    on_face = np.flatnonzero(np.all(labels == keys[np.argmax(counts)], axis=1) & facing)
+    assert len(on_face) >= 25
+    rng = np.random.default_rng(0)
+    face = np.sort(rng.choice(on_face, 25, replace=False))
     Xf = X[face]
-    n_face = (sc.pose.R @ keys[np.argmax(counts)].astype(float))
+    n_face = sc.pose.R @ keys[np.argmax(counts)].astype(float)
     axis = np.cross(n_face, [0.0, 0.0, 1.0])
     axis /= np.linalg.norm(axis)
     c = sc.pose.R @ mesh.centre + sc.pose.t
     wrong = _turned_about_centre(sc.pose, mesh.centre, axis * np.radians(8.0), 0.12 * mesh.extent * c / np.linalg.norm(c))
-    rng = np.random.default_rng(0)
     fake_uv = CAM.project(wrong.apply(Xf)) + rng.normal(0.0, 0.7, (len(Xf), 2))
     prior = (spec.views[0].pose.R, spec.views[0].pose.t, mesh.centre)  # as locate: one plane has a mirror pose
     est = solve_pnp(CAM, Xf, fake_uv, PoseParams(), prior)
@@ -229,9 +232,10 @@ def test_a_pose_carried_by_one_face_and_wrong_is_refused(cube, bgs):
     assert dt > 0.05 * mesh.extent or dr > 5.0  # it is wrong, and geometry cannot tell:
     assert verify(est, len(Xf), CAM, mesh, None, PoseParams(), m.points3d[face], m.normals[face]) is None
     ver = verification(est, grey, CAM, mesh, fake_uv)
-    assert not ver.passed and ver.confidence <= 0.5, ver
-    assert ver.faces == 1 and ver.edges.weakest < 0.3  # a true edge missing from the image
-    # the true pose from the same face's real keypoints passes
+    assert ver.faces == 1 and ver.edges.agreement >= PoseParams().min_edge_agreement  # the edges half agree …
+    assert not ver.passed and ver.confidence <= 0.5, ver  # … the evidence as a whole refuses it
+    assert ver.sd_ratio > PoseParams().max_sd_ratio_one_face
+    # the same face's real keypoints give the right pose, with more confidence
     right = solve_pnp(CAM, Xf, uv[face], PoseParams(), prior)
     assert right is not None and _correct(_Answer(right.t, right.q), sc.pose, mesh)
     ok = verification(right, grey, CAM, mesh, uv[face])
