@@ -132,12 +132,17 @@ def figures(run: Run, visible: np.ndarray, diameter: float) -> dict:
     first = int(np.argmax(has)) if has.any() else None
     bad = has & ((t > TARGETS["bad_pct"]) | (r > TARGETS["bad_deg"]))
     ok_e = e[track & np.isfinite(e)]
+    after = np.flatnonzero(~has & (np.arange(len(st)) > (first if first is not None else len(st))))
+    first_lost = int(after[0]) if len(after) else None
     return {
         "frames": int(len(st)),
         "lost": int((~has).sum()),
         "lost_visible": int((~has & (visible >= TARGETS["visible"])).sum()),
         "inits": int((st == "init").sum()),
         "first_pose": first,
+        "first_lost": first_lost,
+        "first_lost_reason": run.reasons[first_lost] if first_lost is not None and run.reasons else None,
+        "first_lost_visible": float(visible[first_lost]) if first_lost is not None else None,
         "pose_share_pct": 100.0 * float(has.mean()) if len(st) else 0.0,
         "t_mean_pct": float(np.mean(t[has])) if has.any() else None,
         "t_max_pct": float(np.max(t[has])) if has.any() else None,
