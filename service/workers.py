@@ -5,9 +5,11 @@ The parent binds the socket once and starts N workers; the kernel hands each new
 one of them, and a WebSocket session lives and dies with its connection, so the connection *is*
 the session's affinity — no routing, no shared tracker state. Each worker loads the models itself
 (read-only, ≈ a few MB per object) and runs tracking in its own thread pool, off its event loop;
-uvicorn restarts a worker that dies. A process pool behind one event loop would have to ship every
-frame and each session's tracker state between processes; processes that own their sessions ship
-nothing.
+uvicorn restarts a worker that dies. A process pool behind one event loop has to ship every
+frame between processes and keeps each session's tracker in a process the session does not own;
+processes that own their sessions ship nothing. Measured against a prototype of that model
+(``bench/serve_pool.py``, ``quatrack bench serve --workers 1,2,p2``), the pool processed fewer
+frames and its /healthz waited for a core just the same under load.
 
 What the workers share lives in one *run directory* (``Settings.run_dir``), wiped at start:
 
