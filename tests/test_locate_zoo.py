@@ -200,13 +200,14 @@ def _turned_about_centre(pose, centre, rotvec, shift=np.zeros(3)):
 
 
 def test_a_pose_carried_by_one_face_and_wrong_is_refused(cube, bgs):
-    """25 inliers on one face only (the zoo's wrong poses had 12–36), fitting with a real
-    keypoint's noise a pose 12 % of the diameter further away and turned 8° about an axis in
+    """20 inliers on one face only (the zoo's wrong poses had 12–36, median 16), fitting with a
+    real keypoint's noise (1 px) a pose 12 % of the diameter further away and turned 8° about an axis in
     that face: one face fixes depth and tilt weakly, PnP accepts the pose and half the model's
     edges agree with the image; its covariance, wide against the 5 %/5° criterion for a pose
     carried by one face, refuses it."""
     model, spec = cube
     mesh = model.mesh
+    cv2.setRNGSeed(0)  # FLANN's trees: the same matches whatever ran before
     sc = _scene("cube-m", spec, bgs, 11, angle=5.0)
     grey = cv2.cvtColor(sc.image, cv2.COLOR_BGR2GRAY)
     X, uv, m = _matches(model, sc.image)
@@ -215,16 +216,16 @@ def test_a_pose_carried_by_one_face_and_wrong_is_refused(cube, bgs):
     labels = np.round(m.normals).astype(int)
     keys, counts = np.unique(labels[facing], axis=0, return_counts=True)
     on_face = np.flatnonzero(np.all(labels == keys[np.argmax(counts)], axis=1) & facing)
-    assert len(on_face) >= 25
+    assert len(on_face) >= 20
     rng = np.random.default_rng(0)
-    face = np.sort(rng.choice(on_face, 25, replace=False))
+    face = np.sort(rng.choice(on_face, 20, replace=False))
     Xf = X[face]
     n_face = sc.pose.R @ keys[np.argmax(counts)].astype(float)
     axis = np.cross(n_face, [0.0, 0.0, 1.0])
     axis /= np.linalg.norm(axis)
     c = sc.pose.R @ mesh.centre + sc.pose.t
     wrong = _turned_about_centre(sc.pose, mesh.centre, axis * np.radians(8.0), 0.12 * mesh.extent * c / np.linalg.norm(c))
-    fake_uv = CAM.project(wrong.apply(Xf)) + rng.normal(0.0, 0.7, (len(Xf), 2))
+    fake_uv = CAM.project(wrong.apply(Xf)) + rng.normal(0.0, 1.0, (len(Xf), 2))
     prior = (spec.views[0].pose.R, spec.views[0].pose.t, mesh.centre)  # as locate: one plane has a mirror pose
     est = solve_pnp(CAM, Xf, fake_uv, PoseParams(), prior)
     assert est is not None and len(est.inliers) >= 0.9 * len(Xf)
