@@ -68,8 +68,8 @@ class PoseParams:
     # spans the criterion cannot be told right; one carried by a single face (weak in depth
     # and out-of-plane rotation) must be tighter.
     max_sd_ratio: float = 1.0
-    # seeds 1+2 (234 right, 6 wrong poses passing the edge rules): 1.0/1.0 keeps 234/6,
-    # 1.0/0.5 223/4, 1.0/0.3 212/2, 0.4/0.2 186/0 (bench/RESULTS.md)
+    # seeds 1+2, poses passing the edge rules (244 right, 9 wrong): 1.0/1.0 keeps 235/7,
+    # 1.0/0.5 224/5, 1.0/0.3 213/2, 0.4/0.2 187/0 (bench/RESULTS.md)
     max_sd_ratio_one_face: float = 0.3
     face_crease_deg: float = 30.0  # inlier surfaces turning by more than this are other faces
     min_face_share: float = 0.1  # … and count when they hold this share (and ≥ 3) of the inliers
