@@ -14,11 +14,12 @@ lock it needs is never held by tracking. The session logic is the product's own
 from __future__ import annotations
 
 import argparse
-import asyncio
 import itertools
 import os
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 from types import SimpleNamespace
+
+from quatrack.testing.loopback import Loopback, free_port
 
 _WORKER: SimpleNamespace | None = None  # the pool process's state (set by its initializer)
 
@@ -115,23 +116,13 @@ if __name__ == "__main__":
     raise SystemExit(main())
 
 
-class PoolServer:
+class PoolServer(Loopback):
     """This prototype in a child process on a loopback port, for ``quatrack bench serve --workers pN``."""
 
     def __init__(self, store, procs: int, env: dict | None = None) -> None:
-        from quatrack.testing.loopback import free_port
-
         self.store, self.procs, self.env = store, procs, dict(env or {})
         self.port = free_port()
         self.proc = None
-
-    @property
-    def url(self) -> str:
-        return f"http://127.0.0.1:{self.port}"
-
-    @property
-    def ws_url(self) -> str:
-        return f"ws://127.0.0.1:{self.port}"
 
     def pids(self) -> list[int]:
         """The event loop process, then its pool processes (its children, from /proc)."""

@@ -30,7 +30,7 @@ settings.register_profile("explore", deadline=None, print_blob=True, max_example
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE") or ("ci" if os.environ.get("CI") else "dev"))
 
 
-# --- helpers shared by the tests of real servers (test_workers.py, test_deploy.py) ----------------
+# --- helpers shared by the tests of real servers (test_workers, test_deploy, test_service_ws, test_service_models)
 # plain functions, imported with ``from conftest import ...`` (pytest puts tests/ on the path)
 
 def metric_samples(text: str) -> dict:
@@ -69,3 +69,16 @@ def box_frames_jpeg(n: int) -> list[bytes]:
         out.append(cv2.imencode(".jpg", img)[1].tobytes())
     cap.release()
     return out
+
+
+def wait_until(pred, timeout: float = 60.0) -> bool:
+    """Poll ``pred()`` every 50 ms until it is true (True) or ``timeout`` s pass (False): a bound
+    on how long a busy machine may take, not a speed requirement."""
+    import time
+
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if pred():
+            return True
+        time.sleep(0.05)
+    return False

@@ -7,7 +7,6 @@ import dataclasses
 import json
 import logging
 import shutil
-import time
 
 import httpx
 import numpy as np
@@ -22,6 +21,7 @@ from quatrack.service.settings import Settings
 from quatrack.viewsets import store as store_mod
 from quatrack.viewsets.mesh import Mesh
 from quatrack.viewsets.store import load_model, save_model
+from conftest import wait_until
 from test_service_http import CAMERA, jpeg, video_frames
 
 CAM_ACK = json.dumps({**CAMERA, "ack": True})
@@ -57,15 +57,6 @@ def first_pose(srv, name, frame, **kw) -> dict:
         ws.send(json.dumps(CAMERA))
         ws.send(frame)
         return json.loads(ws.recv(timeout=60))
-
-
-def wait_until(pred, timeout=20.0) -> bool:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if pred():
-            return True
-        time.sleep(0.05)
-    return False
 
 
 def test_a_corrupt_model_is_that_objects_error(tmp_path, frames):

@@ -7,7 +7,6 @@ import json
 import logging
 import socket
 import threading
-import time
 from pathlib import Path
 
 import httpx
@@ -19,6 +18,7 @@ from websockets.sync.client import connect
 from quatrack.testing.scenes import example_store
 from quatrack.service.server import BackgroundServer
 from quatrack.service.settings import Settings
+from conftest import wait_until
 from test_service_http import CAMERA, jpeg, video_frames
 
 CAM_TEXT = json.dumps(CAMERA)
@@ -74,15 +74,6 @@ def metric(srv, name: str, token: str | None = None) -> float:
         if line.startswith(name + " "):
             return float(line.split()[1])
     return 0.0
-
-
-def wait_until(pred, timeout=60.0) -> bool:  # a bound, not a speed requirement
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if pred():
-            return True
-        time.sleep(0.05)
-    return False
 
 
 def check_pose_message(m: dict) -> None:
