@@ -147,18 +147,10 @@ def _refine_fast(camera: PinholeCamera, X: np.ndarray, uv: np.ndarray, t: np.nda
     return t2, q2
 
 
-def viewing_direction(R: np.ndarray, t: np.ndarray, centre: np.ndarray) -> np.ndarray:
-    """Unit vector, in the object frame, from the object's centre towards the camera. Unlike the
-    rotation it ignores the camera's roll, to which SIFT is blind."""
-    d = -R.T @ (R @ centre + t)
-    return d / np.linalg.norm(d)
-
-
 def view_angle_deg(R: np.ndarray, t: np.ndarray, reference_R: np.ndarray, reference_t: np.ndarray, centre: np.ndarray) -> float:
-    """Angle between the directions the object is seen from in two poses."""
-    a = viewing_direction(R, t, centre)
-    b = viewing_direction(reference_R, reference_t, centre)
-    return float(np.degrees(np.arccos(np.clip(a @ b, -1.0, 1.0))))
+    """Angle (degrees) between the directions the object is seen from in two poses
+    (:meth:`Pose.view_angle <quatrack.tracking.pose.Pose.view_angle>`)."""
+    return float(np.degrees(Pose.from_matrix(R, t).view_angle(Pose.from_matrix(reference_R, reference_t), centre)))
 
 
 def _mirror_candidates(camera: PinholeCamera, X: np.ndarray, uv: np.ndarray):

@@ -335,7 +335,7 @@ def test_ctrl_c_while_storing_leaves_the_model_whole(cube, run, tmp_path, monkey
 # -- the service ----------------------------------------------------------------------------------
 
 def _azimuth_deg(vs, centre) -> float:
-    d = L.viewing_direction(vs.pose, centre)
+    d = vs.pose.viewing_direction(centre)
     return float(np.degrees(np.arctan2(d[1], d[0])) % 360.0)
 
 

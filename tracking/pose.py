@@ -124,6 +124,23 @@ class Pose:
         """Camera → object: ``q̄`` and ``−Rᵀ t``."""
         return Pose(quat.conjugate(self.q_wxyz), -self.R.T @ self.t)
 
+    def viewing_direction(self, point: Any) -> np.ndarray:
+        """Unit vector, in the object frame, from ``point`` (object frame) towards the camera:
+        ``d = −Rᵀ(R x + t) / ‖·‖`` (the camera centre is ``−Rᵀ t``). The direction a view sees
+        the object from; unlike the rotation it ignores the camera's roll, to which SIFT is blind.
+
+        >>> in_front = Pose.from_rvec([0.0, 0.0, 0.0], [0.0, 0.0, 5.0])  # 5 units ahead, unturned
+        >>> bool(np.allclose(in_front.viewing_direction([0.0, 0.0, 0.0]), [0.0, 0.0, -1.0]))
+        True
+        """
+        d = -self.R.T @ self.apply(np.asarray(point, float))
+        return d / np.linalg.norm(d)
+
+    def view_angle(self, other: "Pose", point: Any) -> float:
+        """Angle (radians) between the directions ``self`` and ``other`` see ``point`` from."""
+        c = float(self.viewing_direction(point) @ other.viewing_direction(point))
+        return float(np.arccos(np.clip(c, -1.0, 1.0)))
+
     # -- comparison --------------------------------------------------------------------------
     def distance(self, other: "Pose") -> tuple[float, float]:
         """``(‖t − t_o‖, angle between the rotations in radians)``: the error measures of the

@@ -59,19 +59,12 @@ MIN_ANGLE_DEG = 25.0  # a learned view sees the object from at least this far fr
 MIN_COS = 0.4  # learned points: the ray meets the face within ~66° of its normal
 
 
-def viewing_direction(pose: Pose, centre: np.ndarray) -> np.ndarray:
-    """Unit vector, in the object frame, from the object's ``centre`` towards the camera:
-    ``d = −Rᵀ(R c + t) / ‖·‖``. Unlike the rotation it ignores the camera's roll."""
-    d = -pose.R.T @ (pose.R @ np.asarray(centre, float) + pose.t)
-    return d / np.linalg.norm(d)
-
-
 def view_angles_deg(pose: Pose, centre: np.ndarray, viewsets: list[Viewset]) -> np.ndarray:
     """Angle (degrees) between the direction ``pose`` sees the object from and each viewset's."""
     if not viewsets:
         return np.zeros(0)
-    a = viewing_direction(pose, centre)
-    b = np.array([viewing_direction(vs.pose, centre) for vs in viewsets])
+    a = pose.viewing_direction(centre)
+    b = np.array([vs.pose.viewing_direction(centre) for vs in viewsets])
     return np.degrees(np.arccos(np.clip(b @ a, -1.0, 1.0)))
 
 
@@ -246,5 +239,5 @@ def same_mesh(a: Mesh, b: Mesh) -> bool:
         and np.allclose(a.vertices, b.vertices, rtol=0, atol=1e-9 * max(a.extent, 1e-12)) and np.array_equal(a.faces, b.faces)
 
 
-__all__ = ["MAX_LEARNED", "MIN_ANGLE_DEG", "MIN_COS", "viewing_direction", "view_angles_deg", "is_new_direction",
+__all__ = ["MAX_LEARNED", "MIN_ANGLE_DEG", "MIN_COS", "view_angles_deg", "is_new_direction",
            "learned_viewset", "with_learned", "merge_learned", "save_learned", "store_lock", "same_mesh"]
