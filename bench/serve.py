@@ -152,8 +152,13 @@ def main(args: argparse.Namespace) -> int:
     from quatrack.client import video_frames
     from quatrack.viewsets.camera import camera_to_dict, load_camera
 
+    from quatrack.examples import example_dir
     from quatrack.testing.balancer import find_nginx
 
+    example = example_dir()  # defaults that do not depend on the working directory
+    args.video = args.video or str(example / "box.mp4")
+    args.camera = args.camera or str(example / "camera.json")
+    args.spec = args.spec or str(example / "object.json")
     cores = os.cpu_count() or 1
     try:
         counts = [int(x) for x in args.clients.split(",") if x.strip()]

@@ -151,7 +151,7 @@ def study(seconds: float = 10.0, fps: float = 30.0, models=MODELS, rates=RATES, 
     from quatrack.recognition.video import Tracker, TrackerParams
     from quatrack.viewsets.camera import load_camera
 
-    from .scenes import video_backgrounds
+    from quatrack.testing.scenes import video_backgrounds
 
     t0 = time.perf_counter()
     model = example_model()

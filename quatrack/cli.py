@@ -84,9 +84,9 @@ def _add_bench(parser: argparse.ArgumentParser) -> None:
     )
     serve.add_argument("--store", metavar="DIR", help="model store with the object (default: train the example into a temp store)")
     serve.add_argument("--object", default="cookie-box", metavar="NAME")
-    serve.add_argument("--video", default="examples/cookie-box/box.mp4")
-    serve.add_argument("--camera", default="examples/cookie-box/camera.json")
-    serve.add_argument("--spec", default="examples/cookie-box/object.json", help="spec trained when no --store is given")
+    serve.add_argument("--video", help="video streamed by every client (default: the bundled box.mp4)")
+    serve.add_argument("--camera", help="its camera JSON (default: the bundled example's)")
+    serve.add_argument("--spec", help="spec trained when no --store is given (default: the bundled example's)")
     serve.add_argument("--clients", default="1,2,4,8,16", help="numbers of concurrent streams (default 1,2,4,8,16)")
     serve.add_argument("--workers", default=None, metavar="N,...",
                        help="worker-process counts to compare (default 1 and the number of cores)")

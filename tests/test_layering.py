@@ -64,3 +64,21 @@ def test_the_check_sees_a_leak(tmp_path: Path) -> None:
     leak.write_text("from quatrack.service.app import create_app\nfrom ..recognition import locate\n")
     found = [m for m in _imports(leak, "quatrack.viewsets") if (_rank(m) or 0) > 1]
     assert found == ["quatrack.service.app", "quatrack.recognition"]
+
+
+@pytest.mark.parametrize("path, package, rank", list(_modules()))
+def test_every_quatrack_import_resolves(path: Path, package: str, rank: int) -> None:
+    """Imports inside functions run only when that path runs (a benchmark, a rare error): a
+    module moved or renamed must not leave one behind that fails there, long after the tests."""
+    import importlib.util
+
+    missing = []
+    for name in _imports(path, package):
+        if name.startswith("quatrack"):
+            try:
+                found = importlib.util.find_spec(name) is not None
+            except ModuleNotFoundError:
+                found = False
+            if not found:
+                missing.append(name)
+    assert not missing, f"{path.relative_to(ROOT)} imports modules that do not exist: {missing}"
