@@ -50,7 +50,7 @@ def limit_blas_threads(threads: int = 1) -> bool:
     each across every core, whose threads then wait for each other. Measured on the 2-core
     machine with other jobs running (load 7): 1.7 ms per product with two threads, 0.14 ms with
     one, which made the window search 5× slower; the quiet machine's localisation went from
-    ≈ 26 to ≈ 12 ms (bench/RESULTS.md, "Speed (issue 13)"). OpenCV and the service's workers use
+    ≈ 26 to ≈ 17 ms p50 with the other speed work (quiet reruns in bench/RESULTS.md). OpenCV and the service's workers use
     the cores instead.
 
     Libraries already loaded are limited now (threadpoolctl); ``OPENBLAS_NUM_THREADS`` is set
