@@ -66,24 +66,36 @@ def pixel_rays(camera: PinholeCamera) -> np.ndarray:
     return _pixel_rays_cached(key)
 
 
-def _pixel_bbox(camera: PinholeCamera, tri_cam: np.ndarray, w: int, h: int):
-    """Pixel bounding box of a triangle (edges sampled, so distortion's bending is covered)."""
+def _pixel_bboxes(camera: PinholeCamera, tris: np.ndarray, w: int, h: int) -> np.ndarray:
+    """Pixel bounding boxes ``(m, 4)`` ``[x0, y0, x1, y1]`` (inclusive, clipped to the image; empty
+    when ``x0 > x1`` or ``y0 > y1``) of camera-frame triangles ``(m, 3, 3)``, one pixel of margin.
+    With distortion the edges are sampled (9 points each), so their bending is covered."""
     if camera.has_distortion:
-        s = np.linspace(0.0, 1.0, 9)[:, None]
-        pts = np.concatenate([tri_cam[a] * (1 - s) + tri_cam[b] * s for a, b in ((0, 1), (1, 2), (2, 0))])
+        s = np.linspace(0.0, 1.0, 9)[None, :, None]
+        pts = np.concatenate([tris[:, a, None] * (1 - s) + tris[:, b, None] * s for a, b in ((0, 1), (1, 2), (2, 0))], axis=1)
     else:
-        pts = tri_cam
-    uv = camera.project(pts)
-    x0, y0 = np.floor(uv.min(axis=0)) - 1
-    x1, y1 = np.ceil(uv.max(axis=0)) + 1
-    return max(int(x0), 0), max(int(y0), 0), min(int(x1), w - 1), min(int(y1), h - 1)
+        pts = tris
+    uv = camera.project(pts.reshape(-1, 3)).reshape(len(tris), -1, 2)
+    lo = np.floor(uv.min(axis=1)) - 1
+    hi = np.ceil(uv.max(axis=1)) + 1
+    x0, y0 = np.clip(lo[:, 0], 0, w), np.clip(lo[:, 1], 0, h)
+    x1, y1 = np.clip(hi[:, 0], -1, w - 1), np.clip(hi[:, 1], -1, h - 1)
+    return np.column_stack([x0, y0, x1, y1]).astype(np.int64)
 
 
 def render(mesh: Mesh, camera: PinholeCamera, pose: Pose) -> RenderBuffers:
-    """Z-buffer rendering of the mesh: exact ray/plane depth per pixel, nearest triangle wins.
+    """Z-buffer rendering of the mesh: exact ray/plane depth per pixel, nearest triangle wins
+    (ties: the lower triangle index).
 
-    Triangles with a corner at or behind the camera plane are skipped (callers check that the
-    object lies in front of the camera).
+    A pixel is inside a triangle when the three edge functions ``(b − a) × (r − a)`` of the
+    triangle's normalised corners agree in sign at the pixel's undistorted ray ``r = (x, y)``;
+    its depth is the ray/plane intersection ``z = (n·V₀) / (n·(x, y, 1))``. Each triangle is
+    tested over its pixel bounding box. The bounding boxes and normalised corners of all
+    triangles are computed at once, and without distortion ``x`` depends on the column only and
+    ``y`` on the row only, so the per-pixel terms are a row times a column (numpy broadcasting):
+    the same arithmetic per pixel, a fraction of the per-triangle cost (the tracker renders a
+    z-buffer every frame). Triangles with a corner at or behind the camera plane are skipped
+    (callers check that the object lies in front of the camera).
     """
     w, h = int(camera.width), int(camera.height)
     rays = pixel_rays(camera)
@@ -92,30 +104,34 @@ def render(mesh: Mesh, camera: PinholeCamera, pose: Pose) -> RenderBuffers:
     tris = pose.apply(mesh.vertices)[mesh.faces]  # (m, 3, 3) camera frame
     normals = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
     offsets = np.einsum("ij,ij->i", normals, tris[:, 0])
-    for i in range(len(tris)):
-        tri = tris[i]
-        if np.any(tri[:, 2] <= _NEAR) or offsets[i] == 0.0:
-            continue  # behind the camera, or seen exactly edge-on
-        x0, y0, x1, y1 = _pixel_bbox(camera, tri, w, h)
+    ids = np.flatnonzero(np.all(tris[:, :, 2] > _NEAR, axis=1) & (offsets != 0.0))  # else behind, or edge-on
+    if not len(ids):
+        return RenderBuffers(depth, face)
+    boxes = _pixel_bboxes(camera, tris[ids], w, h).tolist()
+    corners = (tris[ids, :, :2] / tris[ids, :, 2:3]).tolist()  # normalised corners (x, y)
+    separable = not camera.has_distortion
+    if separable:
+        rx_row, ry_col = rays[0, :, 0][None, :], rays[:, 0, 1][:, None]
+    for i, (x0, y0, x1, y1), p in zip(ids.tolist(), boxes, corners):
         if x0 > x1 or y0 > y1:
             continue
-        p = tri[:, :2] / tri[:, 2:3]
-        r = rays[y0 : y1 + 1, x0 : x1 + 1]
-        rx, ry = r[..., 0], r[..., 1]
-        e = []
-        for a, b in ((0, 1), (1, 2), (2, 0)):
-            e.append((p[b, 0] - p[a, 0]) * (ry - p[a, 1]) - (p[b, 1] - p[a, 1]) * (rx - p[a, 0]))
-        inside = ((e[0] >= 0) & (e[1] >= 0) & (e[2] >= 0)) | ((e[0] <= 0) & (e[1] <= 0) & (e[2] <= 0))
-        if not np.any(inside):
-            continue
+        if separable:
+            rx, ry = rx_row[:, x0 : x1 + 1], ry_col[y0 : y1 + 1]
+        else:
+            r = rays[y0 : y1 + 1, x0 : x1 + 1]
+            rx, ry = r[..., 0], r[..., 1]
+        e0 = (p[1][0] - p[0][0]) * (ry - p[0][1]) - (p[1][1] - p[0][1]) * (rx - p[0][0])
+        e1 = (p[2][0] - p[1][0]) * (ry - p[1][1]) - (p[2][1] - p[1][1]) * (rx - p[1][0])
+        e2 = (p[0][0] - p[2][0]) * (ry - p[2][1]) - (p[0][1] - p[2][1]) * (rx - p[2][0])
+        lo, hi = np.minimum(np.minimum(e0, e1), e2), np.maximum(np.maximum(e0, e1), e2)
+        inside = (lo >= 0) | (hi <= 0)  # all three of one sign (or on an edge)
         n = normals[i]
-        denom = n[0] * rx + n[1] * ry + n[2]
         with np.errstate(divide="ignore", invalid="ignore"):
-            z = offsets[i] / denom
+            z = offsets[i] / (n[0] * rx + n[1] * ry + n[2])
         dsub = depth[y0 : y1 + 1, x0 : x1 + 1]
         closer = inside & (z > _NEAR) & (z < dsub)
-        dsub[closer] = z[closer]
-        face[y0 : y1 + 1, x0 : x1 + 1][closer] = i
+        np.copyto(dsub, z, where=closer)
+        np.copyto(face[y0 : y1 + 1, x0 : x1 + 1], i, where=closer)
     return RenderBuffers(depth, face)
 
 
