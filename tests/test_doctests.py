@@ -13,7 +13,8 @@ import pytest
 import quatrack
 
 # The product's layers; bench/ is a command, not a library, and is left out.
-PACKAGES = ["quatrack", "quatrack.tracking", "quatrack.viewsets", "quatrack.recognition", "quatrack.service",
+PACKAGES = ["quatrack", "quatrack.tracking", "quatrack.viewsets", "quatrack.recognition", "quatrack.recognition.tracker",
+            "quatrack.service",
             "quatrack.examples"]
 
 

@@ -5,7 +5,10 @@ States and transitions (Kragic & Kyrki's Fig. 1 loop):
 - **init** (no filter state): the user's pose (:meth:`Tracker.init_pose`) or recognition
   (:func:`recognition.locate.locate`) starts the filter with unknown velocities; SIFT anchors
   model points near that pose and one adjustment checks them → *tracking*, or stays *init*
-  (the step answers ``lost``) when they do not agree.
+  (the step answers ``lost``) when they do not agree. When recognition on the model finds
+  nothing, the whole frame is searched against this run's keyframes (:mod:`.keyframes`): a side
+  the tracker followed earlier but no trained view shows is found again; with no trained point
+  near such a pose, the track starts on corners born on the mesh once the edges confirm it.
 - **tracking**: each frame is *predict → measure → adjust*: the motion model gives the prior;
   every source (:mod:`.sources`) measures its tracks in the frame (KLT from the previous frame,
   starting from the projections at the prediction; gated by ``rᵀ(J P Jᵀ + C)⁻¹r < χ²``); one
@@ -13,6 +16,9 @@ States and transitions (Kragic & Kyrki's Fig. 1 loop):
   still off after it are outliers, removed and the adjustment redone. Re-anchoring
   (:mod:`.anchor`) refreshes the trained points every ``refresh_every`` frames or when they
   thin out, in the step or on the caller's executor.
+- **keyframes** (not a state: a side job of *tracking*): when the pose is confident, the
+  frame's SIFT keypoints on the visible faces, lifted onto the mesh, are remembered for the run,
+  one per viewing direction (:mod:`.keyframes`), for *init* after a loss.
 - **learning** (``params.learn``, not a state: a side job of *tracking*): when the pose is
   confident, the frame's SIFT keypoints on the visible faces, lifted onto the mesh at the pose,
   become a *learned viewset* if they see the object from a new direction
@@ -55,6 +61,7 @@ from .anchor import Anchor, AnchorJob
 from .params import INITIAL_VELOCITY_SIGMA, TrackerParams, TrackStep
 from .points import PointBlock, Tracks, mahalanobis2
 from .edges import ModelEdges
+from .keyframes import Keyframe, Keyframes
 from .mesh_points import MeshPoints, birth_mask, confident
 from .sources import FrameContext, MeasurementSource, TrainedPoints
 
@@ -98,6 +105,11 @@ class Tracker:
         self._anchor: Anchor | None = None
         self.learned: list[Viewset] = []  # learned in this run (also in self.model once learned)
         self._learn_wait = 0
+        # what the object looked like earlier in this run, to find it again after a loss; kept
+        # across losses and resets (same object, same camera)
+        self.keyframes = Keyframes(model.mesh.centre, params.keyframes_max, params.keyframe_min_angle_deg,
+                                   params.keyframe_renew_s)
+        self._keyframe_wait = 0
         self._frame = -1
         self._pending: tuple[Pose, float | None] | None = None
         self.reset()
@@ -211,11 +223,18 @@ class Tracker:
             time_s0 = time_s if t_given is None or t_given > time_s else t_given
         else:
             t0 = time.perf_counter()
-            loc = locate(img, self.camera, self.model, self.params.locate, index=self._index())
+            loc, how = locate(img, self.camera, self.model, self.params.locate, index=self._index()), "recognition"
+            if not loc.found and len(self.keyframes):
+                # a side seen earlier in this run that no trained view shows: the whole frame
+                # against the keyframes (keyframes.py)
+                kmodel, kindex = self.keyframes.search_model(self.model)
+                again = locate(img, self.camera, kmodel, replace(self.params.locate, use_window=False), index=kindex)
+                if again.found:
+                    loc, how = again, f"re-found on this run's {again.viewset}"
             timings["locate"] = _ms(t0)
             if not loc.found:
                 return self._lost(time_s, f"not found: {loc.reason}")
-            pose, cov, how, time_s0 = Pose(loc.q_wxyz, loc.t), loc.covariance, "recognition", time_s
+            pose, cov, time_s0 = Pose(loc.q_wxyz, loc.t), loc.covariance, time_s
             cov = 0.5 * (cov + cov.T) + 1e-9 * np.eye(6)
         self._start_filter(time_s0, pose, cov)
         prior = self.filter.predict(time_s)
@@ -223,8 +242,8 @@ class Tracker:
         tracks, _, _ = self._anchors().now(img, self.camera, prior.pose, Tracks.empty(), wide=True)
         timings["replenish"] = _ms(t0)
         if len(tracks) < self.params.min_inliers:
-            if how == "given pose" and self._start_on_mesh(img, frame, prior, tracks):
-                return self._pose_step(time_s, "init", len(self.mesh_points), reason="given pose: no trained view "
+            if self._start_on_mesh(img, frame, prior, tracks):
+                return self._pose_step(time_s, "init", len(self.mesh_points), reason=f"{how}: no trained view "
                                        "shows this side; points born on the mesh, confirmed by its edges")
             return self._lost(time_s, f"{how}: only {len(tracks)} model points matched near the pose")
         t0 = time.perf_counter()
@@ -240,15 +259,13 @@ class Tracker:
         return self._pose_step(time_s, "init", int(inl.sum()), reason=how)
 
     def _start_on_mesh(self, img: np.ndarray, frame: Frame, prior, tracks: Tracks) -> bool:
-        """A user's pose on a side no trained view shows (SIFT anchors nothing there): start on
-        corners born on the mesh at that pose, if at least ``min_inliers`` are born and the
-        model's edges at the pose lie on the image's edges (:func:`recognition.evidence.edge_agreement`,
+        """A pose (the user's, or found again on a keyframe) on a side no trained view shows
+        (SIFT anchors nothing there): start on corners born on the mesh at that pose, if at least
+        ``min_inliers`` are born and the model's edges confirm the pose (:meth:`_edges_confirm`,
         the test a track carried by mesh points passes, :meth:`_carried`); a wrong pose fails it."""
         if self.mesh_points not in self.sources or self.edges not in self.sources:
             return False
-        pp = PoseParams()
-        ev = edge_agreement(frame.gray, self.model.mesh, self.camera, prior.pose, pp.edges)
-        if not (ev.samples >= pp.min_edge_samples and ev.agreement >= pp.min_edge_agreement and ev.lead >= pp.min_edge_lead):
+        if not self._edges_confirm(frame.gray, prior.pose):
             return False
         n = self.mesh_points.spawn(FrameContext(img, frame, None, self.camera, prior), self.filter.state)
         if n < self.params.min_inliers:
@@ -313,7 +330,7 @@ class Tracker:
 
         self._tracked += 1
         if self.trained not in self.sources:  # (a source alone: nothing to re-anchor)
-            self._learn(ctx, n_points, n_textured, timings)
+            self._capture(ctx, n_points, n_textured, time_s, timings)
             return self._pose_step(time_s, "tracking", n_inl)
         self._since_refresh += 1
         due = p.refresh_every and self._since_refresh >= p.refresh_every
@@ -352,51 +369,73 @@ class Tracker:
             self._count_refresh(n)
             if self._failed_refreshes >= p.max_failed_refreshes and not self._carried(ctx, blocks, inl):
                 return self._lost(time_s, "the object's texture is no longer found where it is tracked", n_inl)
-        self._learn(ctx, n_points, n_textured, timings)
+        self._capture(ctx, n_points, n_textured, time_s, timings)
         return self._pose_step(time_s, "tracking", n_inl)
 
-    def _learn(self, ctx: FrameContext, n_points: int, n_textured: int, timings: dict) -> Viewset | None:
-        """Learn this frame's view (``params.learn``) when it sees the object from a new direction
-        and the pose is confident: small covariance, ``learn_min_inliers`` textured points agree
-        and are ``learn_min_share`` of those measured, the model's edges agree with the image.
-        The cheap tests come first; SIFT and the lifting run at most every ``learn_every`` frames."""
+    def _capture(self, ctx: FrameContext, n_points: int, n_textured: int, time_s: float, timings: dict) -> None:
+        """Keep this frame's view, lifted onto the mesh at the pose (:func:`learned_viewset`): as a
+        keyframe (:mod:`.keyframes`, every ``keyframe_every`` frames when it is wanted and the
+        pose's 1-σ is below ``mesh_spawn_sigma_p`` / ``_deg``) and, with ``params.learn``, as a
+        learned viewset (every ``learn_every`` frames when it sees the object from a new
+        direction and the pose is tighter: ``learn_sigma_p`` / ``_deg``). Either needs
+        ``learn_min_inliers`` textured points agreeing, ``learn_min_share`` of those measured
+        (nothing covers the object), and the model's edges to agree with the image. The cheap
+        tests come first; one SIFT + lifting serves both. (Its time is the ``learn`` stage.)"""
         p = self.params
-        if not p.learn:
-            return None
         self._learn_wait -= 1
-        if self._learn_wait > 0 or self._tracked < p.learn_after:
-            return None
+        self._keyframe_wait -= 1
+        if self._tracked < p.learn_after:
+            return
         state = self.filter.state
         pose = state.pose
         mesh = self.model.mesh
-        if sum(vs.learned for vs in self.model.viewsets) >= p.learn_max_views:
-            return None
-        if not is_new_direction(pose, mesh.centre, self.model.viewsets, p.learn_min_angle_deg):
-            return None
-        if not confident(state, self.diameter, p.learn_sigma_p, p.learn_sigma_deg):
-            return None
+        slot = None
+        if self._keyframe_wait <= 0:
+            slot = self.keyframes.slot(pose, time_s)
+            if slot is not None and not confident(state, self.diameter, p.mesh_spawn_sigma_p, p.mesh_spawn_sigma_deg):
+                slot = None
+        learn = (p.learn and self._learn_wait <= 0
+                 and sum(vs.learned for vs in self.model.viewsets) < p.learn_max_views
+                 and is_new_direction(pose, mesh.centre, self.model.viewsets, p.learn_min_angle_deg)
+                 and confident(state, self.diameter, p.learn_sigma_p, p.learn_sigma_deg))
+        if slot is None and not learn:
+            return
         if n_points < p.learn_min_inliers or n_points < p.learn_min_share * n_textured:
-            return None
+            return
         t0 = time.perf_counter()
-        self._learn_wait = p.learn_every
-        pp = PoseParams()
-        ev = edge_agreement(ctx.frame.gray, mesh, self.camera, pose, pp.edges)
-        if not (ev.samples >= pp.min_edge_samples and ev.agreement >= pp.min_edge_agreement and ev.lead >= pp.min_edge_lead):
+        if slot is not None:
+            self._keyframe_wait = p.keyframe_every
+        if learn:
+            self._learn_wait = p.learn_every
+        if not self._edges_confirm(ctx.frame.gray, pose):
             timings["learn"] = _ms(t0)
-            return None
+            return
         mask = birth_mask(mesh, self.camera, pose, p)
         vs = learned_viewset(f"learned{len(self.learned) + 1}", ctx.image, mask, self.camera, pose, mesh,
-                             params_from_manifest(self.model.manifest), p.learn_min_cos, self.model.rfch)
+                             params_from_manifest(self.model.manifest), p.learn_min_cos,
+                             self.model.rfch if learn else None)
         timings["learn"] = _ms(t0)
         if len(vs) < p.learn_min_keypoints:
-            return None
+            return
+        if slot is not None:
+            self.keyframes.add(Keyframe(time_s, pose.viewing_direction(mesh.centre), replace(vs, cooccurrence=None)), slot)
+        if not learn:
+            return
         model = with_learned(self.model, [vs], p.learn_max_views, p.learn_min_angle_deg)
         if model is self.model:
-            return None
+            return
         self.model = model
         self.learned.append(replace(model.viewsets[-1], cooccurrence=vs.cooccurrence))  # (as labelled in the model)
         self.index, self._anchor = None, None  # rebuilt with the learned view when next needed
-        return vs
+
+    def _edges_confirm(self, gray: np.ndarray, pose: Pose) -> bool:
+        """The model's visible edges at ``pose`` lie on aligned image gradients, well above this
+        image's chance level (:func:`recognition.evidence.edge_agreement` with recognition's
+        thresholds, :class:`~..pose.PoseParams`): the evidence a pose carried by points born on
+        the mesh, or a view about to be kept, must show."""
+        pp = PoseParams()
+        ev = edge_agreement(gray, self.model.mesh, self.camera, pose, pp.edges)
+        return ev.samples >= pp.min_edge_samples and ev.agreement >= pp.min_edge_agreement and ev.lead >= pp.min_edge_lead
 
     def _adjust(self, block: PointBlock) -> tuple[bool, str | None, np.ndarray]:
         """Adjust the prior to the block; redo without the outliers (posterior Mahalanobis
@@ -456,9 +495,7 @@ class Tracker:
         n_mesh = self._inliers_of(blocks, inl, only=self.mesh_points)
         if n_mesh < self.params.min_inliers:
             return False
-        pp = PoseParams()
-        ev = edge_agreement(ctx.frame.gray, self.model.mesh, self.camera, self.filter.state.pose, pp.edges)
-        ok = ev.samples >= pp.min_edge_samples and ev.agreement >= pp.min_edge_agreement and ev.lead >= pp.min_edge_lead
+        ok = self._edges_confirm(ctx.frame.gray, self.filter.state.pose)
         if ok:
             self._failed_refreshes = 0
         return ok

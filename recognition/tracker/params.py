@@ -112,6 +112,16 @@ class TrackerParams:
     learn_min_cos: float = 0.4  # its points' rays meet their faces within ~66° of the normal
     learn_every: int = 5
     learn_after: int = 5  # frames of tracking before the first (the velocities settle)
+    # keyframes (recognition/tracker/keyframes.py): while the pose is confident (mesh_spawn_sigma_p/
+    # _deg), learn_min_inliers textured points agree and are learn_min_share of those measured,
+    # and the model's edges agree, every keyframe_every frames the frame's lifted SIFT keypoints
+    # are kept in memory, one per keyframe_min_angle_deg of viewing direction (the nearest renewed
+    # after keyframe_renew_s), at most keyframes_max (0: none); after a loss, when recognition on
+    # the model finds nothing, the whole frame is searched against them
+    keyframes_max: int = 24
+    keyframe_min_angle_deg: float = 15.0
+    keyframe_renew_s: float = 3.0
+    keyframe_every: int = 10
     initial_sigma_p: float = 0.01  # × diameter, for init_pose without a covariance
     initial_sigma_deg: float = 2.0
     klt: KLTParams = field(default_factory=KLTParams)
