@@ -149,3 +149,22 @@ def test_blocks_reject_mismatched_inputs():
         PointMeasurements.create(cam, np.zeros((3, 3)), np.zeros((3, 2)), 0.0)
     with pytest.raises(ValueError, match="degenerate"):
         segment_covariance(np.zeros((1, 2, 2)), 1.0, 1.0)
+
+
+def test_sqrt_information_of_2x2_covariances_whitens_exactly():
+    """The closed form for 2×2 blocks: ``WᵀW = Σ⁻¹``, ``W`` upper-triangular with a positive
+    diagonal (the Cholesky factor, unique), equal to the general route's; non-SPD input raises."""
+    from quatrack.tracking.measurements import sqrt_information
+
+    rng = np.random.default_rng(4)
+    A = rng.normal(size=(200, 2, 2))
+    C = A @ np.swapaxes(A, 1, 2) + 1e-3 * np.eye(2)  # SPD, some nearly singular
+    C[:50] *= 1e4  # and a wide range of scales
+    W = sqrt_information(C)
+    np.testing.assert_allclose(np.swapaxes(W, 1, 2) @ W @ C, np.broadcast_to(np.eye(2), C.shape), atol=1e-8)
+    assert np.all(W[:, 1, 0] == 0) and np.all(W[:, 0, 0] > 0) and np.all(W[:, 1, 1] > 0)
+    general = np.swapaxes(np.linalg.cholesky(np.linalg.inv(C)), 1, 2)
+    np.testing.assert_allclose(W, general, rtol=1e-9, atol=1e-12 * np.abs(general).max())
+    for bad in (np.array([[1.0, 2.0], [2.0, 1.0]]), np.array([[-1.0, 0.0], [0.0, 1.0]]), np.zeros((2, 2))):
+        with pytest.raises(np.linalg.LinAlgError):
+            sqrt_information(np.stack([np.eye(2), bad]))

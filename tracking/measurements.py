@@ -62,14 +62,45 @@ def project_model_points(
 
 
 def sqrt_information(covariance: np.ndarray) -> np.ndarray:
-    """``W`` with ``WᵀW = Σ⁻¹`` for stacked covariances ``(n, d, d)`` (upper-triangular)."""
+    """``W`` with ``WᵀW = Σ⁻¹`` for stacked covariances ``(n, d, d)`` (upper-triangular).
+
+    For ``d = 2`` in closed form (numpy's batched ``inv`` and ``cholesky`` cost more in call
+    overhead than the arithmetic): ``Σ⁻¹ = [[d, −b], [−b, a]] / (ad − b²)`` for ``Σ = [[a, b], [b, d]]``,
+    and its Cholesky factor ``L = [[√i₀₀, 0], [i₁₀/√i₀₀, √(i₁₁ − i₁₀²/i₀₀)]]``, ``W = Lᵀ``."""
     cov = np.asarray(covariance, dtype=float)
+    if cov.ndim == 3 and cov.shape[1:] == (2, 2):
+        a, b, d = cov[:, 0, 0], 0.5 * (cov[:, 0, 1] + cov[:, 1, 0]), cov[:, 1, 1]
+        det = a * d - b * b
+        with np.errstate(divide="ignore", invalid="ignore"):
+            i00, i10, i11 = d / det, -b / det, a / det
+            l00 = np.sqrt(i00)
+            l10 = i10 / l00
+            l11 = np.sqrt(i11 - l10 * l10)
+        if not (np.all(det > 0) and np.all(a > 0) and np.all(np.isfinite(l00)) and np.all(np.isfinite(l11))
+                and np.all(l11 > 0)):
+            raise np.linalg.LinAlgError("a covariance is not positive definite")
+        W = np.zeros_like(cov)
+        W[:, 0, 0], W[:, 0, 1], W[:, 1, 1] = l00, l10, l11
+        return W
     info = np.linalg.inv(cov)
     L = np.linalg.cholesky(info)  # info = L Lᵀ  ⇒  W = Lᵀ
     return np.swapaxes(L, -1, -2)
 
 
 def _whiten(W: np.ndarray, e: np.ndarray, J: np.ndarray | None) -> Linearization:
+    """``W e`` and ``W J`` per measurement; for 2×2 ``W`` written out (a batched 2×2 product in
+    numpy costs several times the arithmetic)."""
+    if W.shape[1:] == (2, 2):
+        w00, w01, w10, w11 = W[:, 0, 0, None], W[:, 0, 1, None], W[:, 1, 0, None], W[:, 1, 1, None]
+        e_w = np.empty_like(e)
+        e_w[:, 0] = w00[:, 0] * e[:, 0] + w01[:, 0] * e[:, 1]
+        e_w[:, 1] = w10[:, 0] * e[:, 0] + w11[:, 0] * e[:, 1]
+        if J is None:
+            return Linearization(e_w, None)
+        J_w = np.empty_like(J)
+        J_w[:, 0] = w00 * J[:, 0] + w01 * J[:, 1]
+        J_w[:, 1] = w10 * J[:, 0] + w11 * J[:, 1]
+        return Linearization(e_w, J_w)
     e_w = np.einsum("nij,nj->ni", W, e)
     return Linearization(e_w, None if J is None else W @ J)
 
