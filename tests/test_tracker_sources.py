@@ -164,3 +164,32 @@ def test_model_edges_are_measured_where_the_true_pose_puts_them(box):
     # ~half the samples land within 1 px of the true edges (the rest on the print's own edges
     # next to them: outliers for the robust adjustment); almost none stay at the prediction
     assert np.mean(across(truth) < 1.0) > 0.4 and np.mean(across(off) < 1.0) < 0.1
+
+
+def test_one_klt_call_for_every_point_source_measures_what_one_call_each_does(box):
+    """follow_together follows the trained and the mesh-born tracks in one pyramidal-LK call:
+    each source's block is exactly the block of its own call."""
+    from quatrack.recognition.tracker.sources import TrainedPoints, follow_together
+
+    model, camera, poses, frames = box
+    params = TrackerParams()
+    P = np.diag([0.05**2] * 3 + [np.radians(0.3) ** 2] * 3)
+    born = MeshPoints(model.mesh, params)
+    f0, f1 = (make_frame(cv2.cvtColor(frames[k], cv2.COLOR_BGR2GRAY)) for k in (0, 1))
+    assert born.spawn(FrameContext(frames[0], f0, None, camera, initial_state(0.0, poses[0].t, poses[0].q_wxyz, P)),
+                      initial_state(0.0, poses[0].t, poses[0].q_wxyz, P)) > 40
+    trained = TrainedPoints(model.mesh, params)
+    half = np.arange(len(born)) % 2 == 0
+    trained.tracks, born.tracks = born.tracks.keep(half), born.tracks.keep(~half)
+    born.cov_X, born.cohort, born.ema = born.cov_X[~half], born.cohort[~half], born.ema[~half]
+    prior = initial_state(1 / FPS, poses[1].t, poses[1].q_wxyz, P)
+    alone = [s.measure(FrameContext(frames[1], f1, f0, camera, prior), {}) for s in (trained, born)]
+    ctx = FrameContext(frames[1], f1, f0, camera, prior)
+    follow_together(ctx, [trained, born], {})
+    assert set(ctx.followed) == {"trained", "mesh"}
+    together = [s.measure(ctx, {}) for s in (trained, born)]
+    for a, b in zip(alone, together):
+        assert len(a) > 15
+        np.testing.assert_array_equal(a.X, b.X)
+        np.testing.assert_array_equal(a.uv, b.uv)
+        np.testing.assert_array_equal(a.C, b.C)

@@ -63,7 +63,7 @@ from .points import PointBlock, Tracks, mahalanobis2
 from .edges import ModelEdges
 from .keyframes import Keyframe, Keyframes
 from .mesh_points import MeshPoints, birth_mask, confident
-from .sources import FrameContext, MeasurementSource, TrainedPoints
+from .sources import FrameContext, MeasurementSource, TrainedPoints, follow_together
 
 
 def _ms(t0: float) -> float:
@@ -302,6 +302,7 @@ class Tracker:
 
         t0 = time.perf_counter()
         ctx = FrameContext(img, frame, self._prev, self.camera, prior)
+        follow_together(ctx, self.sources, timings)  # one KLT call for every point source
         blocks = [s.measure(ctx, timings) for s in self.sources]
         block = PointBlock.stack(blocks)
         timings["measure"] = _ms(t0)  # visibility + KLT + gating

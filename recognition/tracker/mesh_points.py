@@ -120,6 +120,7 @@ class MeshPoints:
     """Corners born on the mesh at the current pose, followed by KLT (see the module)."""
 
     name = "mesh"
+    follows_klt = True  # its tracks join follow_together's one KLT call
 
     def __init__(self, mesh: Mesh, params: TrackerParams) -> None:
         self.mesh, self.params = mesh, params

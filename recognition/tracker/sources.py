@@ -14,7 +14,7 @@ mesh at the current pose).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Protocol
 
 import numpy as np
@@ -39,6 +39,8 @@ class FrameContext:
     camera: PinholeCamera
     prior: FilterState  # the prediction for this frame
     _zbuffer: object = None
+    # per source name: (its tracks, visible indices, new pixels, KLT ok) from follow_together
+    followed: dict = field(default_factory=dict)
 
     def zbuffer(self, mesh: Mesh, params: TrackerParams):
         """The visibility z-buffer at the prediction, rendered once for every source."""
@@ -59,11 +61,10 @@ class MeasurementSource(Protocol):
     def settle(self, ctx: FrameContext, block: PointBlock, inliers: np.ndarray, state: FilterState) -> None: ...
 
 
-def klt_block(name: str, mesh: Mesh, ctx: FrameContext, tracks: Tracks, params: TrackerParams,
-              timings: dict) -> tuple[PointBlock, np.ndarray]:
-    """Tracks visible at the prediction, followed by KLT from the previous frame starting at
-    their predicted pixels (fast but predictable motion stays within reach). Returns the block
-    (isotropic ``sigma_px``) and the indices of ``tracks`` it holds."""
+def visible_tracks(mesh: Mesh, ctx: FrameContext, tracks: Tracks, params: TrackerParams,
+                   timings: dict) -> tuple[np.ndarray, np.ndarray]:
+    """Indices of the ``tracks`` visible at the prediction (:func:`visible_points` on the frame's
+    z-buffer) and their predicted pixels (n, 2)."""
     import time
 
     t0 = time.perf_counter()
@@ -71,9 +72,53 @@ def klt_block(name: str, mesh: Mesh, ctx: FrameContext, tracks: Tracks, params: 
                                   ctx.zbuffer(mesh, params) if len(tracks) else None)
     idx = np.flatnonzero(vis)
     timings["visibility"] = timings.get("visibility", 0.0) + (time.perf_counter() - t0) * 1e3
+    return idx, uv_pred[idx]
+
+
+def follow_together(ctx: FrameContext, sources, timings: dict) -> None:
+    """Follow the visible tracks of every KLT source (those with ``follows_klt``) in ONE
+    pyramidal-LK call and leave each source's share in ``ctx`` for :func:`klt_block`.
+
+    LK tracks every point alone on the two frames' pyramids, so one call gives exactly what one
+    call per source gives, but builds the pyramids (both frames, forward and backward) once
+    instead of once per source (OpenCV's Python binding takes no prebuilt pyramids)."""
+    import time
+
+    group = [s for s in sources if getattr(s, "follows_klt", False)]
+    if len(group) < 2 or ctx.prev is None:
+        return
+    klt = group[0].params.klt
+    if any(s.params.klt != klt for s in group):
+        return  # (different KLT settings: one call each)
+    parts = [(s, *visible_tracks(s.mesh, ctx, s.tracks, s.params, timings)) for s in group]
     t0 = time.perf_counter()
-    new_uv, ok, _ = track_points(ctx.prev, ctx.frame, tracks.uv[idx], uv_pred[idx], params.klt)
+    uv0 = np.concatenate([s.tracks.uv[idx] for s, idx, _ in parts])
+    guess = np.concatenate([uv for _, _, uv in parts])
+    new_uv, ok, _ = track_points(ctx.prev, ctx.frame, uv0, guess, klt)
     timings["klt"] = timings.get("klt", 0.0) + (time.perf_counter() - t0) * 1e3
+    start = 0
+    for s, idx, _ in parts:
+        stop = start + len(idx)
+        ctx.followed[s.name] = (s.tracks, idx, new_uv[start:stop], ok[start:stop])
+        start = stop
+
+
+def klt_block(name: str, mesh: Mesh, ctx: FrameContext, tracks: Tracks, params: TrackerParams,
+              timings: dict) -> tuple[PointBlock, np.ndarray]:
+    """Tracks visible at the prediction, followed by KLT from the previous frame starting at
+    their predicted pixels (fast but predictable motion stays within reach). Returns the block
+    (isotropic ``sigma_px``) and the indices of ``tracks`` it holds. Uses the tracks' share of
+    :func:`follow_together` when it followed these very tracks in this frame."""
+    import time
+
+    done = ctx.followed.get(name)
+    if done is not None and done[0] is tracks:
+        _, idx, new_uv, ok = done
+    else:
+        idx, uv_pred = visible_tracks(mesh, ctx, tracks, params, timings)
+        t0 = time.perf_counter()
+        new_uv, ok, _ = track_points(ctx.prev, ctx.frame, tracks.uv[idx], uv_pred, params.klt)
+        timings["klt"] = timings.get("klt", 0.0) + (time.perf_counter() - t0) * 1e3
     idx = idx[ok]
     return PointBlock.isotropic(name, Tracks(tracks.X[idx], new_uv[ok]), params.sigma_px), idx
 
@@ -83,6 +128,7 @@ class TrainedPoints:
     Their supply is :class:`~.anchor.Anchor` (SIFT matches), which the machine schedules."""
 
     name = "trained"
+    follows_klt = True  # its tracks join follow_together's one KLT call
 
     def __init__(self, mesh: Mesh, params: TrackerParams) -> None:
         self.mesh, self.params = mesh, params
