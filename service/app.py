@@ -39,21 +39,21 @@ from .settings import Settings
 from .workers import ReadyBoard, count_open, ready_board, session_limiter
 
 log = logging.getLogger("quatrack.service")
-CPU_THREAD_NICE = 5  # tracking threads yield the CPU to the event loop (weight 335 vs 1024 under Linux CFS)
-SWITCH_INTERVAL_S = 0.001  # the interpreter lock changes hands after ≤ 1 ms of Python (default 5 ms)
 
 
-def _cpu_thread_start() -> None:
+def _cpu_thread_start(nice: int) -> None:
     """Each CPU thread runs at a lower priority than the event loop thread of its process.
 
     Why: ``/healthz`` p99 and the frames' own latency are made on the event loop (it reads the
     frames, answers probes, sends the poses). On a loaded machine the kernel scheduled the loop
-    behind the tracking threads of every session; a nice value of +5 on the tracking threads
-    (per thread: Linux ``setpriority(PRIO_PROCESS, tid)``) lets the loop run first whenever it
-    is runnable, while tracking still gets every cycle the loop leaves. Ignored where the call
-    is refused."""
+    behind the tracking threads of every session; a positive nice value on the tracking threads
+    (``Settings.thread_nice``, per thread: Linux ``setpriority(PRIO_PROCESS, tid)``; +5 is CFS
+    weight 335 against the loop's 1024) lets the loop run first whenever it is runnable, while
+    tracking still gets every cycle the loop leaves. Ignored where the call is refused."""
+    if nice <= 0:
+        return
     try:
-        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), CPU_THREAD_NICE)
+        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), nice)
     except (AttributeError, OSError):
         pass
 
@@ -189,17 +189,23 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     # The event loop needs the interpreter lock for every message and probe; with tracking
     # threads running Python it waits up to one switch interval each time it asks (5 ms by
     # default, several times per request): ask them to hand it over sooner.
-    sys.setswitchinterval(min(sys.getswitchinterval(), SWITCH_INTERVAL_S))
+    sys.setswitchinterval(settings.switch_interval_ms / 1e3)
     sessions = session_limiter(settings)  # shared by all worker processes when run_dir is set
     metrics = Metrics(lambda: count_open(sessions))
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
-        executor = ThreadPoolExecutor(settings.threads, thread_name_prefix="quatrack-cpu", initializer=_cpu_thread_start)
+        executor = ThreadPoolExecutor(settings.threads, thread_name_prefix="quatrack-cpu", initializer=_cpu_thread_start,
+                                      initargs=(settings.thread_nice,))
         board = ready_board(settings)
         registry = ServerRegistry(settings.store, on_load=lambda result: metrics.model_loads.labels(result).inc(),
                                   board=board)
-        state = ServiceState(settings, registry, executor, metrics, sessions)
+        # re-anchoring (SIFT, 40-50 ms a job, one job per tracker at a time) on a thread of its
+        # own: a frame's step never waits in the pool behind one; same priority as the steps, so
+        # re-anchoring keeps its share of the CPU (the tracks' accuracy depends on it)
+        background = ThreadPoolExecutor(1, thread_name_prefix="quatrack-anchor", initializer=_cpu_thread_start,
+                                        initargs=(settings.thread_nice,))
+        state = ServiceState(settings, registry, executor, metrics, sessions, background=background)
         app.state.quatrack = state
         loop = asyncio.get_running_loop()
         if settings.preload:
@@ -219,6 +225,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             if warm is not None and not warm.done():
                 warm.cancel()
             executor.shutdown(wait=False, cancel_futures=True)
+            background.shutdown(wait=False, cancel_futures=True)
             worker_exit()
 
     app = FastAPI(title="quatrack", version=version("quatrack"), description=DESCRIPTION, lifespan=lifespan,

@@ -65,6 +65,9 @@ class Metrics:
         self.frames = Counter("quatrack_ws_frames", "WebSocket frames by result", ("result",), registry=reg)
         self.frame_latency = Histogram("quatrack_ws_frame_latency_seconds", "frame arrival to pose message",
                                        buckets=LATENCY_BUCKETS, registry=reg)
+        self.frame_wait = Histogram("quatrack_ws_frame_wait_seconds", "frame arrival to its processing starting "
+                                    "(waiting for the session's previous frame and a free thread)",
+                                    buckets=LATENCY_BUCKETS, registry=reg)
         self.statuses = Counter("quatrack_track_frames", "processed frames by tracker status (init, tracking, lost)",
                                 ("status",), registry=reg)
         self.losses = Counter("quatrack_track_losses", "transitions of a session to status lost", registry=reg)

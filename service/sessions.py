@@ -4,7 +4,8 @@ Why this shape: frames may arrive faster than the CPU can track them. The receiv
 on tracking; it keeps only the *newest* unprocessed frame (a newer one replaces it and counts as
 skipped), so memory per session is bounded by one frame and latency by one processing time. The
 processor runs the tracker in the shared thread pool, one frame at a time, so a session's
-tracker is never used by two threads at once. Control messages (camera, reset, init) travel with
+tracker is never used by two threads at once; the frame is taken from the mailbox when a thread
+starts on it, not when the job is queued, so a frame never goes stale waiting for a thread. Control messages (camera, reset, init) travel with
 the frame they preceded, so they act in the order the client sent them even when frames are
 skipped. Bad input is answered with an error message and the session stays open.
 """
@@ -15,6 +16,7 @@ import asyncio
 import json
 import logging
 import math
+import threading
 import time
 import uuid
 from concurrent.futures import Executor
@@ -81,13 +83,17 @@ class _SessionError(Exception):
 class TrackSession:
     def __init__(self, ws: WebSocket, sid: str, name: str, model: tuple[ObjectModel, ModelIndex], settings: Settings,
                  executor: Executor, metrics: Metrics, clock: Callable[[], float] = time.monotonic,
-                 ros_unit: str | None = None) -> None:
+                 ros_unit: str | None = None, background: Executor | None = None) -> None:
         self.ws, self.sid, self.name = ws, sid, name
         self.ros_unit = ros_unit  # ?format=ros: each pose message also carries "ros" (service/ros.py)
         # the model the session started with, to its end (a retrained one serves new sessions)
         self.model, self.settings, self.executor, self.metrics = model, settings, executor, metrics
+        self.background = background or executor  # where the tracker re-anchors (make_tracker)
         self.camera: CameraIn | None = None
         self.controls: list = []
+        # the single-slot mailbox: filled on the event loop, emptied by the worker thread that
+        # processes the frame (_process_newest)
+        self.mailbox = threading.Lock()
         self.pending: _PendingFrame | None = None
         self.skipped = 0
         self.next_frame = 0
@@ -204,11 +210,14 @@ class TrackSession:
         number, self.next_frame = self.next_frame, self.next_frame + 1
         self.metrics.frames.labels("received").inc()
         controls, self.controls = self.controls, []
-        if self.pending is not None:  # not started yet: the newer frame wins
-            self.skipped += 1
+        with self.mailbox:
+            stale = self.pending
+            if stale is not None:  # not started yet: the newer frame wins
+                self.skipped += 1
+                controls = stale.controls + controls
+            self.pending = _PendingFrame(number, time_s, data, arrival, controls)
+        if stale is not None:
             self.metrics.frames.labels("skipped").inc()
-            controls = self.pending.controls + controls
-        self.pending = _PendingFrame(number, time_s, data, arrival, controls)
         self.wakeup.set()
 
     async def _on_text(self, text: str) -> None:
@@ -290,15 +299,15 @@ class TrackSession:
         while not self.closed:
             await self.wakeup.wait()
             self.wakeup.clear()
-            item, skipped = self.pending, self.skipped
-            self.pending, self.skipped = None, 0
-            if item is None:
+            if self.pending is None:
                 continue
-            try:
-                out = await loop.run_in_executor(self.executor, self._process, item)
-            except _SessionError as exc:
+            taken = await loop.run_in_executor(self.executor, self._process_newest)
+            if taken is None:
+                continue
+            item, skipped, out = taken
+            if isinstance(out, _SessionError):
                 self.metrics.frames.labels("error").inc()
-                await self.send_error(exc.code, exc.message, item.number)
+                await self.send_error(out.code, out.message, item.number)
                 continue
             out["skipped"] = skipped
             out["latency_ms"] = round((time.perf_counter() - item.arrival) * 1e3, 2)
@@ -306,6 +315,24 @@ class TrackSession:
             self.metrics.frames.labels("processed").inc()
             self.metrics.frame_latency.observe(out["latency_ms"] / 1e3)
             await self.send(out)
+
+    def _process_newest(self) -> tuple[_PendingFrame, int, dict | _SessionError] | None:
+        """Worker thread: take the session's newest frame *now*, when a thread is free, and
+        process it. Taking it on the event loop before the job waits in the pool's queue (every
+        thread busy with other sessions or re-anchoring) would process a frame that went stale
+        while waiting, and its newer successor only after it; taken here, the newest wins.
+        The mailbox is shared with the event loop (:meth:`_on_frame`), hence its lock (held for
+        a few attribute reads and writes on either side)."""
+        with self.mailbox:
+            item, skipped = self.pending, self.skipped
+            self.pending, self.skipped = None, 0
+        if item is None:
+            return None
+        self.metrics.frame_wait.observe(time.perf_counter() - item.arrival)
+        try:
+            return item, skipped, self._process(item)
+        except _SessionError as exc:
+            return item, skipped, exc
 
     def _process(self, item: _PendingFrame) -> dict:
         """Worker thread: apply the controls, decode, step the tracker. Raises _SessionError."""
@@ -328,7 +355,7 @@ class TrackSession:
                 camera = cam_in.to_camera((w, h))
             except ApiError as exc:  # a camera without a size, implausible for this frame's
                 raise _SessionError(exc.code, exc.message) from None
-            self.tracker = make_tracker(model, camera, index, self.settings.locate_max_pixels, self.executor,
+            self.tracker = make_tracker(model, camera, index, self.settings.locate_max_pixels, self.background,
                                         learn=learns(self.settings, self.name))
             self.tracker_camera = cam_in.model_copy(update={"width": w, "height": h})
         for op in item.controls:

@@ -56,6 +56,12 @@ class Settings(BaseSettings):
     workers: int = Field(default_factory=_cores, ge=1, le=256,
                          description="worker processes, each with its own models and sessions (default: the number of cores)")
     threads: int = Field(2, ge=1, le=64, description="CPU threads per worker process doing recognition and tracking")
+    thread_nice: int = Field(5, ge=0, le=19, description="nice value of those threads and of the re-anchoring "
+                                                         "thread (Linux, per thread), so that the event loop (probes, frames in, poses "
+                                                         "out) gets a core first; 0: off")
+    switch_interval_ms: float = Field(1.0, gt=0, le=100, description="the interpreter's switch interval in worker "
+                                                                     "processes: how long a thread running Python keeps "
+                                                                     "the lock while the event loop waits for it")
     max_body_bytes: int = Field(10 * 1024 * 1024, ge=1, description="largest REST body and WebSocket frame, bytes")
     max_image_pixels: int = Field(20_000_000, ge=1, description="larger images are refused before decoding (decompression bombs)")
     locate_max_pixels: int = Field(4_000_000, ge=1, description="larger images are downscaled for recognition")

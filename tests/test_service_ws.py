@@ -205,6 +205,24 @@ def test_back_pressure_processes_the_newest(server, frames, monkeypatch):
     assert got[1]["time_s"] == pytest.approx((n - 1) / 30)  # the newest frame's own time
 
 
+def test_a_frame_waiting_for_a_busy_pool_is_replaced_by_a_newer_one(store, frames):
+    """Every CPU thread busy (here: the only one, held by a gated job) while frames arrive: the
+    frame processed when a thread frees up is the newest, not the first one that arrived and
+    queued for the thread (the mailbox is emptied by the thread, not when the job is queued).
+    Independent of the machine's speed: the gate opens once the server has received all."""
+    n = 6
+    with BackgroundServer(Settings(store=store, threads=1)) as srv, open_session(srv) as ws:
+        gate = threading.Event()
+        srv.app.state.quatrack.executor.submit(gate.wait, 60)
+        before = frames_received(srv)
+        for i, f in enumerate(frames[:n]):
+            send_frame(ws, f, i / 30)
+        assert wait_until(lambda: frames_received(srv) == before + n, timeout=60)
+        gate.set()
+        first = recv(ws)
+    assert (first["frame"], first["skipped"]) == (n - 1, n - 1), first
+
+
 def test_two_sessions_one_fed_garbage(server, frames):
     bad: list[dict] = []
 
