@@ -8,7 +8,9 @@ each, S = 1, 2, 4, 8, 16 WebSocket clients stream the first frames of ``box.mp4`
 time, as cameras would; the server tracks the newest frame of each session and drops the stale
 ones. Reported per run: per-stream achieved fps (answers / s), latency (send → answer) p50/p99,
 frames dropped (sent but never answered: skipped by the server as stale), total frames/s
-processed, ``/healthz`` p50/p99 probed every 50 ms during the run, RSS of every worker process.
+processed, ``/healthz`` p50/p99 probed every 50 ms during the run from a separate process (and
+from the clients' own event loop, for comparison: that one also waits for the clients), where a
+frame's latency goes (wait / step / io, see :func:`_breakdown`), RSS of every worker process.
 Then REST ``pose`` requests/s. Frames are JPEG-encoded before the clock starts, so the clients'
 own CPU use is small — but they share the machine with the server.
 """
@@ -47,19 +49,31 @@ async def _streams(url: str, http_url: str, camera: dict, frames: list, n: int, 
 
     probes: list[float] = []
 
-    async def probe():  # is an event loop free to answer while the workers track?
+    async def probe():  # the same probe from the clients' own event loop (it waits for them too)
         async with httpx.AsyncClient(timeout=30) as client:
             while True:
                 t0 = time.perf_counter()
                 await client.get(f"{http_url}/healthz")
                 probes.append((time.perf_counter() - t0) * 1e3)
-                await asyncio.sleep(0.05)
+                await asyncio.sleep(PROBE_EVERY_S)
+
+    lags: list[float] = []
+
+    async def lag():  # how late the clients' own event loop wakes up: their share of "io"
+        while True:
+            t0 = time.perf_counter()
+            await asyncio.sleep(0.01)
+            lags.append((time.perf_counter() - t0 - 0.01) * 1e3)
 
     prober = asyncio.create_task(probe())
+    lagger = asyncio.create_task(lag())
+    outside = _Prober(http_url)  # the server's answer time, not the clients' loop's
     t0 = time.perf_counter()
     results = await asyncio.gather(*(stream(url, camera, frames, fps=fps) for _ in range(n)), return_exceptions=True)
     wall = time.perf_counter() - t0
     prober.cancel()
+    lagger.cancel()
+    alone = outside.stop()
     refused = [r for r in results if isinstance(r, BaseException)]
     results = [r for r in results if not isinstance(r, BaseException)]
     rtt = [x for r in results for x in r.rtt_ms]
@@ -74,8 +88,74 @@ async def _streams(url: str, http_url: str, camera: dict, frames: list, n: int, 
         "fps_per_stream_min": min(per_stream, default=0.0), "fps_per_stream_mean": sum(per_stream) / max(len(per_stream), 1),
         "total_fps": processed / wall,
         "latency_p50_ms": _pct(rtt, 50), "latency_p99_ms": _pct(rtt, 99),
-        "healthz_p50_ms": _pct(probes, 50), "healthz_p99_ms": _pct(probes, 99), "healthz_max_ms": max(probes, default=float("nan")),
+        "healthz_p50_ms": _pct(alone, 50), "healthz_p99_ms": _pct(alone, 99), "healthz_max_ms": max(alone, default=float("nan")),
+        "healthz_probes": len(alone),
+        "healthz_in_client_p50_ms": _pct(probes, 50), "healthz_in_client_p99_ms": _pct(probes, 99),
+        "client_loop_lag_p50_ms": _pct(lags, 50), "client_loop_lag_p99_ms": _pct(lags, 99),
+        **_breakdown(results),
     }
+
+
+def _breakdown(results) -> dict:
+    """Where a processed frame's latency went, from its answer: ``wait`` = frame arrival at the
+    server → its step starts (the frame waiting for its session's previous step, a free thread,
+    and the interpreter lock, plus JPEG decoding), ``step`` = the tracker's own ``timings_ms.total``,
+    ``io`` = client send → answer received minus the server's ``latency_ms`` (socket transfer,
+    both event loops, JSON). Each as p50 / p99 over all processed frames (ms)."""
+    wait, step, io = [], [], []
+    for r in results:
+        for msg, rtt in zip(r.poses.values(), r.rtt_ms):  # both in the order the answers came
+            server = float(msg.get("latency_ms") or 0.0)
+            total = float((msg.get("timings_ms") or {}).get("total", 0.0))
+            wait.append(max(server - total, 0.0))
+            step.append(total)
+            io.append(max(rtt - server, 0.0))
+    return {f"{k}_{q}_ms": _pct(v, int(q[1:])) for k, v in (("wait", wait), ("step", step), ("io", io))
+            for q in ("p50", "p99")}
+
+
+PROBE_EVERY_S = 0.05
+
+
+class _Prober:
+    """``GET /healthz`` every 50 ms from a separate process (one keep-alive connection), so that
+    a probe measures the server — not the bench's own event loop, busy with N clients' frames."""
+
+    def __init__(self, http_url: str) -> None:
+        import multiprocessing as mp
+
+        ctx = mp.get_context("spawn")
+        self._stop = ctx.Event()
+        self._parent, child = ctx.Pipe(duplex=False)
+        self.proc = ctx.Process(target=_probe_loop, args=(http_url, child, self._stop), daemon=True)
+        self.proc.start()
+
+    def stop(self) -> list[float]:
+        self._stop.set()
+        out = self._parent.recv() if self._parent.poll(30) else []
+        self.proc.join(10)
+        return out
+
+
+def _probe_loop(http_url: str, conn, stop) -> None:
+    import http.client
+    import time
+    from urllib.parse import urlsplit
+
+    u = urlsplit(http_url)
+    out: list[float] = []
+    client = http.client.HTTPConnection(u.hostname, u.port, timeout=30)
+    while not stop.is_set():
+        t0 = time.perf_counter()
+        try:
+            client.request("GET", "/healthz")
+            client.getresponse().read()
+            out.append((time.perf_counter() - t0) * 1e3)
+        except (OSError, http.client.HTTPException):
+            client.close()
+            client = http.client.HTTPConnection(u.hostname, u.port, timeout=30)
+        stop.wait(PROBE_EVERY_S)
+    conn.send(out)
 
 
 async def _rest(url: str, name: str, camera: dict, images: list[bytes], total: int, concurrency: int) -> dict:
@@ -213,15 +293,18 @@ def main(args: argparse.Namespace) -> int:
     la = report["load_average_at_start"]
     print(f"{cores} cores, load average at start {la[0]:.2f}; {args.threads} thread(s) per worker; "
           f"each client streams {len(frames)} frames at {args.fps:g} fps")
-    print("| set-up | streams | fps/stream min / mean | total fps | latency p50 / p99 (ms) | dropped | refused "
-          "| /healthz p50 / p99 (ms) | RSS per worker (MB) |")
-    print("| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- |")
+    print("| set-up | streams | fps/stream min / mean | total fps | latency p50 / p99 (ms) | wait / step / io p50 (ms) "
+          "| wait / step / io p99 (ms) | dropped | refused | /healthz p50 / p99 (ms) | in-client p99 | RSS per worker (MB) |")
+    print("| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- |")
     for s in report["setups"]:
         for r in s["websocket"]:
             print(f"| {s['setup']} | {r['clients']} | {r['fps_per_stream_min']:.1f} / {r['fps_per_stream_mean']:.1f} | "
                   f"{r['total_fps']:.1f} | {r['latency_p50_ms']:.0f} / {r['latency_p99_ms']:.0f} | "
+                  f"{r['wait_p50_ms']:.0f} / {r['step_p50_ms']:.0f} / {r['io_p50_ms']:.0f} | "
+                  f"{r['wait_p99_ms']:.0f} / {r['step_p99_ms']:.0f} / {r['io_p99_ms']:.0f} | "
                   f"{r['dropped']} of {r['frames_sent']} | {r['refused']} | {r['healthz_p50_ms']:.1f} / "
-                  f"{r['healthz_p99_ms']:.1f} | {', '.join(f'{x:.0f}' for x in r['rss_mb'])} |"
+                  f"{r['healthz_p99_ms']:.1f} | {r['healthz_in_client_p99_ms']:.1f} | "
+                  f"{', '.join(f'{x:.0f}' for x in r['rss_mb'])} |"
                   + (f" errors: {r['error_codes']}" if r["error_codes"] else ""))
     for s in report["setups"]:
         r = s["rest"]
