@@ -65,14 +65,22 @@ async def _streams(url: str, http_url: str, camera: dict, frames: list, n: int, 
             await asyncio.sleep(0.01)
             lags.append((time.perf_counter() - t0 - 0.01) * 1e3)
 
+    owners: dict[int, int] = {}
+
+    async def placement():  # which server process holds each connection, once all are open
+        await asyncio.sleep(min(1.5, len(frames) / fps / 2))
+        owners.update(await _connection_owners(http_url))
+
     prober = asyncio.create_task(probe())
     lagger = asyncio.create_task(lag())
+    placer = asyncio.create_task(placement())
     outside = _Prober(http_url)  # the server's answer time, not the clients' loop's
     t0 = time.perf_counter()
     results = await asyncio.gather(*(stream(url, camera, frames, fps=fps) for _ in range(n)), return_exceptions=True)
     wall = time.perf_counter() - t0
     prober.cancel()
     lagger.cancel()
+    placer.cancel()
     alone = outside.stop()
     refused = [r for r in results if isinstance(r, BaseException)]
     results = [r for r in results if not isinstance(r, BaseException)]
@@ -93,7 +101,33 @@ async def _streams(url: str, http_url: str, camera: dict, frames: list, n: int, 
         "healthz_in_client_p50_ms": _pct(probes, 50), "healthz_in_client_p99_ms": _pct(probes, 99),
         "client_loop_lag_p50_ms": _pct(lags, 50), "client_loop_lag_p99_ms": _pct(lags, 99),
         **_breakdown(results),
+        # sessions per server process (largest first): which worker the kernel gave each
+        "sessions_per_process": sorted(Counter(owners[r.local_port] for r in results if r.local_port in owners).values(),
+                                       reverse=True),
     }
+
+
+async def _connection_owners(http_url: str) -> dict[int, int]:
+    """{client port: server pid} of the established connections to the server's port (Linux
+    ``ss``; empty where it is missing). The kernel hands each connection to one worker process."""
+    import asyncio
+    import re
+    from urllib.parse import urlsplit
+
+    port = urlsplit(http_url).port
+    try:
+        proc = await asyncio.create_subprocess_exec("ss", "-tnpH", "state", "established", f"( sport = :{port} )",
+                                                    stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.DEVNULL)
+        out, _ = await proc.communicate()
+    except OSError:
+        return {}
+    owners = {}
+    for line in out.decode(errors="replace").splitlines():
+        peer = re.search(r"\s\S+:(\d+)\s+users:", line)
+        pid = re.search(r"pid=(\d+)", line)
+        if peer and pid:
+            owners[int(peer.group(1))] = int(pid.group(1))
+    return owners
 
 
 def _breakdown(results) -> dict:
@@ -294,8 +328,9 @@ def main(args: argparse.Namespace) -> int:
     print(f"{cores} cores, load average at start {la[0]:.2f}; {args.threads} thread(s) per worker; "
           f"each client streams {len(frames)} frames at {args.fps:g} fps")
     print("| set-up | streams | fps/stream min / mean | total fps | latency p50 / p99 (ms) | wait / step / io p50 (ms) "
-          "| wait / step / io p99 (ms) | dropped | refused | /healthz p50 / p99 (ms) | in-client p99 | RSS per worker (MB) |")
-    print("| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- |")
+          "| wait / step / io p99 (ms) | dropped | refused | /healthz p50 / p99 (ms) | in-client p99 | sessions per process "
+          "| RSS per worker (MB) |")
+    print("| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- | --- |")
     for s in report["setups"]:
         for r in s["websocket"]:
             print(f"| {s['setup']} | {r['clients']} | {r['fps_per_stream_min']:.1f} / {r['fps_per_stream_mean']:.1f} | "
@@ -304,6 +339,7 @@ def main(args: argparse.Namespace) -> int:
                   f"{r['wait_p99_ms']:.0f} / {r['step_p99_ms']:.0f} / {r['io_p99_ms']:.0f} | "
                   f"{r['dropped']} of {r['frames_sent']} | {r['refused']} | {r['healthz_p50_ms']:.1f} / "
                   f"{r['healthz_p99_ms']:.1f} | {r['healthz_in_client_p99_ms']:.1f} | "
+                  f"{'+'.join(map(str, r['sessions_per_process'])) or '?'} | "
                   f"{', '.join(f'{x:.0f}' for x in r['rss_mb'])} |"
                   + (f" errors: {r['error_codes']}" if r["error_codes"] else ""))
     for s in report["setups"]:

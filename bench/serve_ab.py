@@ -84,14 +84,16 @@ def main(argv: list[str] | None = None) -> int:
                     row = asyncio.run(_streams(f"{srv.ws_url}/v1/objects/{args.object}/track", srv.url, camera,
                                                frames, n, args.fps))
                     rows.append({"variant": label, "repeat": rep, "clients": n, "load": load,
-                                 **{k: row[k] for k in KEYS}, "dropped": row["dropped"], "sent": row["frames_sent"]})
+                                 **{k: row[k] for k in KEYS}, "dropped": row["dropped"], "sent": row["frames_sent"],
+                                 "sessions_per_process": row["sessions_per_process"]})
                     r = rows[-1]
                     print(f"rep {rep} {label:>12} streams {n:2d} load {load:5.2f}: fps {r['total_fps']:5.1f}  "
                           f"lat {r['latency_p50_ms']:5.0f}/{r['latency_p99_ms']:5.0f}  wait {r['wait_p50_ms']:4.0f}/"
                           f"{r['wait_p99_ms']:4.0f}  step {r['step_p50_ms']:4.0f}/{r['step_p99_ms']:4.0f}  io "
                           f"{r['io_p50_ms']:4.0f}/{r['io_p99_ms']:5.0f}  clientlag {r['client_loop_lag_p50_ms']:4.0f}/"
                           f"{r['client_loop_lag_p99_ms']:5.0f}  healthz {r['healthz_p50_ms']:5.1f}/"
-                          f"{r['healthz_p99_ms']:6.1f} (max {r['healthz_max_ms']:6.1f})", flush=True)
+                          f"{r['healthz_p99_ms']:6.1f} (max {r['healthz_max_ms']:6.1f})  sessions per process "
+                          f"{'+'.join(map(str, r['sessions_per_process'])) or '?'}", flush=True)
                     time.sleep(1.0)
     print("\nmedian over repeats:")
     print("| variant | streams | load | total fps | latency p50 / p99 | wait p50 / p99 | step p50 / p99 | io p50 / p99 "

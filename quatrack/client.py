@@ -325,6 +325,7 @@ class StreamResult:
     skipped: int = 0
     rtt_ms: list[float] = field(default_factory=list)  # send → answer, per processed frame
     wall_s: float = 0.0
+    local_port: int | None = None  # the socket's own port (which server process holds it: bench serve)
 
 
 class _Session:
@@ -403,6 +404,10 @@ async def stream(url: str, camera: dict, frames: Iterable[tuple[int, float, byte
     except Exception as exc:
         raise _ws_error(exc) from None
     async with ws:
+        try:
+            res.local_port = int(ws.local_address[1])
+        except (AttributeError, IndexError, TypeError, ValueError):
+            pass
         await ws.send(json.dumps({**camera, "ack": True}))  # ask for the "ready" handshake
         Client._expect(json.loads(await asyncio.wait_for(ws.recv(), timeout)), "ready")
         s = _Session(ws, res, on_answer)
