@@ -86,7 +86,7 @@ def real_video(model, camera, locate_frames: int = 150, sheet_every: int = 75):
     index = index_for(model)
     tracker = Tracker(model, camera, TrackerParams(), index=index)
     cap = cv2.VideoCapture(str(EXAMPLE / "box.mp4"))
-    steps, located, sheet, totals = [], [], [], []
+    steps, located, sheet, totals, stages = [], [], [], [], {}
     k = 0
     while True:
         ok, frame = cap.read()
@@ -96,6 +96,8 @@ def real_video(model, camera, locate_frames: int = 150, sheet_every: int = 75):
         steps.append(step)
         if step.status == "tracking":
             totals.append(step.timings_ms["total"])
+            for key, v in step.timings_ms.items():
+                stages[key] = stages.get(key, 0.0) + v
         if k < locate_frames:
             located.append(locate(frame, camera, model, index=index))
         if k % sheet_every == 0:
@@ -127,6 +129,7 @@ def real_video(model, camera, locate_frames: int = 150, sheet_every: int = 75):
         "reinits": sum(s.status == "init" for s in after) - 1,
         "step_p50_ms": float(np.percentile(totals, 50)) if totals else None,
         "step_p95_ms": float(np.percentile(totals, 95)) if totals else None,
+        "stage_mean_ms": {k: v / max(len(totals), 1) for k, v in sorted(stages.items())},
         "frame_to_frame_tracker": changes(steps[:n]),
         "frame_to_frame_locate": changes([_P(r) for r in located]),
         "locate_found_pct": 100.0 * sum(r.found for r in located) / max(len(located), 1),
@@ -213,10 +216,14 @@ def report(res: dict) -> str:
                  f"r_err mean {_fmt(a['r_err_mean_deg'], '.3f')} deg")
     share = res["rendered"].get("ude/1", {}).get("stage_share", {})
     lines.append("ude/1 share of step time: " + ", ".join(f"{k} {100 * v:.0f} %" for k, v in sorted(share.items())))
+    means = res["rendered"].get("ude/1", {}).get("stage_mean_ms", {})
+    lines.append("ude/1 stage means per tracking step (ms): " + ", ".join(f"{k} {v:.1f}" for k, v in sorted(means.items())))
     v = res["box_mp4"]
     lines.append(f"box.mp4: {v['frames']} frames, first init at {v['first_init']}, pose in {v['pose_share_after_init_pct']:.1f} % "
                  f"after it ({v['lost']} lost, {v['reinits']} re-inits); step p50/p95 {_fmt(v['step_p50_ms'], '.1f')}/"
                  f"{_fmt(v['step_p95_ms'], '.1f')} ms")
+    if v.get("stage_mean_ms"):
+        lines.append("  stage means per tracking step (ms): " + ", ".join(f"{k} {x:.1f}" for k, x in v["stage_mean_ms"].items()))
     ft, fl = v["frame_to_frame_tracker"], v["frame_to_frame_locate"]
     if ft and fl:
         lines.append(f"  frame-to-frame change (median / p95): tracker {ft['t_median']:.2f}/{ft['t_p95']:.2f} units, "
