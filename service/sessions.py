@@ -5,9 +5,9 @@ on tracking; it keeps only the *newest* unprocessed frame (a newer one replaces 
 skipped), so memory per session is bounded by one frame and latency by one processing time. The
 processor runs the tracker in the shared thread pool, one frame at a time, so a session's
 tracker is never used by two threads at once; the frame is taken from the mailbox when a thread
-starts on it, not when the job is queued, so a frame never goes stale waiting for a thread. Control messages (camera, reset, init) travel with
-the frame they preceded, so they act in the order the client sent them even when frames are
-skipped. Bad input is answered with an error message and the session stays open.
+starts on it, not when the job is queued, so a frame never goes stale waiting for a thread.
+Control messages (camera, reset, init) travel with the frame they preceded, so they act in the
+order the client sent them even when frames are skipped. Bad input is answered with an error message and the session stays open.
 """
 
 from __future__ import annotations
