@@ -9,7 +9,9 @@ the object leaves the view (empty frames: the track is lost) and comes back on t
 - it finds the object again there by itself ("re-found on this run's keyframe…"), within 5 % of
   the diameter and 5° of the truth, and goes on tracking; with keyframes off it finds nothing
   (recognition on the one photo cannot see those sides);
-- an object that is not there is not "re-found": the empty frames stay lost.
+- an object that is not there is not "re-found": the empty frames stay lost;
+- re-acquisition: when it comes back near where it went, the track is picked up at once from
+  the last good frame (KLT), before any recognition.
 
 Everything is rendered and seeded; the orbit is short (40 frames at 640×480).
 """
@@ -23,6 +25,7 @@ import numpy as np
 import pytest
 
 from quatrack.recognition.match import index_for
+from quatrack.recognition.tracker.reacquire import shifted_pose
 from quatrack.recognition.video import Tracker, TrackerParams
 from quatrack.testing import zoo as Z
 from quatrack.testing.scenes import pose_errors
@@ -53,9 +56,22 @@ def walk(tmp_path_factory):
     return SimpleNamespace(cam=cam, model=model, obj=obj, poses=poses, frames=frames, bg=bg)
 
 
-def _track(walk, params: TrackerParams):
+def _far_side(walk):
+    """The object seen from 200°–206° round (the far side; elevation 30°), 20° back from where
+    the walk ended: found again only by what the tracker saw (keyframes)."""
+    return [Z.orbit_pose(walk.obj, walk.cam, 200.0 + 2.0 * i, 30.0) for i in range(4)]
+
+
+def _walk_on(walk):
+    """The walk going on after the gap, the camera turning at a third of the walk's 4.6°/frame
+    while the object was unseen: it comes back where it went, turned 6° further, and goes on."""
+    end = 35.0 + SPAN_DEG
+    return [_pose(walk.obj, walk.cam, end + SPAN_DEG / (N_FRAMES - 1) / 3 * (4 + i), N_FRAMES) for i in range(4)]
+
+
+def _track(walk, params: TrackerParams, back=None):
     """The orbit from the true first pose, then 3 frames without the object, then 4 frames of it
-    seen from 200°–206° (the far side; elevation 30°): (tracker, steps, true poses of the last 4)."""
+    at the poses ``back`` (:func:`_far_side` by default): (tracker, steps, ``back``)."""
     cv2.setRNGSeed(7)
     tracker = Tracker(walk.model, walk.cam, params, index=index_for(walk.model))
     tracker.init_pose(walk.poses[0].t, walk.poses[0].q_wxyz)
@@ -63,7 +79,7 @@ def _track(walk, params: TrackerParams):
     k0 = len(steps)
     for i in range(3):
         steps.append(tracker.step(walk.bg, (k0 + i) / FPS))
-    back = [Z.orbit_pose(walk.obj, walk.cam, 200.0 + 2.0 * i, 30.0) for i in range(4)]
+    back = _far_side(walk) if back is None else back
     for i, p in enumerate(back):
         img = Z.degrade(Z.compose(*walk.obj.render(walk.cam, p), walk.bg), np.random.default_rng(40 + i))
         steps.append(tracker.step(img, (k0 + 3 + i) / FPS))
@@ -92,7 +108,7 @@ def test_keyframes_are_kept_along_the_walk_far_apart_and_right(walk):
 
 
 def test_the_object_is_found_again_on_a_side_no_photo_shows(walk):
-    tracker, steps, back = _track(walk, TrackerParams())
+    tracker, steps, back = _track(walk, TrackerParams(reacquire_s=0.0))  # (keyframes alone)
     gone, returned = steps[N_FRAMES : N_FRAMES + 3], steps[N_FRAMES + 3 :]
     assert not any(s.has_pose for s in gone), [s.reason for s in gone]  # nothing is "re-found" where nothing is
     assert returned[0].status == "init" and "keyframe" in returned[0].reason, returned[0].reason
@@ -103,6 +119,52 @@ def test_the_object_is_found_again_on_a_side_no_photo_shows(walk):
         assert dp < 0.05 * d and da < 5.0, (s.frame, dp / d, da)
 
 
-def test_without_keyframes_that_side_is_not_found(walk):
-    _, steps, _ = _track(walk, TrackerParams(keyframes_max=0))
-    assert not any(s.has_pose for s in steps[N_FRAMES + 3 :]), [(s.status, s.reason) for s in steps[N_FRAMES + 3 :]]
+def test_the_track_is_picked_up_again_near_the_last_pose(walk):
+    """Re-acquisition: the object comes back near where it went (turned 6° further while
+    unseen); KLT from the last good frame picks the track up at once, the edges confirming."""
+    tracker, steps, back = _track(walk, TrackerParams(), _walk_on(walk))
+    gone, returned = steps[N_FRAMES : N_FRAMES + 3], steps[N_FRAMES + 3 :]
+    assert not any(s.has_pose for s in gone), [s.reason for s in gone]
+    assert returned[0].status == "init" and returned[0].reason == "re-acquired near the last pose", returned[0].reason
+    assert [s.status for s in returned[1:]] == ["tracking"] * 3, [(s.status, s.reason) for s in returned]
+    d = walk.model.mesh.extent
+    for s, truth in zip(returned, back):
+        dp, da = pose_errors(s.t, s.q_wxyz, truth, walk.model.mesh)
+        assert dp < 0.02 * d and da < 2.0, (s.frame, dp / d, da)
+
+
+@pytest.mark.parametrize("where", ["far side", "walk on"])
+def test_without_keyframes_and_re_acquisition_those_sides_are_not_found(walk, where):
+    back = _far_side(walk) if where == "far side" else _walk_on(walk)
+    _, steps, _ = _track(walk, TrackerParams(keyframes_max=0, reacquire_s=0.0), back)
+    assert not any(s.has_pose for s in steps[N_FRAMES:]), [(s.status, s.reason) for s in steps[N_FRAMES:]]
+
+
+def test_a_shifted_pose_moves_the_image_by_the_shift(walk):
+    pose = walk.poses[5]
+    c = walk.model.mesh.centre
+    moved = shifted_pose(pose, c, walk.cam, np.array([-87.0, 31.0]))
+    uv0, uv1 = (walk.cam.project(p.apply(c[None]))[0] for p in (pose, moved))
+    assert np.allclose(uv1 - uv0, [-87.0, 31.0], atol=1e-6)
+    assert np.allclose(moved.q_wxyz, pose.q_wxyz)
+
+
+@pytest.mark.parametrize("follow", [True, False])
+def test_the_track_is_picked_up_where_the_object_went(walk, follow):
+    """The object comes back 110 px left of where it was last seen (it slid while unseen):
+    beyond KLT's reach from the last good frame, so re-acquisition first finds where its image
+    went (object_shift); without that step (``reacquire_min_ncc`` > 1) it is not picked up."""
+    c = walk.model.mesh.centre
+    back = [shifted_pose(p, c, walk.cam, np.array([-110.0 - 4.0 * i, 0.0])) for i, p in enumerate(_walk_on(walk))]
+    params = TrackerParams(keyframes_max=0, reacquire_min_ncc=0.5 if follow else 1.5)
+    _, steps, _ = _track(walk, params, back)
+    returned = steps[N_FRAMES + 3 :]
+    if not follow:
+        assert not any(s.has_pose for s in returned), [(s.status, s.reason) for s in returned]
+        return
+    assert returned[0].status == "init" and returned[0].reason == "re-acquired near the last pose", returned[0].reason
+    assert [s.status for s in returned[1:]] == ["tracking"] * 3, [(s.status, s.reason) for s in returned]
+    d = walk.model.mesh.extent
+    err = [pose_errors(s.t, s.q_wxyz, truth, walk.model.mesh) for s, truth in zip(returned, back)]
+    for s, (dp, da) in zip(returned, err):
+        assert dp < 0.02 * d and da < 2.0, (s.frame, dp / d, da)

@@ -141,18 +141,21 @@ def test_an_occluder_is_rejected_as_outliers(world):
     assert err[:, 0].mean() < 0.015 * diameter and err[:, 1].mean() < 1.5
 
 
-def test_loss_is_detected_and_the_track_reinitialised(world):
-    """Frames 12–17 show the background only: no pose may be reported for them; afterwards
-    recognition must pick the object up again and tracking resume accurately."""
+@pytest.mark.parametrize("reacquire_s", [2.0, 0.0])
+def test_loss_is_detected_and_the_track_reinitialised(world, reacquire_s):
+    """Frames 12–17 show the background only: no pose may be reported for them; afterwards the
+    track is picked up again near the last pose (re-acquisition, within 2 s of the loss) or, with
+    re-acquisition off, by recognition, and tracking resumes accurately."""
     gone = range(12, 18)
     frames = [cv2.GaussianBlur(world["bg"], (0, 0), 0.5) if k in gone else f for k, f in enumerate(world["frames"])]
-    steps = _run(world, frames)
+    steps = _run(world, frames, TrackerParams(reacquire_s=reacquire_s))
     assert all(s.status == "tracking" for s in steps[1:12])
     for k in gone:
         assert steps[k].status == "lost" and steps[k].t is None and steps[k].q_wxyz is None, k
-    assert steps[18].status == "init" and steps[18].reason == "recognition"
+    how = "re-acquired near the last pose" if reacquire_s else "recognition"
+    assert steps[18].status == "init" and steps[18].reason == how, steps[18].reason
     assert all(s.status == "tracking" for s in steps[19:])
-    err = _errors(world, steps, range(19, N))
+    err = _errors(world, steps, range(18, N))
     assert err[:, 0].mean() < 0.01 * world["model"].mesh.extent and err[:, 1].mean() < 1.0
 
 

@@ -15,10 +15,9 @@ video lost). The tracker remembers instead: while it tracks with a confident pos
   light may have changed since);
 - at most ``keyframes_max``: the oldest goes.
 
-After a loss, when recognition on the model finds nothing, the tracker searches the whole frame
-against the keyframes alone (:meth:`Keyframes.search_model`: one FLANN index over them) with
-recognition's own pose search and verification. Whole frame: the window search's colour
-statistics are the trained photo's, and the side to be found again may not share them.
+After a loss the tracker's recognition searches the model's views and the keyframes together
+(:meth:`Keyframes.search_model`: one FLANN index over all of them), with recognition's own
+window search, pose search and verification: one search per frame, whichever view is nearest.
 
 Keyframes live in memory for the run only; the stored model changes only through learned views
 (``TrackerParams.learn``), whose rules are stricter because they outlive the run.
@@ -100,11 +99,11 @@ class Keyframes:
         self._search = None
 
     def search_model(self, base: ObjectModel) -> tuple[ObjectModel, ModelIndex]:
-        """``base`` with the keyframes as its only viewsets, and its matching index (built once
-        per change of the keyframes or of ``base``)."""
+        """``base`` with the keyframes added to its viewsets (labelled ``keyframeK``), and its
+        matching index (built once per change of the keyframes or of ``base``)."""
         cached = self._search
         if cached is None or cached[0] is not base:
             views = [replace(k.viewset, label=f"keyframe{i + 1}") for i, k in enumerate(self.items)]
-            model = replace(base, viewsets=views)
+            model = replace(base, viewsets=list(base.viewsets) + views)
             cached = self._search = (base, ModelIndex(model), model)
         return cached[2], cached[1]

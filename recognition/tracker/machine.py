@@ -2,13 +2,15 @@
 
 States and transitions (Kragic & Kyrki's Fig. 1 loop):
 
-- **init** (no filter state): the user's pose (:meth:`Tracker.init_pose`) or recognition
+- **init** (no filter state): the user's pose (:meth:`Tracker.init_pose`), re-acquisition near
+  the last good pose within ``reacquire_s`` of a loss (:mod:`.reacquire`: KLT from that frame,
+  after following the object's image; the model's edges must confirm it) or recognition
   (:func:`recognition.locate.locate`) starts the filter with unknown velocities; SIFT anchors
   model points near that pose and one adjustment checks them → *tracking*, or stays *init*
-  (the step answers ``lost``) when they do not agree. When recognition on the model finds
-  nothing, the whole frame is searched against this run's keyframes (:mod:`.keyframes`): a side
-  the tracker followed earlier but no trained view shows is found again; with no trained point
-  near such a pose, the track starts on corners born on the mesh once the edges confirm it.
+  (the step answers ``lost``) when they do not agree. Recognition searches this run's keyframes
+  (:mod:`.keyframes`) with the model's views: a side the tracker followed earlier but no trained
+  view shows is found again; with no trained point near such a pose, the track starts on
+  corners born on the mesh once the edges confirm it.
 - **tracking**: each frame is *predict → measure → adjust*: the motion model gives the prior;
   every source (:mod:`.sources`) measures its tracks in the frame (KLT from the previous frame,
   starting from the projections at the prediction; gated by ``rᵀ(J P Jᵀ + C)⁻¹r < χ²``); one
@@ -32,6 +34,7 @@ States and transitions (Kragic & Kyrki's Fig. 1 loop):
 
 from __future__ import annotations
 
+import copy
 import time
 from concurrent.futures import Executor
 from dataclasses import replace
@@ -63,6 +66,7 @@ from .points import PointBlock, Tracks, mahalanobis2
 from .edges import ModelEdges
 from .keyframes import Keyframe, Keyframes
 from .mesh_points import MeshPoints, birth_mask, confident
+from .reacquire import LastSeen, hull_mask, object_shift, shifted_pose
 from .sources import FrameContext, MeasurementSource, TrainedPoints, follow_together
 
 
@@ -118,7 +122,7 @@ class Tracker:
 
     # -- public -------------------------------------------------------------------------------
     def reset(self) -> None:
-        """Forget the state: the next frame re-initialises (by recognition)."""
+        """Forget the state and the last pose: the next frame re-initialises by recognition."""
         self.filter.state = None
         self.filter.prior = None
         for s in (self.trained, self.mesh_points):
@@ -129,6 +133,8 @@ class Tracker:
         self._pending = None
         self._anchor_job: AnchorJob | None = None
         self._tracked = 0  # frames tracked since the last (re-)initialisation
+        self._probation = 0  # frames left in which the edges must confirm every pose
+        self._seen: LastSeen | None = None  # the last good frame before the latest loss (_reacquire)
 
     def learned_viewsets(self) -> list[Viewset]:
         """The viewsets learned so far in this run (``params.learn``), oldest first."""
@@ -171,7 +177,10 @@ class Tracker:
         if self.phase == "init":
             step = self._initialise(img, frame, time_s, timings)
         else:
+            seen = LastSeen(self.filter.state, self._prev, self.trained.tracks, copy.copy(self.mesh_points))
             step = self._track(img, frame, time_s, timings)
+            if step.status == "lost" and seen.frame is not None:
+                self._seen = seen
         self._prev = frame if step.status != "lost" else None
         timings["total"] = _ms(t_start)
         step.timings_ms = timings
@@ -189,9 +198,9 @@ class Tracker:
         return self._anchor
 
     def _lost(self, time_s: float, reason: str, inliers: int = 0) -> TrackStep:
-        pending = self._pending
+        pending, seen = self._pending, self._seen
         self.reset()
-        self._pending = pending
+        self._pending, self._seen = pending, seen
         return TrackStep(self._frame, time_s, "lost", inliers=inliers, reason=reason)
 
     def _pose_step(self, time_s: float, status: str, inliers: int, reason: str | None = None) -> TrackStep:
@@ -214,8 +223,54 @@ class Tracker:
             c[6:9, 6:9] = (s * self.diameter) ** 2 * np.eye(3)
             c[9:12, 9:12] = s**2 * np.eye(3)
 
+    def _reacquire(self, img: np.ndarray, frame: Frame, time_s: float, timings: dict) -> TrackStep | None:
+        """Re-acquisition near the last pose (:mod:`.reacquire`), within ``reacquire_s`` of a loss.
+        The filter restarts at the last good posterior with its velocities unknown — held, not
+        extrapolated: the object may have stopped or turned back meanwhile — moved first by the
+        displacement of the object's image since that frame (:func:`object_shift`, when the
+        match is clear), else held where it was; the point sources get back their tracks of that
+        frame, and one tracking step follows them by KLT from that frame to this one. It counts
+        only if that step tracks (enough points agree, small residuals, a plausible pose) and
+        the model's edges confirm the pose; else None (and recognition runs)."""
+        seen, p = self._seen, self.params
+        if seen is None or p.reacquire_s <= 0 or time_s - seen.state.t > p.reacquire_s:
+            return None
+        t0 = time.perf_counter()
+        s, mesh = seen.state, self.model.mesh
+        shift, score = object_shift(seen.frame.gray, frame.gray, hull_mask(self.camera, mesh.vertices, s.pose))
+        starts = [s.pose]
+        if score >= p.reacquire_min_ncc and np.hypot(*shift) > 0.5 * p.klt.win:  # beyond KLT's easy reach
+            starts.insert(0, shifted_pose(s.pose, mesh.centre, self.camera, shift))
+        step = None
+        options = self.filter.options
+        # from a start this far off, Gauss–Newton needs more than the tracking step's iterations
+        self.filter.options = replace(options, max_iterations=max(options.max_iterations, 12))
+        try:
+            for pose in starts:
+                self._start_filter(s.t, pose, s.pose_covariance)
+                self.trained.tracks = seen.trained
+                vars(self.mesh_points).update(vars(copy.copy(seen.mesh)))
+                self._prev = seen.frame
+                step = self._track(img, frame, time_s, {})
+                if step.status != "lost" and self._edges_confirm(frame.gray, self.filter.state.pose):
+                    break
+                self._lost(time_s, "")
+                step = None
+        finally:
+            self.filter.options = options
+        timings["reacquire"] = _ms(t0)
+        if step is not None:
+            step.status, step.reason = "init", "re-acquired near the last pose"
+            self._probation = p.probation_frames
+        return step
+
     def _initialise(self, img: np.ndarray, frame: Frame, time_s: float, timings: dict) -> TrackStep:
-        """*init*: the user's pose or recognition; then anchor model points and refine."""
+        """*init*: the user's pose, re-acquisition near the last pose (:meth:`_reacquire`) or
+        recognition; then anchor model points and refine."""
+        if self._pending is None:
+            step = self._reacquire(img, frame, time_s, timings)
+            if step is not None:
+                return step
         if self._pending is not None:
             pose, t_given = self._pending
             self._pending = None
@@ -223,14 +278,11 @@ class Tracker:
             time_s0 = time_s if t_given is None or t_given > time_s else t_given
         else:
             t0 = time.perf_counter()
-            loc, how = locate(img, self.camera, self.model, self.params.locate, index=self._index()), "recognition"
-            if not loc.found and len(self.keyframes):
-                # a side seen earlier in this run that no trained view shows: the whole frame
-                # against the keyframes (keyframes.py)
-                kmodel, kindex = self.keyframes.search_model(self.model)
-                again = locate(img, self.camera, kmodel, replace(self.params.locate, use_window=False), index=kindex)
-                if again.found:
-                    loc, how = again, f"re-found on this run's {again.viewset}"
+            model, index = self.model, self._index()
+            if len(self.keyframes):  # the sides seen earlier in this run too (keyframes.py)
+                model, index = self.keyframes.search_model(self.model)
+            loc = locate(img, self.camera, model, self.params.locate, index=index)
+            how = f"re-found on this run's {loc.viewset}" if loc.found and loc.viewset.startswith("keyframe") else "recognition"
             timings["locate"] = _ms(t0)
             if not loc.found:
                 return self._lost(time_s, f"not found: {loc.reason}")
@@ -243,6 +295,7 @@ class Tracker:
         timings["replenish"] = _ms(t0)
         if len(tracks) < self.params.min_inliers:
             if self._start_on_mesh(img, frame, prior, tracks):
+                self._probation = self.params.probation_frames
                 return self._pose_step(time_s, "init", len(self.mesh_points), reason=f"{how}: no trained view "
                                        "shows this side; points born on the mesh, confirmed by its edges")
             return self._lost(time_s, f"{how}: only {len(tracks)} model points matched near the pose")
@@ -324,6 +377,10 @@ class Tracker:
         why = self._implausible(self.filter.state.pose)
         if why:
             return self._lost(time_s, f"pose: {why}", n_inl)
+        if self._probation > 0:  # a track started without trained points: the edges must agree
+            self._probation -= 1
+            if not self._edges_confirm(frame.gray, self.filter.state.pose):
+                return self._lost(time_s, "the model's edges do not confirm the re-acquired pose", n_inl)
         start = 0
         for s, b in zip(self.sources, blocks):
             s.settle(ctx, b, inl[start : start + len(b)], self.filter.state)

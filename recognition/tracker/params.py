@@ -116,12 +116,19 @@ class TrackerParams:
     # _deg), learn_min_inliers textured points agree and are learn_min_share of those measured,
     # and the model's edges agree, every keyframe_every frames the frame's lifted SIFT keypoints
     # are kept in memory, one per keyframe_min_angle_deg of viewing direction (the nearest renewed
-    # after keyframe_renew_s), at most keyframes_max (0: none); after a loss, when recognition on
-    # the model finds nothing, the whole frame is searched against them
+    # after keyframe_renew_s), at most keyframes_max (0: none); after a loss, recognition searches
+    # them with the model's views
     keyframes_max: int = 24
     keyframe_min_angle_deg: float = 15.0
     keyframe_renew_s: float = 3.0
     keyframe_every: int = 10
+    # after a loss, for reacquire_s the tracker first tries to pick the track up again near the
+    # last good pose (Tracker._reacquire: KLT from that frame, the edges confirming) before recognition
+    reacquire_s: float = 2.0
+    reacquire_min_ncc: float = 0.5  # the object's patch matched this well: start from where it went
+    # a track re-acquired, or started on mesh-born corners, carries no trained point to vouch for
+    # it: for its first probation_frames frames the model's edges must confirm every pose
+    probation_frames: int = 15
     initial_sigma_p: float = 0.01  # × diameter, for init_pose without a covariance
     initial_sigma_deg: float = 2.0
     klt: KLTParams = field(default_factory=KLTParams)
