@@ -174,8 +174,10 @@ def frames_received(srv) -> float:
 
 def test_back_pressure_processes_the_newest(server, frames, monkeypatch):
     """While a frame is being tracked, newer ones replace each other: the newest is processed
-    next. Made independent of the machine's speed: the first frame's tracking waits until the
-    server has received every frame (read from its metrics), so exactly 13 are skipped."""
+    next. Made independent of the machine's speed: the first tracked frame's step waits until the
+    server has received every frame (read from its metrics). Which frame that first one is
+    depends on when the worker thread started on it (it takes the newest then, usually frame 0);
+    whatever it is, every frame after it but the last is skipped."""
     from quatrack.service import sessions
 
     gate = threading.Event()
@@ -200,9 +202,14 @@ def test_back_pressure_processes_the_newest(server, frames, monkeypatch):
             send_frame(ws, f, i / 30)
         assert wait_until(lambda: frames_received(server) == before + n, timeout=60)
         gate.set()
-        got = [recv(ws), recv(ws)]
-    assert [(m["frame"], m["skipped"]) for m in got] == [(0, 0), (n - 1, n - 2)]
-    assert got[1]["time_s"] == pytest.approx((n - 1) / 30)  # the newest frame's own time
+        got = [recv(ws)]
+        k = got[0]["frame"]
+        if k < n - 1:
+            got.append(recv(ws))
+    assert got[0]["skipped"] == k  # the frames before it, replaced before a thread took one
+    if k < n - 1:
+        assert (got[1]["frame"], got[1]["skipped"]) == (n - 1, n - 2 - k)
+    assert got[-1]["time_s"] == pytest.approx((n - 1) / 30)  # the newest frame's own time
 
 
 def test_a_frame_waiting_for_a_busy_pool_is_replaced_by_a_newer_one(store, frames):
