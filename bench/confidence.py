@@ -40,7 +40,7 @@ from quatrack.recognition.pose import CONFIDENCE_FEATURES, PoseParams, confidenc
 
 # the sign each weight must have (+1: more of it, more likely right); the bias is free
 SIGNS = {"bias": 0, "lead": 1, "agreement": 1, "weakest": 1, "log_inliers": 1, "spread": 1, "faces": 1,
-         "log_sd_ratio": -1, "rival_ratio": -1}
+         "log_sd_ratio": -1, "rival_ratio": -1, "log_edge_shift": -1}
 BINS = (0.0, 0.2, 0.5, 0.8, 0.9, 0.95, 1.0 + 1e-9)
 
 
@@ -54,7 +54,8 @@ def relaxed(params: PoseParams = PoseParams()) -> PoseParams:
 def features_of(v: dict) -> dict[str, float]:
     """The confidence's inputs from a locate answer's ``verification`` JSON."""
     return confidence_features(v["edge_agreement"] - v["edge_chance"], v["edge_agreement"], v["edge_weakest"],
-                               v["inliers"], v["inlier_spread"], v["inlier_faces"], v["sd_ratio"], v["rival_inliers"])
+                               v["inliers"], v["inlier_spread"], v["inlier_faces"], v["sd_ratio"], v["rival_inliers"],
+                               math.inf if v.get("edge_shift", 0.0) is None else v.get("edge_shift", 0.0))
 
 
 def collect(seed: int, zoo_scenes: int, cookie_scenes: int, objects=None, cache: str | None = None,

@@ -389,7 +389,7 @@ def format_zoo(z: dict) -> str:
                      f"{w['dr_deg']:.1f}° off, {100 * w['outside']:.0f} % outside, {w['angle']:.0f}° from a view; "
                      f"confidence {w['confidence']:.2f}, " + ", ".join(
                          f"{k} {v[k]}" for k in ("inliers", "inlier_faces", "edge_agreement", "edge_chance", "edge_weakest",
-                                                 "inlier_spread", "sd_ratio", "rival_inliers") if k in v))
+                                                 "inlier_spread", "sd_ratio", "rival_inliers", "edge_shift") if k in v))
     lines.append("  confidence vs share correct: " + ", ".join(
         f"[{c['from']:.2f}, {c['to']:.2f}): {c['poses']} poses, {_share(c['correct'])}" for c in z["calibration"]))
     n = z["no_object"]

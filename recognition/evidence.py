@@ -100,11 +100,16 @@ def edge_samples(mesh: Mesh, camera: PinholeCamera, pose: Pose, params: EdgePara
     edge each lies on (n,).
 
     ``depth``: a z-buffer of the pose rendered at ``depth_scale`` (rendered here if None)."""
+    return _edge_samples(mesh, camera, pose, params, depth, depth_scale)[:3]
+
+
+def _edge_samples(mesh: Mesh, camera: PinholeCamera, pose: Pose, params: EdgeParams, depth, depth_scale):
+    """:func:`edge_samples` plus the samples' points in the object frame (n, 3)."""
     pairs, faces = _edge_pairs(mesh)
     N = mesh.face_normals
     V = pose.apply(mesh.vertices)
     if np.any(V[:, 2] <= 1e-9):
-        return np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, int)
+        return np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, int), np.zeros((0, 3))
     centroid = pose.apply(mesh.triangles.mean(axis=1))
     facing = np.einsum("ij,ij->i", N @ pose.R.T, centroid) < 0  # towards the camera
     f0, f1 = faces[:, 0], faces[:, 1]
@@ -114,7 +119,7 @@ def edge_samples(mesh: Mesh, camera: PinholeCamera, pose: Pose, params: EdgePara
     silhouette = facing[f0] != facing[f1s]
     keep = open_ | (crease & (facing[f0] | facing[f1s])) | silhouette
     if not keep.any():
-        return np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, int)
+        return np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, int), np.zeros((0, 3))
     A, B = V[pairs[keep, 0]], V[pairs[keep, 1]]
     ua, ub = camera.project(A), camera.project(B)
     length = np.linalg.norm(ub - ua, axis=1)
@@ -138,7 +143,7 @@ def edge_samples(mesh: Mesh, camera: PinholeCamera, pose: Pose, params: EdgePara
     vi = np.clip(np.rint((uv[:, 1] + 0.5) * sy - 0.5).astype(int), 0, dh - 1)
     near = cv2.erode(np.where(np.isfinite(depth), depth, np.inf).astype(np.float32), np.ones((3, 3), np.uint8))
     ok &= P[:, 2] <= near[vi, ui] + params.depth_tol * mesh.extent
-    return uv[ok], normal[ok], seg[ok]
+    return uv[ok], normal[ok], seg[ok], (P[ok] - pose.t) @ pose.R
 
 
 def image_gradients(grey: np.ndarray, box: tuple[int, int, int, int] | None = None) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
@@ -155,23 +160,21 @@ def image_gradients(grey: np.ndarray, box: tuple[int, int, int, int] | None = No
 
 
 def _supported(gx, gy, origin, uv, normal, radius: float, params: EdgeParams) -> np.ndarray:
-    """Per sample: an aligned, strong gradient within ``radius`` px along its normal."""
+    """Per sample: an aligned, strong gradient within ``radius`` px along its normal
+    (``|g·n| ≥ cos_min |g|`` and ``|g| ≥ min_grad``), every offset at once."""
     h, w = gx.shape
-    out = np.zeros(len(uv), bool)
     if len(uv) == 0:
-        return out
+        return np.zeros(0, bool)
     offsets = np.arange(-np.ceil(radius), np.ceil(radius) + 1)
-    for o in offsets:
-        p = uv + normal * o - np.asarray(origin, float)
-        ui = np.rint(p[:, 0]).astype(int)
-        vi = np.rint(p[:, 1]).astype(int)
-        inside = (ui >= 0) & (vi >= 0) & (ui < w) & (vi < h)
-        ui, vi = np.clip(ui, 0, w - 1), np.clip(vi, 0, h - 1)
-        ex, ey = gx[vi, ui], gy[vi, ui]
-        mag = np.hypot(ex, ey)
-        cos = np.abs(ex * normal[:, 0] + ey * normal[:, 1]) / np.maximum(mag, 1e-6)
-        out |= inside & (mag >= params.min_grad) & (cos >= params.cos_min)
-    return out
+    p = (uv - np.asarray(origin, float))[:, None, :] + normal[:, None, :] * offsets[None, :, None]  # (n, k, 2)
+    ui = np.rint(p[..., 0]).astype(np.intp)
+    vi = np.rint(p[..., 1]).astype(np.intp)
+    inside = (ui >= 0) & (vi >= 0) & (ui < w) & (vi < h)
+    flat = np.clip(vi, 0, h - 1) * w + np.clip(ui, 0, w - 1)
+    ex, ey = gx.ravel()[flat], gy.ravel()[flat]
+    mag = np.sqrt(ex * ex + ey * ey)
+    dot = np.abs(ex * normal[:, None, 0] + ey * normal[:, None, 1])
+    return (inside & (mag >= params.min_grad) & (dot >= params.cos_min * mag)).any(axis=1)
 
 
 @dataclass(frozen=True)
@@ -190,9 +193,30 @@ def edge_agreement(grey: np.ndarray, mesh: Mesh, camera: PinholeCamera, pose: Po
                    params: EdgeParams = EdgeParams(), depth: np.ndarray | None = None,
                    depth_scale: float = 0.5) -> EdgeEvidence:
     """Agreement of the visible model edges at ``pose`` with the image's gradients, and chance."""
-    uv, normal, seg = edge_samples(mesh, camera, pose, params, depth, depth_scale)
+    return measure_edges(grey, mesh, camera, pose, params, depth, depth_scale)[0]
+
+
+@dataclass(frozen=True)
+class EdgeImage:
+    """What :func:`edge_agreement` measured, kept for :func:`edge_fit`: the visible samples
+    (pixels, normals, object points), the gradients of the crop round them and the object's
+    apparent size (px)."""
+
+    uv: np.ndarray
+    normal: np.ndarray
+    points: np.ndarray
+    gx: np.ndarray
+    gy: np.ndarray
+    origin: tuple[int, int]
+    size: float
+
+
+def measure_edges(grey, mesh, camera, pose, params: EdgeParams = EdgeParams(), depth=None,
+                  depth_scale: float = 0.5) -> tuple[EdgeEvidence, EdgeImage | None]:
+    """:func:`edge_agreement` and what it measured (for :func:`edge_fit`; None without samples)."""
+    uv, normal, seg, X = _edge_samples(mesh, camera, pose, params, depth, depth_scale)
     if len(uv) == 0:
-        return EdgeEvidence(0, 0.0, 0.0, 0.0)
+        return EdgeEvidence(0, 0.0, 0.0, 0.0), None
     span = np.ptp(uv, axis=0)
     size = float(max(np.hypot(*span), 8.0))
     radius = params.radius_px + params.radius_share * size
@@ -211,13 +235,103 @@ def edge_agreement(grey: np.ndarray, mesh: Mesh, camera: PinholeCamera, pose: Po
     per_edge = np.bincount(seg, weights=ok.astype(float))
     long_ = count >= params.min_edge_len
     weakest = float((per_edge[long_] / count[long_]).min()) if long_.any() else agree
-    chance = []
+    # chance: the samples displaced by a quarter of the object's size in four directions (one batch)
+    moved, normals, counts = [], [], []
     for dx, dy in ((1, 0), (-1, 0), (0, 1), (0, -1)):
-        moved = uv + shift * np.array([dx, dy], float)
-        inside = (moved[:, 0] >= 0) & (moved[:, 1] >= 0) & (moved[:, 0] <= w - 1) & (moved[:, 1] <= h - 1)
+        m = uv + shift * np.array([dx, dy], float)
+        inside = (m[:, 0] >= 0) & (m[:, 1] >= 0) & (m[:, 0] <= w - 1) & (m[:, 1] <= h - 1)
         if inside.sum() >= 0.3 * len(uv):
-            chance.append(float(_supported(gx, gy, origin, moved[inside], normal[inside], radius, params).mean()))
-    return EdgeEvidence(len(uv), agree, float(np.mean(chance)) if chance else 0.0, weakest)
+            moved.append(m[inside])
+            normals.append(normal[inside])
+            counts.append(int(inside.sum()))
+    chance = []
+    if counts:
+        hit = _supported(gx, gy, origin, np.concatenate(moved), np.concatenate(normals), radius, params)
+        chance = [float(part.mean()) for part in np.split(hit, np.cumsum(counts)[:-1])]
+    return (EdgeEvidence(len(uv), agree, float(np.mean(chance)) if chance else 0.0, weakest),
+            EdgeImage(uv, normal, X, gx, gy, origin, size))
+
+
+@dataclass(frozen=True)
+class EdgeFit:
+    """Do the edges, measured precisely, agree with the pose the points give? (:func:`edge_fit`)
+
+    ``samples``: visible edge samples with an aligned image edge within the wide search;
+    ``offset_px``: their median distance from the model edge at the pose; ``shift``: how far the
+    pose moves when those edge measurements join the inliers, against the criterion of a right
+    pose, ``max(|Δc| / (5 % of the diameter), Δθ / 5°)`` (``c`` the object's centre)."""
+
+    samples: int = 0
+    offset_px: float = 0.0
+    shift: float = 0.0
+    points_rms_px: float = 0.0  # the inliers' reprojection RMS at the refitted pose
+
+
+def edge_fit(image: EdgeImage | None, mesh: Mesh, camera: PinholeCamera, pose: Pose, points3d: np.ndarray,
+             uv: np.ndarray, params: EdgeParams = EdgeParams(), reach: float = 0.05, edge_sigma_px: float = 1.0,
+             point_sigma_px: float = 1.0, iterations: int = 6) -> EdgeFit:
+    """Refit the pose to the inliers (``points3d`` ↔ ``uv``) *and* the model's edges, and say how
+    far it moves.
+
+    The edge agreement (:func:`edge_agreement`) accepts an edge within a couple of pixels; a
+    wrong pose carried by one face keeps that face's outline and can lean the others by a few
+    pixels — a tilt, a depth — and still pass. Here each visible edge sample searches along its
+    normal within ``± (radius + reach × apparent size)`` for the strongest aligned gradient
+    (sub-pixel: :func:`quatrack.recognition.tracker.edges.search_edges`); the found positions
+    become distances across the edge, ``nᵀ(π(R Xₑ + t) − yₑ)`` (σ ``edge_sigma_px``), and the pose
+    is re-estimated with the inliers (σ ``point_sigma_px``) by Gauss–Newton with Cauchy weights
+    ``1 / (1 + r²/2²)`` (r in σ), from the pose, updating ``p ← p + δp``, ``q ← exp(δθ/2) q``. A right
+    pose is where its edges are: it barely moves. A pose the points hold a few pixels off the
+    image's edges moves towards them, by a share of the criterion :class:`EdgeFit` reports."""
+    from quatrack.tracking import quaternion as quat
+    from quatrack.tracking.measurements import project_model_points
+
+    from .tracker.edges import search_edges
+
+    if image is None or len(image.uv) < 6 or len(points3d) < 3:
+        return EdgeFit()
+    origin = np.asarray(image.origin, float)
+    radius = params.radius_px + params.radius_share * image.size + reach * image.size
+    meas, found = search_edges(image.gx, image.gy, image.uv - origin, image.normal, np.full(len(image.uv), radius),
+                               params.min_grad)
+    k = int(found.sum())
+    if k < 6:
+        return EdgeFit(k)
+    n, Xe, y = image.normal[found], image.points[found], meas[found] + origin
+    offset = float(np.median(np.abs(np.einsum("ij,ij->i", y - image.uv[found], n))))
+    X = np.asarray(points3d, float)
+    uv = np.asarray(uv, float)
+    p, q = pose.t.astype(float), pose.q_wxyz.astype(float)
+    c2 = 2.0**2  # Cauchy scale (σ units)
+    for _ in range(iterations):
+        R = quat.to_matrix(q)
+        up, Jp = project_model_points(camera, X, p, R)
+        ue, Je = project_model_points(camera, Xe, p, R)
+        rp = (up - uv).reshape(-1) / point_sigma_px
+        Jp = Jp.reshape(-1, 6) / point_sigma_px
+        re = np.einsum("ij,ij->i", ue - y, n) / edge_sigma_px  # distance across the edge
+        Je = np.einsum("ijk,ij->ik", Je, n) / edge_sigma_px
+        r = np.concatenate([rp, re])
+        J = np.concatenate([Jp, Je])
+        w = 1.0 / (1.0 + r * r / c2)  # IRLS weights of the Cauchy loss
+        A = J.T @ (w[:, None] * J) + 1e-9 * np.eye(6)
+        try:
+            delta = -np.linalg.solve(A, J.T @ (w * r))
+        except np.linalg.LinAlgError:
+            return EdgeFit(k, offset, np.inf)
+        p = p + delta[:3]
+        q = quat.multiply(quat.exp(0.5 * delta[3:]), q)
+        if max(np.linalg.norm(delta[:3]) / (0.05 * mesh.extent), np.degrees(np.linalg.norm(delta[3:])) / 5.0) < 0.01:
+            break  # the step is 1 % of the criterion
+    R = quat.to_matrix(q)
+    up, _ = project_model_points(camera, X, p, R, jacobian=False)
+    rms = float(np.sqrt(np.mean(np.sum((up - uv) ** 2, axis=1))))
+    c = mesh.centre
+    dc = float(np.linalg.norm((R - pose.R) @ c + p - pose.t))
+    dr = float(np.degrees(quat.angle_between(quat.canonical(q), pose.q_wxyz)))
+    if not np.isfinite(dc + dr + rms):
+        return EdgeFit(k, offset, np.inf, np.inf)
+    return EdgeFit(k, offset, max(dc / (0.05 * mesh.extent), dr / 5.0), rms)
 
 
 def inlier_spread(uv: np.ndarray, area_px: float) -> float:

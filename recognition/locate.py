@@ -37,6 +37,11 @@ class LocateParams:
     # photos' size, so a shrunk object still matches (bench/RESULTS.md, "Speed (issue 13)")
     sift_object_px: float | None = 200.0
     retry_full_resolution: bool = True  # a shrunk window without a verified pose is described again at full size
+    # the whole-image fallback after a failed window describes the frame shrunk so that the
+    # object's typical size (:func:`typical_object_px`) is at most this many pixels (and never
+    # larger than the window's scale); None: at the window's scale. SIFT of the whole frame was
+    # the slow tail of locate (bench/RESULTS.md, session 18)
+    fallback_object_px: float | None = 200.0
     viewsets_tried: int = 2  # the best and the runner-up
     pool_all: bool = True  # then all matches of every viewset together
     whole_image_fallback: bool = True
@@ -155,7 +160,7 @@ def _pose_from(
             rest = np.setdiff1d(np.arange(len(matches)), inl_all)
             rival = rival_inliers(camera, matches.points3d, uv_all, PnPSolution(est.pose, est.covariance, inl_all, est.rms_px),
                                   model.mesh, params.pose) if len(rest) >= params.pose.min_inliers else 0
-            ver = verification(est, grey, camera, model.mesh, uv, params.pose, rival)
+            ver = verification(est, grey, camera, model.mesh, uv, params.pose, rival, m.points3d)
             out.verification = ver
             if ver.passed:
                 out.est, out.matches, out.reason, out.viewset = est, len(keep), None, label
@@ -177,6 +182,17 @@ def sift_scale(window: tuple, object_px: float | None) -> float:
     if object_px is None or side <= object_px:
         return 1.0
     return float(object_px) / side
+
+
+def typical_object_px(model: ObjectModel, image_width: int) -> float:
+    """The object's typical apparent size in a query image ``image_width`` pixels wide: the longer
+    side of the geometric mean of the smallest and largest training silhouettes (registered and
+    synthetic views, ``model.rfch.size_min``/``size_max``), carried over by the image widths
+    (as the window search carries them; :func:`~.window_search.window_shapes`)."""
+    widths = [vs.camera.width for vs in model.viewsets if not vs.learned]
+    train_w = float(np.median(widths)) if widths else float(image_width)
+    (w0, h0), (w1, h1) = model.rfch.size_min, model.rfch.size_max
+    return float(max(np.sqrt(w0 * w1), np.sqrt(h0 * h1)) * image_width / train_w)
 
 
 def _describe_and_pose(img, box, scale: float, index: ModelIndex, model: ObjectModel, camera: PinholeCamera,
@@ -269,6 +285,8 @@ def locate(
     window_failed = win is not None and win.found and res.est is None
     if res.est is None and (not params.use_window or (params.whole_image_fallback and window_failed)):
         searched = "image"
+        if window_failed and params.fallback_object_px is not None:
+            scale = min(scale, sift_scale((0, 0, typical_object_px(model, w), 0), params.fallback_object_px))
         first = res
         res = _describe_and_pose(img, None, scale, index, model, cam, None, params, timer, grey)
         if res.verification is None:
