@@ -57,7 +57,7 @@ from ..images import ImageError, to_bgr8
 from ..klt import Frame, make_frame
 from ..locate import locate
 from ..match import ModelIndex, index_for
-from ..evidence import edge_agreement
+from ..evidence import edge_agreement, silhouette_inside
 from ..pose import PoseParams, plausible
 from ..visibility import merge_points
 from .anchor import Anchor, AnchorJob
@@ -230,8 +230,10 @@ class Tracker:
         displacement of the object's image since that frame (:func:`object_shift`, when the
         match is clear), else held where it was; the point sources get back their tracks of that
         frame, and one tracking step follows them by KLT from that frame to this one. It counts
-        only if that step tracks (enough points agree, small residuals, a plausible pose) and
-        the model's edges confirm the pose; else None (and recognition runs)."""
+        only if that step tracks (enough points agree, small residuals, a plausible pose), at
+        least ``reacquire_min_inside`` of the object is inside the image (a pose from a sliver
+        at the border is poorly determined) and the model's edges confirm the pose; else None
+        (and recognition runs)."""
         seen, p = self._seen, self.params
         if seen is None or p.reacquire_s <= 0 or time_s - seen.state.t > p.reacquire_s:
             return None
@@ -252,7 +254,8 @@ class Tracker:
                 vars(self.mesh_points).update(vars(copy.copy(seen.mesh)))
                 self._prev = seen.frame
                 step = self._track(img, frame, time_s, {})
-                if step.status != "lost" and self._edges_confirm(frame.gray, self.filter.state.pose):
+                if (step.status != "lost" and silhouette_inside(mesh, self.camera, self.filter.state.pose)[0] >= p.reacquire_min_inside
+                        and self._edges_confirm(frame.gray, self.filter.state.pose)):
                     break
                 self._lost(time_s, "")
                 step = None

@@ -126,6 +126,7 @@ class TrackerParams:
     # last good pose (Tracker._reacquire: KLT from that frame, the edges confirming) before recognition
     reacquire_s: float = 2.0
     reacquire_min_ncc: float = 0.5  # the object's patch matched this well: start from where it went
+    reacquire_min_inside: float = 0.5  # share of the silhouette inside the image a re-acquired pose needs
     # a track re-acquired, or started on mesh-born corners, carries no trained point to vouch for
     # it: for its first probation_frames frames the model's edges must confirm every pose
     probation_frames: int = 15
