@@ -72,6 +72,7 @@ class Run:
     timings: list[dict] = field(default_factory=list)
     reasons: list = field(default_factory=list)
     learned: list = field(default_factory=list)
+    inits: list = field(default_factory=list)  # how each start after the first came about
 
 
 def run_pass(model, seq: OrbitSequence, params, init_from_truth: bool, index=None, progress: str | None = None) -> Run:
@@ -92,6 +93,8 @@ def run_pass(model, seq: OrbitSequence, params, init_from_truth: bool, index=Non
         run.status.append(step.status)
         run.timings.append(dict(step.timings_ms))
         run.reasons.append(step.reason if step.status == "lost" else None)
+        if step.status == "init" and k > 0:
+            run.inits.append(step.reason or "")
         if step.has_pose:
             dt, dr = pose_error(step, seq.poses[k], model.mesh)
             run.t_err.append(dt)
@@ -139,6 +142,8 @@ def figures(run: Run, visible: np.ndarray, diameter: float) -> dict:
         "lost": int((~has).sum()),
         "lost_visible": int((~has & (visible >= TARGETS["visible"])).sum()),
         "inits": int((st == "init").sum()),
+        "restarts": {how: sum(1 for r in run.inits if r.startswith(key)) for how, key in
+                     (("re-acquired", "re-acquired"), ("keyframe", "re-found"), ("recognition", "recognition"))},
         "first_pose": first,
         "first_lost": first_lost,
         "first_lost_reason": run.reasons[first_lost] if first_lost is not None and run.reasons else None,
@@ -291,6 +296,10 @@ def report(res: dict) -> str:
                              f"{_f(f['r_mean_deg'])}  {f['bad']}")
         if "truth" in s and "learned" not in s:
             lines.append(f"  {name:<16} learned model  - ({s.get('learned_viewsets', 0)} learned viewsets)")
+    rs = [(name, s["truth"]["restarts"]) for name, s in res["sequences"].items() if "restarts" in s.get("truth", {})]
+    if rs:
+        lines.append("restarts after a loss (truth pass): re-acquired near the last pose / re-found on a keyframe / "
+                     "recognition: " + "; ".join(f"{n} {r['re-acquired']}/{r['keyframe']}/{r['recognition']}" for n, r in rs))
     stages: dict[str, list[float]] = {}
     for s in res["sequences"].values():
         for k, v in s.get("truth", {}).get("stage_mean_ms", {}).items():
