@@ -57,7 +57,7 @@ from ..images import ImageError, to_bgr8
 from ..klt import Frame, make_frame
 from ..locate import locate
 from ..match import ModelIndex, index_for
-from ..evidence import edge_agreement, silhouette_inside
+from ..evidence import edge_fit, measure_edges, silhouette_inside
 from ..pose import PoseParams, plausible
 from ..visibility import merge_points
 from .anchor import Anchor, AnchorJob
@@ -107,6 +107,8 @@ class Tracker:
         self.sources: list[MeasurementSource] = [s for s in (self.trained, self.mesh_points, self.edges)
                                                  if s.name in params.sources]
         self._anchor: Anchor | None = None
+        # while tracking, the measurements judge: the object may lie mostly outside the image
+        self._plausibility = replace(PoseParams(), min_visible_fraction=params.min_inside)
         self.learned: list[Viewset] = []  # learned in this run (also in self.model once learned)
         self._learn_wait = 0
         # what the object looked like earlier in this run, to find it again after a loss; kept
@@ -255,7 +257,7 @@ class Tracker:
                 self._prev = seen.frame
                 step = self._track(img, frame, time_s, {})
                 if (step.status != "lost" and silhouette_inside(mesh, self.camera, self.filter.state.pose)[0] >= p.reacquire_min_inside
-                        and self._edges_confirm(frame.gray, self.filter.state.pose)):
+                        and self._edges_confirm(frame.gray, self.filter.state.pose, strict=True)):
                     break
                 self._lost(time_s, "")
                 step = None
@@ -380,14 +382,14 @@ class Tracker:
         why = self._implausible(self.filter.state.pose)
         if why:
             return self._lost(time_s, f"pose: {why}", n_inl)
-        if self._probation > 0:  # a track started without trained points: the edges must agree
-            self._probation -= 1
-            if not self._edges_confirm(frame.gray, self.filter.state.pose):
-                return self._lost(time_s, "the model's edges do not confirm the re-acquired pose", n_inl)
         start = 0
         for s, b in zip(self.sources, blocks):
             s.settle(ctx, b, inl[start : start + len(b)], self.filter.state)
             start += len(b)
+        if self._probation > 0:  # a track started without trained points: the edges must agree
+            self._probation -= 1
+            if not self._edges_confirm(frame.gray, self.filter.state.pose, strict=True):
+                return self._lost(time_s, "the model's edges do not confirm the re-acquired pose", n_inl)
 
         self._tracked += 1
         if self.trained not in self.sources:  # (a source alone: nothing to re-anchor)
@@ -468,7 +470,7 @@ class Tracker:
             self._keyframe_wait = p.keyframe_every
         if learn:
             self._learn_wait = p.learn_every
-        if not self._edges_confirm(ctx.frame.gray, pose):
+        if not self._edges_confirm(ctx.frame.gray, pose, strict=True):
             timings["learn"] = _ms(t0)
             return
         mask = birth_mask(mesh, self.camera, pose, p)
@@ -489,14 +491,25 @@ class Tracker:
         self.learned.append(replace(model.viewsets[-1], cooccurrence=vs.cooccurrence))  # (as labelled in the model)
         self.index, self._anchor = None, None  # rebuilt with the learned view when next needed
 
-    def _edges_confirm(self, gray: np.ndarray, pose: Pose) -> bool:
+    def _edges_confirm(self, gray: np.ndarray, pose: Pose, strict: bool = False) -> bool:
         """The model's visible edges at ``pose`` lie on aligned image gradients, well above this
         image's chance level (:func:`recognition.evidence.edge_agreement` with recognition's
         thresholds, :class:`~..pose.PoseParams`): the evidence a pose carried by points born on
-        the mesh, or a view about to be kept, must show."""
+        the mesh must show. That test accepts an edge within a few pixels, which a pose several
+        per cent or degrees off may still pass; ``strict`` (a re-acquired pose, a view about to
+        be kept) also refits the pose to the tracked points and the edges measured precisely
+        (:func:`recognition.evidence.edge_fit`, recognition's own test) and refuses it when it
+        moves by more than ``max_edge_shift`` of the 5 % / 5° criterion."""
         pp = PoseParams()
-        ev = edge_agreement(gray, self.model.mesh, self.camera, pose, pp.edges)
-        return ev.samples >= pp.min_edge_samples and ev.agreement >= pp.min_edge_agreement and ev.lead >= pp.min_edge_lead
+        mesh = self.model.mesh
+        ev, image = measure_edges(gray, mesh, self.camera, pose, pp.edges)
+        if not (ev.samples >= pp.min_edge_samples and ev.agreement >= pp.min_edge_agreement and ev.lead >= pp.min_edge_lead):
+            return False
+        if not strict:
+            return True
+        tracks = self.trained.tracks + self.mesh_points.tracks
+        fit = edge_fit(image, mesh, self.camera, pose, tracks.X, tracks.uv, pp.edges, pp.edge_fit_reach)
+        return fit.samples >= pp.min_edge_samples and fit.shift <= pp.max_edge_shift
 
     def _adjust(self, block: PointBlock) -> tuple[bool, str | None, np.ndarray]:
         """Adjust the prior to the block; redo without the outliers (posterior Mahalanobis
@@ -543,7 +556,7 @@ class Tracker:
             inside = lo[0] >= 0 and lo[1] >= 0 and hi[0] <= w - 1 and hi[1] <= h - 1
             if inside and np.prod(hi - lo) >= 0.05 * w * h:
                 return None
-        return plausible(self.camera, self.model.mesh, pose)
+        return plausible(self.camera, self.model.mesh, pose, self._plausibility)
 
     def _carried(self, ctx: FrameContext | None, blocks, inl) -> bool:
         """SIFT no longer finds the trained texture: is the pose still carried by the points born

@@ -78,6 +78,7 @@ class TrackerParams:
     min_anchor_matches: int = 6
     merge_tol: float = 0.005  # × diameter: the viewsets' 3-D points closer than this are one point
     min_depth: float = 0.5  # × diameter: the object's centre nearer the camera is implausible
+    min_inside: float = 0.2  # a tracked pose with less of its silhouette inside the image is lost
     # measurement sources (recognition/tracker/sources.py): "trained" (the viewsets' points, the
     # anchors), "mesh" (corners born on the mesh at the current pose: recognition/tracker/mesh_points.py),
     # "edges" (sharp model edges searched along their normals: recognition/tracker/edges.py)
