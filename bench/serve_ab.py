@@ -36,8 +36,10 @@ def parse_variant(text: str) -> tuple[str, dict[str, str]]:
     env = {}
     for item in filter(None, rest.split(",")):
         k, sep, v = item.partition("=")
-        if not sep or not k.startswith("QUATRACK_"):
-            raise ValueError(f"variant {text!r}: give QUATRACK_NAME=value pairs separated by commas")
+        if not sep or not (k.startswith("QUATRACK_") or k == "PYTHONPATH"):
+            raise ValueError(f"variant {text!r}: give QUATRACK_NAME=value pairs separated by commas "
+                             "(PYTHONPATH=DIR too: another version of the code, run from a directory "
+                             "without a quatrack/ folder)")
         env[k] = v
     if not label:
         raise ValueError(f"variant {text!r}: starts with a label")
@@ -51,7 +53,8 @@ def main(argv: list[str] | None = None) -> int:
     from quatrack.viewsets.camera import camera_to_dict, load_camera
 
     ap = argparse.ArgumentParser(prog="python -m quatrack.bench.serve_ab", description=__doc__.split("\n\n")[0])
-    ap.add_argument("variants", nargs="+", help="label=QUATRACK_X=v,QUATRACK_Y=w (label= alone: the defaults)")
+    ap.add_argument("variants", nargs="+", help="label=QUATRACK_X=v,QUATRACK_Y=w (label= alone: the defaults; "
+                                                "PYTHONPATH=DIR runs the server from another copy of the code)")
     ap.add_argument("--store", required=True, help="model store with the object")
     ap.add_argument("--object", default="cookie-box")
     ap.add_argument("--clients", default="2,4,8")
