@@ -2,6 +2,8 @@
 
 A point is kept only if tracking it forward and then back lands within ``fb_max_px`` of where it
 started: that rejects points that slid along an edge, left the view, or changed appearance.
+The backward pass starts at the point's origin (where a right forward track leads back), so it
+needs no coarse pyramid levels (``fb_levels``); LK's cost is per point and per level.
 (OpenCV 5's Python binding no longer takes prebuilt pyramids, so LK builds them per call.)
 """
 
@@ -18,6 +20,10 @@ class KLTParams:
     win: int = 21  # window side, pixels
     levels: int = 3  # pyramid levels above the image
     fb_max_px: float = 1.0  # forward–backward error tolerated
+    # pyramid levels of the backward pass (None: ``levels``). It starts where the point came
+    # from, so on a right forward track it has nothing to search: the image level alone gives
+    # the same verdicts at ~60 % of the forward–backward cost (bench/RESULTS.md, step time)
+    fb_levels: int | None = 0
     max_iterations: int = 20
     epsilon: float = 0.03
 
@@ -57,8 +63,9 @@ def track_points(
     p1, st1, _ = cv2.calcOpticalFlowPyrLK(prev.gray, cur.gray, p0, p1, winSize=win,
                                           maxLevel=params.levels, criteria=crit, flags=flags)
     back = p0.copy()
+    back_levels = params.levels if params.fb_levels is None else params.fb_levels
     p0b, st2, _ = cv2.calcOpticalFlowPyrLK(cur.gray, prev.gray, p1, back, winSize=win,
-                                           maxLevel=params.levels, criteria=crit, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+                                           maxLevel=back_levels, criteria=crit, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
     p1 = p1.reshape(-1, 2).astype(float)
     fb = np.linalg.norm(p0b.reshape(-1, 2) - p0.reshape(-1, 2), axis=1)
     w, h = cur.size
