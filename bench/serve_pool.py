@@ -51,8 +51,7 @@ def _step(sid: str, name: str, item) -> tuple[str, object]:
     st = w.sessions.get(sid)
     if st is None:
         st = w.sessions[sid] = SimpleNamespace(sid=sid, name=name, model=w.registry.get(name), settings=w.settings,
-                                               executor=w.executor, background=w.executor, metrics=w.metrics,
-                                               tracker=None,
+                                               executor=w.executor, metrics=w.metrics, tracker=None,
                                                tracker_camera=None, last_status=None)
     try:
         return "ok", TrackSession._process(st, item)

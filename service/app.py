@@ -200,12 +200,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         board = ready_board(settings)
         registry = ServerRegistry(settings.store, on_load=lambda result: metrics.model_loads.labels(result).inc(),
                                   board=board)
-        # re-anchoring (SIFT, 40-50 ms a job, one job per tracker at a time) on a thread of its
-        # own: a frame's step never waits in the pool behind one; same priority as the steps, so
-        # re-anchoring keeps its share of the CPU (the tracks' accuracy depends on it)
-        background = ThreadPoolExecutor(1, thread_name_prefix="quatrack-anchor", initializer=_cpu_thread_start,
-                                        initargs=(settings.thread_nice,))
-        state = ServiceState(settings, registry, executor, metrics, sessions, background=background)
+        state = ServiceState(settings, registry, executor, metrics, sessions)
         app.state.quatrack = state
         loop = asyncio.get_running_loop()
         if settings.preload:
@@ -225,7 +220,6 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             if warm is not None and not warm.done():
                 warm.cancel()
             executor.shutdown(wait=False, cancel_futures=True)
-            background.shutdown(wait=False, cancel_futures=True)
             worker_exit()
 
     app = FastAPI(title="quatrack", version=version("quatrack"), description=DESCRIPTION, lifespan=lifespan,

@@ -49,8 +49,6 @@ class ServiceState:
     metrics: Metrics
     sessions: SessionLimiter
     pending: int = 0  # REST pose requests in flight
-    # the trackers' background re-anchoring (SIFT), apart from the frames' steps; None: executor
-    background: Executor | None = None
     # the sessions' clock (rate limit, arrival times of frames without a time_s): tests inject
     # a controlled one, so that what they check does not depend on the machine's speed
     clock: Callable[[], float] = time.monotonic
@@ -337,7 +335,7 @@ async def track(websocket: WebSocket, name: str) -> None:
             return await _deny(websocket, exc.status_code, exc.code, exc.message, 1011)
         await websocket.accept()
         session = TrackSession(websocket, sid, name, model, state.settings, state.executor, m, clock=state.clock,
-                               ros_unit=unit, background=state.background)
+                               ros_unit=unit)
         outcome = await session.run()
     finally:
         state.sessions.close(sid)

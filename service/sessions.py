@@ -83,12 +83,11 @@ class _SessionError(Exception):
 class TrackSession:
     def __init__(self, ws: WebSocket, sid: str, name: str, model: tuple[ObjectModel, ModelIndex], settings: Settings,
                  executor: Executor, metrics: Metrics, clock: Callable[[], float] = time.monotonic,
-                 ros_unit: str | None = None, background: Executor | None = None) -> None:
+                 ros_unit: str | None = None) -> None:
         self.ws, self.sid, self.name = ws, sid, name
         self.ros_unit = ros_unit  # ?format=ros: each pose message also carries "ros" (service/ros.py)
         # the model the session started with, to its end (a retrained one serves new sessions)
         self.model, self.settings, self.executor, self.metrics = model, settings, executor, metrics
-        self.background = background or executor  # where the tracker re-anchors (make_tracker)
         self.camera: CameraIn | None = None
         self.controls: list = []
         # the single-slot mailbox: filled on the event loop, emptied by the worker thread that
@@ -355,7 +354,7 @@ class TrackSession:
                 camera = cam_in.to_camera((w, h))
             except ApiError as exc:  # a camera without a size, implausible for this frame's
                 raise _SessionError(exc.code, exc.message) from None
-            self.tracker = make_tracker(model, camera, index, self.settings.locate_max_pixels, self.background,
+            self.tracker = make_tracker(model, camera, index, self.settings.locate_max_pixels, self.executor,
                                         learn=learns(self.settings, self.name))
             self.tracker_camera = cam_in.model_copy(update={"width": w, "height": h})
         for op in item.controls:

@@ -56,8 +56,8 @@ class Settings(BaseSettings):
     workers: int = Field(default_factory=_cores, ge=1, le=256,
                          description="worker processes, each with its own models and sessions (default: the number of cores)")
     threads: int = Field(2, ge=1, le=64, description="CPU threads per worker process doing recognition and tracking")
-    thread_nice: int = Field(5, ge=0, le=19, description="nice value of those threads and of the re-anchoring "
-                                                         "thread (Linux, per thread), so that the event loop (probes, frames in, poses "
+    thread_nice: int = Field(5, ge=0, le=19, description="nice value of those threads (Linux, per thread), "
+                                                         "so that the event loop (probes, frames in, poses "
                                                          "out) gets a core first; 0: off")
     switch_interval_ms: float = Field(1.0, gt=0, le=100, description="the interpreter's switch interval in worker "
                                                                      "processes: how long a thread running Python keeps "
