@@ -231,6 +231,7 @@ def test_a_pose_carried_by_one_face_and_wrong_is_refused(cube, bgs):
     wrong = _turned_about_centre(sc.pose, mesh.centre, axis * np.radians(8.0), 0.12 * mesh.extent * c / np.linalg.norm(c))
     fake_uv = CAM.project(wrong.apply(Xf)) + rng.normal(0.0, 1.0, (len(Xf), 2))
     prior = (spec.views[0].pose.R, spec.views[0].pose.t, mesh.centre)  # as locate: one plane has a mirror pose
+    cv2.setRNGSeed(0)  # RANSAC's samples, whatever ran before
     est = solve_pnp(CAM, Xf, fake_uv, PoseParams(), prior)
     assert est is not None and len(est.inliers) >= 0.9 * len(Xf)
     dt, dr = S.pose_errors(est.t, est.q, sc.pose, mesh)

@@ -1,6 +1,6 @@
 """The edge refit (issue 13, session 18): a pose carried by many inliers on one face, a few
-degrees and a few per cent of the diameter off — a near miss whose covariance is tight and whose
-edges lie within the agreement's tolerance — is refused because the model's edges, measured
+degrees and a few per cent of the diameter off — a near miss whose edges lie within the
+agreement's tolerance — is refused because the model's edges, measured
 precisely, pull the pose away; the right pose from the same face is not moved.
 
 Scenes are the zoo's 10 cm cube (mesh in metres) rendered at known poses over real backgrounds.
@@ -66,24 +66,23 @@ def test_the_right_pose_stays_where_its_edges_are(cube):
 
 
 def test_a_near_miss_on_one_face_is_refused_by_its_edges(cube):
-    """60 inliers on one face with 0.5 px noise fit a pose 6 % of the diameter further away and
-    turned 6° about an axis in the face: PnP and the geometric checks accept it, its edges agree
-    within the usual tolerance, its covariance is tight; refitted to the edges it moves by more
-    than the criterion, and it is refused. The face's real keypoints give the right pose, which
-    passes."""
+    """40 inliers on one face with 1 px noise fit a pose 7 % of the diameter further away and
+    turned 4° about an axis in the face: PnP and the geometric checks accept it, its edges agree
+    within the usual tolerance; refitted to the edges it moves by more than the criterion, and
+    it is refused. The face's real keypoints give the right pose, which passes."""
     model, spec, sc, m, uv = cube
     mesh = model.mesh
     grey = cv2.cvtColor(sc.image, cv2.COLOR_BGR2GRAY)
     on_face, n_face = _one_face(m, sc.pose)
     assert len(on_face) >= 40
     rng = np.random.default_rng(0)
-    face = np.sort(rng.choice(on_face, min(60, len(on_face)), replace=False))
+    face = np.sort(rng.choice(on_face, 40, replace=False))
     X = m.points3d[face]
     axis = np.cross(n_face, [0.0, 0.0, 1.0])
     axis /= np.linalg.norm(axis)
     c = sc.pose.R @ mesh.centre + sc.pose.t
-    wrong = _turned_about_centre(sc.pose, mesh.centre, axis * np.radians(6.0), 0.06 * mesh.extent * c / np.linalg.norm(c))
-    fake_uv = CAM.project(wrong.apply(X)) + rng.normal(0.0, 0.5, (len(X), 2))
+    wrong = _turned_about_centre(sc.pose, mesh.centre, axis * np.radians(4.0), 0.07 * mesh.extent * c / np.linalg.norm(c))
+    fake_uv = CAM.project(wrong.apply(X)) + rng.normal(0.0, 1.0, (len(X), 2))
     prior = (spec.views[0].pose.R, spec.views[0].pose.t, mesh.centre)
     est = solve_pnp(CAM, X, fake_uv, PoseParams(), prior)
     assert est is not None and len(est.inliers) >= 0.9 * len(X)
