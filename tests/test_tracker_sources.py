@@ -119,9 +119,10 @@ def test_a_turn_to_faces_no_photo_shows_is_followed_to_the_end(cube):
     err = np.array([pose_errors(s.t, s.q_wxyz, p, model.mesh) for s, p in zip(steps, poses)])
     assert err[:, 0].mean() < 0.01 * d and err[:, 1].mean() < 1.0
     assert err[:, 0].max() < 0.025 * d and err[:, 1].max() < 2.0
-    # the trained points alone cannot: their faces turn away
+    # the trained points alone cannot: their faces turn away and the track is lost (re-acquisition
+    # near the last pose may pick it up again afterwards)
     alone = _orbit(cube, ("trained",))
-    assert not alone[-1].has_pose
+    assert any(s.status == "lost" for s in alone[1:])
 
 
 def test_an_edge_is_found_at_its_subpixel_position():
