@@ -82,3 +82,30 @@ def wait_until(pred, timeout: float = 60.0) -> bool:
             return True
         time.sleep(0.05)
     return False
+
+
+# --- the one-photo cube walk shared by test_learn, test_keyframes and test_tracker_sources
+def one_photo_orbit(root, span_deg: float, n_frames: int, name: str = "small-cube-cm"):
+    """A zoo object (the 6 cm cube by default) trained from ONE rendered photo (azimuth 35°,
+    elevation 25°, over ``clutter_background(4)``, no synthetic views) into ``root``, and a
+    camera orbiting it from the photo's azimuth by ``span_deg`` over ``n_frames`` frames at
+    640×480, elevation ``25° + 10° sin(π k / n)``, rendered over ``clutter_background(5)``:
+    ``SimpleNamespace(root, cam, model, obj, poses, frames, bg)``."""
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from quatrack.testing import zoo as Z
+    from quatrack.testing.sequences import clutter_background
+    from quatrack.viewsets.spec import load_spec
+    from quatrack.viewsets.train import TrainParams, train_object
+
+    cam = Z.zoo_camera(640, 480)
+    spec = Z.write_spec(name, root / "spec", n_views=1, backgrounds=(clutter_background(4),))
+    model = train_object(load_spec(spec), TrainParams(novel=None))
+    obj = Z.textured(name)
+    bg = clutter_background(5)
+    poses = [Z.orbit_pose(obj, cam, 35.0 + span_deg * k / (n_frames - 1), 25.0 + 10.0 * np.sin(np.pi * k / n_frames))
+             for k in range(n_frames)]
+    frames = [Z.compose(*obj.render(cam, p), bg) for p in poses]
+    return SimpleNamespace(root=root, cam=cam, model=model, obj=obj, poses=poses, frames=frames, bg=bg)

@@ -18,20 +18,17 @@ Everything is rendered and seeded; the orbit is short (40 frames at 640×480).
 
 from __future__ import annotations
 
-from types import SimpleNamespace
 
 import cv2
 import numpy as np
 import pytest
 
+from conftest import one_photo_orbit
 from quatrack.recognition.match import index_for
 from quatrack.recognition.tracker.reacquire import shifted_pose
 from quatrack.recognition.video import Tracker, TrackerParams
 from quatrack.testing import zoo as Z
 from quatrack.testing.scenes import pose_errors
-from quatrack.testing.sequences import clutter_background
-from quatrack.viewsets.spec import load_spec
-from quatrack.viewsets.train import TrainParams, train_object
 
 NAME = "small-cube-cm"
 FPS = 30.0
@@ -45,15 +42,7 @@ def _pose(obj, cam, azimuth: float, k: int = 0):
 
 @pytest.fixture(scope="module")
 def walk(tmp_path_factory):
-    root = tmp_path_factory.mktemp("keyframes")
-    cam = Z.zoo_camera(640, 480)
-    spec = Z.write_spec(NAME, root / "spec", n_views=1, backgrounds=(clutter_background(4),))
-    model = train_object(load_spec(spec), TrainParams(novel=None))
-    obj = Z.textured(NAME)
-    bg = clutter_background(5)
-    poses = [_pose(obj, cam, 35.0 + SPAN_DEG * k / (N_FRAMES - 1), k) for k in range(N_FRAMES)]
-    frames = [Z.compose(*obj.render(cam, p), bg) for p in poses]
-    return SimpleNamespace(cam=cam, model=model, obj=obj, poses=poses, frames=frames, bg=bg)
+    return one_photo_orbit(tmp_path_factory.mktemp("keyframes"), SPAN_DEG, N_FRAMES, NAME)
 
 
 def _far_side(walk):

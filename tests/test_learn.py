@@ -34,6 +34,7 @@ import cv2
 import numpy as np
 import pytest
 
+from conftest import one_photo_orbit
 from quatrack.cli import main
 from quatrack.recognition.locate import locate
 from quatrack.recognition.match import index_for
@@ -45,8 +46,6 @@ from quatrack.tracking import quaternion as quat
 from quatrack.tracking.pose import Pose
 from quatrack.viewsets import learn as L
 from quatrack.viewsets import store as S
-from quatrack.viewsets.spec import load_spec
-from quatrack.viewsets.train import TrainParams, train_object
 
 NAME = "small-cube-cm"
 FPS = 30.0
@@ -55,21 +54,9 @@ SPAN_DEG = 180.0
 QUERY = (200.0, 32.0)  # azimuth, elevation of the test view: faces −x and −y, which the photo never shows
 
 
-def _orbit_pose(obj, cam, k: int) -> Pose:
-    return Z.orbit_pose(obj, cam, 35.0 + SPAN_DEG * k / (N_FRAMES - 1), 25.0 + 10.0 * np.sin(np.pi * k / N_FRAMES))
-
-
 @pytest.fixture(scope="module")
 def cube(tmp_path_factory):
-    root = tmp_path_factory.mktemp("learn")
-    cam = Z.zoo_camera(640, 480)
-    spec = Z.write_spec(NAME, root / "spec", n_views=1, backgrounds=(clutter_background(4),))
-    model = train_object(load_spec(spec), TrainParams(novel=None))
-    obj = Z.textured(NAME)
-    bg = clutter_background(5)
-    poses = [_orbit_pose(obj, cam, k) for k in range(N_FRAMES)]
-    frames = [Z.compose(*obj.render(cam, p), bg) for p in poses]
-    return SimpleNamespace(root=root, cam=cam, model=model, obj=obj, poses=poses, frames=frames)
+    return one_photo_orbit(tmp_path_factory.mktemp("learn"), SPAN_DEG, N_FRAMES, NAME)
 
 
 @pytest.fixture(scope="module")

@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 import pytest
 
-from quatrack.testing import zoo as Z
+from conftest import one_photo_orbit
 from quatrack.testing.scenes import pose_errors
 from quatrack.testing.sequences import box_sequence, clutter_background
 from quatrack.recognition.klt import make_frame
@@ -25,8 +25,6 @@ from quatrack.recognition.tracker.sources import FrameContext
 from quatrack.recognition.video import Tracker, TrackerParams
 from quatrack.tracking.state import initial_state
 from quatrack.viewsets.render import render
-from quatrack.viewsets.spec import load_spec
-from quatrack.viewsets.train import TrainParams, train_object
 
 FPS = 30.0
 
@@ -92,16 +90,8 @@ def test_mesh_points_alone_follow_a_known_motion(box):
 def cube(tmp_path_factory):
     """A 6 cm cube trained from one rendered photo (no synthetic views), and a camera orbiting
     it by 120° in 1.5 s: the photo shows three faces; the last frames show two it never did."""
-    name = "small-cube-cm"
-    cam = Z.zoo_camera(640, 480)
-    spec = Z.write_spec(name, tmp_path_factory.mktemp("cube"), n_views=1, backgrounds=(clutter_background(4),))
-    model = train_object(load_spec(spec), TrainParams(novel=None))
-    obj = Z.textured(name)
-    bg = clutter_background(5)
-    n = 45
-    poses = [Z.orbit_pose(obj, cam, 35.0 + 120.0 * k / (n - 1), 25.0 + 10.0 * np.sin(np.pi * k / n)) for k in range(n)]
-    frames = [Z.compose(*obj.render(cam, p), bg) for p in poses]
-    return model, cam, poses, frames
+    w = one_photo_orbit(tmp_path_factory.mktemp("cube"), 120.0, 45)
+    return w.model, w.cam, w.poses, w.frames
 
 
 def _orbit(cube, sources):

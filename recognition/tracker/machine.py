@@ -253,7 +253,7 @@ class Tracker:
             for pose in starts:
                 self._start_filter(s.t, pose, s.pose_covariance)
                 self.trained.tracks = seen.trained
-                vars(self.mesh_points).update(vars(copy.copy(seen.mesh)))
+                vars(self.mesh_points).update(vars(seen.mesh))  # (its arrays are rebound, never mutated)
                 self._prev = seen.frame
                 step = self._track(img, frame, time_s, {})
                 if (step.status != "lost" and silhouette_inside(mesh, self.camera, self.filter.state.pose)[0] >= p.reacquire_min_inside
