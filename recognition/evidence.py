@@ -303,10 +303,12 @@ def edge_fit(image: EdgeImage | None, mesh: Mesh, camera: PinholeCamera, pose: P
     uv = np.asarray(uv, float)
     p, q = pose.t.astype(float), pose.q_wxyz.astype(float)
     c2 = 2.0**2  # Cauchy scale (σ units)
+    XX = np.concatenate([X, Xe])  # inliers and edge samples projected in one call per step
+    m = len(X)
     for _ in range(iterations):
         R = quat.to_matrix(q)
-        up, Jp = project_model_points(camera, X, p, R)
-        ue, Je = project_model_points(camera, Xe, p, R)
+        u_all, J_all = project_model_points(camera, XX, p, R)
+        up, Jp, ue, Je = u_all[:m], J_all[:m], u_all[m:], J_all[m:]
         rp = (up - uv).reshape(-1) / point_sigma_px
         Jp = Jp.reshape(-1, 6) / point_sigma_px
         re = np.einsum("ij,ij->i", ue - y, n) / edge_sigma_px  # distance across the edge

@@ -9,8 +9,9 @@ reported. :func:`locate_all` searches every given model (``--object all``).
 
 from __future__ import annotations
 
+import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -45,6 +46,9 @@ class LocateParams:
     viewsets_tried: int = 2  # the best and the runner-up
     pool_all: bool = True  # then all matches of every viewset together
     whole_image_fallback: bool = True
+    # RANSAC on few matches stops after the draws that would have found a consensus of
+    # ``pose.min_inliers`` with this probability (:func:`ransac_iterations_bound`)
+    ransac_bound_confidence: float = 0.9999
     use_window: bool = True  # False: skip localisation, match in the whole image
     max_pixels: int = DEFAULT_MAX_PIXELS
 
@@ -147,7 +151,11 @@ def _pose_from(
             vs = model.viewsets[int(np.bincount(m.viewset).argmax())]
             prior = (vs.pose.R, vs.pose.t, model.mesh.centre)
             uv = features.keypoints[m.query_idx]
-            est = solve_pnp(camera, m.points3d, uv, params.pose, prior)
+            pose_params = params.pose
+            cap = ransac_iterations_bound(len(keep), pose_params.min_inliers, RANSAC_SAMPLE, params.ransac_bound_confidence)
+            if cap < pose_params.ransac_iterations:
+                pose_params = replace(pose_params, ransac_iterations=cap)
+            est = solve_pnp(camera, m.points3d, uv, pose_params, prior)
             if est is None:
                 out.reason = f"PnP found no consensus ({len(keep)} matches, viewset {label})"
                 continue
@@ -169,6 +177,32 @@ def _pose_from(
         return out
     finally:
         timer["pnp"] = timer.get("pnp", 0.0) + (time.perf_counter() - t0) * 1e3
+
+
+RANSAC_SAMPLE = 5  # points per minimal sample of OpenCV's solvePnPRansac with EPnP
+
+
+def ransac_iterations_bound(n: int, k: int, sample: int = RANSAC_SAMPLE, confidence: float = 0.9999) -> int:
+    """RANSAC iterations after which a consensus of at least ``k`` among ``n`` matches would have
+    been found with probability ``confidence``: a sample of ``sample`` matches is all inliers
+    with probability at least ``p = C(k, s) / C(n, s)``, so ``N = ⌈log(1 − confidence) / log(1 − p)⌉``
+    draws miss every all-inlier sample with probability at most ``1 − confidence``.
+
+    Why: a pose is refused with fewer than ``min_inliers`` inliers anyway, and a set of few
+    matches without such a consensus ran all of RANSAC's iterations (1000) before giving up — the
+    slow tail of locate (bench/RESULTS.md, issue 13 speed). With 17 matches and k = 12 the bound
+    is 68 draws; from about 28 matches on it exceeds 1000 and changes nothing. The draws before
+    the cap are the ones RANSAC made anyway: capping only cuts a hopeless search short.
+
+    >>> ransac_iterations_bound(17, 12), ransac_iterations_bound(12, 12), ransac_iterations_bound(40, 12) > 1000
+    (68, 1, True)
+    """
+    if n <= k:
+        return 1
+    p = math.comb(k, sample) / math.comb(n, sample)
+    if p >= 1.0:
+        return 1
+    return int(math.ceil(math.log(1.0 - confidence) / math.log1p(-p)))
 
 
 def sift_scale(window: tuple, object_px: float | None) -> float:
