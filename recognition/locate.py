@@ -35,8 +35,10 @@ class LocateParams:
     # SIFT sees the window (plus margin) shrunk so that the window's longer side is at most this
     # many pixels (never enlarged; None: full resolution). SIFT's cost grows with the area (it
     # doubles its input first), and the viewsets hold the object at 0.6–1.4× the registered
-    # photos' size, so a shrunk object still matches (bench/RESULTS.md, "Speed (issue 13)")
-    sift_object_px: float | None = 200.0
+    # photos' size, so a shrunk object still matches (bench/RESULTS.md, "Speed (issue 13)").
+    # 200 → 160 (session 19): SIFT ×0.64 the area, ~10 % less CPU per scene; the same success on
+    # 200 cookie-box scenes × 4 FLANN forests and on the zoo (bench/RESULTS.md, issue 13 speed)
+    sift_object_px: float | None = 160.0
     retry_full_resolution: bool = True  # a shrunk window without a verified pose is described again at full size
     # the whole-image fallback after a failed window describes the frame shrunk so that the
     # object's typical size (:func:`typical_object_px`) is at most this many pixels (and never
