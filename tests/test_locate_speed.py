@@ -1,5 +1,6 @@
 """The speed measures of ``locate`` (issue 13) keep the geometry: SIFT on a shrunk crop reports
-keypoints in the full image's pixels, and the shrink factor follows the window's size."""
+keypoints in the full image's pixels, the shrink factor follows the window's size, and RANSAC capped
+on few matches still finds a consensus of min_inliers."""
 
 from types import SimpleNamespace
 
@@ -43,3 +44,35 @@ def test_sift_scale_follows_the_window():
     assert sift_scale((5, 5, 300, 600), 200.0) == pytest.approx(1 / 3)  # the longer side counts
     assert sift_scale((0, 0, 120, 180), 200.0) == 1.0  # never enlarged
     assert sift_scale((0, 0, 4000, 3000), None) == 1.0
+
+
+def _matches(rng, n_good: int, n_bad: int):
+    """Points on a box seen by a 640×480 camera: ``n_good`` true projections (±0.3 px), then
+    ``n_bad`` image points anywhere."""
+    from quatrack.tracking.camera import PinholeCamera
+
+    cam = PinholeCamera(fx=600.0, fy=600.0, cx=320.0, cy=240.0, width=640, height=480)
+    X = rng.uniform(-0.1, 0.1, (n_good + n_bad, 3))
+    Xc = X + np.array([0.0, 0.0, 0.8])
+    uv = cam.project(Xc) + rng.normal(0.0, 0.3, (len(X), 2))
+    uv[n_good:] = rng.uniform([0, 0], [640, 480], (n_bad, 2))
+    return cam, X, uv
+
+
+def test_ransac_bound_keeps_a_consensus_of_min_inliers_and_cuts_a_hopeless_search():
+    from quatrack.recognition.locate import ransac_iterations_bound
+    from quatrack.recognition.pose import ransac_pnp
+
+    # the bound grows as min_inliers' share of the matches shrinks, and never caps 1000 beyond ~28
+    caps = [ransac_iterations_bound(n, 12) for n in (13, 17, 20, 25, 28)]
+    assert caps == sorted(caps) and caps[0] < 20 and caps[-1] > 1000
+    # 12 true matches among 20: RANSAC capped at the bound still finds them (every seed tried)
+    cap = ransac_iterations_bound(20, 12)
+    for seed in range(10):
+        cam, X, uv = _matches(np.random.default_rng(seed), 12, 8)
+        cv2.setRNGSeed(seed)
+        found = ransac_pnp(cam, X, uv, 6.0, cap, 0.999, min_inliers=12)
+        assert found is not None and set(range(12)) <= set(found[1].tolist())
+    # no consensus at all: capped or not, nothing is found
+    cam, X, uv = _matches(np.random.default_rng(99), 0, 20)
+    assert ransac_pnp(cam, X, uv, 6.0, cap, 0.999, min_inliers=12) is None
