@@ -184,6 +184,10 @@ def ransac_pnp(
     uv = np.asarray(uv, np.float64).reshape(-1, 2)
     if len(X) < max(6, min_inliers):
         return None
+    # RANSAC draws its samples from OpenCV's thread-local RNG, whose state is whatever ran before
+    # in that thread: seeded here, the same matches give the same pose (an answer, a test or a
+    # benchmark figure no longer depends on what the process did earlier)
+    cv2.setRNGSeed(0)
     try:
         if guess is None:
             ok, rvec, tvec, inl = cv2.solvePnPRansac(
