@@ -184,3 +184,39 @@ def test_one_klt_call_for_every_point_source_measures_what_one_call_each_does(bo
         np.testing.assert_array_equal(a.X, b.X)
         np.testing.assert_array_equal(a.uv, b.uv)
         np.testing.assert_array_equal(a.C, b.C)
+
+
+def test_edges_cannot_outvote_the_trained_points(box):
+    """Trained points where the object is; three times as many edge samples that all say it is
+    3 px to the right (a search locked onto the print beside each outline). The joint
+    adjustment leans towards the edges; the score test (Tracker._unless_outvoted) sees the
+    trained points disagree and adjusts again without the edges."""
+    from quatrack.recognition.tracker.points import PointBlock, score_statistic
+    from quatrack.tracking.pose import Pose
+
+    model, camera, poses, frames = box
+    tracker = Tracker(model, camera, TrackerParams(), index=index_for(model))
+    tracker.init_pose(poses[0].t, poses[0].q_wxyz)
+    tracker.step(frames[0], 0.0)
+    truth = tracker.filter.state.pose
+    tracker.filter.predict(1.0 / FPS)
+    rng = np.random.default_rng(3)
+    V = model.mesh.vertices
+    X = V[rng.integers(len(V), size=(300, 3))].mean(axis=1)  # points on and in the box
+    z = truth.apply(model.mesh.centre[None])[0, 2]
+    off = Pose(truth.q_wxyz, truth.t + np.array([3.0 * z / camera.fx, 0.0, 0.0]))  # 3 px right
+    uv_t = camera.project(truth.apply(X[:60])) + rng.normal(0.0, 0.3, (60, 2))
+    uv_e = camera.project(off.apply(X[60:])) + rng.normal(0.0, 0.3, (240, 2))
+    C_t = np.broadcast_to(np.eye(2), (60, 2, 2)).copy()
+    C_e = np.broadcast_to(np.diag([1.0, 2500.0]), (240, 2, 2)).copy()  # across the edge: x
+    blocks = [PointBlock("trained", X[:60], uv_t, C_t), PointBlock("mesh", np.zeros((0, 3)), np.zeros((0, 2)), np.zeros((0, 2, 2))),
+              PointBlock("edges", X[60:], uv_e, C_e)]
+    block = PointBlock.stack(blocks)
+    ok, _, inl = tracker._adjust(block)
+    assert ok and inl[:60].sum() >= 50  # the trained points still count as inliers…
+    joint = tracker.filter.state
+    px = lambda s: (camera.project(s.pose.apply(model.mesh.centre[None])) - camera.project(truth.apply(model.mesh.centre[None])))[0, 0]
+    assert px(joint) > 1.5  # …of a pose the edges dragged more than half-way
+    assert score_statistic(camera, blocks[0].keep(inl[:60]), joint) > TrackerParams().texture_chi2
+    kept = tracker._unless_outvoted(blocks, block, inl)
+    assert abs(px(tracker.filter.state)) < 0.3 and not kept[60:].any() and kept[:60].sum() >= 55

@@ -62,7 +62,7 @@ from ..pose import PoseParams, plausible
 from ..visibility import merge_points
 from .anchor import Anchor, AnchorJob
 from .params import INITIAL_VELOCITY_SIGMA, TrackerParams, TrackStep
-from .points import PointBlock, Tracks, mahalanobis2
+from .points import PointBlock, Tracks, mahalanobis2, score_statistic
 from .edges import ModelEdges
 from .keyframes import Keyframe, Keyframes
 from .mesh_points import MeshPoints, birth_mask, confident
@@ -225,6 +225,22 @@ class Tracker:
             c[6:9, 6:9] = (s * self.diameter) ** 2 * np.eye(3)
             c[9:12, 9:12] = s**2 * np.eye(3)
 
+    def _forget_velocity(self) -> None:
+        """Velocities back to zero and unknown (:data:`~.params.INITIAL_VELOCITY_SIGMA`), the pose
+        kept. After a restart from a pose a few frames old and a percent off, one update cannot
+        tell the object's motion from the start's error and puts both into the velocity
+        (``(p_k − p_start)/Δt``): extrapolated, it sent the next prediction several percent of
+        the diameter away and the points' KLT with it. Held, the next frame starts where the
+        object was, as the re-acquisition itself does."""
+        s = self.filter.state
+        if s is None or not self.motion.estimates_velocity:
+            return
+        c = np.zeros_like(s.covariance)
+        c[:6, :6] = s.covariance[:6, :6]
+        c[6:9, 6:9] = (INITIAL_VELOCITY_SIGMA * self.diameter) ** 2 * np.eye(3)
+        c[9:12, 9:12] = INITIAL_VELOCITY_SIGMA**2 * np.eye(3)
+        self.filter.state = s.replace(v=np.zeros(3), omega=np.zeros(3), covariance=c)
+
     def _reacquire(self, img: np.ndarray, frame: Frame, time_s: float, timings: dict) -> TrackStep | None:
         """Re-acquisition near the last pose (:mod:`.reacquire`), within ``reacquire_s`` of a loss.
         The filter restarts at the last good posterior with its velocities unknown — held, not
@@ -249,16 +265,30 @@ class Tracker:
         options = self.filter.options
         # from a start this far off, Gauss–Newton needs more than the tracking step's iterations
         self.filter.options = replace(options, max_iterations=max(options.max_iterations, 12))
+        followed = None  # a pose the measurements support while too little is inside to report it
+        if seen.followed:  # one frame ago: continue that track, velocities and all, first
+            starts.insert(0, None)
         try:
             for pose in starts:
-                self._start_filter(s.t, pose, s.pose_covariance)
+                if pose is None:
+                    self.filter.state, self.filter.prior = s, None
+                else:
+                    self._start_filter(s.t, pose, s.pose_covariance)
                 self.trained.tracks = seen.trained
                 vars(self.mesh_points).update(vars(seen.mesh))  # (its arrays are rebound, never mutated)
                 self._prev = seen.frame
                 step = self._track(img, frame, time_s, {})
-                if (step.status != "lost" and silhouette_inside(mesh, self.camera, self.filter.state.pose)[0] >= p.reacquire_min_inside
-                        and self._edges_confirm(frame.gray, self.filter.state.pose, strict=True)):
-                    break
+                shift = np.inf if step.status == "lost" else self._edge_shift(frame.gray, self.filter.state.pose)
+                if shift <= PoseParams().max_edge_shift:  # the measurements and the edges support it
+                    self._forget_velocity()
+                    if (shift <= p.max_edge_shift and silhouette_inside(mesh, self.camera, self.filter.state.pose)[0]
+                            >= p.reacquire_min_inside):
+                        break
+                    if followed is None:
+                        if self.mesh_points in self.sources:  # corners on what came into view
+                            self.mesh_points.spawn(FrameContext(img, frame, None, self.camera, self.filter.state),
+                                                   self.filter.state, vouched=False)
+                        followed = LastSeen(self.filter.state, frame, self.trained.tracks, copy.copy(self.mesh_points), True)
                 self._lost(time_s, "")
                 step = None
         finally:
@@ -267,6 +297,11 @@ class Tracker:
         if step is not None:
             step.status, step.reason = "init", "re-acquired near the last pose"
             self._probation = p.probation_frames
+        elif followed is not None:
+            # Followed, not reported: the next frame's attempt starts from this one, one frame
+            # away, instead of from the frame before the loss, which KLT cannot bridge once the
+            # object has turned and slid for a few frames (it comes back into view gradually).
+            self._seen = followed
         return step
 
     def _initialise(self, img: np.ndarray, frame: Frame, time_s: float, timings: dict) -> TrackStep:
@@ -311,6 +346,11 @@ class Tracker:
         if not ok:
             return self._lost(time_s, f"{how}: {why}", int(inl.sum()))
         self.trained.tracks = tracks.keep(inl)
+        if how != "given pose" and not self._edges_confirm(frame.gray, self.filter.state.pose, strict=True):
+            # recognition allows its edge refit to move a pose by the whole 5 %/5° criterion; a
+            # pose the tracker reports must pass its own, stricter test (max_edge_shift)
+            return self._lost(time_s, f"{how}: the model's edges refit the pose by more than "
+                              f"{self.params.max_edge_shift:g} of the 5 %/5° criterion", int(inl.sum()))
         self._since_refresh = 0
         if self.mesh_points in self.sources:  # the first corners on the mesh, at the refined pose
             self.mesh_points.spawn(FrameContext(img, frame, None, self.camera, prior), self.filter.state)
@@ -379,6 +419,9 @@ class Tracker:
         n_textured = sum(len(b) for s, b in zip(self.sources, blocks) if s is not self.edges)
         if n_points < p.min_inliers and len(blocks) > 1 and self.edges in self.sources:
             return self._lost(time_s, f"only {n_points} textured points agree", n_inl)
+        if p.texture_chi2 and self.edges in self.sources and len(blocks) > 1:
+            inl = self._unless_outvoted(blocks, block, inl)
+            n_inl = int(inl.sum())
         why = self._implausible(self.filter.state.pose)
         if why:
             return self._lost(time_s, f"pose: {why}", n_inl)
@@ -392,6 +435,13 @@ class Tracker:
                 return self._lost(time_s, "the model's edges do not confirm the re-acquired pose", n_inl)
 
         self._tracked += 1
+        if p.audit_every and self._tracked % p.audit_every == 0:
+            # The audit: points lifted at a pose that was off, or edges locked on the wrong
+            # gradient, agree among themselves with a pose that is off; the edge refit is
+            # evidence from the model's shape that they cannot fake.
+            shift = self._edge_shift(frame.gray, self.filter.state.pose, agreement=False)
+            if shift is not None and shift > p.max_edge_shift:
+                return self._lost(time_s, f"the model's edges refit the pose by {shift:.2f} of the 5 %/5° criterion", n_inl)
         if self.trained not in self.sources:  # (a source alone: nothing to re-anchor)
             self._capture(ctx, n_points, n_textured, time_s, timings)
             return self._pose_step(time_s, "tracking", n_inl)
@@ -497,19 +547,32 @@ class Tracker:
         thresholds, :class:`~..pose.PoseParams`): the evidence a pose carried by points born on
         the mesh must show. That test accepts an edge within a few pixels, which a pose several
         per cent or degrees off may still pass; ``strict`` (a re-acquired pose, a view about to
-        be kept) also refits the pose to the tracked points and the edges measured precisely
-        (:func:`recognition.evidence.edge_fit`, recognition's own test) and refuses it when it
-        moves by more than ``max_edge_shift`` of the 5 % / 5° criterion."""
+        be kept, a track on probation) also asks that the edge refit move it by at most
+        ``TrackerParams.max_edge_shift`` of the 5 % / 5° criterion (:meth:`_edge_shift`)."""
+        if strict:
+            return self._edge_shift(gray, pose) <= self.params.max_edge_shift
+        pp = PoseParams()
+        ev, _ = measure_edges(gray, self.model.mesh, self.camera, pose, pp.edges)
+        return ev.samples >= pp.min_edge_samples and ev.agreement >= pp.min_edge_agreement and ev.lead >= pp.min_edge_lead
+
+    def _edge_shift(self, gray: np.ndarray, pose: Pose, agreement: bool = True) -> float | None:
+        """How far recognition's edge refit (:func:`recognition.evidence.edge_fit`: the pose refitted
+        to the tracked points and to the model's edges found precisely along their normals)
+        moves ``pose``, as a share of the 5 % / 5° criterion: a right pose barely moves (≤ 0.26
+        on every zoo walk), a wrong one moves towards where its edges are. ``inf`` when the edges
+        do not agree with the image at all (with ``agreement``); None when too few edge samples
+        are found to judge (an occluded or blurred object: no evidence either way)."""
         pp = PoseParams()
         mesh = self.model.mesh
         ev, image = measure_edges(gray, mesh, self.camera, pose, pp.edges)
-        if not (ev.samples >= pp.min_edge_samples and ev.agreement >= pp.min_edge_agreement and ev.lead >= pp.min_edge_lead):
-            return False
-        if not strict:
-            return True
-        tracks = self.trained.tracks + self.mesh_points.tracks
+        if agreement and not (ev.samples >= pp.min_edge_samples and ev.agreement >= pp.min_edge_agreement
+                              and ev.lead >= pp.min_edge_lead):
+            return np.inf
+        tracks = self.trained.tracks + self.mesh_points.tracks.keep(self.mesh_points.vouched)
         fit = edge_fit(image, mesh, self.camera, pose, tracks.X, tracks.uv, pp.edges, pp.edge_fit_reach)
-        return fit.samples >= pp.min_edge_samples and fit.shift <= pp.max_edge_shift
+        if fit.samples < pp.min_edge_samples:
+            return np.inf if agreement else None
+        return fit.shift
 
     def _adjust(self, block: PointBlock) -> tuple[bool, str | None, np.ndarray]:
         """Adjust the prior to the block; redo without the outliers (posterior Mahalanobis
@@ -543,6 +606,40 @@ class Tracker:
         if not np.all(np.isfinite(s.covariance[:6, :6])):
             return False, "the pose covariance is not finite", inl
         return True, None, inl
+
+    def _unless_outvoted(self, blocks: list[PointBlock], block: PointBlock, inl: np.ndarray) -> np.ndarray:
+        """The edges must not outvote the trained points, the anchors. Edge samples outnumber
+        the points several times, and a model edge whose search locked onto the wrong gradient
+        (a cylinder's rim onto the print beside it) pulls the pose along it frame after frame
+        while every point, within its gate, still counts as an inlier. The trained points'
+        score statistic at the joint pose (:func:`~.points.score_statistic`, ``T ~ χ²₆`` when
+        they agree with it) tells: beyond ``texture_chi2`` this frame is adjusted again without
+        the edges (when that succeeds). Only the trained points judge: their 3-D positions come
+        from training, while points born on the mesh were lifted at the tracker's own poses and
+        may be the ones that are off (on a side no photo shows the edges are then right) —
+        and only while SIFT still finds the trained texture where it is tracked (the last
+        re-anchoring succeeded): trained tracks on faces turning away slide, and then the edges
+        are right.
+        Returns the inlier mask of the adjustment kept."""
+        anchors = np.zeros(len(block), bool)
+        textured = np.zeros(len(block), bool)
+        start = 0
+        for s, b in zip(self.sources, blocks):
+            anchors[start : start + len(b)] = s is self.trained
+            textured[start : start + len(b)] = s is not self.edges
+            start += len(b)
+        if self._failed_refreshes or int((anchors & inl).sum()) < self.params.min_inliers:
+            return inl
+        if score_statistic(self.camera, block.keep(anchors & inl), self.filter.state) <= self.params.texture_chi2:
+            return inl
+        joint = self.filter.state
+        good, _, inl_tex = self._adjust(block.keep(textured))
+        if not good:
+            self.filter.state = joint
+            return inl
+        out = np.zeros(len(block), bool)
+        out[textured] = inl_tex
+        return out
 
     def _implausible(self, pose: Pose) -> str | None:
         """:func:`recognition.pose.plausible`, whose silhouette render is skipped when every

@@ -134,6 +134,10 @@ class MeshPoints:
         self.tracks = Tracks.empty()
         self.cov_X = np.zeros((0, 3, 3))  # Σ_X: each point's inherited uncertainty, object frame
         self.cohort = np.zeros(0, int)  # which birth (one shared pose error per cohort)
+        # born at a pose the tracker reported (vouched for by the edges), not while it followed
+        # an object mostly out of the image (Tracker._reacquire): only vouched points are
+        # evidence for a pose in the edge refit; the others agree with the pose they were lifted at
+        self.vouched = np.zeros(0, bool)
         self.ema = np.zeros(0)
         self._since_spawn = 10**9
         self._births = 0
@@ -159,16 +163,19 @@ class MeshPoints:
             alive = ema < p.mesh_retire_px
             self.tracks, self.ema = kept.tracks.keep(alive), ema[alive]
             self.cov_X, self.cohort = self.cov_X[idx][alive], self.cohort[idx][alive]
+            self.vouched = self.vouched[idx][alive]
         else:
             self.tracks, self.ema = Tracks.empty(), np.zeros(0)
             self.cov_X, self.cohort = np.zeros((0, 3, 3)), np.zeros(0, int)
+            self.vouched = np.zeros(0, bool)
         self._since_spawn += 1
         if (self._since_spawn >= p.mesh_spawn_every and len(self.tracks) < 0.7 * p.mesh_max_points
                 and confident(state, self.diameter, p.mesh_spawn_sigma_p, p.mesh_spawn_sigma_deg)):
             self.spawn(ctx, state)
 
-    def spawn(self, ctx: FrameContext, state: FilterState) -> int:
-        """Detect corners on the visible mesh in this frame and lift them at ``state``'s pose."""
+    def spawn(self, ctx: FrameContext, state: FilterState, vouched: bool = True) -> int:
+        """Detect corners on the visible mesh in this frame and lift them at ``state``'s pose
+        (``vouched``: a pose the tracker reports; see :attr:`vouched`)."""
         p = self.params
         cam = ctx.camera
         pose = state.pose
@@ -194,6 +201,7 @@ class MeshPoints:
         self.cov_X = np.concatenate([self.cov_X, lifted_covariance(pose, X[ok], self.mesh.face_normals[face[ok]],
                                                                   state.pose_covariance)])
         self.cohort = np.concatenate([self.cohort, np.full(n, self._births)])
+        self.vouched = np.concatenate([self.vouched, np.full(n, vouched)])
         self._births += 1
         self.ema = np.concatenate([self.ema, np.zeros(n)])
         return n

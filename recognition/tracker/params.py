@@ -131,6 +131,19 @@ class TrackerParams:
     # a track re-acquired, or started on mesh-born corners, carries no trained point to vouch for
     # it: for its first probation_frames frames the model's edges must confirm every pose
     probation_frames: int = 15
+    # A reported pose must survive recognition's edge refit (recognition.evidence.edge_fit): a
+    # re-acquired pose, a view about to be kept, a track on probation, and every audit_every-th
+    # tracked frame (the audit). Refused when the refit moves it by more than max_edge_shift of
+    # the 5 %/5° criterion. On the six zoo walks (745 tracked frames, six shapes, mm/cm/m) right
+    # poses (< 1.5 %/1.5°) moved 0.26 at most; of the poses beyond 5 %/5°, 55 of 80 moved more
+    # than 0.5 (the rest: a cube turned by 90°, whose edges are the same; slow drifts). Recognition
+    # itself allows 1.0 (PoseParams.max_edge_shift): a re-acquired track follows the object at
+    # that level while too little of it is inside the image to report it.
+    max_edge_shift: float = 0.5
+    # the textured points' score statistic at the joint pose beyond which a frame is adjusted
+    # again without the edges (Tracker._unless_outvoted): χ²₆ at 0.999; 0 turns the test off
+    texture_chi2: float = 22.46
+    audit_every: int = 3  # tracked frames between audits (0: none); each costs an edge refit
     initial_sigma_p: float = 0.01  # × diameter, for init_pose without a covariance
     initial_sigma_deg: float = 2.0
     klt: KLTParams = field(default_factory=KLTParams)

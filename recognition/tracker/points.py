@@ -134,3 +134,39 @@ def posterior_m2(camera: PinholeCamera, block: PointBlock, state: FilterState) -
         return np.zeros(0)
     uv, _ = project_model_points(camera, block.X, state.p, state.R, False)
     return mahalanobis2(block.uv - uv, block.C)
+
+
+def score_statistic(camera: PinholeCamera, block: PointBlock, state: FilterState) -> float:
+    """Rao's score test: do the block's measurements, alone, prefer another pose than ``state``?
+
+    At the pose of ``state`` (an adjustment that also used other measurements), with residuals
+    ``rᵢ = π(Xᵢ) − uvᵢ``, Jacobians ``Jᵢ = ∂π/∂[p, δθ]`` and weights ``Wᵢ = Cᵢ⁻¹``:
+    ``g = Σ Jᵢᵀ Wᵢ rᵢ``, ``H = Σ Jᵢᵀ Wᵢ Jᵢ``, ``T = gᵀ H⁻¹ g`` — the decrease of the block's own χ²
+    by one Gauss–Newton step towards the pose it alone fits. If ``state`` is consistent with
+    the block (and ``C`` honest), ``T ~ χ²₆``; a large ``T`` says the other measurements pulled
+    the pose away from where this block puts it. 0 for fewer than 3 points or a singular ``H``.
+
+    >>> from quatrack.tracking.camera import PinholeCamera
+    >>> from quatrack.tracking.state import initial_state
+    >>> cam = PinholeCamera(500.0, 500.0, 320.0, 240.0, np.zeros(5), width=640, height=480)
+    >>> s = initial_state(0.0, np.array([0.0, 0.0, 5.0]), np.array([1.0, 0, 0, 0]), np.eye(6) * 1e-4)
+    >>> X = np.random.default_rng(0).uniform(-1, 1, (30, 3))
+    >>> uv, _ = project_model_points(cam, X, s.p, s.R, False)
+    >>> C = np.broadcast_to(np.eye(2), (30, 2, 2)).copy()
+    >>> round(score_statistic(cam, PointBlock("a", X, uv, C), s), 6)  # at the pose they fit
+    0.0
+    >>> score_statistic(cam, PointBlock("a", X, uv + [3.0, 0.0], C), s) > 100  # they fit 3 px away
+    True
+    """
+    if len(block) < 3:
+        return 0.0
+    uv, J = project_model_points(camera, block.X, state.p, state.R, True)
+    a, b, d = block.C[:, 0, 0], block.C[:, 0, 1], block.C[:, 1, 1]
+    det = a * d - b * b
+    W = np.stack([np.stack([d, -b], -1), np.stack([-b, a], -1)], -2) / det[:, None, None]
+    g = np.einsum("nki,nkl,nl->i", J, W, uv - block.uv)
+    H = np.einsum("nki,nkl,nlj->ij", J, W, J)
+    try:
+        return float(g @ np.linalg.solve(H, g))
+    except np.linalg.LinAlgError:
+        return 0.0

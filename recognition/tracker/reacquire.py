@@ -37,6 +37,7 @@ class LastSeen:
     frame: Frame
     trained: Tracks
     mesh: MeshPoints
+    followed: bool = False  # a frame after the loss whose pose the measurements supported (not reported)
 
 
 def hull_mask(camera: PinholeCamera, vertices: np.ndarray, pose: Pose) -> np.ndarray:
