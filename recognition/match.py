@@ -83,6 +83,10 @@ class ModelIndex:
         """This thread's FLANN k-d forest over all descriptors (built on first use)."""
         m = getattr(self._local, "matcher", None)
         if m is None:
+            # the forest's random splits come from OpenCV's thread-local RNG: seeded, every thread
+            # and every run builds the same forest, so the same image gives the same matches (an
+            # unseeded forest turned a benchmark's wrong-pose count with what ran before it)
+            cv2.setRNGSeed(0)
             m = cv2.flann_Index(self.descriptors, {"algorithm": _FLANN_KDTREE, "trees": self.params.trees})
             self._local.matcher = m
         return m
