@@ -524,10 +524,6 @@ def verification(
     buf = render(mesh, half, est.pose)  # one z-buffer: hidden edges, and the inliers' faces
     edges, edge_image = measure_edges(grey, mesh, camera, est.pose, params.edges, buf.depth, 0.5)
     inl_uv = np.asarray(uv, float)[est.inliers]
-    fit = EdgeFit()
-    if points3d is not None:
-        fit = edge_fit(edge_image, mesh, camera, est.pose, np.asarray(points3d, float)[est.inliers], inl_uv,
-                       params.edges, params.edge_fit_reach)
     spread = inlier_spread(inl_uv, area)
     n = len(est.inliers)
     ui = np.clip(np.rint((inl_uv[:, 0] + 0.5) * half.width / camera.width - 0.5).astype(int), 0, half.width - 1)
@@ -535,8 +531,6 @@ def verification(
     faces = inlier_faces(buf.face[vi, ui], mesh, params.face_crease_deg, params.min_face_share)
     c_sd, r_sd = pose_sd(est, mesh.centre)
     ratio = pose_sd_ratio(c_sd, r_sd, mesh.extent)
-    feats = confidence_features(edges.lead, edges.agreement, edges.weakest, n, spread, faces, ratio, rival, fit.shift)
-    conf = confidence(feats, params.confidence_coef)
     reason = None
     if edges.samples < params.min_edge_samples:
         reason = f"too little of the model's outline is visible to check ({edges.samples} edge samples)"
@@ -555,10 +549,19 @@ def verification(
     elif ratio > params.max_sd_ratio or (faces < 2 and ratio > params.max_sd_ratio_one_face):
         reason = (f"the pose is too uncertain (σ {100 * c_sd / mesh.extent:.1f} % of the diameter, "
                   f"{r_sd:.1f}°; inliers on {faces} face{'s' if faces != 1 else ''})")
-    elif fit.shift > params.max_edge_shift:
-        reason = (f"the model's edges pull the pose away ({fit.shift:.2f} × the 5 %/5° criterion when refitted "
-                  f"to {fit.samples} edge samples)")
-    elif conf < params.min_confidence:
+    # The edge refit is the costliest check (a Gauss–Newton over inliers and edge samples): it
+    # runs only for a pose every cheaper check passes; a refused pose keeps an empty refit
+    # (EdgeFit(): no samples, no shift) in its evidence, and its confidence is capped below.
+    fit = EdgeFit()
+    if reason is None and points3d is not None:
+        fit = edge_fit(edge_image, mesh, camera, est.pose, np.asarray(points3d, float)[est.inliers], inl_uv,
+                       params.edges, params.edge_fit_reach)
+        if fit.shift > params.max_edge_shift:
+            reason = (f"the model's edges pull the pose away ({fit.shift:.2f} × the 5 %/5° criterion when refitted "
+                      f"to {fit.samples} edge samples)")
+    feats = confidence_features(edges.lead, edges.agreement, edges.weakest, n, spread, faces, ratio, rival, fit.shift)
+    conf = confidence(feats, params.confidence_coef)
+    if reason is None and conf < params.min_confidence:
         reason = f"the evidence is too weak (confidence {conf:.2f} < {params.min_confidence})"
     return Verification(reason is None, reason, conf if reason is None else min(conf, 0.5), share, edges, spread, n,
                         rival, faces, c_sd, r_sd, ratio, tuple(feats.items()), fit)

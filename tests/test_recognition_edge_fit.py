@@ -97,3 +97,36 @@ def test_a_near_miss_on_one_face_is_refused_by_its_edges(cube):
     assert right is not None
     ok = verification(right, grey, CAM, mesh, uv[face], PoseParams(), 0, X)
     assert ok.edge_fit.shift < PoseParams().max_edge_shift and ok.confidence > ver.confidence
+
+
+def test_the_edge_refit_runs_only_for_a_pose_the_cheap_checks_pass(cube, monkeypatch):
+    """The refit is verification's costliest check (issue 13, speed): a pose another check
+    refuses (here a rival consensus as large as its own) is refused without it, with an empty
+    refit in its evidence and its confidence capped; a pose that passes carries exactly the
+    refit computed on its own."""
+    import quatrack.recognition.pose as P
+
+    model, spec, sc, m, uv = cube
+    mesh = model.mesh
+    grey = cv2.cvtColor(sc.image, cv2.COLOR_BGR2GRAY)
+    on_face, _ = _one_face(m, sc.pose)
+    X = m.points3d[on_face]
+    est = solve_pnp(CAM, X, uv[on_face], PoseParams(), (spec.views[0].pose.R, spec.views[0].pose.t, mesh.centre))
+    assert est is not None
+    calls = []
+    real = P.edge_fit
+    monkeypatch.setattr(P, "edge_fit", lambda *a, **k: calls.append(1) or real(*a, **k))
+    refused = verification(est, grey, CAM, mesh, uv[on_face], PoseParams(), len(est.inliers), X)
+    assert not refused.passed and "another pose" in refused.reason
+    assert calls == [] and refused.edge_fit.samples == 0 and refused.confidence <= 0.5
+    passed = verification(est, grey, CAM, mesh, uv[on_face], PoseParams(), 0, X)
+    assert passed.passed and calls == [1]
+    from quatrack.recognition.evidence import scaled_camera
+    from quatrack.viewsets.render import render
+
+    depth = render(mesh, scaled_camera(CAM, 0.5), est.pose).depth  # verification's own z-buffer
+    _, image = measure_edges(grey, mesh, CAM, est.pose, PoseParams().edges, depth, 0.5)
+    inl = est.inliers
+    alone = real(image, mesh, CAM, est.pose, X[inl], np.asarray(uv[on_face], float)[inl], PoseParams().edges,
+                 PoseParams().edge_fit_reach)
+    assert passed.edge_fit == alone
