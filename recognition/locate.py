@@ -168,8 +168,10 @@ def _pose_from(
             # a rival: the best other consensus among all matches that are not this pose's inliers
             inl_all = keep[est.inliers]
             rest = np.setdiff1d(np.arange(len(matches)), inl_all)
-            rival = rival_inliers(camera, matches.points3d, uv_all, PnPSolution(est.pose, est.covariance, inl_all, est.rms_px),
-                                  model.mesh, params.pose) if len(rest) >= params.pose.min_inliers else 0
+            # measured only if the pose passes the cheaper checks before the rival's (a RANSAC)
+            rival = (lambda inl_all=inl_all, est=est: rival_inliers(
+                camera, matches.points3d, uv_all, PnPSolution(est.pose, est.covariance, inl_all, est.rms_px),
+                model.mesh, params.pose)) if len(rest) >= params.pose.min_inliers else 0
             ver = verification(est, grey, camera, model.mesh, uv, params.pose, rival, m.points3d)
             out.verification = ver
             if ver.passed:

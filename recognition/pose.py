@@ -12,6 +12,7 @@ confidence (issue 13). Poses are judged on the part of the object inside the ima
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable
 
 import cv2
 import numpy as np
@@ -159,8 +160,22 @@ def _refine_fast(camera: PinholeCamera, X: np.ndarray, uv: np.ndarray, t: np.nda
 
 def view_angle_deg(R: np.ndarray, t: np.ndarray, reference_R: np.ndarray, reference_t: np.ndarray, centre: np.ndarray) -> float:
     """Angle (degrees) between the directions the object is seen from in two poses
-    (:meth:`Pose.view_angle <quatrack.tracking.pose.Pose.view_angle>`)."""
-    return float(np.degrees(Pose.from_matrix(R, t).view_angle(Pose.from_matrix(reference_R, reference_t), centre)))
+    (:meth:`Pose.view_angle <quatrack.tracking.pose.Pose.view_angle>`, whose arithmetic this
+    repeats on the matrices: ``d = −Rᵀ(R c + t) = −(c + Rᵀ t)``, without building a quaternion
+    per pose (that conversion was most of this check's cost; bench/RESULTS.md, issue 13 speed).
+
+    >>> Rz = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # a roll about the optical axis
+    >>> round(view_angle_deg(Rz, np.array([0.0, 0.0, 5.0]), np.eye(3), np.array([0.0, 0.0, 5.0]), np.zeros(3)), 6)
+    0.0
+    >>> Ry = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])  # turned by 90° about y
+    >>> round(view_angle_deg(Ry, np.array([0.0, 0.0, 5.0]), np.eye(3), np.array([0.0, 0.0, 5.0]), np.zeros(3)), 6)
+    90.0
+    """
+    c = np.asarray(centre, float)
+    a = -(c + np.asarray(R, float).T @ np.asarray(t, float))
+    b = -(c + np.asarray(reference_R, float).T @ np.asarray(reference_t, float))
+    cos = float((a / np.linalg.norm(a)) @ (b / np.linalg.norm(b)))
+    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
 
 
 def _mirror_candidates(camera: PinholeCamera, X: np.ndarray, uv: np.ndarray):
@@ -512,13 +527,19 @@ def rival_inliers(camera: PinholeCamera, X: np.ndarray, uv: np.ndarray, est: PnP
 
 def verification(
     est: PnPSolution, grey: np.ndarray, camera: PinholeCamera, mesh: Mesh, uv: np.ndarray,
-    params: PoseParams = PoseParams(), rival: int = 0, points3d: np.ndarray | None = None,
+    params: PoseParams = PoseParams(), rival: "int | Callable[[], int]" = 0, points3d: np.ndarray | None = None,
 ) -> Verification:
     """The image evidence for a pose that passed :func:`verify`: the model's visible edges on
     the image's edges (above chance), the inliers' spread over the visible silhouette and over
     differently oriented faces, a PnP covariance tight against the 5 %/5° criterion, no rival
     consensus, and the calibrated confidence; ``grey``: the 8-bit grey image, ``uv``: the
-    matched keypoints (indexed like the matches)."""
+    matched keypoints (indexed like the matches).
+
+    ``rival``: the inliers of a rival consensus (:func:`rival_inliers`), or a function that
+    measures them. A function is called only for a pose that passes the checks before the
+    rival's (edges, spread): a RANSAC of its own, it was measured for every pose checked, refused
+    or not. A pose refused before it reports 0 rival inliers (not measured), as it reports an
+    empty edge refit."""
     share, area = silhouette_inside(mesh, camera, est.pose)
     half = scaled_camera(camera, 0.5)
     buf = render(mesh, half, est.pose)  # one z-buffer: hidden edges, and the inliers' faces
@@ -544,9 +565,11 @@ def verification(
                   f"({100 * edges.agreement:.0f} % vs {100 * edges.chance:.0f} %)")
     elif spread < params.min_spread:
         reason = f"the inliers cover only {100 * spread:.1f} % of the visible object"
-    elif rival >= params.max_rival_ratio * n:
+    if callable(rival):  # measured only for a pose the checks above pass
+        rival = int(rival()) if reason is None else 0
+    if reason is None and rival >= params.max_rival_ratio * n:
         reason = f"another pose fits almost as many matches ({rival} vs {n} inliers)"
-    elif ratio > params.max_sd_ratio or (faces < 2 and ratio > params.max_sd_ratio_one_face):
+    elif reason is None and (ratio > params.max_sd_ratio or (faces < 2 and ratio > params.max_sd_ratio_one_face)):
         reason = (f"the pose is too uncertain (σ {100 * c_sd / mesh.extent:.1f} % of the diameter, "
                   f"{r_sd:.1f}°; inliers on {faces} face{'s' if faces != 1 else ''})")
     # The edge refit is the costliest check (a Gauss–Newton over inliers and edge samples): it

@@ -249,3 +249,17 @@ def test_the_flann_forest_does_not_depend_on_what_ran_before(model):
         q = (q + np.random.default_rng(1).normal(0.0, 20.0, q.shape)).astype(np.float32)
         found.append(index._matcher().knnSearch(q, 2, params={"checks": 16})[0])
     assert np.array_equal(found[0], found[1])
+
+
+def test_view_angle_deg_is_the_pose_view_angle():
+    """view_angle_deg works on the matrices (issue 13, speed) and gives Pose.view_angle's angle."""
+    from quatrack.recognition.pose import view_angle_deg
+    from quatrack.tracking.pose import Pose as _Pose
+
+    rng = np.random.default_rng(3)
+    for _ in range(50):
+        a = _Pose.from_rvec(rng.normal(size=3), rng.normal(size=3) + [0.0, 0.0, 8.0])
+        b = _Pose.from_rvec(rng.normal(size=3), rng.normal(size=3) + [0.0, 0.0, 8.0])
+        c = rng.normal(size=3) * 0.5
+        ref = np.degrees(a.view_angle(b, c))
+        assert abs(view_angle_deg(a.R, a.t, b.R, b.t, c) - ref) < 1e-7

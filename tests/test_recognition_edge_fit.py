@@ -130,3 +130,38 @@ def test_the_edge_refit_runs_only_for_a_pose_the_cheap_checks_pass(cube, monkeyp
     alone = real(image, mesh, CAM, est.pose, X[inl], np.asarray(uv[on_face], float)[inl], PoseParams().edges,
                  PoseParams().edge_fit_reach)
     assert passed.edge_fit == alone
+
+
+def test_a_rival_to_measure_is_measured_only_for_a_pose_the_checks_before_it_pass(cube):
+    """verification takes the rival consensus as a function too (issue 13, speed: locate passes
+    one, so the rival's RANSAC runs only when its answer matters). A pose the edges refuse never
+    calls it and reports 0 rival inliers; a pose that reaches the rival check calls it once and is
+    judged exactly as with the number given, refused or passed."""
+    from quatrack.recognition.pose import PnPSolution
+
+    model, spec, sc, m, uv = cube
+    mesh = model.mesh
+    grey = cv2.cvtColor(sc.image, cv2.COLOR_BGR2GRAY)
+    on_face, _ = _one_face(m, sc.pose)
+    X = m.points3d[on_face]
+    est = solve_pnp(CAM, X, uv[on_face], PoseParams(), (spec.views[0].pose.R, spec.views[0].pose.t, mesh.centre))
+    assert est is not None
+    calls = []
+
+    def rival_of(n):
+        return lambda: calls.append(n) or n
+
+    # the same inliers, the pose moved by a third of the diameter: its edges lie on no image edge
+    off = PnPSolution(Pose(est.q, est.t + np.array([0.33 * mesh.extent, 0.0, 0.0])), est.covariance, est.inliers,
+                      est.rms_px)
+    refused = verification(off, grey, CAM, mesh, uv[on_face], PoseParams(), rival_of(999), X)
+    assert not refused.passed and "edges" in refused.reason
+    assert calls == [] and refused.rival_inliers == 0
+    for n in (0, len(est.inliers)):  # no rival (passes), a rival as large as its own consensus (refused)
+        calls.clear()
+        lazy = verification(est, grey, CAM, mesh, uv[on_face], PoseParams(), rival_of(n), X)
+        given = verification(est, grey, CAM, mesh, uv[on_face], PoseParams(), n, X)
+        assert calls == [n]
+        assert (lazy.passed, lazy.reason, lazy.confidence, lazy.rival_inliers) == \
+            (given.passed, given.reason, given.confidence, given.rival_inliers)
+        assert lazy.passed == (n == 0)
