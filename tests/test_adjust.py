@@ -313,3 +313,51 @@ def test_filter_api_guards():
         f.update([])
     state = initial_state(0.0, P_TRUE, Q_TRUE, np.eye(6))
     assert state.covariance[6, 6] == 1e8 and state.pose_covariance.shape == (6, 6)
+
+
+_unit_q = st.lists(st.floats(-1.0, 1.0), min_size=4, max_size=4).filter(lambda v: np.linalg.norm(v) > 1e-3).map(
+    lambda v: np.asarray(v) / np.linalg.norm(v))
+
+
+@given(q=_unit_q, q_prior=_unit_q, tiny=st.sampled_from([0.0, 1e-12, 1e-9, 1e-6]))
+def test_prior_rotation_matches_the_quaternion_functions(q, q_prior, tiny):
+    """The prior's orientation residual and its Jacobian, written out on floats for speed
+    (``_prior_rotation``), equal the vectorised quaternion functions' ``2 log(qc)`` and
+    ``dlog(qc) R(qc)[:, 1:]`` with ``qc = canonical(q * conj(q̂))`` — also for ``q`` next to the
+    prior (the small-angle limits) and on the other hemisphere."""
+    from quatrack.tracking.adjust import _prior_rotation
+
+    if tiny:  # q within a tiny rotation of the prior (and its antipode)
+        q = quat.multiply(quat.exp(np.array([tiny, -0.5 * tiny, 0.3 * tiny])), q_prior) * (1 if tiny > 1e-9 else -1)
+    qc = quat.canonical(quat.multiply(q, quat.conjugate(q_prior)))
+    e, M = _prior_rotation(q, q_prior)
+    np.testing.assert_allclose(e, 2.0 * quat.log(qc), rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(M, quat.dlog(qc) @ quat.right_matrix(qc)[:, 1:], rtol=1e-12, atol=1e-15)
+    assert _prior_rotation(q, q_prior, jacobian=False)[1] is None
+
+
+@given(q=_unit_q, r=st.lists(st.floats(-2.0, 2.0), min_size=3, max_size=3), scale=st.sampled_from([1.0, 1e-5, 1e-12, 0.0]))
+def test_geodesic_step_matches_exp_times_q(q, r, scale):
+    """Eq. 28's ``exp(Δθ/2) * q`` written out on floats (``_rotate_left``) equals the quaternion
+    functions, down to a zero step."""
+    from quatrack.tracking.adjust import _rotate_left
+
+    d = np.asarray(r) * scale
+    np.testing.assert_allclose(_rotate_left(d, q), quat.multiply(quat.exp(0.5 * d), q), rtol=1e-12, atol=1e-15)
+
+
+@pytest.mark.parametrize("robust", ["none", "huber"])
+def test_gauss_newton_reports_the_cost_at_its_solution(robust):
+    """Gauss–Newton computes the cost only once, at the end: it is eq. 24 at the returned state."""
+    X = box_points(30, 4)
+    rng = np.random.default_rng(4)
+    blocks = [PointMeasurements.create(CAM, X, observe(X, sigma=0.8, rng=rng), 0.8)]
+    prior = prior_around(P_TRUE + [3.0, -2.0, 10.0], quat.multiply(quat.from_rotvec([0.02, 0.0, -0.03]), Q_TRUE))
+    options = AdjustOptions(robust=robust, max_iterations=3)
+    result = adjust(prior, blocks, options)
+    s = result.state
+    F, _, _, _ = _Problem(blocks, options, 12, prior).evaluate((s.p, s.q, s.v, s.omega), False)
+    assert result.cost == pytest.approx(F, rel=1e-12)
+    recorded = adjust(prior, blocks, AdjustOptions(robust=robust, max_iterations=3, record=True))
+    assert recorded.cost == pytest.approx(F, rel=1e-12)
+    assert [r.cost for r in recorded.history][0] > F

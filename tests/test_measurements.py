@@ -12,6 +12,7 @@ from quatrack.tracking.camera import PinholeCamera
 from quatrack.tracking.measurements import (
     PointMeasurements,
     SegmentMeasurements,
+    project_model_points,
     reduced_midpoint,
     segment_covariance,
     wrap_half_turn,
@@ -168,3 +169,27 @@ def test_sqrt_information_of_2x2_covariances_whitens_exactly():
     for bad in (np.array([[1.0, 2.0], [2.0, 1.0]]), np.array([[-1.0, 0.0], [0.0, 1.0]]), np.zeros((2, 2))):
         with pytest.raises(np.linalg.LinAlgError):
             sqrt_information(np.stack([np.eye(2), bad]))
+
+
+@given(seed=st.integers(0, 10_000))
+def test_undistorted_projection_equals_the_general_path(seed):
+    """``project_model_points`` for a reference camera without distortion is written out (the
+    adjustment calls it at every iteration); it equals the general path — the camera's
+    projection and Jacobian, with ``∂uv/∂δθ = RX × row`` — value for value."""
+    from quatrack.tracking.rotation import cross
+
+    rng = np.random.default_rng(seed)
+    cam = PinholeCamera(700.0 + rng.uniform(0, 200), 650.0 + rng.uniform(0, 200), 320.0, 240.0, width=640, height=480)
+    assert cam.is_reference and not cam.has_distortion
+    X = rng.uniform(-50, 50, (int(rng.integers(1, 40)), 3))
+    R = rodrigues(rng.normal(0, 1, 3))
+    p = np.array([rng.uniform(-30, 30), rng.uniform(-30, 30), rng.uniform(300, 900)])
+    uv, J = project_model_points(cam, X, p, R, True)
+    RX = X @ R.T
+    uv_ref, Jx = cam.project_with_jacobian(RX + p, True)
+    J_ref = np.concatenate([Jx, cross(RX[:, None, :], Jx)], axis=-1)
+    np.testing.assert_array_equal(uv, uv_ref)
+    np.testing.assert_array_equal(J, J_ref)
+    uv2, none = project_model_points(cam, X, p, R, False)
+    np.testing.assert_array_equal(uv2, uv_ref)
+    assert none is None

@@ -17,6 +17,7 @@ measurement noise) and M-estimator weights (IRLS) against outliers.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Literal, Sequence
 
@@ -138,6 +139,59 @@ def _spd_solve(A: np.ndarray, b: np.ndarray) -> np.ndarray:
     return s * np.linalg.solve(C, s * b)
 
 
+def _prior_rotation(q: np.ndarray, q_prior: np.ndarray, jacobian: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
+    """The prior's orientation residual ``e_θ = 2 log(qc)``, ``qc = canonical(q * conj(q̂))``, and
+    its derivative ``∂e_θ/∂Δθ = dlog(qc) · R(qc)[:, 1:]`` (eq. A.1; equals ``J_l⁻¹``) for ONE pair
+    of quaternions: :func:`quaternion.multiply`, :func:`~quaternion.canonical`,
+    :func:`~quaternion.log`, :func:`~quaternion.dlog` and :func:`~quaternion.right_matrix` written
+    out on Python floats (the adjustment asks for them at every iteration, and the vectorised
+    functions' array overhead cost more than the arithmetic; tests/test_adjust.py checks them
+    against each other)."""
+    w1, x1, y1, z1 = q.tolist()
+    w2, x2, y2, z2 = q_prior.tolist()
+    # q * conj(q̂), conj(q̂) = (w2, -x2, -y2, -z2)
+    w = w1 * w2 + (x1 * x2 + y1 * y2 + z1 * z2)
+    x = -w1 * x2 + w2 * x1 + (-y1 * z2 + z1 * y2)
+    y = -w1 * y2 + w2 * y1 + (-z1 * x2 + x1 * z2)
+    z = -w1 * z2 + w2 * z1 + (-x1 * y2 + y1 * x2)
+    lead = w if w != 0.0 else x if x != 0.0 else y if y != 0.0 else z
+    if lead < 0.0:
+        w, x, y, z = -w, -x, -y, -z
+    s2 = x * x + y * y + z * z
+    s = math.sqrt(s2)
+    small = s < quat._SMALL
+    a = 1.0 / w if small and w > 0 else (math.atan2(s, w) / s if s != 0.0 else math.atan2(s, w))
+    e = np.array([2.0 * (a * x), 2.0 * (a * y), 2.0 * (a * z)])
+    if not jacobian:
+        return e, None
+    if small:  # dlog's limit (A.2); (w - a)/‖u‖² multiplies u uᵀ = O(‖u‖²)
+        a_d, c = 1.0 / w, 0.0
+    else:
+        a_d, c = a, (w - a) / s2
+    D = np.array([[-x, a_d + c * (x * x), c * (x * y), c * (x * z)],
+                  [-y, c * (y * x), a_d + c * (y * y), c * (y * z)],
+                  [-z, c * (z * x), c * (z * y), a_d + c * (z * z)]])
+    Rq = np.array([[-x, -y, -z],
+                   [w, z, -y],
+                   [-z, w, x],
+                   [y, -x, w]])
+    return e, D @ Rq
+
+
+def _rotate_left(dtheta: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """``exp(Δθ/2) * q`` (eq. 28) for one rotation vector and quaternion, on Python floats
+    (:func:`quaternion.exp` and :func:`~quaternion.multiply` for one pair cost ~25 µs)."""
+    rx, ry, rz = (0.5 * dtheta).tolist()
+    n = math.sqrt(rx * rx + ry * ry + rz * rz)
+    c, k = math.cos(n), (math.sin(n) / n if n > 0.0 else 1.0)
+    w1, x1, y1, z1 = c, k * rx, k * ry, k * rz
+    w2, x2, y2, z2 = q.tolist()
+    return np.array([w1 * w2 - (x1 * x2 + y1 * y2 + z1 * z2),
+                     w1 * x2 + w2 * x1 + (y1 * z2 - z1 * y2),
+                     w1 * y2 + w2 * y1 + (z1 * x2 - x1 * z2),
+                     w1 * z2 + w2 * z1 + (x1 * y2 - y1 * x2)])
+
+
 class _Problem:
     """Eq. 24 over ``n`` = 6 (pose) or 12 (pose and velocities) tangent coordinates."""
 
@@ -159,39 +213,23 @@ class _Problem:
             for b in self.blocks
         ]
 
-    def _prior_residual(self, x, jacobian: bool):
-        """``e`` of the prior and ``∂e/∂Δ`` (identity but for the orientation block)."""
-        p, q, v, w = x
-        pr = self.prior
-        qc = quat.canonical(quat.multiply(q, quat.conjugate(pr.q)))
-        e = np.empty(self.n)
-        e[0:3] = p - pr.p
-        e[3:6] = 2.0 * quat.log(qc)
-        if self.n == STATE_DIM:
-            e[6:9] = v - pr.v
-            e[9:12] = w - pr.omega
-        if not jacobian:
-            return e, None
-        # e_θ(Δθ) = 2 log(exp(Δθ/2) * qc): ∂/∂Δθ = dlog(qc) · R(qc)[:, 1:] (eq. A.1); equals J_l⁻¹.
-        Jp = np.eye(self.n)
-        Jp[3:6, 3:6] = quat.dlog(qc) @ quat.right_matrix(qc)[:, 1:]
-        return e, Jp
-
-    def evaluate(self, x, jacobian: bool = True):
-        """Cost ``F``, and if asked ``A = DᵀD``, gradient ``b = Dᵀg`` and the robust weights."""
+    def evaluate(self, x, jacobian: bool = True, cost: bool = True):
+        """Cost ``F``, and if asked ``A = DᵀD``, gradient ``b = Dᵀg`` and the robust weights.
+        ``cost=False`` leaves ``F`` (None) for :meth:`last_cost` to compute when it is wanted:
+        Gauss–Newton needs only the last one."""
         p, q = x[0], x[1]
         R = quat.to_matrix(q)
         n = self.n
         A = np.zeros((n, n)) if jacobian else None
         b = np.zeros(n) if jacobian else None
-        cost = 0.0
         all_w = []
+        all_s2 = []
         loss = self.options.robust
         for block, scale in zip(self.blocks, self.scales):
             lin = block.linearize(p, R, jacobian)
             e = lin.residual
             s2 = np.einsum("ij,ij->i", e, e)
-            cost += 0.5 * float(np.sum(s2 if loss == "none" else robust.rho(s2, loss, scale)))
+            all_s2.append(s2)
             if loss != "none":
                 w = robust.weights(s2, loss, scale)
                 all_w.append(w)
@@ -207,19 +245,50 @@ class _Problem:
                 Jf = J.reshape(-1, POSE_DIM)
                 A[:POSE_DIM, :POSE_DIM] += Jf.T @ Jf
                 b[:POSE_DIM] += Jf.T @ e.reshape(-1)
+        e_prior = Pe = None
         if self.prior is not None:
-            e, Jp = self._prior_residual(x, jacobian)
-            Pe = self.prior_info @ e
-            cost += 0.5 * float(e @ Pe)
+            e_prior, M = self._prior_terms(x, jacobian)
+            Pe = self.prior_info @ e_prior
             if jacobian:
-                A += Jp.T @ self.prior_info @ Jp
-                b += Jp.T @ Pe
-        return cost, A, b, tuple(all_w)
+                # Jpᵀ Ŝ⁻¹ Jp and Jpᵀ Ŝ⁻¹ e with Jp the identity but for its orientation block M
+                T = self.prior_info.copy()
+                T[3:6, :] = M.T @ T[3:6, :]
+                T[:, 3:6] = T[:, 3:6] @ M
+                A += T
+                g = Pe.copy()
+                g[3:6] = M.T @ Pe[3:6]
+                b += g
+        self._last = (all_s2, e_prior, Pe)
+        return (self.last_cost() if cost else None), A, b, tuple(all_w)
+
+    def _prior_terms(self, x, jacobian: bool):
+        """``e`` of the prior and the orientation block ``M`` of ``∂e/∂Δ`` (None without ``jacobian``)."""
+        p, q, v, w = x
+        pr = self.prior
+        e = np.empty(self.n)
+        e[0:3] = p - pr.p
+        e_theta, M = _prior_rotation(q, pr.q, jacobian)
+        e[3:6] = e_theta
+        if self.n == STATE_DIM:
+            e[6:9] = v - pr.v
+            e[9:12] = w - pr.omega
+        return e, M
+
+    def last_cost(self) -> float:
+        """``F`` (eq. 24) at the point of the last :meth:`evaluate`."""
+        all_s2, e_prior, Pe = self._last
+        loss = self.options.robust
+        cost = 0.0
+        for s2, scale in zip(all_s2, self.scales):
+            cost += 0.5 * float(np.sum(s2 if loss == "none" else robust.rho(s2, loss, scale)))
+        if e_prior is not None:
+            cost += 0.5 * float(e_prior @ Pe)
+        return cost
 
     def retract(self, x, delta):
         """Eq. 28: linear updates, and the geodesic ``q ← exp(Δθ/2) * q`` on S³."""
         p, q, v, w = x
-        q_new = quat.multiply(quat.exp(0.5 * delta[3:6]), q)
+        q_new = _rotate_left(delta[3:6], q)
         if self.n == STATE_DIM:
             return p + delta[0:3], q_new, v + delta[6:9], w + delta[9:12]
         return p + delta[0:3], q_new, v, w
@@ -233,19 +302,21 @@ def _record(delta: np.ndarray, g2: float, cost: float) -> IterationRecord:
 def _minimise(problem: _Problem, x, options: AdjustOptions):
     history: list[IterationRecord] = []
     lam = options.damping
-    cost, A, b, w = problem.evaluate(x)
+    gn = options.method == "gauss-newton"
+    need_cost = not gn or options.record  # Gauss–Newton needs only the final cost
+    cost, A, b, w = problem.evaluate(x, cost=need_cost)
     iterations = 0
     while True:
         g2 = float(b @ b)
         if g2 < options.gradient_tolerance**2 or iterations >= options.max_iterations:
             break
-        if options.method == "gauss-newton":
+        if gn:
             delta = -_spd_solve(A, b)
             x_new = problem.retract(x, delta)
             if options.record:
                 history.append(_record(delta, g2, cost))
             x = x_new
-            cost, A, b, w = problem.evaluate(x)
+            cost, A, b, w = problem.evaluate(x, cost=need_cost)
         else:  # Levenberg–Marquardt: damp until the cost goes down
             diag = np.diagonal(A)
             while lam <= 1e12:
@@ -263,6 +334,8 @@ def _minimise(problem: _Problem, x, options: AdjustOptions):
             cost, A, b, w = problem.evaluate(x)
         iterations += 1
     converged = float(b @ b) < options.gradient_tolerance**2
+    if cost is None:
+        cost = problem.last_cost()
     return x, cost, A, b, w, iterations, converged, tuple(history)
 
 

@@ -48,6 +48,8 @@ def project_model_points(
     """
     RX = X_obj @ R.T
     X_ref = RX + p
+    if camera.is_reference and not camera.has_distortion:
+        return _project_pinhole(camera, RX, X_ref, jacobian)
     X_cam = X_ref if camera.is_reference else X_ref @ camera.R_rig.T + camera.t_rig
     uv, Jx = camera.project_with_jacobian(X_cam, jacobian)
     if not jacobian:
@@ -58,6 +60,39 @@ def project_model_points(
     J[..., :3] = Jx
     # row · (-X(a)) == a × row, for each of the two rows
     J[..., 3:] = cross(RX[:, None, :], Jx)
+    return uv, J
+
+
+def _project_pinhole(camera: PinholeCamera, RX: np.ndarray, X: np.ndarray, jacobian: bool):
+    """:func:`project_model_points` for the reference camera without distortion, written out:
+    ``u = fx x/z + cx``, ``v = fy y/z + cy``; ``∂uv/∂δp`` has the rows ``(fx/z, 0, −fx x/z²)``
+    and ``(0, fy/z, −fy y/z²)``, and ``∂uv/∂δθ`` row by row ``RX × row`` (the general path's
+    arithmetic without its products by zero; tests/test_measurements.py compares them)."""
+    iz = 1.0 / X[:, 2]
+    x = X[:, 0] * iz
+    y = X[:, 1] * iz
+    uv = np.empty((len(X), 2))
+    uv[:, 0] = camera.fx * x + camera.cx
+    uv[:, 1] = camera.fy * y + camera.cy
+    if not jacobian:
+        return uv, None
+    a0, a1, a2 = RX[:, 0], RX[:, 1], RX[:, 2]
+    u0 = camera.fx * iz
+    u2 = -camera.fx * x * iz
+    v1 = camera.fy * iz
+    v2 = -camera.fy * y * iz
+    J = np.zeros((len(X), 2, 6))
+    J[:, 0, 0] = u0
+    J[:, 0, 2] = u2
+    J[:, 1, 1] = v1
+    J[:, 1, 2] = v2
+    # a × (u0, 0, u2) and a × (0, v1, v2)
+    J[:, 0, 3] = a1 * u2
+    J[:, 0, 4] = a2 * u0 - a0 * u2
+    J[:, 0, 5] = -(a1 * u0)
+    J[:, 1, 3] = a1 * v2 - a2 * v1
+    J[:, 1, 4] = -(a0 * v2)
+    J[:, 1, 5] = a0 * v1
     return uv, J
 
 
