@@ -76,3 +76,27 @@ def test_ransac_bound_keeps_a_consensus_of_min_inliers_and_cuts_a_hopeless_searc
     # no consensus at all: capped or not, nothing is found
     cam, X, uv = _matches(np.random.default_rng(99), 0, 20)
     assert ransac_pnp(cam, X, uv, 6.0, cap, 0.999, min_inliers=12) is None
+
+
+def test_bench_locate_reports_cpu_time_next_to_wall_clock(monkeypatch):
+    """``bench locate`` reports each locate's CPU time (issue 13, speed: wall-clock stage times
+    grow with the machine's load); _located returns locate's own answer and the CPU it used."""
+    import quatrack.bench.locate as B
+
+    answer = object()
+    monkeypatch.setattr(B, "locate", lambda *a, **k: answer)
+    r, cpu = B._located(None, None, None, None, None)
+    assert r is answer and cpu >= 0.0
+    block = {"time_ms": {k: {"p50": 1.0, "p95": 2.0} for k in B.STAGES}, "cpu_ms": {"p50": 12.5, "p95": 34.5}}
+    summary = {
+        "rendered": {"scenes": 1, "success": 1.0, "success_within_30deg": 1.0, "found": 1.0, "wrong_when_found": 0.0,
+                     "median_translation_error_pct_diameter": 0.1, "median_rotation_error_deg": 0.1,
+                     "window_iou_ge_0.5": 1.0, "window_iou_median": 0.9, "fallback_to_whole_image": 0.0,
+                     "curve": [], **block},
+        "negatives": {"images": 2, "false_positives": 0, "time_ms": {"p50": 3.0, "p95": 4.0},
+                      "cpu_ms": {"p50": 2.5, "p95": 3.5}},
+        "video": {"frames": 1, "every": 1, "found": 1.0, "found_whole_image": 1.0, "window_centre_on_box": 1.0,
+                  "sheet": None, **block},
+    }
+    text = B.format_report(summary)
+    assert text.count("CPU p50 12.5 / p95 34.5 ms") == 2 and "(CPU 2 ms)" in text
