@@ -142,11 +142,13 @@ def test_an_orbit_to_unseen_faces_is_followed_to_the_end_with_an_honest_covarian
     assert f["lost"] == 0, [s for s in run.status if s == "lost"]
     assert f["t_mean_pct"] < 1.0 and f["r_mean_deg"] < 1.0
     assert f["t_max_pct"] < 2.5 and f["r_max_deg"] < 2.0 and f["bad"] == 0
-    # NEES of [p, δθ] (6 dof) over the tracked frames: honest means ~6. Measured here: 127
-    # before the born points' shared error was accounted for, 50–70 after (bench/RESULTS.md:
-    # still overconfident, the edges' and the drift's correlations are not modelled); this
-    # bound catches a return to the old overconfidence, not yet honesty
-    assert 1.0 < f["nees_mean"] < 100.0, f["nees_mean"]
+    # NEES of [p, δθ] (6 dof) over the tracked frames: honest means a median of ~5.3 (χ²₆).
+    # Measured here: mean 127 before the born points' shared error was accounted for, 50–70
+    # after; the filter's own covariance still has a median of 46 (the errors its measurements
+    # share are not modelled), the reported one (plus the systematic floor, chosen on the zoo
+    # walks, not on this orbit) 7.5. The bounds catch an overconfident report and an absurdly
+    # cautious one.
+    assert 2.0 < f["nees_median"] < 15.0, f["nees_median"]
 
 
 def test_the_bench_computes_its_figures_from_the_truth(cube):

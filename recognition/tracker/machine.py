@@ -49,6 +49,7 @@ from quatrack.tracking.filter import PoseFilter
 from quatrack.tracking.measurements import project_model_points
 from quatrack.tracking.motion import make_motion_model
 from quatrack.tracking.pose import Pose
+from quatrack.tracking.systematic import systematic_floor
 from quatrack.viewsets.learn import is_new_direction, learned_viewset, with_learned
 from quatrack.viewsets.store import ObjectModel
 from quatrack.viewsets.viewset import Viewset, params_from_manifest
@@ -206,9 +207,14 @@ class Tracker:
         return TrackStep(self._frame, time_s, "lost", inliers=inliers, reason=reason)
 
     def _pose_step(self, time_s: float, status: str, inliers: int, reason: str | None = None) -> TrackStep:
-        s = self.filter.state
+        """The step that reports the filter's pose, with the filter's covariance plus the
+        systematic floor (:mod:`quatrack.tracking.systematic`, ``params.systematic_*``)."""
+        s, p = self.filter.state, self.params
+        cov = s.pose_covariance + systematic_floor(s.R, s.p, self.model.mesh.centre, self.diameter,
+                                                   p.systematic_pct / 100.0, p.systematic_depth_ratio,
+                                                   np.radians(p.systematic_deg))
         return TrackStep(self._frame, time_s, status, s.p.copy(), quat.canonical(s.q), s.v.copy(), s.omega.copy(),
-                         s.pose_covariance.copy(), inliers, reason=reason)
+                         cov, inliers, reason=reason)
 
     def _initial_covariance(self) -> np.ndarray:
         sp = self.params.initial_sigma_p * self.diameter
