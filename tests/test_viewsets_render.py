@@ -141,3 +141,72 @@ def test_render_equals_the_plain_z_buffer_on_a_concave_occluding_scene(camera, s
         np.testing.assert_array_equal(buf.face, face)
         np.testing.assert_array_equal(np.isfinite(buf.depth), np.isfinite(depth))
         np.testing.assert_allclose(buf.depth[face >= 0], depth[face >= 0], rtol=1e-12)
+
+
+def _cylinder_mesh(segments=48, radius=20.0, height=35.0):
+    """A closed cylinder of many small triangles (render tests the small ones together)."""
+    a = np.linspace(0, 2 * np.pi, segments, endpoint=False)
+    ring = np.stack([radius * np.cos(a), radius * np.sin(a)], 1)
+    V = np.concatenate([np.column_stack([ring, np.zeros(segments)]), np.column_stack([ring, np.full(segments, height)]),
+                        [[0.0, 0.0, 0.0], [0.0, 0.0, height]]])
+    F = []
+    for i in range(segments):
+        j = (i + 1) % segments
+        F += [[i, j, segments + j], [i, segments + j, segments + i], [2 * segments, j, i],
+              [2 * segments + 1, segments + i, segments + j]]
+    return make_mesh(V, np.array(F))
+
+
+@pytest.mark.parametrize("camera", [CAM, CAM_DIST], ids=["pinhole", "distorted"])
+@pytest.mark.parametrize("scale", [0.25, 0.5])
+def test_render_of_many_small_triangles_equals_the_triangle_loop(camera, scale):
+    """A mesh of many small triangles is rendered with them tested together (``_render_small``)
+    and the large ones one by one; the buffers equal the plain loop over every triangle
+    (``render_reference``) bit for bit, and the per-pixel reference's faces — also with the
+    object partly out of the image, and with a concave scene added (occlusion between parts)."""
+    from quatrack.recognition.visibility import scaled_camera
+    from quatrack.viewsets import render as R
+
+    cyl = _cylinder_mesh()
+    scene = _occluding_scene()
+    both = make_mesh(np.concatenate([cyl.vertices, scene.vertices + [25.0, 0.0, 0.0]]),
+                     np.concatenate([cyl.faces, scene.faces + len(cyl.vertices)]))
+    cam = scaled_camera(camera, scale)
+    n_small = 0
+    for mesh in (cyl, both):
+        for rvec, dist, shift in (([0.3, -0.5, 0.2], 120.0, 0.0), ([2.4, 0.6, -0.3], 90.0, 0.0),
+                                  ([1.2, 0.1, 0.4], 100.0, 45.0), ([0.1, 0.1, 0.0], 160.0, -60.0)):
+            pose = pose_looking_at(mesh.centre, rvec, dist)
+            pose = Pose(pose.q_wxyz, pose.t + [shift, 0.3 * shift, 0.0])
+            buf, ref = render(mesh, cam, pose), R.render_reference(mesh, cam, pose)
+            assert (buf.face >= 0).any()
+            np.testing.assert_array_equal(buf.face, ref.face)
+            np.testing.assert_array_equal(buf.depth, ref.depth)
+            _, face = _reference_render(mesh, cam, pose)
+            np.testing.assert_array_equal(buf.face, face)
+            uv = cam.project(pose.apply(mesh.vertices)[mesh.faces].reshape(-1, 3)).reshape(-1, 3, 2)
+            n_small += int((np.prod(uv.max(1) - uv.min(1) + 3, axis=1) <= R._SMALL_BOX).sum() >= R._SMALL_MIN)
+    assert n_small >= (4 if scale == 0.25 else 1)  # the small triangles' path was taken
+
+
+def test_render_ties_go_to_the_lower_triangle_whichever_path_tests_it():
+    """Coplanar triangles are exactly as near (here bit for bit: integer corners, the identity
+    rotation): the lower index wins, as in the plain loop, whether both are tested one by one,
+    both together, or a large one (one by one, after the small ones) ties with a small one."""
+    from quatrack.viewsets import render as R
+
+    big = [[-40, -20, 0], [-24, -20, 0], [40, -4, 0]]  # n = (0, 0, 256): a 80×16 box
+    small = [[-40, -20, 0], [-24, -20, 0], [-24, -4, 0]]  # the same plane and n: a 16×16 box
+    V, F = [], []
+    for tri in ([big, small] + [[[x, 25, -3], [x + 3, 25, -3], [x, 28, -3]] for x in range(-60, 60, 3)] + [big, small]):
+        F.append([len(V), len(V) + 1, len(V) + 2])
+        V += tri
+    mesh = make_mesh(np.array(V, float), np.array(F))
+    cam = PinholeCamera(200.0, 200.0, 80.0, 60.0, width=160, height=120)
+    pose = Pose(np.array([1.0, 0.0, 0.0, 0.0]), np.array([0.0, 0.0, 200.0]))
+    assert (mesh.faces.shape[0] - 4) >= R._SMALL_MIN
+    buf, ref = render(mesh, cam, pose), R.render_reference(mesh, cam, pose)
+    np.testing.assert_array_equal(buf.face, ref.face)
+    np.testing.assert_array_equal(buf.depth, ref.depth)
+    seen = set(np.unique(buf.face).tolist())
+    assert {0, 1} <= seen and not seen & {len(F) - 2, len(F) - 1}  # the first copies win every tie

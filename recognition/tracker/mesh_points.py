@@ -36,7 +36,7 @@ import numpy as np
 from quatrack.tracking.measurements import project_model_points
 from quatrack.tracking.state import FilterState
 from quatrack.viewsets.mesh import Mesh
-from quatrack.viewsets.render import cast_rays, depth_edges, render, undistort_pixels
+from quatrack.viewsets.render import cast_rays, depth_edges, render, undistort_pixels, unit_pixel_rays
 
 from ..visibility import scaled_camera
 from .params import TrackerParams
@@ -62,10 +62,9 @@ def birth_mask(mesh: Mesh, ctx_camera, pose, params: TrackerParams) -> np.ndarra
     if not ok.any():
         return np.zeros((cam.height, cam.width), np.uint8)
     normals = mesh.face_normals @ pose.R.T  # camera frame
-    rays = np.dstack([*np.moveaxis(_rays(small), -1, 0), np.ones((small.height, small.width))])
-    rays /= np.linalg.norm(rays, axis=2, keepdims=True)
-    cosv = np.abs(np.einsum("hwk,hwk->hw", normals[np.maximum(buf.face, 0)], rays))
-    ok &= cosv >= params.visibility.min_cos
+    # |cos| between the face and the view ray, on the object's pixels only (the rays are cached)
+    face = buf.face[ok]
+    ok[ok] = np.abs(np.einsum("nk,nk->n", normals[face], unit_pixel_rays(small)[ok])) >= params.visibility.min_cos
     ok &= ~depth_edges(buf)
     r = max(1, int(round(0.5 * params.mesh_edge_margin_px)))
     ok = cv2.erode(ok.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1,) * 2))
@@ -108,12 +107,6 @@ def inherited_spread(camera, X: np.ndarray, cov_X: np.ndarray, cohort: np.ndarra
     JX = J[:, :, :3] @ state.R
     _, inv, counts = np.unique(cohort, return_inverse=True, return_counts=True)
     return counts[inv.ravel()][:, None, None] * (JX @ cov_X @ np.swapaxes(JX, 1, 2))
-
-
-def _rays(camera):
-    from quatrack.viewsets.render import pixel_rays
-
-    return pixel_rays(camera)
 
 
 class MeshPoints:

@@ -1,0 +1,80 @@
+"""Faster forms of the tracking step's routines equal the plain forms they replaced (issue 12's
+step time, session 22). Each test computes the plain form here and compares exactly: a change
+to the fast form that alters a result fails it. (Speed itself is measured by the benchmarks.)"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from quatrack.recognition.tracker.mesh_points import birth_mask
+from quatrack.recognition.tracker.params import TrackerParams
+from quatrack.recognition.visibility import scaled_camera
+from quatrack.tracking.camera import PinholeCamera
+from quatrack.tracking.pose import Pose
+from quatrack.viewsets.mesh import make_mesh
+from quatrack.viewsets.render import depth_edges, pixel_rays, render, unit_pixel_rays
+
+CAM = PinholeCamera(520.0, 515.0, 318.0, 243.0, width=640, height=480)
+CAM_DIST = PinholeCamera(520.0, 515.0, 318.0, 243.0, np.array([-0.2, 0.08, 0.001, -0.0015, 0.0]), width=640, height=480)
+
+
+def _prism(sides=6, radius=4.0, height=9.0):
+    a = np.linspace(0, 2 * np.pi, sides, endpoint=False)
+    ring = np.stack([radius * np.cos(a), radius * np.sin(a)], 1)
+    V = np.concatenate([np.column_stack([ring, np.zeros(sides)]), np.column_stack([ring, np.full(sides, height)]),
+                        [[0.0, 0.0, 0.0], [0.0, 0.0, height]]])
+    F = []
+    for i in range(sides):
+        j = (i + 1) % sides
+        F += [[i, j, sides + j], [i, sides + j, sides + i], [2 * sides, j, i], [2 * sides + 1, sides + i, sides + j]]
+    return make_mesh(V, np.array(F))
+
+
+def _plain_birth_mask(mesh, cam, pose, params):
+    """birth_mask as it was: the view-angle test on every pixel, the rays normalised per call."""
+    small = scaled_camera(cam, 0.5)
+    buf = render(mesh, small, pose)
+    ok = buf.face >= 0
+    if not ok.any():
+        return np.zeros((cam.height, cam.width), np.uint8)
+    normals = mesh.face_normals @ pose.R.T
+    rays = np.dstack([*np.moveaxis(pixel_rays(small), -1, 0), np.ones((small.height, small.width))])
+    rays /= np.linalg.norm(rays, axis=2, keepdims=True)
+    cosv = np.abs(np.einsum("hwk,hwk->hw", normals[np.maximum(buf.face, 0)], rays))
+    ok &= cosv >= params.visibility.min_cos
+    ok &= ~depth_edges(buf)
+    r = max(1, int(round(0.5 * params.mesh_edge_margin_px)))
+    ok = cv2.erode(ok.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1,) * 2))
+    return cv2.resize(ok * 255, (cam.width, cam.height), interpolation=cv2.INTER_NEAREST)
+
+
+@pytest.mark.parametrize("camera", [CAM, CAM_DIST], ids=["pinhole", "distorted"])
+@pytest.mark.parametrize("sides", [4, 6, 24])
+def test_birth_mask_equals_the_per_pixel_form(camera, sides):
+    """The birth mask tests the view angle on the object's pixels only, with cached unit rays:
+    the same mask as testing every pixel — grazing faces included (a prism turned edge-on)."""
+    mesh = _prism(sides)
+    params = TrackerParams()
+    rng = np.random.default_rng(sides)
+    grazing = 0
+    for k in range(8):
+        rvec = rng.normal(0, 1.2, 3) if k else np.array([np.pi / 2, 0.0, 0.0])
+        t = np.array([rng.uniform(-3, 3), rng.uniform(-3, 3), rng.uniform(18, 40)])
+        pose = Pose.from_rvec(rvec, t - Pose.from_rvec(rvec, [0, 0, 0]).R @ mesh.centre)
+        fast, plain = birth_mask(mesh, camera, pose, params), _plain_birth_mask(mesh, camera, pose, params)
+        np.testing.assert_array_equal(fast, plain)
+        assert fast.any()
+        grazing += int(((render(mesh, scaled_camera(camera, 0.5), pose).face >= 0).sum() > 0) and (fast == 0).any())
+    assert grazing
+
+
+def test_unit_pixel_rays_are_the_normalised_pixel_rays():
+    for cam in (scaled_camera(CAM, 0.5), scaled_camera(CAM_DIST, 0.25)):
+        xy = pixel_rays(cam)
+        d = np.dstack([xy[..., 0], xy[..., 1], np.ones(xy.shape[:2])])
+        d /= np.linalg.norm(d, axis=2, keepdims=True)
+        u = unit_pixel_rays(cam)
+        np.testing.assert_array_equal(u, d)
+        assert not u.flags.writeable and unit_pixel_rays(cam) is u
