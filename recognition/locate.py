@@ -45,6 +45,11 @@ class LocateParams:
     # larger than the window's scale); None: at the window's scale. SIFT of the whole frame was
     # the slow tail of locate (bench/RESULTS.md, session 18)
     fallback_object_px: float | None = 200.0
+    # When several models are searched in one image (locate_all), a model's fallback reuses a
+    # whole-image pass another model described at a scale up to 2^(1/fallback_scale_steps) finer
+    # than its own (:func:`shared_features`: never less detail, no pass of its own); None: every
+    # model describes its own. A single model is searched exactly as before
+    fallback_scale_steps: int | None = 4
     viewsets_tried: int = 2  # the best and the runner-up
     pool_all: bool = True  # then all matches of every viewset together
     whole_image_fallback: bool = True
@@ -233,24 +238,59 @@ def typical_object_px(model: ObjectModel, image_width: int) -> float:
     return float(max(np.sqrt(w0 * w1), np.sqrt(h0 * h1)) * image_width / train_w)
 
 
+def shared_features(shared: dict, key, scale: float, steps: int | None, describe) -> Features:
+    """Whole-image features for ``scale`` from ``shared`` (passes already described for this
+    image, by ``key`` = the image's shape and SIFT parameters, then scale), or ``describe(scale)``
+    added to it. A pass described at a scale up to ``2^(1/steps)`` finer serves too: it holds
+    at least the detail asked for (SIFT sees the object as large or larger), and another model
+    searched in the same image need not pay for a pass of its own; ``steps`` None: the same
+    scale only.
+
+    >>> made = []
+    >>> d = lambda s: made.append(s) or f"sift@{s}"
+    >>> shared = {}
+    >>> shared_features(shared, "k", 0.6, 4, d), shared_features(shared, "k", 0.55, 4, d)  # 0.6 is ≤ 0.55·2^¼
+    ('sift@0.6', 'sift@0.6')
+    >>> shared_features(shared, "k", 0.7, 4, d), shared_features(shared, "k", 0.4, 4, d), made
+    ('sift@0.7', 'sift@0.4', [0.6, 0.7, 0.4])
+    """
+    passes = shared.setdefault(key, {})
+    reach = 1.0 if steps is None else 2.0 ** (1.0 / steps)
+    fits = [s for s in passes if scale <= s <= scale * reach * (1 + 1e-9)]
+    if fits:
+        return passes[min(fits)]
+    passes[scale] = feats = describe(scale)
+    return feats
+
+
 def _describe_and_pose(img, box, scale: float, index: ModelIndex, model: ObjectModel, camera: PinholeCamera,
-                       window: tuple | None, params: LocateParams, timer: dict, grey: np.ndarray) -> _Search:
-    """SIFT of ``img`` (its crop ``box``, or all of it) shrunk by ``scale``, then the pose search."""
+                       window: tuple | None, params: LocateParams, timer: dict, grey: np.ndarray,
+                       shared: dict | None = None) -> _Search:
+    """SIFT of ``img`` (its crop ``box``, or all of it) shrunk by ``scale``, then the pose search.
+    ``shared``: features of whole-image passes already described for this image (by SIFT
+    parameters and scale), read and filled in (:func:`locate_all`)."""
     t0 = time.perf_counter()
-    feats = index.describe(img, box, scale=scale)
+    if shared is None or box is not None:
+        feats = index.describe(img, box, scale=scale)
+    else:
+        feats = shared_features(shared, (img.shape, index.viewset_params), float(scale), params.fallback_scale_steps,
+                                lambda s: index.describe(img, None, scale=s))
     timer["match"] += (time.perf_counter() - t0) * 1e3
     return _pose_from(feats, index, model, camera, window, params, timer, grey)
 
 
 def locate(
     image: np.ndarray, camera: PinholeCamera, model: ObjectModel, params: LocateParams = LocateParams(),
-    index: ModelIndex | None = None,
+    index: ModelIndex | None = None, shared: dict | None = None,
 ) -> Located:
     """Find ``model`` in ``image`` (any bit depth/channels) seen by ``camera``; never raises for
     an image without the object (``found`` is False), raises ImageError for an unusable image.
 
     ``index``: the model's matching index (:func:`~quatrack.recognition.match.index_for`, built
-    once per loaded model and cached); pass it when calling in a loop.
+    once per loaded model and cached); pass it when calling in a loop. ``shared``: a dict kept
+    across the calls for *one* image (several models, :func:`locate_all`): the whole-image
+    fallback reuses a pass described for another model at the same or a slightly finer scale
+    (:func:`shared_features`).
 
     Examples
     --------
@@ -326,7 +366,7 @@ def locate(
         if window_failed and params.fallback_object_px is not None:
             scale = min(scale, sift_scale((0, 0, typical_object_px(model, w), 0), params.fallback_object_px))
         first = res
-        res = _describe_and_pose(img, None, scale, index, model, cam, None, params, timer, grey)
+        res = _describe_and_pose(img, None, scale, index, model, cam, None, params, timer, grey, shared)
         if res.verification is None:
             res.verification = first.verification
     est = res.est
@@ -353,8 +393,11 @@ def locate_all(
     """Search every model in the image (Kragic & Kyrki's recognition among several objects):
     one :class:`Located` per model, in the models' order. Each object is found or not on its own
     evidence; when two found objects claim the same place (projected boxes overlapping by more
-    than half), only the more confident one is reported found."""
-    results = [locate(image, camera, m, params, index_for(m)) for m in models]
+    than half), only the more confident one is reported found. The models share the whole-image
+    SIFT passes of their fallbacks (:func:`shared_features`); a single model is searched exactly
+    as :func:`locate` does."""
+    shared: dict | None = {} if len(models) > 1 else None
+    results = [locate(image, camera, m, params, index_for(m), shared) for m in models]
     found = sorted((r for r in results if r.found), key=lambda r: -r.confidence)
     kept: list[tuple] = []
     from .pose import iou, projected_bbox

@@ -263,3 +263,44 @@ def test_view_angle_deg_is_the_pose_view_angle():
         c = rng.normal(size=3) * 0.5
         ref = np.degrees(a.view_angle(b, c))
         assert abs(view_angle_deg(a.R, a.t, b.R, b.t, c) - ref) < 1e-7
+
+
+def test_models_searched_in_one_image_share_the_whole_image_sift_pass(model, scenes, monkeypatch):
+    """locate_all (issue 13, N objects): the fallbacks of the models searched in one image share
+    their whole-image SIFT pass, and each model's answer is the one locate gives alone. Two
+    copies of the cookie box in a background frame: the window looks like the box, no pose
+    verifies, both fall back to the whole image — one pass for both."""
+    from quatrack.recognition.locate import locate_all
+    from quatrack.recognition.match import ModelIndex
+
+    bg = scenes[1][0]
+    whole = []
+    real = ModelIndex.describe
+    monkeypatch.setattr(ModelIndex, "describe",
+                        lambda self, img, box=None, **k: (whole.append(k.get("scale")) if box is None else None)
+                        or real(self, img, box, **k))
+    alone = locate(bg, CAMERA, model)
+    assert alone.searched == "image" and not alone.found and len(whole) == 1
+    whole.clear()
+    both = locate_all(bg, CAMERA, [model, model])
+    assert len(whole) == 1  # one pass for both models
+    for r in both:
+        assert (r.found, r.searched, r.reason, r.matches, r.viewset) == \
+            (alone.found, alone.searched, alone.reason, alone.matches, alone.viewset)
+    whole.clear()
+    locate_all(bg, CAMERA, [model, model], LocateParams(fallback_scale_steps=None))
+    assert len(whole) == 1  # the same scale is shared even without reach
+
+
+def test_a_shared_pass_serves_only_a_scale_it_has_the_detail_for():
+    from quatrack.recognition.locate import shared_features
+
+    made = []
+    shared = {}
+    get = lambda s, steps=4, key="a": shared_features(shared, key, s, steps, lambda x: made.append(x) or x)  # noqa: E731
+    assert get(0.5) == 0.5 and made == [0.5]
+    assert get(0.45) == 0.5 and made == [0.5]  # 0.5 ≤ 0.45·2^¼: finer, within reach
+    assert get(0.55) == 0.55 and made == [0.5, 0.55]  # 0.5 is coarser than asked: a pass of its own
+    assert get(0.3) == 0.3 and made == [0.5, 0.55, 0.3]  # 0.5 is beyond reach (more than 2^¼ finer)
+    assert get(0.5, key="b") == 0.5 and made[-1] == 0.5  # other SIFT parameters or image: no sharing
+    assert get(0.46, steps=None) == 0.46  # no reach: the same scale only
