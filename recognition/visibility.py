@@ -9,6 +9,7 @@ at a grazing angle, where KLT windows straddle two faces.
 
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass, replace
 
 import cv2
@@ -16,7 +17,7 @@ import numpy as np
 
 from quatrack.tracking.camera import PinholeCamera
 from quatrack.viewsets.mesh import Mesh
-from quatrack.viewsets.render import render
+from quatrack.viewsets.render import face_normals, render
 from quatrack.tracking.pose import Pose
 
 
@@ -30,8 +31,24 @@ def merge_points(points: np.ndarray, tol: float) -> np.ndarray:
     return P[np.sort(first)]
 
 
+_SCALED: dict[tuple[int, float], tuple[weakref.ref, PinholeCamera]] = {}  # (id(camera), s) -> (camera, scaled)
+
+
 def scaled_camera(camera: PinholeCamera, s: float) -> PinholeCamera:
-    """The camera of the image resized by ``s`` (pixel centres preserved)."""
+    """The camera of the image resized by ``s`` (pixel centres preserved); remembered per camera
+    and scale (cameras are frozen; the tracker asks several times a frame)."""
+    key = (id(camera), float(s))
+    hit = _SCALED.get(key)
+    if hit is not None and hit[0]() is camera:
+        return hit[1]
+    small = _scaled_camera(camera, s)
+    if len(_SCALED) >= 64:
+        _SCALED.clear()
+    _SCALED[key] = (weakref.ref(camera), small)
+    return small
+
+
+def _scaled_camera(camera: PinholeCamera, s: float) -> PinholeCamera:
     w, h = max(1, int(round(camera.width * s))), max(1, int(round(camera.height * s)))
     return replace(camera, fx=camera.fx * s, fy=camera.fy * s, cx=s * (camera.cx + 0.5) - 0.5,
                    cy=s * (camera.cy + 0.5) - 0.5, width=w, height=h)
@@ -81,7 +98,7 @@ def visible_points(
     inner = cv2.erode((buf.face >= 0).astype(np.uint8), np.ones((3, 3), np.uint8))
     ok &= (face >= 0) & (inner[vi, ui] > 0)
     ok &= np.abs(depth - Xc[:, 2]) < params.depth_tol * mesh.extent
-    normals = mesh.face_normals[np.maximum(face, 0)] @ pose.R.T
+    normals = face_normals(mesh)[np.maximum(face, 0)] @ pose.R.T
     rays = Xc / np.linalg.norm(Xc, axis=1, keepdims=True)
     ok &= np.abs(np.einsum("ij,ij->i", normals, rays)) >= params.min_cos
     return ok, uv

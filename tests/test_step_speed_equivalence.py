@@ -78,3 +78,24 @@ def test_unit_pixel_rays_are_the_normalised_pixel_rays():
         u = unit_pixel_rays(cam)
         np.testing.assert_array_equal(u, d)
         assert not u.flags.writeable and unit_pixel_rays(cam) is u
+
+
+def test_cached_scaled_cameras_and_face_normals_are_the_computed_ones():
+    """``scaled_camera`` and ``face_normals`` remember their results per object: the same values
+    as computed afresh, and a new object (even at a reused address) gets its own."""
+    from quatrack.recognition.visibility import _scaled_camera
+    from quatrack.viewsets.render import face_normals
+
+    for s in (0.25, 0.5, 1.0):
+        a, b = scaled_camera(CAM_DIST, s), _scaled_camera(CAM_DIST, s)
+        assert (a.fx, a.fy, a.cx, a.cy, a.width, a.height) == (b.fx, b.fy, b.cx, b.cy, b.width, b.height)
+        np.testing.assert_array_equal(a.dist_coeffs, b.dist_coeffs)
+        assert scaled_camera(CAM_DIST, s) is a
+    for k in range(5):  # cameras and meshes that come and go: never another one's result
+        cam = PinholeCamera(400.0 + k, 400.0, 160.0, 120.0, width=320, height=240)
+        assert scaled_camera(cam, 0.5).fx == 0.5 * (400.0 + k)
+        mesh = _prism(4 + k)
+        n = face_normals(mesh)
+        np.testing.assert_array_equal(n, mesh.face_normals)
+        assert face_normals(mesh) is n and not n.flags.writeable
+        del cam, mesh

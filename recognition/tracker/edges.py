@@ -31,7 +31,7 @@ from quatrack.viewsets.mesh import Mesh
 
 from ..visibility import mesh_edges, scaled_camera
 from .params import TrackerParams
-from .points import PointBlock, VarianceFactor, gate, posterior_m2
+from .points import PointBlock, VarianceFactor, mahalanobis2, posterior_m2
 from .sources import FrameContext
 
 _SIGMA_ALONG_PX = 50.0  # an edge sample says nothing along the edge
@@ -156,7 +156,8 @@ class ModelEdges:
         C = (var[:, None, None] * np.einsum("ni,nj->nij", normal, normal)
              + _SIGMA_ALONG_PX**2 * np.einsum("ni,nj->nij", t, t))
         block = PointBlock(self.name, X, meas, C)
-        block = block.keep(gate(ctx.camera, block, ctx.prior, p.gate_chi2))
+        # the innovation gate (points.gate) with the projections and J P Jᵀ already at hand
+        block = block.keep(mahalanobis2(meas - uv[found], S[found] + C) < p.gate_chi2)
         timings["edges"] = (time.perf_counter() - t0) * 1e3
         return block
 

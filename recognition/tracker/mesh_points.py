@@ -36,7 +36,7 @@ import numpy as np
 from quatrack.tracking.measurements import project_model_points
 from quatrack.tracking.state import FilterState
 from quatrack.viewsets.mesh import Mesh
-from quatrack.viewsets.render import cast_rays, depth_edges, render, undistort_pixels, unit_pixel_rays
+from quatrack.viewsets.render import cast_rays, depth_edges, face_normals, render, undistort_pixels, unit_pixel_rays
 
 from ..visibility import scaled_camera
 from .params import TrackerParams
@@ -61,7 +61,7 @@ def birth_mask(mesh: Mesh, ctx_camera, pose, params: TrackerParams) -> np.ndarra
     ok = buf.face >= 0
     if not ok.any():
         return np.zeros((cam.height, cam.width), np.uint8)
-    normals = mesh.face_normals @ pose.R.T  # camera frame
+    normals = face_normals(mesh) @ pose.R.T  # camera frame
     # |cos| between the face and the view ray, on the object's pixels only (the rays are cached)
     face = buf.face[ok]
     ok[ok] = np.abs(np.einsum("nk,nk->n", normals[face], unit_pixel_rays(small)[ok])) >= params.visibility.min_cos
@@ -191,7 +191,7 @@ class MeshPoints:
             return 0
         n = int(ok.sum())
         self.tracks = self.tracks + Tracks(X[ok], uv[ok])
-        self.cov_X = np.concatenate([self.cov_X, lifted_covariance(pose, X[ok], self.mesh.face_normals[face[ok]],
+        self.cov_X = np.concatenate([self.cov_X, lifted_covariance(pose, X[ok], face_normals(self.mesh)[face[ok]],
                                                                   state.pose_covariance)])
         self.cohort = np.concatenate([self.cohort, np.full(n, self._births)])
         self.vouched = np.concatenate([self.vouched, np.full(n, vouched)])
