@@ -176,17 +176,22 @@ def run(scenes: int = 200, seed: int = 0, every: int = 3, sheet: str | None = No
     }
 
 
-def _share(x: float | None) -> str:
-    return "-" if x is None else f"{100 * x:.0f} %"
+def _share(x: float | None, digits: int = 0) -> str:
+    return "-" if x is None else f"{100 * x:.{digits}f} %"
+
+
+def _num(x: float | None, fmt: str) -> str:
+    """``x`` formatted, or "-" when there is nothing to report (no scene found, say)."""
+    return "-" if x is None else format(x, fmt)
 
 
 def format_report(s: dict) -> str:
     r, n, v = s["rendered"], s["negatives"], s["video"]
     lines = [f"Rendered scenes ({r['scenes']}, 0–60° from the registered view):",
-             f"  success {100 * r['success']:.1f} % (within 30°: {100 * r['success_within_30deg']:.1f} %), "
+             f"  success {100 * r['success']:.1f} % (within 30°: {_share(r['success_within_30deg'], 1)}), "
              f"found {100 * r['found']:.1f} %, wrong when found {100 * r['wrong_when_found']:.1f} %",
-             f"  median error {r['median_translation_error_pct_diameter']:.2f} % of diameter, "
-             f"{r['median_rotation_error_deg']:.2f}°; window IoU ≥ 0.5 in {100 * r['window_iou_ge_0.5']:.0f} % "
+             f"  median error {_num(r['median_translation_error_pct_diameter'], '.2f')} % of diameter, "
+             f"{_num(r['median_rotation_error_deg'], '.2f')}°; window IoU ≥ 0.5 in {100 * r['window_iou_ge_0.5']:.0f} % "
              f"(median {r['window_iou_median']:.2f}); whole-image fallback in {100 * r['fallback_to_whole_image']:.0f} %",
              "  success by angle: " + ", ".join(f"{c['from_deg']}–{c['to_deg']}°: {_share(c['success'])} ({c['scenes']})"
                                                  for c in r["curve"])]
@@ -198,7 +203,7 @@ def format_report(s: dict) -> str:
               f"p50 {n['time_ms']['p50']:.0f} ms (CPU {n['cpu_ms']['p50']:.0f} ms)",
               f"box.mp4 (every {v['every']}. frame, {v['frames']} frames): verified pose in {100 * v['found']:.1f} % "
               f"(whole-image search: {100 * v['found_whole_image']:.1f} %), window centre on the box in "
-              f"{100 * v['window_centre_on_box']:.1f} %" + (f"; contact sheet {v['sheet']}" if v["sheet"] else "")]
+              f"{_share(v['window_centre_on_box'], 1)}" + (f"; contact sheet {v['sheet']}" if v["sheet"] else "")]
     return "\n".join(lines)
 
 

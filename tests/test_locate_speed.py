@@ -100,3 +100,23 @@ def test_bench_locate_reports_cpu_time_next_to_wall_clock(monkeypatch):
     }
     text = B.format_report(summary)
     assert text.count("CPU p50 12.5 / p95 34.5 ms") == 2 and "(CPU 2 ms)" in text
+
+
+def test_bench_locate_report_with_nothing_to_report_for_some_figures():
+    """A short run (``--scenes 5``, say) may have no scene within 30°, no pose found or no frame
+    to check the window on: the report says "-" there instead of failing."""
+    import quatrack.bench.locate as B
+
+    block = {"time_ms": {k: {"p50": 1.0, "p95": 2.0} for k in B.STAGES}, "cpu_ms": {"p50": 1.0, "p95": 2.0}}
+    summary = {
+        "rendered": {"scenes": 2, "success": 0.0, "success_within_30deg": None, "found": 0.0, "wrong_when_found": 0.0,
+                     "median_translation_error_pct_diameter": None, "median_rotation_error_deg": None,
+                     "window_iou_ge_0.5": 0.0, "window_iou_median": 0.1, "fallback_to_whole_image": 1.0,
+                     "curve": [], **block},
+        "negatives": {"images": 2, "false_positives": 0, "time_ms": {"p50": 3.0, "p95": 4.0},
+                      "cpu_ms": {"p50": 2.5, "p95": 3.5}},
+        "video": {"frames": 1, "every": 1, "found": 0.0, "found_whole_image": 0.0, "window_centre_on_box": None,
+                  "sheet": None, **block},
+    }
+    text = B.format_report(summary)
+    assert "(within 30°: -)" in text and "median error - % of diameter, -°" in text and "on the box in -" in text
