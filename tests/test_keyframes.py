@@ -157,3 +157,37 @@ def test_the_track_is_picked_up_where_the_object_went(walk, follow):
     err = [pose_errors(s.t, s.q_wxyz, truth, walk.model.mesh) for s, truth in zip(returned, back)]
     for s, (dp, da) in zip(returned, err):
         assert dp < 0.02 * d and da < 2.0, (s.frame, dp / d, da)
+
+
+def test_re_anchoring_falls_back_on_the_keyframes_seen_from_near_the_current_direction(walk):
+    """Where the model's views match nothing (a side the one photo never shows), re-anchoring
+    matches the frame's SIFT to this run's keyframes — only those seen from within
+    ``anchor_keyframe_max_deg`` of the current direction (SIFT matches a view only so far round)
+    — and their matches land on the object where the truth puts them."""
+    from quatrack.recognition.tracker.anchor import object_window
+
+    tracker, steps, _ = _track(walk, TrackerParams())
+    items = tracker.keyframes.items
+    assert len(items) >= 3
+    n_model = len(walk.model.viewsets)
+    k = int(round(items[-1].time_s * FPS))  # the frame the last keyframe was taken in
+    truth = walk.poses[k]
+    feats = tracker._anchors().index.describe(walk.frames[k], object_window(walk.model.mesh, walk.cam, truth, 0.15))
+    m = tracker._keyframe_matches(feats, truth)
+    assert m is not None and len(m) >= 20
+    used = np.unique(m.viewset[m.viewset >= n_model]) - n_model
+    d = truth.viewing_direction(walk.model.mesh.centre)
+    ang = np.degrees(np.arccos(np.clip([items[i].direction @ d for i in used], -1, 1)))
+    assert len(used) and np.all(ang <= TrackerParams().anchor_keyframe_max_deg), ang
+    kf_rows = m.viewset >= n_model
+    err = np.linalg.norm(walk.cam.project(truth.apply(m.points3d[kf_rows])) - feats.keypoints[m.query_idx[kf_rows]], axis=1)
+    assert np.median(err) < 2.0  # right matches, lifted at right poses
+    # seen from 90° away from every keyframe: none of them is used
+    far = Z.orbit_pose(walk.obj, walk.cam, 35.0 - 90.0, -40.0)
+    dirs = np.array([it.direction for it in items])
+    assert np.degrees(np.arccos(np.clip(dirs @ far.viewing_direction(walk.model.mesh.centre), -1, 1))).min() > 25
+    assert tracker._keyframe_matches(feats, far) is None
+    # off: no fallback at all
+    off = Tracker(walk.model, walk.cam, TrackerParams(anchor_keyframes=False))
+    off.keyframes = tracker.keyframes
+    assert off._keyframe_matches(feats, truth) is None

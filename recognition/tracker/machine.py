@@ -61,7 +61,7 @@ from ..match import ModelIndex, index_for
 from ..evidence import edge_fit, measure_edges, silhouette_inside
 from ..pose import PoseParams, plausible
 from ..visibility import merge_points
-from .anchor import Anchor, AnchorJob
+from .anchor import Anchor, AnchorJob, object_window
 from .params import INITIAL_VELOCITY_SIGMA, TrackerParams, TrackStep
 from .points import PointBlock, Tracks, mahalanobis2, score_statistic
 from .edges import ModelEdges
@@ -194,6 +194,45 @@ class Tracker:
         if self.index is None:
             self.index = index_for(self.model)
         return self.index
+
+    def _anchor_now(self, img: np.ndarray, pose: Pose, tracks: Tracks, wide: bool) -> tuple[Tracks, int, bool]:
+        """Re-anchor in this frame: SIFT in the object's window matched to the model's views and
+        merged (:meth:`Anchor.merge`); where they give too few consistent matches (a side no
+        trained or learned view shows), the same features matched to this run's keyframes near
+        the current viewing direction (:meth:`_keyframe_matches`) — one SIFT pass either way."""
+        anchor = self._anchors()
+        box = object_window(self.model.mesh, self.camera, pose, 0.3 if wide else 0.15)
+        if box is None:
+            return tracks, 0, False
+        feats, m = anchor.features(img, box)
+        out = anchor.merge(feats, m, self.camera, pose, tracks, wide)
+        if out[1] >= self.params.min_anchor_matches:
+            return out
+        m_kf = self._keyframe_matches(feats, pose)
+        if m_kf is None:
+            return out
+        alt = anchor.merge(feats, m_kf, self.camera, pose, tracks, wide)
+        return alt if alt[1] > out[1] else out
+
+    def _keyframe_matches(self, feats, pose: Pose):
+        """``feats`` matched to the model's views and this run's keyframes
+        (:meth:`Keyframes.search_model`), keeping the matches to keyframes seen from within
+        ``anchor_keyframe_max_deg`` of ``pose``'s viewing direction: SIFT matches a view only
+        so far round (a keyframe 40° away gave consistent wrong matches that dragged a fast
+        orbit 2 % off, and the keyframes it kept there were off in turn). None when
+        ``params.anchor_keyframes`` is off or there is no keyframe near."""
+        p = self.params
+        if not (p.anchor_keyframes and len(self.keyframes)):
+            return None
+        dirs = np.array([k.direction for k in self.keyframes.items])
+        d = pose.viewing_direction(self.model.mesh.centre)
+        near = np.degrees(np.arccos(np.clip(dirs @ d, -1.0, 1.0))) <= p.anchor_keyframe_max_deg
+        if not near.any():
+            return None
+        _, index = self.keyframes.search_model(self.model)
+        m = index.match(feats)
+        usable = np.concatenate([np.ones(len(self.model.viewsets), bool), near])
+        return m.subset(usable[m.viewset])
 
     def _anchors(self) -> Anchor:
         if self._anchor is None:
@@ -337,7 +376,7 @@ class Tracker:
         self._start_filter(time_s0, pose, cov)
         prior = self.filter.predict(time_s)
         t0 = time.perf_counter()
-        tracks, _, _ = self._anchors().now(img, self.camera, prior.pose, Tracks.empty(), wide=True)
+        tracks, _, _ = self._anchor_now(img, prior.pose, Tracks.empty(), wide=True)
         timings["replenish"] = _ms(t0)
         if len(tracks) < self.params.min_inliers:
             if self._start_on_mesh(img, frame, prior, tracks):
@@ -395,6 +434,9 @@ class Tracker:
             t0 = time.perf_counter()
             job, self._anchor_job = self._anchor_job, None
             feats, m = job.future.result()
+            if len(m) < p.min_anchor_matches:  # as _anchor_now, judged on the raw matches
+                m_kf = self._keyframe_matches(feats, job.pose)
+                m = m_kf if m_kf is not None and len(m_kf) > len(m) else m
             pose_then = job.pose
             if job.frame is not self._prev:  # found on an older frame: carry the keypoints over
                 feats, m, pose_then = self._anchors().carry(feats, m, self.camera, job.frame, self._prev, posterior_before)
@@ -466,7 +508,7 @@ class Tracker:
         elif thin or due:
             t0 = time.perf_counter()
             before, kept = self.filter.state, self.trained.tracks
-            tracks, n, replaced = self._anchors().now(img, self.camera, self.filter.state.pose, self.trained.tracks, wide=False)
+            tracks, n, replaced = self._anchor_now(img, self.filter.state.pose, self.trained.tracks, wide=False)
             self.trained.tracks = tracks
             if replaced:  # the KLT tracks had slid: adjust this frame again to the fresh matches
                 redo = PointBlock.isotropic(self.trained.name, tracks, p.sigma_px)

@@ -120,6 +120,12 @@ class TrackerParams:
     # after keyframe_renew_s), at most keyframes_max (0: none); after a loss, recognition searches
     # them with the model's views
     keyframes_max: int = 24
+    # re-anchoring (SIFT) falls back on the keyframes where the model's views give fewer than
+    # min_anchor_matches consistent matches (a side no trained or learned view shows): the points
+    # the tracker itself saw there become anchors too. Zoo truth passes (bench/RESULTS.md, session
+    # 22): poses beyond 5 %/5° 10 → 2, mean error 0.51 → 0.39 % of the diameter; losses ±7 frames
+    anchor_keyframes: bool = True
+    anchor_keyframe_max_deg: float = 20.0  # only keyframes seen from this near the current direction
     keyframe_min_angle_deg: float = 15.0
     keyframe_renew_s: float = 3.0
     keyframe_every: int = 10
