@@ -99,13 +99,9 @@ def test_a_near_miss_on_one_face_is_refused_by_its_edges(cube):
     assert ok.edge_fit.shift < PoseParams().max_edge_shift and ok.confidence > ver.confidence
 
 
-def test_the_edge_refit_runs_only_for_a_pose_the_cheap_checks_pass(cube, monkeypatch):
-    """The refit is verification's costliest check (issue 13, speed): a pose another check
-    refuses (here a rival consensus as large as its own) is refused without it, with an empty
-    refit in its evidence and its confidence capped; a pose that passes carries exactly the
-    refit computed on its own."""
-    import quatrack.recognition.pose as P
-
+def _one_face_estimate(cube):
+    """The PnP pose from the real keypoints on one face: (mesh, grey image, those keypoints'
+    indices, their 3-D points, the estimate)."""
     model, spec, sc, m, uv = cube
     mesh = model.mesh
     grey = cv2.cvtColor(sc.image, cv2.COLOR_BGR2GRAY)
@@ -113,6 +109,18 @@ def test_the_edge_refit_runs_only_for_a_pose_the_cheap_checks_pass(cube, monkeyp
     X = m.points3d[on_face]
     est = solve_pnp(CAM, X, uv[on_face], PoseParams(), (spec.views[0].pose.R, spec.views[0].pose.t, mesh.centre))
     assert est is not None
+    return mesh, grey, on_face, X, est
+
+
+def test_the_edge_refit_runs_only_for_a_pose_the_cheap_checks_pass(cube, monkeypatch):
+    """The refit is verification's costliest check (issue 13, speed): a pose another check
+    refuses (here a rival consensus as large as its own) is refused without it, with an empty
+    refit in its evidence and its confidence capped; a pose that passes carries exactly the
+    refit computed on its own."""
+    import quatrack.recognition.pose as P
+
+    mesh, grey, on_face, X, est = _one_face_estimate(cube)
+    uv = cube[4]
     calls = []
     real = P.edge_fit
     monkeypatch.setattr(P, "edge_fit", lambda *a, **k: calls.append(1) or real(*a, **k))
@@ -139,13 +147,8 @@ def test_a_rival_to_measure_is_measured_only_for_a_pose_the_checks_before_it_pas
     judged exactly as with the number given, refused or passed."""
     from quatrack.recognition.pose import PnPSolution
 
-    model, spec, sc, m, uv = cube
-    mesh = model.mesh
-    grey = cv2.cvtColor(sc.image, cv2.COLOR_BGR2GRAY)
-    on_face, _ = _one_face(m, sc.pose)
-    X = m.points3d[on_face]
-    est = solve_pnp(CAM, X, uv[on_face], PoseParams(), (spec.views[0].pose.R, spec.views[0].pose.t, mesh.centre))
-    assert est is not None
+    mesh, grey, on_face, X, est = _one_face_estimate(cube)
+    uv = cube[4]
     calls = []
 
     def rival_of(n):
