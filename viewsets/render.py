@@ -140,6 +140,11 @@ def render(mesh: Mesh, camera: PinholeCamera, pose: Pose) -> RenderBuffers:
     to the lower index), so the buffers equal the plain loop's (:func:`render_reference`) bit
     for bit (tests/test_viewsets_render.py).
     """
+    return _rasterise(mesh, camera, pose, batch_small=True)
+
+
+def _rasterise(mesh: Mesh, camera: PinholeCamera, pose: Pose, batch_small: bool) -> RenderBuffers:
+    """:func:`render`'s z-buffer; ``batch_small``: test a mesh's many small triangles together."""
     w, h = int(camera.width), int(camera.height)
     rays = pixel_rays(camera)
     depth = np.full((h, w), np.inf, dtype=np.float64)
@@ -157,7 +162,7 @@ def render(mesh: Mesh, camera: PinholeCamera, pose: Pose) -> RenderBuffers:
     corners = tris[ids, :, :2] / tris[ids, :, 2:3]  # normalised corners (x, y)
     distorted = camera.has_distortion
     small = nx * ny <= _SMALL_BOX
-    tied = bool(small.sum() >= _SMALL_MIN)  # the small ones done together first
+    tied = batch_small and bool(small.sum() >= _SMALL_MIN)  # the small ones done together first
     if tied:
         _render_small(ids[small], boxes[small], nx[small], corners[small], normals, offsets, rays, distorted,
                       depth.reshape(-1), face.reshape(-1))
@@ -231,44 +236,10 @@ def _render_small(ids, boxes, nx, p, normals, offsets, rays, distorted: bool, de
 
 
 def render_reference(mesh: Mesh, camera: PinholeCamera, pose: Pose) -> RenderBuffers:
-    """The per-triangle loop that :func:`render` replaced (session 22), kept as its reference:
-    the same buffers, bit for bit (tests/test_viewsets_render.py)."""
-    w, h = int(camera.width), int(camera.height)
-    rays = pixel_rays(camera)
-    depth = np.full((h, w), np.inf, dtype=np.float64)
-    face = np.full((h, w), -1, dtype=np.int32)
-    tris = pose.apply(mesh.vertices)[mesh.faces]  # (m, 3, 3) camera frame
-    normals = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
-    offsets = np.einsum("ij,ij->i", normals, tris[:, 0])
-    ids = np.flatnonzero(np.all(tris[:, :, 2] > _NEAR, axis=1) & (offsets != 0.0))  # else behind, or edge-on
-    if not len(ids):
-        return RenderBuffers(depth, face)
-    boxes = _pixel_bboxes(camera, tris[ids], w, h).tolist()
-    corners = (tris[ids, :, :2] / tris[ids, :, 2:3]).tolist()  # normalised corners (x, y)
-    separable = not camera.has_distortion
-    if separable:
-        rx_row, ry_col = rays[0, :, 0][None, :], rays[:, 0, 1][:, None]
-    for i, (x0, y0, x1, y1), p in zip(ids.tolist(), boxes, corners):
-        if x0 > x1 or y0 > y1:
-            continue
-        if separable:
-            rx, ry = rx_row[:, x0 : x1 + 1], ry_col[y0 : y1 + 1]
-        else:
-            r = rays[y0 : y1 + 1, x0 : x1 + 1]
-            rx, ry = r[..., 0], r[..., 1]
-        e0 = (p[1][0] - p[0][0]) * (ry - p[0][1]) - (p[1][1] - p[0][1]) * (rx - p[0][0])
-        e1 = (p[2][0] - p[1][0]) * (ry - p[1][1]) - (p[2][1] - p[1][1]) * (rx - p[1][0])
-        e2 = (p[0][0] - p[2][0]) * (ry - p[2][1]) - (p[0][1] - p[2][1]) * (rx - p[2][0])
-        lo, hi = np.minimum(np.minimum(e0, e1), e2), np.maximum(np.maximum(e0, e1), e2)
-        inside = (lo >= 0) | (hi <= 0)  # all three of one sign (or on an edge)
-        n = normals[i]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            z = offsets[i] / (n[0] * rx + n[1] * ry + n[2])
-        dsub = depth[y0 : y1 + 1, x0 : x1 + 1]
-        closer = inside & (z > _NEAR) & (z < dsub)
-        np.copyto(dsub, z, where=closer)
-        np.copyto(face[y0 : y1 + 1, x0 : x1 + 1], i, where=closer)
-    return RenderBuffers(depth, face)
+    """:func:`render` with every triangle tested one at a time over its box (the plain loop, as
+    before session 22): the reference the batched test of small triangles must equal bit for
+    bit (tests/test_viewsets_render.py)."""
+    return _rasterise(mesh, camera, pose, batch_small=False)
 
 
 def cast_rays(mesh: Mesh, pose: Pose, rays_xy: np.ndarray, chunk: int = 4096):
