@@ -109,3 +109,22 @@ def one_photo_orbit(root, span_deg: float, n_frames: int, name: str = "small-cub
              for k in range(n_frames)]
     frames = [Z.compose(*obj.render(cam, p), bg) for p in poses]
     return SimpleNamespace(root=root, cam=cam, model=model, obj=obj, poses=poses, frames=frames, bg=bg)
+
+
+def closed_prism(sides: int = 6, radius: float = 4.0, height: float = 9.0):
+    """A closed prism of ``sides`` facets standing on z = 0 (a cylinder when ``sides`` is large):
+    the side's quads as two triangles each, and each cap a fan from its centre."""
+    import numpy as np
+
+    from quatrack.viewsets.mesh import make_mesh
+
+    a = np.linspace(0, 2 * np.pi, sides, endpoint=False)
+    ring = np.stack([radius * np.cos(a), radius * np.sin(a)], 1)
+    V = np.concatenate([np.column_stack([ring, np.zeros(sides)]), np.column_stack([ring, np.full(sides, height)]),
+                        [[0.0, 0.0, 0.0], [0.0, 0.0, height]]])
+    F = []
+    for i in range(sides):
+        j = (i + 1) % sides
+        F += [[i, j, sides + j], [i, sides + j, sides + i], [2 * sides, j, i], [2 * sides + 1, sides + i, sides + j]]
+    return make_mesh(V, np.array(F))
+

@@ -7,29 +7,17 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
+from conftest import closed_prism
 
 from quatrack.recognition.tracker.mesh_points import birth_mask
 from quatrack.recognition.tracker.params import TrackerParams
 from quatrack.recognition.visibility import scaled_camera
 from quatrack.tracking.camera import PinholeCamera
 from quatrack.tracking.pose import Pose
-from quatrack.viewsets.mesh import make_mesh
 from quatrack.viewsets.render import depth_edges, pixel_rays, render, unit_pixel_rays
 
 CAM = PinholeCamera(520.0, 515.0, 318.0, 243.0, width=640, height=480)
 CAM_DIST = PinholeCamera(520.0, 515.0, 318.0, 243.0, np.array([-0.2, 0.08, 0.001, -0.0015, 0.0]), width=640, height=480)
-
-
-def _prism(sides=6, radius=4.0, height=9.0):
-    a = np.linspace(0, 2 * np.pi, sides, endpoint=False)
-    ring = np.stack([radius * np.cos(a), radius * np.sin(a)], 1)
-    V = np.concatenate([np.column_stack([ring, np.zeros(sides)]), np.column_stack([ring, np.full(sides, height)]),
-                        [[0.0, 0.0, 0.0], [0.0, 0.0, height]]])
-    F = []
-    for i in range(sides):
-        j = (i + 1) % sides
-        F += [[i, j, sides + j], [i, sides + j, sides + i], [2 * sides, j, i], [2 * sides + 1, sides + i, sides + j]]
-    return make_mesh(V, np.array(F))
 
 
 def _plain_birth_mask(mesh, cam, pose, params):
@@ -55,7 +43,7 @@ def _plain_birth_mask(mesh, cam, pose, params):
 def test_birth_mask_equals_the_per_pixel_form(camera, sides):
     """The birth mask tests the view angle on the object's pixels only, with cached unit rays:
     the same mask as testing every pixel — grazing faces included (a prism turned edge-on)."""
-    mesh = _prism(sides)
+    mesh = closed_prism(sides)
     params = TrackerParams()
     rng = np.random.default_rng(sides)
     grazing = 0
@@ -94,7 +82,7 @@ def test_cached_scaled_cameras_and_face_normals_are_the_computed_ones():
     for k in range(5):  # cameras and meshes that come and go: never another one's result
         cam = PinholeCamera(400.0 + k, 400.0, 160.0, 120.0, width=320, height=240)
         assert scaled_camera(cam, 0.5).fx == 0.5 * (400.0 + k)
-        mesh = _prism(4 + k)
+        mesh = closed_prism(4 + k)
         n = face_normals(mesh)
         np.testing.assert_array_equal(n, mesh.face_normals)
         assert face_normals(mesh) is n and not n.flags.writeable

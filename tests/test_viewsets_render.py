@@ -5,6 +5,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
+from conftest import closed_prism
 
 from quatrack.tracking.camera import PinholeCamera
 from quatrack.viewsets.mesh import make_mesh, planar_groups
@@ -143,20 +144,6 @@ def test_render_equals_the_plain_z_buffer_on_a_concave_occluding_scene(camera, s
         np.testing.assert_allclose(buf.depth[face >= 0], depth[face >= 0], rtol=1e-12)
 
 
-def _cylinder_mesh(segments=48, radius=20.0, height=35.0):
-    """A closed cylinder of many small triangles (render tests the small ones together)."""
-    a = np.linspace(0, 2 * np.pi, segments, endpoint=False)
-    ring = np.stack([radius * np.cos(a), radius * np.sin(a)], 1)
-    V = np.concatenate([np.column_stack([ring, np.zeros(segments)]), np.column_stack([ring, np.full(segments, height)]),
-                        [[0.0, 0.0, 0.0], [0.0, 0.0, height]]])
-    F = []
-    for i in range(segments):
-        j = (i + 1) % segments
-        F += [[i, j, segments + j], [i, segments + j, segments + i], [2 * segments, j, i],
-              [2 * segments + 1, segments + i, segments + j]]
-    return make_mesh(V, np.array(F))
-
-
 @pytest.mark.parametrize("camera", [CAM, CAM_DIST], ids=["pinhole", "distorted"])
 @pytest.mark.parametrize("scale", [0.25, 0.5])
 def test_render_of_many_small_triangles_equals_the_triangle_loop(camera, scale):
@@ -167,7 +154,7 @@ def test_render_of_many_small_triangles_equals_the_triangle_loop(camera, scale):
     from quatrack.recognition.visibility import scaled_camera
     from quatrack.viewsets import render as R
 
-    cyl = _cylinder_mesh()
+    cyl = closed_prism(48, 20.0, 35.0)  # a cylinder of many small triangles (tested together)
     scene = _occluding_scene()
     both = make_mesh(np.concatenate([cyl.vertices, scene.vertices + [25.0, 0.0, 0.0]]),
                      np.concatenate([cyl.faces, scene.faces + len(cyl.vertices)]))
