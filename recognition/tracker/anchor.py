@@ -91,13 +91,24 @@ class Anchor:
         feats = type(feats)(kp_new.astype(np.float32), feats.descriptors, feats.sizes, feats.angles)
         return feats, m.subset(keep), pose_prev
 
-    def now(self, img: np.ndarray, camera: PinholeCamera, pose: Pose, tracks: Tracks, wide: bool) -> tuple[Tracks, int, bool]:
-        """Re-anchor in this frame: SIFT in the object's window, then :meth:`merge`."""
+    def now(self, img: np.ndarray, camera: PinholeCamera, pose: Pose, tracks: Tracks, wide: bool,
+            alternative=None) -> tuple[Tracks, int, bool]:
+        """Re-anchor in this frame: SIFT in the object's window, then :meth:`merge`. Where that
+        gives fewer than ``min_anchor_matches`` consistent matches, ``alternative(features)``
+        (other matches of the same features, or None) is merged instead if it gives more — one
+        SIFT pass either way."""
         box = object_window(self.mesh, camera, pose, 0.3 if wide else 0.15)
         if box is None:
             return tracks, 0, False
         feats, m = self.features(img, box)
-        return self.merge(feats, m, camera, pose, tracks, wide)
+        out = self.merge(feats, m, camera, pose, tracks, wide)
+        if out[1] >= self.params.min_anchor_matches or alternative is None:
+            return out
+        m_alt = alternative(feats)
+        if m_alt is None:
+            return out
+        alt = self.merge(feats, m_alt, camera, pose, tracks, wide)
+        return alt if alt[1] > out[1] else out
 
     def merge(self, feats, m, camera: PinholeCamera, pose: Pose, tracks: Tracks, wide: bool) -> tuple[Tracks, int, bool]:
         """Make SIFT matches consistent by RANSAC PnP started at ``pose`` (the pose of the frame

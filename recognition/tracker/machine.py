@@ -61,7 +61,7 @@ from ..match import ModelIndex, index_for
 from ..evidence import edge_fit, measure_edges, silhouette_inside
 from ..pose import PoseParams, plausible
 from ..visibility import merge_points
-from .anchor import Anchor, AnchorJob, object_window
+from .anchor import Anchor, AnchorJob
 from .params import INITIAL_VELOCITY_SIGMA, TrackerParams, TrackStep
 from .points import PointBlock, Tracks, mahalanobis2, score_statistic
 from .edges import ModelEdges
@@ -194,25 +194,6 @@ class Tracker:
         if self.index is None:
             self.index = index_for(self.model)
         return self.index
-
-    def _anchor_now(self, img: np.ndarray, pose: Pose, tracks: Tracks, wide: bool) -> tuple[Tracks, int, bool]:
-        """Re-anchor in this frame: SIFT in the object's window matched to the model's views and
-        merged (:meth:`Anchor.merge`); where they give too few consistent matches (a side no
-        trained or learned view shows), the same features matched to this run's keyframes near
-        the current viewing direction (:meth:`_keyframe_matches`) — one SIFT pass either way."""
-        anchor = self._anchors()
-        box = object_window(self.model.mesh, self.camera, pose, 0.3 if wide else 0.15)
-        if box is None:
-            return tracks, 0, False
-        feats, m = anchor.features(img, box)
-        out = anchor.merge(feats, m, self.camera, pose, tracks, wide)
-        if out[1] >= self.params.min_anchor_matches:
-            return out
-        m_kf = self._keyframe_matches(feats, pose)
-        if m_kf is None:
-            return out
-        alt = anchor.merge(feats, m_kf, self.camera, pose, tracks, wide)
-        return alt if alt[1] > out[1] else out
 
     def _keyframe_matches(self, feats, pose: Pose):
         """``feats`` matched to the model's views and this run's keyframes
@@ -376,7 +357,8 @@ class Tracker:
         self._start_filter(time_s0, pose, cov)
         prior = self.filter.predict(time_s)
         t0 = time.perf_counter()
-        tracks, _, _ = self._anchor_now(img, prior.pose, Tracks.empty(), wide=True)
+        tracks, _, _ = self._anchors().now(img, self.camera, prior.pose, Tracks.empty(), True,
+                                                lambda f: self._keyframe_matches(f, prior.pose))
         timings["replenish"] = _ms(t0)
         if len(tracks) < self.params.min_inliers:
             if self._start_on_mesh(img, frame, prior, tracks):
@@ -508,7 +490,9 @@ class Tracker:
         elif thin or due:
             t0 = time.perf_counter()
             before, kept = self.filter.state, self.trained.tracks
-            tracks, n, replaced = self._anchor_now(img, self.filter.state.pose, self.trained.tracks, wide=False)
+            pose = self.filter.state.pose
+            tracks, n, replaced = self._anchors().now(img, self.camera, pose, self.trained.tracks, False,
+                                                      lambda f: self._keyframe_matches(f, pose))
             self.trained.tracks = tracks
             if replaced:  # the KLT tracks had slid: adjust this frame again to the fresh matches
                 redo = PointBlock.isotropic(self.trained.name, tracks, p.sigma_px)
