@@ -33,6 +33,7 @@ from . import docs, errors, pose_all, viewer
 from .errors import ApiError, error_body
 from .logs import install_filters
 from .metrics import Metrics, worker_exit
+from .placement import placement_of_running_loop
 from .registry import ModelRegistry
 from .routes import ServiceState, api, health, ops, sockets
 from .settings import Settings
@@ -203,6 +204,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         state = ServiceState(settings, registry, executor, metrics, sessions)
         app.state.quatrack = state
         loop = asyncio.get_running_loop()
+        placement = placement_of_running_loop()  # quatrack serve --workers N (N > 1): service/placement.py
+        if placement is not None and hasattr(sessions, "on_change"):
+            sessions.on_change = placement.sessions_changed
         if settings.preload:
             warm = loop.run_in_executor(None, _warm, state)  # readyz says 503 until done
         else:
@@ -214,6 +218,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         try:
             yield
         finally:
+            if placement is not None and hasattr(sessions, "on_change"):
+                sessions.on_change = None
             if board is not None:
                 board.withdraw()
             registry.stop()

@@ -2,7 +2,9 @@
 
 ``serve`` parses options into :class:`Settings`, prepares the run directory the worker processes
 share (:mod:`.workers`) and hands uvicorn the app factory: one worker process per ``--workers``
-(default: the number of cores), all accepting on one socket.
+(default: the number of cores), all accepting on one socket, each with an event loop that
+follows the placement rule of :mod:`.placement` (no worker accepts while it holds more sessions
+than the least-loaded one).
 """
 
 from __future__ import annotations
@@ -45,8 +47,11 @@ def run_serve(args: argparse.Namespace) -> int:
         # and the session goes on; beyond, the server closes the socket (1009) without buffering it.
         # On SIGTERM every open session is closed with code 1012 (service restart), and its
         # closing handshake completes before the connection is closed (service/shutdown.py).
+        # With several workers, each one's event loop comes from service/placement.py: a worker
+        # holding more sessions than the least-loaded one stops accepting connections meanwhile.
+        loop = "quatrack.service.placement:loop_factory" if settings.workers > 1 else "auto"
         uvicorn.run("quatrack.service.workers:app_from_env", factory=True, workers=settings.workers,
-                    ws=GracefulWebSocketProtocol,
+                    ws=GracefulWebSocketProtocol, loop=loop,
                     host=settings.host, port=settings.port, log_config=configure(args.log_level),
                     ws_max_size=2 * settings.max_body_bytes, timeout_graceful_shutdown=5, server_header=False)
     finally:

@@ -20,6 +20,10 @@ What the workers share lives in one *run directory* (``Settings.run_dir``), wipe
   (:class:`ReadyBoard`); ``/readyz`` answers 200 only when ``workers`` such locks are held, so a
   request that lands on a ready worker does not report the server ready while another one is
   still loading (or has died and is being restarted), and a stopping worker withdraws its file.
+- ``placement/PID``: each worker's session count, ``flock``-ed by it (:mod:`.placement`): a
+  worker holding more sessions than the least-loaded one stops listening on the shared socket
+  until that is no longer so, so the kernel gives new connections to the others (which worker
+  accepts is otherwise whichever wakes first: random).
 - ``prometheus/``: ``$PROMETHEUS_MULTIPROC_DIR`` for prometheus-client's multiprocess mode.
 
 ``max_pending_requests`` (REST) stays a per-worker limit: a worker's own queue is what it bounds.
@@ -28,22 +32,29 @@ What the workers share lives in one *run directory* (``Settings.run_dir``), wipe
 from __future__ import annotations
 
 import fcntl
+import logging
 import os
 import shutil
 import tempfile
 import threading
 import uuid
 from pathlib import Path
+from typing import Callable
 
 from .metrics import MULTIPROC_ENV
 from .settings import Settings
+
+log = logging.getLogger("quatrack.service")
 
 
 class SlotLimiter:
     """At most ``max_sessions`` sessions in all processes sharing ``directory``.
 
     Same interface as :class:`quatrack.service.sessions.SessionLimiter` (``try_open``, ``close``,
-    ``open``); ``count()`` is the number of slots held by any process.
+    ``open``); ``count()`` is the number of slots held by any process. ``on_change(n)``, if set, is
+    called with this process's number of sessions after each open and close, in the caller's
+    thread (the event loop's): the worker's placement (:mod:`.placement`) decides there, before
+    the WebSocket handshake is answered, whether this worker keeps accepting connections.
     """
 
     def __init__(self, directory: Path, max_sessions: int) -> None:
@@ -52,6 +63,14 @@ class SlotLimiter:
         self.max = max_sessions
         self._held: dict[str, int] = {}  # session id -> fd holding the lock
         self._lock = threading.Lock()
+        self.on_change: Callable[[int], None] | None = None
+
+    def _changed(self) -> None:
+        if self.on_change is not None:
+            try:
+                self.on_change(len(self._held))
+            except Exception:  # placement is an optimisation: a failure must not fail the session
+                log.exception("placement: could not be told of a session change")
 
     @property
     def open(self) -> set[str]:
@@ -77,6 +96,7 @@ class SlotLimiter:
                     sid = uuid.uuid4().hex[:12]
                     with self._lock:
                         self._held[sid] = fd
+                    self._changed()
                     return sid
         return None
 
@@ -85,6 +105,7 @@ class SlotLimiter:
             fd = self._held.pop(sid, None)
         if fd is not None:
             os.close(fd)  # releases the flock
+            self._changed()
 
     def count(self) -> int:
         """Slots held by any process (a free slot is locked and released at once to find out)."""
@@ -175,7 +196,7 @@ def prepare_run_dir(settings: Settings) -> tuple[Settings, Path, bool]:
     made = settings.run_dir is None
     run = Path(tempfile.mkdtemp(prefix="quatrack-run-")) if made else Path(settings.run_dir)
     run.mkdir(parents=True, exist_ok=True)
-    for sub in ("sessions", "ready", "prometheus"):
+    for sub in ("sessions", "ready", "placement", "prometheus"):
         shutil.rmtree(run / sub, ignore_errors=True)
         (run / sub).mkdir()
     os.environ[MULTIPROC_ENV] = str(run / "prometheus")

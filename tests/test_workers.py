@@ -1,15 +1,18 @@
 """``quatrack serve --workers 2``: real worker processes, a session limit that holds for the whole
-server, metrics merged over the workers (parsed by prometheus-client's own parser), and the
-settings table of the README generated from the Settings class."""
+server, sessions spread over the workers (load-aware placement, also when a worker dies), metrics
+merged over the workers (parsed by prometheus-client's own parser), and the settings table of the
+README generated from the Settings class."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import multiprocessing
 import os
 import re
 import signal
 import time
+from collections import Counter
 from pathlib import Path
 
 import httpx
@@ -21,6 +24,7 @@ from conftest import box_frames_jpeg, metric_samples, sessions_active
 from quatrack.testing.scenes import example_store
 from quatrack.service.server import BackgroundServer, ServeProcess
 from quatrack.service.settings import Settings, env_name, settings_table
+from quatrack.service.placement import LoadBoard
 from quatrack.service.workers import ReadyBoard, SlotLimiter
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -178,3 +182,154 @@ def test_readme_documents_every_setting():
     for name in Settings.model_fields:
         assert re.search(rf"\|\s*`{env_name(name)}`\s*\|", readme), f"README's settings table lacks {env_name(name)}"
     assert settings_table() in readme, "README's settings table is stale: python -m quatrack.service.settings"
+
+
+# --- placement of sessions over the workers (service/placement.py) ----------------------------------
+
+@pytest.fixture(scope="module")
+def spread_server(tmp_path_factory):
+    """``--workers 2`` with a run directory the tests can read (the workers' placement board)."""
+    tmp = tmp_path_factory.mktemp("spread")
+    srv = ServeProcess(example_store(), workers=2, log_path=tmp / "serve.log",
+                       env={env_name("max_sessions"): "4", env_name("threads"): "1", env_name("run_dir"): str(tmp / "run")})
+    srv.run_dir = tmp / "run"
+    with srv:
+        yield srv
+
+
+def _connection_owners(server_port: int, pids: list[int]) -> dict[int, int]:
+    """{client port: worker pid} of the established connections to ``server_port``, from /proc:
+    the socket inodes of /proc/net/tcp* matched with the workers' open descriptors. Ground truth,
+    independent of the placement code under test."""
+    peer_of_inode = {}
+    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+        try:
+            lines = Path(table).read_text().splitlines()[1:]
+        except OSError:
+            continue
+        for line in lines:
+            f = line.split()
+            if f[3] == "01" and int(f[1].rsplit(":", 1)[1], 16) == server_port:  # 01: established
+                peer_of_inode[int(f[9])] = int(f[2].rsplit(":", 1)[1], 16)
+    owners = {}
+    for pid in pids:
+        try:
+            fds = os.listdir(f"/proc/{pid}/fd")
+        except OSError:
+            continue
+        for fd in fds:
+            try:
+                m = re.fullmatch(r"socket:\[(\d+)\]", os.readlink(f"/proc/{pid}/fd/{fd}"))
+            except OSError:
+                continue
+            if m and int(m.group(1)) in peer_of_inode:
+                owners[peer_of_inode[int(m.group(1))]] = pid
+    return owners
+
+
+def _open_session(srv, stack: contextlib.ExitStack):
+    """A session whose "ready" answer has arrived: the worker that accepted it has registered it,
+    and so has already decided whether it keeps accepting connections (it decides when the
+    session opens, before answering the handshake). This is what makes the placement below
+    deterministic: sessions opened *together* (before the first one is registered) are placed by
+    whichever worker accepts first, as before — see service/placement.py."""
+    ws = stack.enter_context(connect(f"{srv.ws_url}/v1/objects/cookie-box/track", open_timeout=120))
+    ws.send(json.dumps({**CAMERA, "ack": True}))
+    msg = json.loads(ws.recv(timeout=120))
+    assert msg["type"] == "ready", msg
+    return ws
+
+
+def _owner(srv, ws) -> int:
+    port = ws.local_address[1]
+    owners = _connection_owners(srv.port, srv.worker_pids())
+    assert port in owners, f"no worker holds the connection from port {port}: {owners}"
+    return owners[port]
+
+
+def _wait_idle(srv) -> None:
+    _wait(lambda: sessions_active(srv.url) == 0, "the sessions to close")
+
+
+def test_sessions_are_spread_over_the_workers(spread_server):
+    """2 and 4 sessions on 2 workers: each worker gets at most ceil(n / 2). Eight rounds: the
+    kernel's random placement (each connection to either worker) passes one round with
+    probability about 1/4 (1+1 after two, then 2+2), all eight about 1 in 65 000."""
+    srv = spread_server
+    for round_ in range(8):
+        with contextlib.ExitStack() as stack:
+            sockets = []
+            for n in range(1, 5):
+                sockets.append(_open_session(srv, stack))
+                per_worker = Counter(_owner(srv, ws) for ws in sockets)
+                assert max(per_worker.values()) <= -(-n // 2), f"round {round_}, {n} sessions: {dict(per_worker)}"
+        _wait_idle(srv)
+
+
+def _listening(srv, pid: int) -> bool | None:
+    """What worker ``pid`` last published on the placement board: does it accept connections?"""
+    try:
+        fields = (srv.run_dir / "placement" / str(pid)).read_text().split()
+    except FileNotFoundError:
+        return None
+    return fields[1] == "1" if len(fields) == 3 else None
+
+
+def test_a_dead_worker_leaves_the_other_accepting(spread_server):
+    """The worker with a session stops accepting while the other one has none; when that other
+    one dies it starts again (probes and sessions are answered by it, not left in the queue), and
+    the worker uvicorn starts in its place gets the next session. The supervisor is stopped
+    (SIGSTOP) while the worker is dead, so that nothing but the survivor can answer /healthz."""
+    srv = spread_server
+    _wait(lambda: len(srv.worker_pids()) == 2, "two workers")
+    with contextlib.ExitStack() as stack:
+        first = _open_session(srv, stack)
+        busy = _owner(srv, first)
+        (idle,) = [p for p in srv.worker_pids() if p != busy]
+        assert _listening(srv, busy) is False  # published when the session opened
+        os.kill(srv.proc.pid, signal.SIGSTOP)
+        try:
+            os.kill(idle, signal.SIGKILL)
+            _wait(lambda: _listening(srv, busy) is True, "the busy worker to accept again")
+            for _ in range(3):  # each on a new connection: only the busy worker can take it
+                assert httpx.get(f"{srv.url}/healthz", timeout=120).status_code == 200
+        finally:
+            os.kill(srv.proc.pid, signal.SIGCONT)
+        # uvicorn restarts the dead worker; once it is on the board, the busy one stops accepting
+        _wait(lambda: len(srv.worker_pids()) == 2 and idle not in srv.worker_pids(), "a new worker")
+        (new,) = [p for p in srv.worker_pids() if p != busy]
+        _wait(lambda: _listening(srv, busy) is False and _listening(srv, new) is True, "the new worker to join")
+        _wait(lambda: httpx.get(f"{srv.url}/readyz", timeout=120).status_code == 200, "the server to be ready")
+        second = _open_session(srv, stack)
+        assert _owner(srv, second) == new
+    _wait_idle(srv)
+
+
+def test_load_board(tmp_path):
+    """A worker's entry: its count and whether it listens; a dead worker's (unlocked) file is
+    ignored and removed."""
+    ctx = multiprocessing.get_context("spawn")
+    parent, child_end = ctx.Pipe()
+    child = ctx.Process(target=_board_worker, args=(str(tmp_path), child_end), daemon=True)
+    child.start()
+    try:
+        assert parent.poll(120) and parent.recv() is True
+        mine = LoadBoard(tmp_path)
+        mine.join()
+        assert mine.entries() == {child.pid: (3, False)}
+        os.kill(child.pid, signal.SIGKILL)
+        child.join(60)
+        assert mine.entries() == {}
+        assert sorted(os.listdir(tmp_path)) == [str(os.getpid())]
+    finally:
+        if child.is_alive():
+            child.kill()
+            child.join(60)
+
+
+def _board_worker(directory: str, conn) -> None:
+    board = LoadBoard(Path(directory))
+    board.join()
+    board.publish(3, False)
+    conn.send(True)
+    time.sleep(120)  # until killed
