@@ -38,6 +38,7 @@ class PoseParams:
     ransac_iterations: int = 1000
     ransac_confidence: float = 0.999
     inlier_px: float = 4.0  # after refinement, a match within this is an inlier
+    min_score_px: float = 1.5  # the MSAC score's threshold (3 σ̂ of the matches' noise) is at least this (solve_pnp)
     min_inliers: int = 12
     min_inlier_ratio: float = 0.15
     max_rms_px: float = 2.5
@@ -224,15 +225,89 @@ def ransac_pnp(
         return None
 
 
+def _refit(camera: PinholeCamera, X: np.ndarray, uv: np.ndarray, t: np.ndarray, q: np.ndarray, idx: np.ndarray,
+           inlier_px: float, passes: int = 2):
+    """Refine on ``idx``, re-collect the matches within ``inlier_px`` of the refined pose, refine
+    again, until the set is stable (at most ``passes`` times): ``(t, q, idx)`` or None when
+    fewer than 6 matches are left."""
+    for _ in range(passes):
+        if len(idx) < 6:
+            return None
+        t, q = _refine_fast(camera, X[idx], uv[idx], t, q)
+        new = np.flatnonzero(_reprojection_errors(camera, X, uv, t, q) < inlier_px)
+        if np.array_equal(new, idx):
+            return t, q, idx
+        idx = new
+    if len(idx) < 6:
+        return None
+    t, q = _refine_fast(camera, X[idx], uv[idx], t, q)
+    return t, q, idx
+
+
+def msac_cost(camera: PinholeCamera, X: np.ndarray, uv: np.ndarray, t: np.ndarray, q: np.ndarray, tau: float) -> float:
+    """Σ min(eᵢ², τ²) over every match (Torr & Zisserman's MSAC score): an inlier costs its
+    squared reprojection error, an outlier the constant τ². Counting inliers (RANSAC's score)
+    cannot tell a pose that fits 46 matches to 0.5 px from one that fits 48 to 1.5 px — a
+    one-face consensus tilted by two wrong matches off the face; the MSAC cost prefers the
+    first (46·0.25 + 2τ² against 48·2.25 for τ = 4 px).
+
+    >>> from quatrack.tracking.camera import PinholeCamera
+    >>> cam = PinholeCamera(100.0, 100.0, 50.0, 50.0, width=100, height=100)
+    >>> X = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    >>> uv = cam.project(X + [0.0, 0.0, 10.0]) + [[0.0, 0.0], [0.0, 3.0], [0.0, 9.0]]
+    >>> float(msac_cost(cam, X, uv, np.array([0.0, 0.0, 10.0]), np.array([1.0, 0.0, 0.0, 0.0]), 4.0))
+    25.0
+    """
+    e = _reprojection_errors(camera, X, uv, t, q)
+    return float(np.sum(np.minimum(np.square(e), tau * tau)))
+
+
+def dominant_plane(X: np.ndarray, tolerance: float, trials: int = 64) -> np.ndarray:
+    """Indices of the points within ``tolerance`` of the plane through the most of them (a
+    RANSAC over triples, drawn from a fixed seed so the same points give the same plane).
+
+    >>> P = np.array([[x, y, 0.0] for x in range(4) for y in range(3)] + [[1.0, 1.0, 2.0]])
+    >>> dominant_plane(P, 0.1).tolist() == list(range(12))
+    True
+    """
+    X = np.asarray(X, float)
+    n = len(X)
+    if n < 3:
+        return np.arange(n)
+    rng = np.random.default_rng(0)
+    best = np.zeros(0, int)
+    for _ in range(trials):
+        a, b, c = X[rng.choice(n, 3, replace=False)]
+        normal = np.cross(b - a, c - a)
+        norm = np.linalg.norm(normal)
+        if norm < 1e-12:
+            continue
+        on = np.flatnonzero(np.abs((X - a) @ (normal / norm)) < tolerance)
+        if len(on) > len(best):
+            best = on
+    return best
+
+
 def solve_pnp(
     camera: PinholeCamera, X: np.ndarray, uv: np.ndarray, params: PoseParams = PoseParams(),
     prior: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
 ) -> PnPSolution | None:
-    """RANSAC PnP, refinement on the inliers, a second inlier pass at the refined pose.
+    """RANSAC PnP, refinement on the inliers, then the best of the poses the consensus allows.
 
-    ``prior`` = (R, t, centre) of the matched viewset's view: when the inliers lie on one plane
-    the mirrored solution fits them as well, and the one seen from nearer the viewset's
-    direction is kept (the query looks like that viewset, or it would not have matched it)."""
+    RANSAC counts inliers within a generous threshold; on an object seen by one face (most of
+    the inliers on one plane) that count cannot tell the right pose from one tilted and shifted
+    to take in a few wrong matches off the face, nor from the face's mirror pose (the planar
+    ambiguity: two poses fit points on one plane, nearly equally when perspective is weak).
+    So the candidates are: the RANSAC pose refined; when the inliers lie on one plane
+    (σ₃/σ₁ < ``planar_ratio``) or most of them do (:func:`dominant_plane`), both poses that fit
+    that plane's points (IPPE), each refined on the matches it brings in. The one with the
+    lowest MSAC cost over all the matches (:func:`msac_cost`) is kept, its threshold τ = 3 σ̂
+    within [``min_score_px``, ``inlier_px``], σ̂ the noise of the best-fitting candidate's inliers.
+
+    ``prior`` = (R, t, centre) of the matched viewset's view breaks a tie: candidates whose
+    costs differ by less than the noise (6 σ̂², σ̂² the residual variance of the best's inliers) fit the
+    matches equally well, and the one seen from nearer the viewset's direction is kept (the
+    query looks like that viewset, or it would not have matched it)."""
     X = np.asarray(X, np.float64).reshape(-1, 3)
     uv = np.asarray(uv, np.float64).reshape(-1, 2)
     if len(X) < max(6, params.min_inliers):
@@ -241,38 +316,45 @@ def solve_pnp(
     if found is None:
         return None
     pose0, idx = found
-    t, q = pose0.t, pose0.q_wxyz
+    tau = params.inlier_px
     try:
         # the inlier passes use OpenCV's LM (C++, ~20× faster); only the pose kept is refined
         # by the project's LM, which gives the covariance (it starts at the minimum: 1–2 steps)
-        for _ in range(2):  # refine, re-collect inliers at the better pose, refine again
-            t, q = _refine_fast(camera, X[idx], uv[idx], t, q)
-            err = _reprojection_errors(camera, X, uv, t, q)
-            new = np.flatnonzero(err < params.inlier_px)
-            if len(new) < 6:
-                return None
-            if np.array_equal(new, idx):
-                break
-            idx = new
-        t, q = _refine_fast(camera, X[idx], uv[idx], t, q)
-        if prior is not None and len(idx) >= 4:
+        first = _refit(camera, X, uv, pose0.t, pose0.q_wxyz, idx, tau)
+        if first is None:
+            return None
+        candidates = [first]
+        t, q, idx = first
+        if len(idx) >= 4:
             Xi = X[idx] - X[idx].mean(axis=0)
             sv = np.linalg.svd(Xi, compute_uv=False)
-            if sv[2] < params.planar_ratio * sv[0]:
-                best = (view_angle_deg(quat.to_matrix(q), t, *prior), t, q)
-                for t2, q2 in _mirror_candidates(camera, X[idx], uv[idx]):
-                    t2, q2 = _refine_fast(camera, X[idx], uv[idx], t2, q2)
-                    err2 = _reprojection_errors(camera, X[idx], uv[idx], t2, q2)
-                    if np.sqrt(np.mean(err2**2)) <= params.max_rms_px:
-                        angle = view_angle_deg(quat.to_matrix(q2), t2, *prior)
-                        if angle < best[0]:
-                            best = (angle, t2, q2)
-                if best[1] is not t:  # the mirror: collect its inliers among all the matches
-                    _, t, q = best
-                    new = np.flatnonzero(_reprojection_errors(camera, X, uv, t, q) < params.inlier_px)
-                    if len(new) >= len(idx):
-                        idx = new
-                        t, q = _refine_fast(camera, X[idx], uv[idx], t, q)
+            plane = idx
+            if sv[2] >= params.planar_ratio * sv[0]:  # not one plane: does most of it lie on one?
+                spread = sv[0] / np.sqrt(len(idx))  # the inliers' standard deviation along their longest axis
+                on = dominant_plane(X[idx], 3.0 * params.planar_ratio * spread)
+                plane = idx[on] if len(on) >= max(6, len(idx) // 2) else idx[:0]
+            if len(plane) >= 6:
+                for t2, q2 in _mirror_candidates(camera, X[plane], uv[plane]):
+                    t2, q2 = _refine_fast(camera, X[plane], uv[plane], t2, q2)
+                    cand = _refit(camera, X, uv, t2, q2, plane, tau)
+                    if cand is not None:
+                        candidates.append(cand)
+        if len(candidates) > 1:
+            # the score's threshold follows the noise the matches show: σ̂ from the best-fitting
+            # candidate's median inlier error (a 2-D error's median is 1.1774 σ), 3 σ̂ within
+            # [min_score_px, inlier_px]; with the generous inlier_px a tilted pose that takes in
+            # two wrong matches can cost less than the right one, whose errors are a third as large
+            sigma = min(float(np.median(_reprojection_errors(camera, X[c[2]], uv[c[2]], c[0], c[1]))) for c in candidates) / 1.1774
+            tau = float(np.clip(3.0 * sigma, params.min_score_px, params.inlier_px))
+            costs = np.array([msac_cost(camera, X, uv, c[0], c[1], tau) for c in candidates])
+            best = int(np.argmin(costs))
+            tb, qb, ib = candidates[best]
+            sq = np.square(_reprojection_errors(camera, X[ib], uv[ib], tb, qb))
+            tie = 6.0 * float(np.sum(sq)) / max(2 * len(ib) - 6, 1)  # 6 σ̂², σ̂² from the best's inliers
+            if prior is not None:
+                tied = [k for k in range(len(candidates)) if costs[k] <= costs[best] + tie]
+                best = min(tied, key=lambda k: view_angle_deg(quat.to_matrix(candidates[k][1]), candidates[k][0], *prior))
+            t, q, idx = candidates[best]
         t, q, cov = refine(camera, X[idx], uv[idx], t, q, params.covariance_inflation)
     except SingularProblemError:
         return None
