@@ -20,7 +20,9 @@ the socket's accept queue, which belongs to the socket, not to any one process.
 - When: at once, on the event loop, whenever this worker opens or closes a session (the session
   limiter calls :meth:`Placement.sessions_changed` before the WebSocket handshake is answered),
   and every :data:`POLL_S` to see the other workers' changes (a worker that is over its share
-  resumes when the others have caught up, or when the least-loaded one died).
+  resumes when the others have caught up, or when the least-loaded one died). The poll keeps
+  the other workers' files open and reads them (a lock probe and a read each); it looks for
+  newly started workers every :data:`RELIST_S`, a session change always does.
 - Pausing is closing this process's listening *server* (uvloop's, or asyncio's) while a
   duplicate of the socket's descriptor keeps the socket itself open here; resuming creates a new
   server on another duplicate. uvicorn gets a :class:`PausableServer` from ``create_server``, so
@@ -61,6 +63,8 @@ log = logging.getLogger("quatrack.service")
 
 POLL_S = 0.05  # how often a worker re-reads the others' counts (and refreshes its own entry)
 STALE_S = 10.0  # an entry not refreshed for this long belongs to a stuck worker: ignored
+HEARTBEAT_S = 1.0  # a worker rewrites its unchanged entry this often (what STALE_S checks)
+RELIST_S = 1.0  # the poll looks for newly started workers this often (a session change: always)
 _RECORD = 48  # bytes per entry: "sessions listening monotonic-time", space-padded, one write
 
 
@@ -76,6 +80,8 @@ class LoadBoard:
         self.dir.mkdir(parents=True, exist_ok=True)
         self.pid = os.getpid()
         self._fd: int | None = None
+        self._others: dict[int, int] = {}  # pid -> an open descriptor of its file
+        self._listed = 0.0
 
     def join(self) -> None:
         if self._fd is not None:
@@ -103,37 +109,64 @@ class LoadBoard:
             pass
         os.close(self._fd)
         self._fd = None
+        self.close()
 
-    def entries(self) -> dict[int, tuple[int, bool]]:
+    def entries(self, relist: bool = True) -> dict[int, tuple[int, bool]]:
         """{pid: (sessions, listening)} of the other live workers whose entry is fresh; files of
-        dead workers (nobody holds their lock) are deleted on the way."""
+        dead workers (nobody holds their lock) are deleted on the way. The other workers' files
+        stay open between calls; ``relist=False`` skips looking for workers that joined since
+        (the periodic poll relists only every :data:`RELIST_S`, to keep its cost at a few
+        system calls)."""
+        if relist or time.monotonic() - self._listed >= RELIST_S:
+            self._relist()
         out: dict[int, tuple[int, bool]] = {}
         now = time.monotonic()
-        for name in os.listdir(self.dir):
-            if name.startswith(".") or not name.isdigit() or int(name) == self.pid:
-                continue
-            path = self.dir / name
+        for pid, fd in list(self._others.items()):
             try:
-                fd = os.open(path, os.O_RDONLY)
-            except FileNotFoundError:
-                continue
-            try:
+                fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+            except BlockingIOError:  # held: a live worker
                 try:
-                    fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
-                except BlockingIOError:  # held: a live worker
                     fields = os.pread(fd, _RECORD, 0).split()
                     if len(fields) == 3 and now - float(fields[2]) <= STALE_S:
-                        out[int(name)] = (int(fields[0]), fields[1] == b"1")
-                else:  # nobody holds it: a worker that died
-                    try:
-                        path.unlink()
-                    except FileNotFoundError:
-                        pass
-            except ValueError:  # a record being written for the first time: skip it this once
-                pass
-            finally:
+                        out[pid] = (int(fields[0]), fields[1] == b"1")
+                except ValueError:  # a record being written for the first time: skip it this once
+                    pass
+            else:  # nobody holds it: a worker that died
+                del self._others[pid]
                 os.close(fd)
+                _unlink_if_unheld(self.dir / str(pid))
         return out
+
+    def _relist(self) -> None:
+        self._listed = time.monotonic()
+        for name in os.listdir(self.dir):
+            if name.startswith(".") or not name.isdigit() or int(name) == self.pid or int(name) in self._others:
+                continue
+            try:
+                self._others[int(name)] = os.open(self.dir / name, os.O_RDONLY)
+            except FileNotFoundError:
+                continue
+
+    def close(self) -> None:
+        for fd in self._others.values():
+            os.close(fd)
+        self._others.clear()
+
+
+def _unlink_if_unheld(path: Path) -> None:
+    """Delete a dead worker's file, unless a live worker holds it (only a worker that reused the
+    dead one's pid could)."""
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except FileNotFoundError:
+        return
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        path.unlink()
+    except (BlockingIOError, FileNotFoundError):
+        pass
+    finally:
+        os.close(fd)
 
 
 class PausableServer:
@@ -227,6 +260,8 @@ class Placement:
         self._poller: asyncio.Task | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._thread: int | None = None
+        self._published: tuple[int, bool] | None = None
+        self._published_at = 0.0
 
     def attach(self, server: PausableServer) -> PausableServer:
         self.server = server
@@ -249,12 +284,14 @@ class Placement:
         self.sessions = sessions
         self.evaluate()
 
-    def evaluate(self) -> None:
+    def evaluate(self, relist: bool = True) -> None:
+        """Listen or not, by the rule; publish this worker's entry if it changed (or is due for
+        its heartbeat). ``relist``: also look for workers started since the last look."""
         server = self.server
         if server is None or server.closed:
             return
         try:
-            others = [n for n, _ in self.board.entries().values()]
+            others = [n for n, _ in self.board.entries(relist).values()]
         except OSError:
             log.exception("placement: the board could not be read; listening")
             others = []
@@ -262,15 +299,18 @@ class Placement:
             server.resume()
         else:
             server.pause()
-        try:
-            self.board.publish(self.sessions, server.want_listening)
-        except OSError:
-            pass
+        entry, now = (self.sessions, server.want_listening), time.monotonic()
+        if entry != self._published or now - self._published_at >= HEARTBEAT_S:
+            try:
+                self.board.publish(*entry)
+                self._published, self._published_at = entry, now
+            except OSError:
+                pass
 
     async def _poll(self) -> None:
         while self.server is not None and not self.server.closed:
             await asyncio.sleep(POLL_S)
-            self.evaluate()
+            self.evaluate(relist=False)
 
     def stop(self) -> None:
         if self._poller is not None:
