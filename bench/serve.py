@@ -38,7 +38,12 @@ def _rss_mb(pids: list[int]) -> list[float]:
     return out
 
 
-async def _streams(url: str, http_url: str, camera: dict, frames: list, n: int, fps: float) -> dict:
+async def _streams(url: str, http_url: str, camera: dict, frames: list, n: int, fps: float,
+                   stagger_s: float = 0.0) -> dict:
+    """One run of ``n`` concurrent streams. ``stagger_s`` > 0 starts stream k at k × stagger_s
+    (cameras that come online one after another) instead of all at once (a burst, e.g. cameras
+    reconnecting after a restart): ``quatrack serve --workers N`` places a session by the
+    sessions its workers hold *when it arrives* (service/placement.py), which a burst outruns."""
     import asyncio
     import time
     from collections import Counter
@@ -68,7 +73,7 @@ async def _streams(url: str, http_url: str, camera: dict, frames: list, n: int, 
     owners: dict[int, int] = {}
 
     async def placement():  # which server process holds each connection, once all are open
-        await asyncio.sleep(min(1.5, len(frames) / fps / 2))
+        await asyncio.sleep((n - 1) * stagger_s + min(1.5, len(frames) / fps / 2))
         owners.update(await _connection_owners(http_url))
 
     prober = asyncio.create_task(probe())
@@ -76,7 +81,12 @@ async def _streams(url: str, http_url: str, camera: dict, frames: list, n: int, 
     placer = asyncio.create_task(placement())
     outside = _Prober(http_url)  # the server's answer time, not the clients' loop's
     t0 = time.perf_counter()
-    results = await asyncio.gather(*(stream(url, camera, frames, fps=fps) for _ in range(n)), return_exceptions=True)
+    async def one(k: int):
+        if stagger_s > 0:
+            await asyncio.sleep(k * stagger_s)
+        return await stream(url, camera, frames, fps=fps)
+
+    results = await asyncio.gather(*(one(k) for k in range(n)), return_exceptions=True)
     wall = time.perf_counter() - t0
     prober.cancel()
     lagger.cancel()
@@ -314,7 +324,8 @@ def main(args: argparse.Namespace) -> int:
             with setup() as (url, ws_url, pids):
                 rows = []
                 for n in counts:
-                    row = asyncio.run(_streams(f"{ws_url}/v1/objects/{args.object}/track", url, camera, frames, n, args.fps))
+                    row = asyncio.run(_streams(f"{ws_url}/v1/objects/{args.object}/track", url, camera, frames, n, args.fps,
+                                               getattr(args, "stagger_s", 0.0) or 0.0))
                     row["rss_mb"] = _rss_mb(pids())
                     rows.append(row)
                 rest = None
