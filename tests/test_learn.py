@@ -397,3 +397,66 @@ def test_service_sessions_store_what_they_learn_and_new_sessions_find_it(cube, t
                 found.append(msg["status"] == "init"
                              and _correct(np.array(msg["pose"]["t"]), np.array(msg["pose"]["q_wxyz"]), truth, cube.model.mesh))
         assert any(found), found
+
+
+def _learned_viewset_whole_frame(label, image, feature_mask, camera, pose, mesh, params, min_cos, rfch):
+    """learned_viewset as it was before session 23: the whole frame rendered, then cropped."""
+    from quatrack.viewsets.render import RenderBuffers, render
+    from quatrack.viewsets.rfch import cooccurrence, descriptor_planes, label_planes
+    from quatrack.viewsets.viewset import build_viewset
+
+    buffers = render(mesh, camera, pose)
+    obj = buffers.face >= 0
+    if not obj.any():
+        return None
+    h, w = obj.shape
+    ys, xs = np.nonzero(obj)
+    m = 16 + (int(np.ceil(3 * max(rfch.scales))) + rfch.distance if rfch is not None else 0)
+    x0, y0 = max(int(xs.min()) - m, 0), max(int(ys.min()) - m, 0)
+    x1, y1 = min(int(xs.max()) + m + 1, w), min(int(ys.max()) + m + 1, h)
+    crop = np.ascontiguousarray(image[y0:y1, x0:x1])
+    cam = dataclasses.replace(camera, cx=camera.cx - x0, cy=camera.cy - y0, width=x1 - x0, height=y1 - y0)
+    buf = RenderBuffers(buffers.depth[y0:y1, x0:x1], buffers.face[y0:y1, x0:x1])
+    mask = np.where((np.asarray(feature_mask)[y0:y1, x0:x1] > 0) & (buf.face >= 0), 255, 0).astype(np.uint8)
+    p = dataclasses.replace(params, min_cos=max(params.min_cos, float(min_cos)))
+    vs = build_viewset(label, -1, False, crop, mask, cam, pose, mesh, buf, p)
+    co = None
+    if rfch is not None and len(vs):
+        planes = descriptor_planes(image, tuple(rfch.scales))[:, y0:y1, x0:x1]
+        inside = buf.face >= 0
+        labels = np.full(inside.shape, -1, np.int32)
+        labels[inside] = label_planes(planes[:, inside][:, :, None], rfch.centres, rfch.desc_mean, rfch.desc_std).ravel()
+        co = cooccurrence(labels, buf.mask, len(rfch.centres), rfch.distance)
+    return vs, (x0, y0), co
+
+
+def test_learned_view_renders_only_the_objects_box(cube):
+    """learned_viewset renders only the object's box (render_window over the footprint): the
+    same keypoints, descriptors, lifted points, box and colour statistics as rendering the whole
+    frame — the object in the middle, at the border and partly outside the image."""
+    from quatrack.recognition.tracker.mesh_points import birth_mask
+    from quatrack.viewsets.viewset import params_from_manifest
+
+    model, cam = cube.model, cube.cam
+    params = params_from_manifest(model.manifest)
+    compared = 0
+    for k, dx in ((5, 0.0), (30, 0.0), (50, 0.0), (20, 0.55), (40, -0.6)):
+        pose = cube.poses[k]
+        pose = Pose(pose.q_wxyz, pose.t + np.array([dx * pose.t[2], 0.0, 0.0]))
+        img = cube.frames[k]
+        mask = birth_mask(model.mesh, cam, pose, TrackerParams())
+        for rfch in (model.rfch, None):
+            vs = L.learned_viewset("x", img, mask, cam, pose, model.mesh, params, 0.4, rfch)
+            ref = _learned_viewset_whole_frame("x", img, mask, cam, pose, model.mesh, params, 0.4, rfch)
+            if ref is None or len(ref[0]) == 0:
+                assert len(vs) == 0
+                continue
+            rvs, (x0, y0), co = ref
+            np.testing.assert_array_equal(vs.keypoints, (rvs.keypoints + np.array([x0, y0], np.float32)).astype(np.float32))
+            np.testing.assert_array_equal(vs.descriptors, rvs.descriptors)
+            np.testing.assert_array_equal(vs.points3d, rvs.points3d)
+            bx, by, bw, bh = rvs.bbox
+            assert vs.bbox == (bx + x0, by + y0, bw, bh)
+            assert (co is None and vs.cooccurrence is None) or np.array_equal(vs.cooccurrence, co)
+            compared += len(vs) > 0
+    assert compared >= 6

@@ -197,3 +197,39 @@ def test_render_ties_go_to_the_lower_triangle_whichever_path_tests_it():
     np.testing.assert_array_equal(buf.depth, ref.depth)
     seen = set(np.unique(buf.face).tolist())
     assert {0, 1} <= seen and not seen & {len(F) - 2, len(F) - 1}  # the first copies win every tie
+
+
+@pytest.mark.parametrize("camera", [CAM, CAM_DIST], ids=["pinhole", "distorted"])
+def test_a_window_of_the_render_equals_the_whole_render_there(camera):
+    """render_window over a pixel box gives the whole frame's buffers there bit for bit (boxes
+    that cut triangles, hold the whole object, lie at the border or miss it), and the footprint
+    holds every pixel the render draws."""
+    from quatrack.viewsets.render import footprint, render_window
+
+    cyl = closed_prism(48, 20.0, 35.0)
+    scene = _occluding_scene()
+    rng = np.random.default_rng(5)
+    cut = shown = 0
+    for mesh in (cyl, scene):
+        for rvec, dist, shift in (([0.3, -0.5, 0.2], 120.0, 0.0), ([2.4, 0.6, -0.3], 90.0, 30.0),
+                                  ([1.2, 0.1, 0.4], 100.0, 75.0)):
+            pose = pose_looking_at(mesh.centre, rvec, dist)
+            pose = Pose(pose.q_wxyz, pose.t + [shift, 0.3 * shift, 0.0])
+            full = render(mesh, camera, pose)
+            box = footprint(mesh, camera, pose)
+            ys, xs = np.nonzero(full.face >= 0)
+            if box is None:
+                assert not len(xs)
+                continue
+            shown += 1
+            assert box[0] <= xs.min() and box[1] <= ys.min() and xs.max() < box[2] and ys.max() < box[3]
+            windows = [box, (0, 0, 640, 480), (600, 400, 640, 480), (0, 0, 1, 1), (5, 7, 5, 9)]
+            for _ in range(6):
+                (x0, x1), (y0, y1) = np.sort(rng.integers(0, 641, 2)), np.sort(rng.integers(0, 481, 2))
+                windows.append((int(x0), int(y0), int(x1), int(y1)))
+            for x0, y0, x1, y1 in windows:
+                part = render_window(mesh, camera, pose, (x0, y0, x1, y1))
+                np.testing.assert_array_equal(part.face, full.face[y0:y1, x0:x1])
+                np.testing.assert_array_equal(part.depth, full.depth[y0:y1, x0:x1])
+                cut += int((part.face >= 0).any() and (full.face >= 0).sum() > (part.face >= 0).sum())
+    assert cut >= 6 and shown >= 4

@@ -49,7 +49,7 @@ from quatrack.tracking.pose import Pose
 
 from .errors import StoreError
 from .mesh import Mesh
-from .render import RenderBuffers, render
+from .render import RenderBuffers, footprint, render_window
 from .rfch import RFCHModel, cooccurrence, descriptor_planes, label_planes
 from .store import ObjectModel, load_model, model_path, save_model
 from .viewset import Viewset, ViewsetParams, build_viewset
@@ -85,21 +85,29 @@ def learned_viewset(label: str, image: np.ndarray, feature_mask: np.ndarray, cam
 
     The work is done on the object's box (plus a margin for SIFT's and the RFCH's
     neighbourhoods) seen by the same camera with its principal point shifted — the same rays,
-    so the same lifted points — and the keypoints are returned in the frame's pixels."""
-    buffers = render(mesh, camera, pose)
-    obj = buffers.face >= 0
+    so the same lifted points — and the keypoints are returned in the frame's pixels. Only that
+    box (with the margin) is rendered (:func:`~.render.render_window` over the mesh's
+    :func:`~.render.footprint`): the same buffers there as the whole frame's render."""
     empty = Viewset(label, -1, False, camera, pose, np.zeros((0, 2), np.float32), np.zeros((0, 128), np.float32),
                     np.zeros((0, 3)), (0, 0, 0, 0), learned=True)
+    box = footprint(mesh, camera, pose)
+    if box is None:
+        return empty
+    w, h = int(camera.width), int(camera.height)
+    m = 16 + (int(np.ceil(3 * max(rfch.scales))) + rfch.distance if rfch is not None else 0)
+    win = (max(box[0] - m, 0), max(box[1] - m, 0), min(box[2] + m, w), min(box[3] + m, h))
+    buffers = render_window(mesh, camera, pose, win)
+    obj = buffers.face >= 0
     if not obj.any():
         return empty
-    h, w = obj.shape
     ys, xs = np.nonzero(obj)
-    m = 16 + (int(np.ceil(3 * max(rfch.scales))) + rfch.distance if rfch is not None else 0)
+    xs, ys = xs + win[0], ys + win[1]
     x0, y0 = max(int(xs.min()) - m, 0), max(int(ys.min()) - m, 0)
     x1, y1 = min(int(xs.max()) + m + 1, w), min(int(ys.max()) + m + 1, h)
     crop = np.ascontiguousarray(image[y0:y1, x0:x1])
     cam = dataclasses.replace(camera, cx=camera.cx - x0, cy=camera.cy - y0, width=x1 - x0, height=y1 - y0)
-    buf = RenderBuffers(buffers.depth[y0:y1, x0:x1], buffers.face[y0:y1, x0:x1])
+    rows, cols = slice(y0 - win[1], y1 - win[1]), slice(x0 - win[0], x1 - win[0])  # (inside the window)
+    buf = RenderBuffers(buffers.depth[rows, cols], buffers.face[rows, cols])
     mask = np.where((np.asarray(feature_mask)[y0:y1, x0:x1] > 0) & (buf.face >= 0), 255, 0).astype(np.uint8)
     p = dataclasses.replace(params, min_cos=max(params.min_cos, float(min_cos)))
     vs = build_viewset(label, -1, False, crop, mask, cam, pose, mesh, buf, p)
