@@ -89,3 +89,43 @@ def test_cached_scaled_cameras_and_face_normals_are_the_computed_ones():
         np.testing.assert_array_equal(n, fresh / np.linalg.norm(fresh, axis=1, keepdims=True))
         assert face_normals(mesh) is n and mesh.face_normals is n and not n.flags.writeable
         del cam, mesh
+
+
+@pytest.mark.parametrize("sides", [4, 24])
+def test_audit_fit_image_gives_measure_edges_refit(sides):
+    """The audit's edge refit on :func:`fit_image`'s smaller gradient crop equals the refit on
+    measure_edges' EdgeImage exactly — object in the middle, at the image's border, partly
+    outside it, and poses a few per cent / degrees off (the refit moves them)."""
+    from quatrack.recognition.evidence import edge_fit, measure_edges
+    from quatrack.recognition.pose import PoseParams
+    from quatrack.recognition.tracker.edges import fit_image
+
+    mesh = closed_prism(sides)
+    pp = PoseParams()
+    rng = np.random.default_rng(7 + sides)
+    clutter = cv2.GaussianBlur(rng.uniform(0, 255, (480, 640)).astype(np.float32), (0, 0), 3.0)
+    moved, compared = 0, 0
+    for k in range(14):
+        rvec = rng.normal(0, 0.8, 3)
+        shift = [(0, 0), (260, 0), (-250, 120), (0, -215), (300, 200), (-290, -10), (30, 230)][k % 7]
+        t = np.array([shift[0] / 520.0 * 25, shift[1] / 515.0 * 25, rng.uniform(20, 32)])
+        truth = Pose.from_rvec(rvec, t - Pose.from_rvec(rvec, [0, 0, 0]).R @ mesh.centre)
+        buf = render(mesh, CAM, truth)
+        img = np.where(buf.face >= 0, 60.0 + 150.0 * ((buf.face * 7919) % 13) / 12.0, clutter)
+        gray = np.clip(img + rng.normal(0, 2.0, img.shape), 0, 255).astype(np.uint8)
+        off = Pose.from_rvec(rvec + rng.normal(0, 0.03, 3), t + rng.normal(0, 0.3, 3) - Pose.from_rvec(rvec, [0, 0, 0]).R @ mesh.centre)
+        for pose in (truth, off):
+            X = mesh.vertices[:: max(1, len(mesh.vertices) // 8)]
+            uv = CAM.project(truth.apply(X))
+            _, image = measure_edges(gray, mesh, CAM, pose, pp.edges)
+            small = fit_image(gray, mesh, CAM, pose, pp.edges, pp.edge_fit_reach)
+            if image is None:
+                assert small is None
+                continue
+            assert small.origin == image.origin and small.gx.shape == image.gx.shape
+            a = edge_fit(image, mesh, CAM, pose, X, uv, pp.edges, pp.edge_fit_reach)
+            b = edge_fit(small, mesh, CAM, pose, X, uv, pp.edges, pp.edge_fit_reach)
+            assert a == b
+            compared += 1
+            moved += a.samples >= 6 and a.shift > 0.05
+    assert compared >= 15 and moved >= 3

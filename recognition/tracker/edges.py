@@ -117,6 +117,54 @@ def gradients(gray: np.ndarray, uv: np.ndarray, pad: float) -> tuple[np.ndarray,
     return gx, gy, np.array([float(x0), float(y0)])
 
 
+def fit_image(grey: np.ndarray, mesh: Mesh, camera, pose, params, reach: float):
+    """What :func:`recognition.evidence.edge_fit` needs of :func:`~recognition.evidence.measure_edges`
+    (its :class:`~recognition.evidence.EdgeImage`) without the agreement and chance tests that
+    measure_edges also makes: the tracker's audit asks only how far the refit moves the pose.
+
+    The same visible samples (``_edge_samples``) and the same crop (measure_edges' box: the
+    samples' box grown by ``0.25 size + radius_px + radius_share × size + 2``, where its chance
+    test looks), but gradients computed only where the fit reads them: the samples' box grown by
+    the fit's reach ``r = radius_px + (radius_share + reach) × size`` plus 8 px (zero beyond),
+    spanning the whole crop along an axis where the crop meets the image's border (there
+    OpenCV's filters depend on the crop's width or height in the last bits). Every pixel the fit
+    reads then lies at least 7 px inside that part, and the σ = 1 blur (9 taps) and the 3×3
+    Sobel read at most 5 px round a pixel, so the gradients there are the full crop's bit for bit; the crop's
+    origin is the same, so are the coordinates: the fit is the same (tests/test_step_speed_equivalence.py
+    compares the two). None when no sample is visible (as measure_edges)."""
+    from ..evidence import EdgeImage, _edge_samples, image_gradients
+
+    uv, normal, _, X = _edge_samples(mesh, camera, pose, params, None, 0.5)
+    if len(uv) == 0:
+        return None
+    span = np.ptp(uv, axis=0)
+    size = float(max(np.hypot(*span), 8.0))
+    h, w = grey.shape[:2]
+
+    def box(pad: int) -> tuple[int, int, int, int]:
+        lo = np.floor(uv.min(axis=0)) - pad
+        hi = np.ceil(uv.max(axis=0)) + pad
+        return int(max(lo[0], 0)), int(max(lo[1], 0)), int(min(hi[0] + 1, w)), int(min(hi[1] + 1, h))
+
+    radius = params.radius_px + params.radius_share * size
+    full = box(int(np.ceil(0.25 * size + radius + 2)))  # measure_edges' crop
+    part = box(int(np.ceil(radius + reach * size)) + 8)
+    part = [max(part[0], full[0]), max(part[1], full[1]), min(part[2], full[2]), min(part[3], full[3])]
+    # where the crop meets the image's border, OpenCV's filters treat its last columns (rows)
+    # by the crop's width (height) — a part of another width differs there in the last bits —
+    # so along an axis that meets the border the part spans the full crop
+    if part[0] == 0 or part[2] == w:
+        part[0], part[2] = full[0], full[2]
+    if part[1] == 0 or part[3] == h:
+        part[1], part[3] = full[1], full[3]
+    gx_p, gy_p, _ = image_gradients(grey, part)
+    gx = np.zeros((full[3] - full[1], full[2] - full[0]), np.float32)
+    gy = np.zeros_like(gx)
+    rows, cols = slice(part[1] - full[1], part[3] - full[1]), slice(part[0] - full[0], part[2] - full[0])
+    gx[rows, cols], gy[rows, cols] = gx_p, gy_p
+    return EdgeImage(uv, normal, X, gx, gy, (full[0], full[1]), size)
+
+
 class ModelEdges:
     """Measurement source: visible sharp model edges (see the module). It keeps no tracks: the
     edges are searched afresh in every frame around their predicted position."""

@@ -64,7 +64,7 @@ from ..visibility import merge_points
 from .anchor import Anchor, AnchorJob
 from .params import INITIAL_VELOCITY_SIGMA, TrackerParams, TrackStep
 from .points import PointBlock, Tracks, mahalanobis2, score_statistic
-from .edges import ModelEdges
+from .edges import ModelEdges, fit_image
 from .keyframes import Keyframe, Keyframes
 from .mesh_points import MeshPoints, birth_mask, confident
 from .reacquire import LastSeen, hull_mask, object_shift, shifted_pose
@@ -596,10 +596,13 @@ class Tracker:
         are found to judge (an occluded or blurred object: no evidence either way)."""
         pp = PoseParams()
         mesh = self.model.mesh
-        ev, image = measure_edges(gray, mesh, self.camera, pose, pp.edges)
-        if agreement and not (ev.samples >= pp.min_edge_samples and ev.agreement >= pp.min_edge_agreement
-                              and ev.lead >= pp.min_edge_lead):
-            return np.inf
+        if agreement:
+            ev, image = measure_edges(gray, mesh, self.camera, pose, pp.edges)
+            if not (ev.samples >= pp.min_edge_samples and ev.agreement >= pp.min_edge_agreement
+                    and ev.lead >= pp.min_edge_lead):
+                return np.inf
+        else:  # (the audit: only the refit, on the gradients it reads: the same fit, edges.fit_image)
+            image = fit_image(gray, mesh, self.camera, pose, pp.edges, pp.edge_fit_reach)
         tracks = self.trained.tracks + self.mesh_points.tracks.keep(self.mesh_points.vouched)
         fit = edge_fit(image, mesh, self.camera, pose, tracks.X, tracks.uv, pp.edges, pp.edge_fit_reach)
         if fit.samples < pp.min_edge_samples:
