@@ -129,3 +129,48 @@ def test_audit_fit_image_gives_measure_edges_refit(sides):
             compared += 1
             moved += a.samples >= 6 and a.shift > 0.05
     assert compared >= 15 and moved >= 3
+
+
+@pytest.mark.parametrize("camera", [CAM, CAM_DIST], ids=["pinhole", "distorted"])
+def test_one_visibility_call_for_both_point_sources(camera):
+    """follow_together tests the trained and the mesh-born tracks in one visible_points call:
+    each source's visible indices and predicted pixels are those of a call of its own
+    (visible_tracks) — sizes 0, 1 and the tracker's usual hundreds, points in front, behind
+    faces and off the object."""
+    from quatrack.recognition.tracker.points import Tracks
+    from quatrack.recognition.tracker.sources import FrameContext, _visible_together, visible_tracks
+    from quatrack.tracking.filter import PoseFilter
+    from quatrack.tracking.motion import make_motion_model
+
+    class Src:
+        def __init__(self, mesh, params, X):
+            self.mesh, self.params, self.tracks = mesh, params, Tracks(X, np.zeros((len(X), 2)))
+
+    mesh = closed_prism(6)
+    params = TrackerParams()
+    rng = np.random.default_rng(3)
+    lo, hi = mesh.vertices.min(axis=0), mesh.vertices.max(axis=0)
+    seen = hidden = 0
+    for k, (n1, n2) in enumerate([(150, 90), (0, 40), (1, 0), (200, 100), (37, 1)]):
+        rvec = rng.normal(0, 1.0, 3)
+        t = np.array([rng.uniform(-2, 2), rng.uniform(-2, 2), rng.uniform(15, 30)])
+        pose = Pose.from_rvec(rvec, t - Pose.from_rvec(rvec, [0, 0, 0]).R @ mesh.centre)
+        f = PoseFilter(make_motion_model("ude", **params.motion_noise_params(float(mesh.extent))), params.adjust)
+        f.initialize(0.0, pose, np.eye(6) * 1e-4)
+        state = f.state
+        on = mesh.triangles[rng.integers(0, len(mesh.faces), n1 + n2)]
+        w = rng.dirichlet(np.ones(3), n1 + n2)
+        X = np.einsum("nk,nkj->nj", w, on)
+        X[::7] = rng.uniform(lo, hi, (len(X[::7]), 3))  # inside the object: hidden
+        srcs = [Src(mesh, params, X[:n1]), Src(mesh, params, X[n1:])]
+        ctx = FrameContext(None, None, None, camera, state)
+        together = _visible_together(ctx, srcs, {})
+        ctx2 = FrameContext(None, None, None, camera, state)
+        for (s, idx, uv), src in zip(together, srcs):
+            idx2, uv2 = visible_tracks(mesh, ctx2, src.tracks, params, {})
+            assert s is src
+            np.testing.assert_array_equal(idx, idx2)
+            np.testing.assert_array_equal(uv, uv2)
+            seen += len(idx)
+            hidden += len(src.tracks) - len(idx)
+    assert seen > 100 and hidden > 50

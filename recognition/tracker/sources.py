@@ -75,6 +75,32 @@ def visible_tracks(mesh: Mesh, ctx: FrameContext, tracks: Tracks, params: Tracke
     return idx, uv_pred[idx]
 
 
+def _visible_together(ctx: FrameContext, group, timings: dict) -> list:
+    """``[(source, *visible_tracks(source))]`` for the KLT sources ``group``, from ONE
+    :func:`visible_points` call over all their tracks when they share the mesh and the
+    visibility settings: it tests each point alone (its projection, the z-buffer's pixel, the
+    face's angle), so one call over the concatenated points gives each source's answer
+    (tests/test_step_speed_equivalence.py) and spares a call's fixed cost (the silhouette's
+    erosion, the projections' set-up) per frame."""
+    import time
+
+    mesh, vp = group[0].mesh, group[0].params.visibility
+    if any(s.mesh is not mesh or s.params.visibility != vp for s in group):
+        return [(s, *visible_tracks(s.mesh, ctx, s.tracks, s.params, timings)) for s in group]
+    t0 = time.perf_counter()
+    X = np.concatenate([s.tracks.X for s in group])
+    vis, uv_pred = visible_points(mesh, ctx.camera, ctx.prior.pose, X, vp,
+                                  ctx.zbuffer(mesh, group[0].params) if len(X) else None)
+    parts, start = [], 0
+    for s in group:
+        stop = start + len(s.tracks)
+        idx = np.flatnonzero(vis[start:stop])
+        parts.append((s, idx, uv_pred[start:stop][idx]))
+        start = stop
+    timings["visibility"] = timings.get("visibility", 0.0) + (time.perf_counter() - t0) * 1e3
+    return parts
+
+
 def follow_together(ctx: FrameContext, sources, timings: dict) -> None:
     """Follow the visible tracks of every KLT source (those with ``follows_klt``) in ONE
     pyramidal-LK call and leave each source's share in ``ctx`` for :func:`klt_block`.
@@ -90,7 +116,7 @@ def follow_together(ctx: FrameContext, sources, timings: dict) -> None:
     klt = group[0].params.klt
     if any(s.params.klt != klt for s in group):
         return  # (different KLT settings: one call each)
-    parts = [(s, *visible_tracks(s.mesh, ctx, s.tracks, s.params, timings)) for s in group]
+    parts = _visible_together(ctx, group, timings)
     t0 = time.perf_counter()
     uv0 = np.concatenate([s.tracks.uv[idx] for s, idx, _ in parts])
     guess = np.concatenate([uv for _, _, uv in parts])
