@@ -41,15 +41,18 @@ def _plain_birth_mask(mesh, cam, pose, params):
 @pytest.mark.parametrize("camera", [CAM, CAM_DIST], ids=["pinhole", "distorted"])
 @pytest.mark.parametrize("sides", [4, 6, 24])
 def test_birth_mask_equals_the_per_pixel_form(camera, sides):
-    """The birth mask tests the view angle on the object's pixels only, with cached unit rays:
-    the same mask as testing every pixel — grazing faces included (a prism turned edge-on)."""
+    """The birth mask tests the view angle on the object's pixels only, with cached unit rays,
+    on the object's box only: the same mask as testing every pixel of the frame — grazing faces
+    included (a prism turned edge-on), and the object at the image's border."""
     mesh = closed_prism(sides)
     params = TrackerParams()
     rng = np.random.default_rng(sides)
     grazing = 0
-    for k in range(8):
+    for k in range(11):
         rvec = rng.normal(0, 1.2, 3) if k else np.array([np.pi / 2, 0.0, 0.0])
         t = np.array([rng.uniform(-3, 3), rng.uniform(-3, 3), rng.uniform(18, 40)])
+        if k >= 8:  # at the image's border, partly outside it (the mask is worked out on the object's box)
+            t[:2] = t[2] * np.array([[0.62, 0.0], [-0.55, 0.45], [0.1, -0.5]][k - 8])
         pose = Pose.from_rvec(rvec, t - Pose.from_rvec(rvec, [0, 0, 0]).R @ mesh.centre)
         fast, plain = birth_mask(mesh, camera, pose, params), _plain_birth_mask(mesh, camera, pose, params)
         np.testing.assert_array_equal(fast, plain)
@@ -174,3 +177,29 @@ def test_one_visibility_call_for_both_point_sources(camera):
             seen += len(idx)
             hidden += len(src.tracks) - len(idx)
     assert seen > 100 and hidden > 50
+
+
+def test_corners_in_the_masks_box_are_the_frames_corners():
+    """Mesh points are born on goodFeaturesToTrack's corners of the mask's box only
+    (corners_in_mask): the same corners, in the same order, as on the whole frame — masks in
+    the middle, at the image's border, tiny and empty."""
+    from quatrack.recognition.tracker.mesh_points import corners_in_mask
+
+    rng = np.random.default_rng(11)
+    tex = cv2.GaussianBlur(rng.uniform(0, 255, (480, 640)).astype(np.float32), (0, 0), 1.5)
+    gray = np.clip(tex + rng.normal(0, 3, tex.shape), 0, 255).astype(np.uint8)
+    found = 0
+    for x0, y0, x1, y1 in ((200, 150, 420, 330), (11, 40, 150, 200), (500, 300, 629, 469), (300, 11, 310, 19),
+                           (11, 11, 629, 469), (0, 0, 0, 0)):
+        mask = np.zeros((480, 640), np.uint8)
+        mask[y0:y1, x0:x1] = 255
+        cv2.circle(mask, ((x0 + x1) // 2, (y0 + y1) // 2), 20, 0, -1)
+        for n, q, d in ((100, 0.01, 10.0), (30, 0.05, 4.0)):
+            ref = cv2.goodFeaturesToTrack(gray, n, q, d, mask=mask)
+            got = corners_in_mask(gray, mask, n, q, d)
+            if ref is None:
+                assert got is None
+                continue
+            np.testing.assert_array_equal(got, ref.reshape(-1, 2).astype(float))
+            found += len(got)
+    assert found > 200

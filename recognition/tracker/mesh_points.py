@@ -36,7 +36,8 @@ import numpy as np
 from quatrack.tracking.measurements import project_model_points
 from quatrack.tracking.state import FilterState
 from quatrack.viewsets.mesh import Mesh
-from quatrack.viewsets.render import cast_rays, depth_edges, face_normals, render, undistort_pixels, unit_pixel_rays
+from quatrack.viewsets.render import (cast_rays, depth_edges, face_normals, footprint, render_window, undistort_pixels,
+                                      unit_pixel_rays)
 
 from ..visibility import scaled_camera
 from .params import TrackerParams
@@ -54,21 +55,62 @@ def confident(state: FilterState, diameter: float, sigma_p: float, sigma_deg: fl
 
 def birth_mask(mesh: Mesh, ctx_camera, pose, params: TrackerParams) -> np.ndarray:
     """uint8 mask (image size) of pixels where a corner may be born: visible faces not seen
-    at a grazing angle, ``mesh_edge_margin_px`` away from silhouette and depth edges."""
+    at a grazing angle, ``mesh_edge_margin_px`` away from silhouette and depth edges.
+
+    Worked out at half resolution on the object's box only (:func:`render_window` over its
+    :func:`footprint`, grown by the erosion's radius + 3 px of background), then pasted into the
+    half-size frame and enlarged: every pixel nearer the box's edge than the erosions reach is
+    background, so the erosions and dilations there give what they give on the whole frame
+    (tests/test_step_speed_equivalence.py compares it with the whole-frame form)."""
     cam = ctx_camera
     small = scaled_camera(cam, 0.5)
-    buf = render(mesh, small, pose)
-    ok = buf.face >= 0
-    if not ok.any():
+    box = footprint(mesh, small, pose)
+    if box is None:
         return np.zeros((cam.height, cam.width), np.uint8)
-    normals = face_normals(mesh) @ pose.R.T  # camera frame
-    # |cos| between the face and the view ray, on the object's pixels only (the rays are cached)
-    face = buf.face[ok]
-    ok[ok] = np.abs(np.einsum("nk,nk->n", normals[face], unit_pixel_rays(small)[ok])) >= params.visibility.min_cos
-    ok &= ~depth_edges(buf)
+    out = np.zeros((small.height, small.width), np.uint8)
     r = max(1, int(round(0.5 * params.mesh_edge_margin_px)))
-    ok = cv2.erode(ok.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1,) * 2))
-    return cv2.resize(ok * 255, (cam.width, cam.height), interpolation=cv2.INTER_NEAREST)
+    pad = r + 3
+    x0, y0 = max(box[0] - pad, 0), max(box[1] - pad, 0)
+    x1, y1 = min(box[2] + pad, small.width), min(box[3] + pad, small.height)
+    buf = render_window(mesh, small, pose, (x0, y0, x1, y1))
+    ok = buf.face >= 0
+    if ok.any():
+        normals = face_normals(mesh) @ pose.R.T  # camera frame
+        # |cos| between the face and the view ray, on the object's pixels only (the rays are cached)
+        face = buf.face[ok]
+        rays = unit_pixel_rays(small)[y0:y1, x0:x1]
+        ok[ok] = np.abs(np.einsum("nk,nk->n", normals[face], rays[ok])) >= params.visibility.min_cos
+        ok &= ~depth_edges(buf)
+        element = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1,) * 2)
+        out[y0:y1, x0:x1] = cv2.erode(ok.astype(np.uint8), element)
+    return cv2.resize(out * 255, (cam.width, cam.height), interpolation=cv2.INTER_NEAREST)
+
+
+def corners_in_mask(gray: np.ndarray, mask: np.ndarray, n: int, quality: float, min_distance: float) -> np.ndarray | None:
+    """``cv2.goodFeaturesToTrack(gray, n, quality, min_distance, mask=mask)`` as pixels (k, 2),
+    None when it finds none — computed on the mask's box grown by 8 px instead of the frame.
+
+    The corners' minimal eigenvalues (3×3 Sobel, 3×3 block) and the 3×3 local-maximum test read
+    3 px round a pixel, so inside the box they are the frame's; the quality threshold is relative
+    to the largest inside the mask, the candidates are met in the same (row-major) order and
+    sorted alike, and the spacing test depends on distances only: the same corners
+    (tests/test_step_speed_equivalence.py). Along an axis where the box would reach the image's
+    border it spans the whole frame (OpenCV's filters treat a crop's last columns by its width)."""
+    h, w = gray.shape[:2]
+    bx, by, bw, bh = cv2.boundingRect(mask)  # (of its non-zero pixels)
+    if bw == 0 or bh == 0:
+        return None
+    x0, x1 = bx - 8, bx + bw + 8
+    y0, y1 = by - 8, by + bh + 8
+    if x0 <= 0 or x1 >= w:
+        x0, x1 = 0, w
+    if y0 <= 0 or y1 >= h:
+        y0, y1 = 0, h
+    corners = cv2.goodFeaturesToTrack(np.ascontiguousarray(gray[y0:y1, x0:x1]), n, quality, min_distance,
+                                      mask=np.ascontiguousarray(mask[y0:y1, x0:x1]))
+    if corners is None:
+        return None
+    return corners.reshape(-1, 2).astype(float) + np.array([x0, y0], float)
 
 
 def lift_jacobian(pose, X: np.ndarray, normals: np.ndarray) -> np.ndarray:
@@ -181,10 +223,9 @@ class MeshPoints:
         self._since_spawn = 0
         if n_new <= 0 or not mask.any():
             return 0
-        corners = cv2.goodFeaturesToTrack(ctx.frame.gray, n_new, p.mesh_quality, p.mesh_min_distance_px, mask=mask)
-        if corners is None:
+        uv = corners_in_mask(ctx.frame.gray, mask, n_new, p.mesh_quality, p.mesh_min_distance_px)
+        if uv is None:
             return 0
-        uv = corners.reshape(-1, 2).astype(float)
         X, face, cos = cast_rays(self.mesh, pose, undistort_pixels(cam, uv))
         ok = (face >= 0) & (cos >= p.visibility.min_cos)
         if not ok.any():
