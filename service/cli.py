@@ -50,8 +50,10 @@ def run_serve(args: argparse.Namespace) -> int:
         # With several workers, each one's event loop comes from service/placement.py: a worker
         # holding more sessions than the least-loaded one stops accepting connections meanwhile.
         loop = "quatrack.service.placement:loop_factory" if settings.workers > 1 else "auto"
+        # No permessage-deflate: the frames are JPEG/PNG/WebP, which deflate cannot shrink, and each
+        # one was compressed by the client and inflated on the worker's event loop for nothing.
         uvicorn.run("quatrack.service.workers:app_from_env", factory=True, workers=settings.workers,
-                    ws=GracefulWebSocketProtocol, loop=loop,
+                    ws=GracefulWebSocketProtocol, loop=loop, ws_per_message_deflate=False,
                     host=settings.host, port=settings.port, log_config=configure(args.log_level),
                     ws_max_size=2 * settings.max_body_bytes, timeout_graceful_shutdown=5, server_header=False)
     finally:

@@ -32,7 +32,8 @@ class BackgroundServer(Loopback):
         self.settings = settings.replace(host="127.0.0.1", port=port)
         self.app = create_app(self.settings)
         config = uvicorn.Config(self.app, host="127.0.0.1", port=port, log_config=configure(log_level), ws=GracefulWebSocketProtocol,
-                                ws_max_size=2 * self.settings.max_body_bytes, lifespan="on", timeout_graceful_shutdown=2)
+                                ws_max_size=2 * self.settings.max_body_bytes, lifespan="on", timeout_graceful_shutdown=2,
+                                ws_per_message_deflate=False)  # as quatrack serve (service/cli.py)
         self.server = uvicorn.Server(config)
         self.thread = threading.Thread(target=self._run, name=f"quatrack-serve-{port}", daemon=True)
         self.wait_ready = wait_ready

@@ -379,3 +379,11 @@ def test_logs_hold_no_token_and_refusals_are_info(store, frames, capfd):
     assert all(d["level"] == "info" and d["reason"] for d in denials)
     logging.getLogger("uvicorn.error").removeHandler(tap)
     assert seen and not [r for r in seen if r.levelno >= logging.ERROR or secret in r.getMessage()]
+
+
+def test_no_permessage_deflate(server):
+    """The server declines permessage-deflate, which clients (websockets, browsers) offer by
+    default: the frames are JPEG/PNG/WebP, which deflate cannot shrink, and each one would be
+    inflated on the event loop (and deflated by the client) for nothing."""
+    with connect(f"{server.ws_url}/v1/objects/cookie-box/track", open_timeout=60) as ws:
+        assert ws.response.headers.get("Sec-WebSocket-Extensions") is None
