@@ -222,4 +222,4 @@ def app_from_env():
     which ``quatrack serve`` set before starting the workers."""
     from .app import create_app
 
-    return create_app(Settings.from_env())
+    return create_app(Settings.from_env(), whole_process=True)

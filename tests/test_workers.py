@@ -305,6 +305,48 @@ def test_a_dead_worker_leaves_the_other_accepting(spread_server):
     _wait_idle(srv)
 
 
+def test_workers_decline_permessage_deflate(spread_server):
+    """As the in-thread server (tests/test_service_ws.py): quatrack serve's workers too."""
+    with connect(f"{spread_server.ws_url}/v1/objects/cookie-box/track", open_timeout=120) as ws:
+        assert ws.response.headers.get("Sec-WebSocket-Extensions") is None
+
+
+def _frozen_after_warm(store: str, conn) -> None:
+    from starlette.testclient import TestClient
+
+    from quatrack.service.app import create_app
+
+    with TestClient(create_app(Settings(store=store, threads=1, model_poll_s=0), whole_process=True)) as client:
+        deadline = time.monotonic() + 120  # frozen after the models are loaded and warmed
+        while (client.get("/readyz").status_code != 200 or gc_freeze_count() == 0) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        conn.send(gc_freeze_count())
+
+
+def gc_freeze_count() -> int:
+    import gc
+
+    return gc.get_freeze_count()
+
+
+def test_worker_heap_is_frozen_once_ready():
+    """A worker process (``whole_process``) moves its start-up heap out of the cyclic collector's
+    reach once its models are loaded (service/app.py: _freeze_heap), so that full collections
+    during tracking do not stall its event loop for 35-200 ms; run in a process of its own (the
+    freeze is process-wide)."""
+    ctx = multiprocessing.get_context("spawn")
+    parent, child_end = ctx.Pipe()
+    child = ctx.Process(target=_frozen_after_warm, args=(str(example_store()), child_end), daemon=True)
+    child.start()
+    try:
+        assert parent.poll(180), "the app did not get ready"
+        assert parent.recv() > 10_000  # objects frozen: the modules, the app, the models
+    finally:
+        child.join(60)
+        if child.is_alive():
+            child.kill()
+
+
 def test_load_board(tmp_path):
     """A worker's entry: its count and whether it listens; a dead worker's (unlocked) file is
     ignored and removed."""
