@@ -20,6 +20,7 @@ import time
 import uuid
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import asynccontextmanager
+from pathlib import Path
 
 from importlib.metadata import version
 
@@ -33,7 +34,7 @@ from . import docs, errors, pose_all, viewer
 from .errors import ApiError, error_body
 from .logs import install_filters
 from .metrics import Metrics, worker_exit
-from .placement import placement_of_running_loop
+from .placement import placement_of_running_loop, read_board
 from .registry import ModelRegistry
 from .routes import ServiceState, api, health, ops, sockets
 from .settings import Settings
@@ -216,7 +217,13 @@ def create_app(settings: Settings | None = None, whole_process: bool = False) ->
     # default, several times per request): ask them to hand it over sooner.
     sys.setswitchinterval(settings.switch_interval_ms / 1e3)
     sessions = session_limiter(settings)  # shared by all worker processes when run_dir is set
-    metrics = Metrics(lambda: count_open(sessions))
+    per_worker = None
+    if settings.run_dir is not None and settings.workers > 1:
+        board_dir = Path(settings.run_dir) / "placement"
+
+        def per_worker():  # each live worker's sessions, from the placement board (service/placement.py)
+            return read_board(board_dir)
+    metrics = Metrics(lambda: count_open(sessions), per_worker)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):

@@ -44,14 +44,37 @@ class _Computed(Collector):
         yield g
 
 
+class _PerWorker(Collector):
+    """``quatrack_worker_sessions{pid}`` and ``quatrack_worker_listening{pid}``, read at scrape
+    time from the workers' placement board (service/placement.py), so that only live workers are
+    reported (a crashed worker's prometheus files would keep its last value)."""
+
+    def __init__(self, read: Callable[[], dict]) -> None:
+        self.read = read
+
+    def collect(self):
+        board = self.read()
+        sessions = GaugeMetricFamily("quatrack_worker_sessions", "open tracking sessions of each worker process "
+                                     "(quatrack serve --workers N, N > 1)", labels=["pid"])
+        listening = GaugeMetricFamily("quatrack_worker_listening", "1 if the worker accepts new connections: it holds "
+                                      "no more sessions than the least-loaded worker", labels=["pid"])
+        for pid, (n, on) in sorted(board.items()):
+            sessions.add_metric([str(pid)], float(n))
+            listening.add_metric([str(pid)], 1.0 if on else 0.0)
+        yield sessions
+        yield listening
+
+
 class Metrics:
     """The service's metrics; one instance per app (tests start several apps in one process).
 
     ``sessions_open`` (a callable) gives the number of sessions open in the whole server; it is
-    read at scrape time, so a worker that died holds no stale count.
+    read at scrape time, so a worker that died holds no stale count. ``per_worker`` (a callable,
+    optional) gives ``{pid: (sessions, listening)}`` of the live workers, likewise.
     """
 
-    def __init__(self, sessions_open: Callable[[], float] = lambda: 0) -> None:
+    def __init__(self, sessions_open: Callable[[], float] = lambda: 0,
+                 per_worker: Callable[[], dict] | None = None) -> None:
         self.multiprocess = multiprocess_dir() is not None
         # in multiprocess mode samples go to the shared files whatever registry the metrics are
         # registered with; a private registry keeps several apps in one process apart
@@ -84,6 +107,9 @@ class Metrics:
         self.models.set(0)
         self._sessions_open = _Computed("quatrack_ws_sessions_active", "open tracking sessions (whole server)", sessions_open)
         reg.register(self._sessions_open)
+        self._per_worker = _PerWorker(per_worker) if per_worker is not None else None
+        if self._per_worker is not None:
+            reg.register(self._per_worker)
 
     def observe_stages(self, histogram: Histogram, timings_ms: dict | None) -> None:
         for stage, ms in (timings_ms or {}).items():
@@ -98,6 +124,8 @@ class Metrics:
         reg = CollectorRegistry()
         multiprocess.MultiProcessCollector(reg)
         reg.register(self._sessions_open)
+        if self._per_worker is not None:
+            reg.register(self._per_worker)
         return generate_latest(reg)
 
 

@@ -153,6 +153,38 @@ class LoadBoard:
         self._others.clear()
 
 
+def read_board(directory: Path) -> dict[int, tuple[int, bool]]:
+    """{pid: (sessions, listening)} of every live worker on the board at ``directory`` (for
+    ``/metrics``: whichever worker answers reports them all). Nothing is kept open, nothing deleted."""
+    out: dict[int, tuple[int, bool]] = {}
+    try:
+        names = os.listdir(directory)
+    except FileNotFoundError:
+        return out
+    for name in names:
+        if not name.isdigit():
+            continue
+        try:
+            fd = os.open(Path(directory) / name, os.O_RDONLY)
+        except FileNotFoundError:
+            continue
+        try:
+            try:  # flock locks belong to open files: even the holder's own probe here is refused
+                fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+                held = False
+            except BlockingIOError:
+                held = True
+            if held:
+                fields = os.pread(fd, _RECORD, 0).split()
+                if len(fields) == 3:
+                    out[int(name)] = (int(fields[0]), fields[1] == b"1")
+        except ValueError:
+            pass
+        finally:
+            os.close(fd)
+    return out
+
+
 def _unlink_if_unheld(path: Path) -> None:
     """Delete a dead worker's file, unless a live worker holds it (only a worker that reused the
     dead one's pid could)."""

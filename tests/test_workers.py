@@ -263,6 +263,10 @@ def test_sessions_are_spread_over_the_workers(spread_server):
                 sockets.append(_open_session(srv, stack))
                 per_worker = Counter(_owner(srv, ws) for ws in sockets)
                 assert max(per_worker.values()) <= -(-n // 2), f"round {round_}, {n} sessions: {dict(per_worker)}"
+            if round_ == 0:  # /metrics reports each live worker's sessions, whichever worker answers
+                m = metric_samples(httpx.get(f"{srv.url}/metrics", timeout=60).text)
+                reported = {dict(labels)["pid"]: v for (name, labels), v in m.items() if name == "quatrack_worker_sessions"}
+                assert reported == {str(pid): float(k) for pid, k in per_worker.items()}
         _wait_idle(srv)
 
 
