@@ -141,6 +141,8 @@ def render_window(mesh: Mesh, camera: PinholeCamera, pose: Pose, window: tuple[i
 def footprint(mesh: Mesh, camera: PinholeCamera, pose: Pose) -> tuple[int, int, int, int] | None:
     """The pixel box (x0, y0, x1, y1; ends exclusive) holding every pixel :func:`render` may
     draw — the union of its triangles' boxes, clipped to the image — or None when it draws none."""
+    if camera.width is None or camera.height is None:
+        raise ValueError("the camera needs an image size to render")
     w, h = int(camera.width), int(camera.height)
     tris, _, _, ids = _front_triangles(mesh, pose)
     if not len(ids):
