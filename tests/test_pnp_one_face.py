@@ -74,3 +74,30 @@ def test_msac_cost_prefers_a_tight_fit_of_fewer_matches():
     X, uv, truth = _face_scene(0)
     tilted_cost = msac_cost(CAM, X, uv, truth.t, quat.multiply(quat.from_rotvec([0.17, 0.0, 0.0]), truth.q_wxyz), 1.5)
     assert msac_cost(CAM, X, uv, truth.t, truth.q_wxyz, 1.5) < tilted_cost
+
+
+def _box_mesh():
+    import trimesh
+
+    from quatrack.viewsets.mesh import make_mesh
+
+    tm = trimesh.creation.box(extents=(20.0, 14.0, 6.0))
+    return make_mesh(np.asarray(tm.vertices) + [0.0, 0.0, -3.0], np.asarray(tm.faces), "box")  # face z = 0, back z = -6
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_a_pose_resting_on_one_match_is_refused(seed):
+    """Eleven matches on the face (~130 px wide) fix its tilt weakly; one wrong match on the back,
+    where a pose tilted by 10° sees it, fixes it alone. The refined pose takes it in, with a
+    covariance that looks certain; leaving that match out moves the pose by more than the 5 %/5°
+    criterion (match_influence > 1), while leaving out any right match of a right pose does not."""
+    from quatrack.recognition.pose import PnPSolution, match_influence, refine
+
+    mesh = _box_mesh()
+    X, uv, truth = _face_scene(seed, n=11, wrong=1, distance=90.0)
+    t, q, cov = refine(CAM, X, uv, truth.t, truth.q_wxyz)  # the least-squares pose of all 12
+    est = PnPSolution(Pose(q, t), cov, np.arange(len(X)), 0.0)
+    assert match_influence(est, CAM, mesh, X, uv) > 1.0
+    right = X[:-1], uv[:-1]
+    t, q, cov = refine(CAM, *right, truth.t, truth.q_wxyz)
+    assert match_influence(PnPSolution(Pose(q, t), cov, np.arange(len(right[0])), 0.0), CAM, mesh, *right) < 1.0
