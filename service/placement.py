@@ -44,6 +44,8 @@ Failure modes (documented in bench/RESULTS.md, "Session 23"):
   the queue meanwhile, they are not refused.
 - A worker whose event loop is stuck stops refreshing its entry; after :data:`STALE_S` the others
   ignore it (and listen), so a hung worker cannot hold every connection in the queue.
+- The poll notices a newly started worker only within :data:`RELIST_S` (a session change at
+  once): until then a worker may listen although the newcomer holds fewer sessions.
 - A restarted worker joins with 0 sessions and so gets the next sessions while it is still loading
   its models (``/readyz`` says 503 meanwhile; a session opened then waits for the model).
 - Any error reading the board makes a worker listen (fails open: the old, random placement).
@@ -61,7 +63,7 @@ from pathlib import Path
 
 log = logging.getLogger("quatrack.service")
 
-POLL_S = 0.05  # how often a worker re-reads the others' counts (and refreshes its own entry)
+POLL_S = 0.05  # how often a worker re-reads the others' counts
 STALE_S = 10.0  # an entry not refreshed for this long belongs to a stuck worker: ignored
 HEARTBEAT_S = 1.0  # a worker rewrites its unchanged entry this often (what STALE_S checks)
 RELIST_S = 1.0  # the poll looks for newly started workers this often (a session change: always)
