@@ -98,6 +98,8 @@ def _add_bench(parser: argparse.ArgumentParser) -> None:
     serve.add_argument("--fps", type=float, default=30.0, help="each client's frame rate (default 30)")
     serve.add_argument("--rest-requests", type=int, default=40, help="REST pose requests (default 40; 0 to skip)")
     serve.add_argument("--rest-concurrency", type=int, default=4)
+    serve.add_argument("--stagger-s", type=float, default=0.0, metavar="S",
+                       help="start stream k at k × S seconds instead of all at once (default 0: a burst)")
     serve.add_argument("--json", action="store_true", help="print one JSON object instead of the tables")
 
 
