@@ -38,7 +38,6 @@ class PoseParams:
     ransac_iterations: int = 1000
     ransac_confidence: float = 0.999
     inlier_px: float = 4.0  # after refinement, a match within this is an inlier
-    min_score_px: float = 1.5  # the MSAC score's threshold (3 σ̂ of the matches' noise) is at least this (solve_pnp)
     min_inliers: int = 12
     min_inlier_ratio: float = 0.15
     max_rms_px: float = 2.5
@@ -252,22 +251,42 @@ def _refit(camera: PinholeCamera, X: np.ndarray, uv: np.ndarray, t: np.ndarray, 
     return t, q, idx
 
 
-def msac_cost(camera: PinholeCamera, X: np.ndarray, uv: np.ndarray, t: np.ndarray, q: np.ndarray, tau: float) -> float:
-    """Σ min(eᵢ², τ²) over every match (Torr & Zisserman's MSAC score): an inlier costs its
-    squared reprojection error, an outlier the constant τ². Counting inliers (RANSAC's score)
-    cannot tell a pose that fits 46 matches to 0.5 px from one that fits 48 to 1.5 px — a
-    one-face consensus tilted by two wrong matches off the face; the MSAC cost prefers the
-    first (46·0.25 + 2τ² against 48·2.25 for τ = 4 px).
+def match_log_likelihood(errors: np.ndarray, inlier_px: float, area_px: float) -> float:
+    """Log-likelihood of all the matches' reprojection errors ``errors`` (px) under a pose: a
+    match is an inlier (``e < inlier_px``) with isotropic Gaussian noise of the σ that fits the
+    pose's inliers best (``σ̂² = Σ e² / 2n``), or an outlier spread uniformly over the image
+    (density ``1 / area_px``), the shares at their maximum-likelihood values (MLESAC, Torr &
+    Zisserman):
 
-    >>> from quatrack.tracking.camera import PinholeCamera
-    >>> cam = PinholeCamera(100.0, 100.0, 50.0, 50.0, width=100, height=100)
-    >>> X = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
-    >>> uv = cam.project(X + [0.0, 0.0, 10.0]) + [[0.0, 0.0], [0.0, 3.0], [0.0, 9.0]]
-    >>> float(msac_cost(cam, X, uv, np.array([0.0, 0.0, 10.0]), np.array([1.0, 0.0, 0.0, 0.0]), 4.0))
-    25.0
+        ln L = −n ln(2π σ̂²) − n − (N − n) ln area + n ln(n/N) + (N − n) ln((N − n)/N)
+
+    Why not RANSAC's count: it cannot tell a pose that fits 46 matches to 0.5 px from one that
+    fits 48 to 1.5 px — a one-face consensus tilted by two wrong matches off the face — and a
+    fixed-threshold cost cannot either unless the threshold suits the noise (rendered images
+    0.3–0.5 px, a real video ~1.5 px). Here each outlier costs ln area (~12 nats at 640×480) and
+    the inliers' noise n ln σ̂²: the tight fit wins by ~n ln 9 − 2 ln area, while a pose fitting
+    only a subset tightly loses an outlier's price for every match it drops.
+
+    >>> e_right = np.r_[np.full(46, 0.5), 40.0, 50.0, np.full(20, 100.0)]
+    >>> e_tilted = np.r_[np.full(48, 1.5), np.full(20, 100.0)]
+    >>> bool(match_log_likelihood(e_right, 4.0, 640 * 480) > match_log_likelihood(e_tilted, 4.0, 640 * 480))
+    True
+    >>> e_subset = np.r_[np.full(30, 0.5), np.full(38, 100.0)]  # a tight fit of a part only
+    >>> e_all = np.r_[np.full(56, 1.5), np.full(12, 100.0)]
+    >>> bool(match_log_likelihood(e_all, 4.0, 640 * 480) > match_log_likelihood(e_subset, 4.0, 640 * 480))
+    True
     """
-    e = _reprojection_errors(camera, X, uv, t, q)
-    return float(np.sum(np.minimum(np.square(e), tau * tau)))
+    e = np.asarray(errors, float)
+    N = len(e)
+    inl = e < inlier_px
+    n = int(inl.sum())
+    if n == 0:
+        return -N * float(np.log(area_px))
+    var = max(float(np.sum(np.square(e[inl]))) / (2 * n), 1e-4)  # floor: digitisation never vanishes
+    ll = -n * np.log(2 * np.pi * var) - n - (N - n) * np.log(area_px) + n * np.log(n / N)
+    if N > n:
+        ll += (N - n) * np.log((N - n) / N)
+    return float(ll)
 
 
 def dominant_plane(X: np.ndarray, tolerance: float, trials: int = 64) -> np.ndarray:
@@ -308,14 +327,13 @@ def solve_pnp(
     ambiguity: two poses fit points on one plane, nearly equally when perspective is weak).
     So the candidates are: the RANSAC pose refined; when the inliers lie on one plane
     (σ₃/σ₁ < ``planar_ratio``) or most of them do (:func:`dominant_plane`), both poses that fit
-    that plane's points (IPPE), each refined on the matches it brings in. The one with the
-    lowest MSAC cost over all the matches (:func:`msac_cost`) is kept, its threshold τ = 3 σ̂
-    within [``min_score_px``, ``inlier_px``], σ̂ the noise of the best-fitting candidate's inliers.
+    that plane's points (IPPE), each refined on the matches it brings in. The one under which
+    all the matches are most likely (:func:`match_log_likelihood`: inliers with the noise that
+    fits them, outliers uniform over the image) is kept.
 
-    ``prior`` = (R, t, centre) of the matched viewset's view breaks a tie: candidates whose
-    costs differ by less than the noise (6 σ̂², σ̂² the residual variance of the best's inliers) fit the
-    matches equally well, and the one seen from nearer the viewset's direction is kept (the
-    query looks like that viewset, or it would not have matched it)."""
+    ``prior`` = (R, t, centre) of the matched viewset's view breaks a tie: candidates within 3
+    nats of the best fit the matches equally well, and the one seen from nearer the viewset's
+    direction is kept (the query looks like that viewset, or it would not have matched it)."""
     X = np.asarray(X, np.float64).reshape(-1, 3)
     uv = np.asarray(uv, np.float64).reshape(-1, 2)
     if len(X) < max(6, params.min_inliers):
@@ -350,19 +368,12 @@ def solve_pnp(
                     if cand is not None:
                         candidates.append(cand)
         if len(candidates) > 1:
-            # the score's threshold follows the noise the matches show: σ̂ from the best-fitting
-            # candidate's median inlier error (a 2-D error's median is 1.1774 σ), 3 σ̂ within
-            # [min_score_px, inlier_px]; with the generous inlier_px a tilted pose that takes in
-            # two wrong matches can cost less than the right one, whose errors are a third as large
-            errs = [_reprojection_errors(camera, X, uv, c[0], c[1]) for c in candidates]
-            sigma = min(float(np.median(e[c[2]])) for e, c in zip(errs, candidates)) / 1.1774
-            tau = float(np.clip(3.0 * sigma, params.min_score_px, params.inlier_px))
-            costs = np.array([float(np.sum(np.minimum(np.square(e), tau * tau))) for e in errs])  # msac_cost
-            best = int(np.argmin(costs))
-            sq = np.square(errs[best][candidates[best][2]])
-            tie = 6.0 * float(np.sum(sq)) / max(2 * len(sq) - 6, 1)  # 6 σ̂², σ̂² from the best's inliers
-            if prior is not None:
-                tied = [k for k in range(len(candidates)) if costs[k] <= costs[best] + tie]
+            area = float(camera.width * camera.height) if camera.width and camera.height else float(np.ptp(uv, axis=0).prod() + 1.0)
+            scores = np.array([match_log_likelihood(_reprojection_errors(camera, X, uv, c[0], c[1]), tau, area)
+                               for c in candidates])
+            best = int(np.argmax(scores))
+            if prior is not None:  # within 3 nats (a likelihood ratio of 20) the fits are a tie
+                tied = [k for k in range(len(candidates)) if scores[k] >= scores[best] - 3.0]
                 best = min(tied, key=lambda k: view_angle_deg(quat.to_matrix(candidates[k][1]), candidates[k][0], *prior))
             t, q, idx = candidates[best]
         t, q, cov = refine(camera, X[idx], uv[idx], t, q, params.covariance_inflation)

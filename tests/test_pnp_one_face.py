@@ -11,7 +11,7 @@ returns the right pose, and that between a face's two mirror poses it keeps the 
 import numpy as np
 import pytest
 
-from quatrack.recognition.pose import PoseParams, msac_cost, solve_pnp
+from quatrack.recognition.pose import PoseParams, match_log_likelihood, solve_pnp
 from quatrack.tracking import quaternion as quat
 from quatrack.tracking.camera import PinholeCamera
 from quatrack.tracking.pose import Pose
@@ -70,10 +70,14 @@ def test_the_mirror_pose_that_fits_is_kept_whatever_the_prior(seed):
     assert dc < 0.01 and dr < 1.0, (dc, dr)
 
 
-def test_msac_cost_prefers_a_tight_fit_of_fewer_matches():
+def test_the_likelihood_prefers_a_tight_fit_of_fewer_matches():
+    from quatrack.recognition.pose import _reprojection_errors
+
     X, uv, truth = _face_scene(0)
-    tilted_cost = msac_cost(CAM, X, uv, truth.t, quat.multiply(quat.from_rotvec([0.17, 0.0, 0.0]), truth.q_wxyz), 1.5)
-    assert msac_cost(CAM, X, uv, truth.t, truth.q_wxyz, 1.5) < tilted_cost
+    tilted = quat.multiply(quat.from_rotvec([0.17, 0.0, 0.0]), truth.q_wxyz)
+    area = CAM.width * CAM.height
+    right = match_log_likelihood(_reprojection_errors(CAM, X, uv, truth.t, truth.q_wxyz), 4.0, area)
+    assert right > match_log_likelihood(_reprojection_errors(CAM, X, uv, truth.t, tilted), 4.0, area)
 
 
 def _box_mesh():
