@@ -159,6 +159,22 @@ def test_loss_is_detected_and_the_track_reinitialised(world, reacquire_s):
     assert err[:, 0].mean() < 0.01 * world["model"].mesh.extent and err[:, 1].mean() < 1.0
 
 
+@pytest.mark.parametrize("min_run", [5, 0])
+def test_a_track_lost_at_once_is_not_re_acquired_near(world, min_run):
+    """A track lost two frames after it started was not holding (it may have started under an
+    occluder, already drifting): recognition starts afresh instead of re-acquiring near its last
+    pose (``reacquire_min_run``); with the rule off, the same loss is re-acquired near it."""
+    gone = range(3, 9)
+    frames = [cv2.GaussianBlur(world["bg"], (0, 0), 0.5) if k in gone else f for k, f in enumerate(world["frames"])]
+    steps = _run(world, frames, TrackerParams(reacquire_s=2.0, reacquire_min_run=min_run))
+    assert [s.status for s in steps[1:3]] == ["tracking", "tracking"]
+    assert all(steps[k].status == "lost" for k in gone)
+    how = "recognition" if min_run else "re-acquired near the last pose"
+    assert steps[9].status == "init" and steps[9].reason == how, steps[9].reason
+    err = _errors(world, steps, range(9, N))
+    assert err[:, 0].mean() < 0.01 * world["model"].mesh.extent and err[:, 1].mean() < 1.0
+
+
 def test_reset_and_bad_input(world):
     tracker = Tracker(world["model"], world["camera"], index=world["index"])
     tracker.init_pose(world["poses"][0].t, quat.from_matrix(world["poses"][0].R))

@@ -181,9 +181,10 @@ class Tracker:
             step = self._initialise(img, frame, time_s, timings)
         else:
             seen = LastSeen(self.filter.state, self._prev, self.trained.tracks, copy.copy(self.mesh_points))
+            held = self._tracked >= self.params.reacquire_min_run  # (a loss resets the count)
             step = self._track(img, frame, time_s, timings)
-            if step.status == "lost" and seen.frame is not None:
-                self._seen = seen
+            if step.status == "lost" and seen.frame is not None and held:
+                self._seen = seen  # a track that held: re-acquire near it (reacquire_min_run)
         self._prev = frame if step.status != "lost" else None
         timings["total"] = _ms(t_start)
         step.timings_ms = timings

@@ -134,6 +134,11 @@ class TrackerParams:
     reacquire_s: float = 2.0
     reacquire_min_ncc: float = 0.5  # the object's patch matched this well: start from where it went
     reacquire_min_inside: float = 0.5  # share of the silhouette inside the image a re-acquired pose needs
+    # re-acquire only near a track that had run this many tracked frames before the loss: a track
+    # lost within a few frames of its start was not holding (the wide box's walk, session 23: a
+    # track started under a passing occluder drifted 0.2 → 2.3 % in two frames, was lost, and
+    # re-acquiring near that drifted pose reported 9 % / 9°); recognition starts afresh instead
+    reacquire_min_run: int = 5
     # a track re-acquired, or started on mesh-born corners, carries no trained point to vouch for
     # it: for its first probation_frames frames the model's edges must confirm every pose
     probation_frames: int = 15
