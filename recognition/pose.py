@@ -495,12 +495,17 @@ def pose_sd(est: PnPSolution, centre: np.ndarray) -> tuple[float, float]:
     S = np.asarray(est.covariance, float)
     if S.shape != (6, 6) or not np.all(np.isfinite(S)):
         return np.inf, np.inf
-    rc = est.R @ np.asarray(centre, float)
-    J = np.hstack([np.eye(3), -_skew(rc)])
+    J = _centre_jacobian(est.R, centre)
     Sc = J @ S @ J.T
     sc = float(np.sqrt(max(np.linalg.eigvalsh(0.5 * (Sc + Sc.T)).max(), 0.0)))
     sr = float(np.degrees(np.sqrt(max(np.linalg.eigvalsh(0.5 * (S[3:, 3:] + S[3:, 3:].T)).max(), 0.0))))
     return sc, sr
+
+
+def _centre_jacobian(R: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """``J = [I, −[R·c₀]×]`` (3 × 6): how the object's centre ``c = R·c₀ + t`` moves with
+    ``[δp, δθ]`` (left perturbation, README conventions): ``δc = J [δp, δθ]``."""
+    return np.hstack([np.eye(3), -_skew(np.asarray(R, float) @ np.asarray(centre, float))])
 
 
 def _skew(v: np.ndarray) -> np.ndarray:
@@ -654,11 +659,11 @@ def match_influence(est: PnPSolution, camera: PinholeCamera, mesh: Mesh, points3
     except np.linalg.LinAlgError:
         return float("inf")
     d = np.einsum("ij,nkj,nk->ni", Ai, J, s)  # (n, 6): the pose without match i, minus the pose
-    K = np.hstack([np.eye(3), -_skew(est.R @ mesh.centre)])
-    dc = np.linalg.norm(d @ K.T, axis=1) / (0.05 * mesh.extent)
-    dr = np.degrees(np.linalg.norm(d[:, 3:], axis=1)) / 5.0
-    worst = float(np.max(np.maximum(dc, dr)))
-    return worst if np.isfinite(worst) else float("inf")
+    if not np.all(np.isfinite(d)):
+        return float("inf")
+    dc = np.linalg.norm(d @ _centre_jacobian(est.R, mesh.centre).T, axis=1)
+    dr = np.degrees(np.linalg.norm(d[:, 3:], axis=1))
+    return pose_sd_ratio(float(dc.max()), float(dr.max()), mesh.extent)  # max over i of each's max
 
 
 def edge_reason(edges: EdgeEvidence, params: PoseParams = PoseParams()) -> str | None:
