@@ -61,6 +61,8 @@ import threading
 import time
 from pathlib import Path
 
+from .workers import held_or_removed
+
 log = logging.getLogger("quatrack.service")
 
 POLL_S = 0.05  # how often a worker re-reads the others' counts
@@ -136,7 +138,7 @@ class LoadBoard:
             else:  # nobody holds it: a worker that died
                 del self._others[pid]
                 os.close(fd)
-                _unlink_if_unheld(self.dir / str(pid))
+                held_or_removed(self.dir / str(pid))
         return out
 
     def _relist(self) -> None:
@@ -185,22 +187,6 @@ def read_board(directory: Path) -> dict[int, tuple[int, bool]]:
         finally:
             os.close(fd)
     return out
-
-
-def _unlink_if_unheld(path: Path) -> None:
-    """Delete a dead worker's file, unless a live worker holds it (only a worker that reused the
-    dead one's pid could)."""
-    try:
-        fd = os.open(path, os.O_RDONLY)
-    except FileNotFoundError:
-        return
-    try:
-        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
-        path.unlink()
-    except (BlockingIOError, FileNotFoundError):
-        pass
-    finally:
-        os.close(fd)
 
 
 class PausableServer:

@@ -47,6 +47,28 @@ from .settings import Settings
 log = logging.getLogger("quatrack.service")
 
 
+def held_or_removed(path: Path) -> bool | None:
+    """Whether a live worker holds the ``flock`` on its board file ``path`` (the ready board's,
+    the placement board's): True if so; otherwise the file is a dead worker's (the kernel dropped
+    its lock), it is deleted, and False; None if it is gone already."""
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except FileNotFoundError:
+        return None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return True  # its worker holds it
+    else:
+        try:
+            path.unlink()  # nobody holds it: a worker that died
+        except FileNotFoundError:
+            pass
+        return False
+    finally:
+        os.close(fd)
+
+
 class SlotLimiter:
     """At most ``max_sessions`` sessions in all processes sharing ``directory``.
 
@@ -157,26 +179,7 @@ class ReadyBoard:
 
     def count(self) -> int:
         """Workers ready now (stale files of dead workers are removed on the way)."""
-        held = 0
-        for path in self.dir.iterdir():
-            if path.name.startswith("."):
-                continue
-            try:
-                fd = os.open(path, os.O_RDONLY)
-            except FileNotFoundError:
-                continue
-            try:
-                fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
-            except BlockingIOError:
-                held += 1  # its worker holds it
-            else:
-                try:
-                    path.unlink()  # nobody holds it: a worker that died
-                except FileNotFoundError:
-                    pass
-            finally:
-                os.close(fd)
-        return held
+        return sum(held_or_removed(path) is True for path in self.dir.iterdir() if not path.name.startswith("."))
 
     def all_ready(self) -> bool:
         return self.count() >= self.workers
