@@ -92,6 +92,14 @@ def test_health_answers_while_tracking(server):
             assert json.loads(ws.recv(timeout=120))["frame"] == k
 
 
+def _spawned(target, *args):
+    """A daemon child process (spawn start method) running ``target(*args, conn)``, not yet
+    started, and the parent's end of the pipe ``conn`` is the other end of."""
+    ctx = multiprocessing.get_context("spawn")
+    parent, child_end = ctx.Pipe()
+    return ctx.Process(target=target, args=(*args, child_end), daemon=True), parent
+
+
 def _hold_slot(directory: str, conn) -> None:
     lim = SlotLimiter(Path(directory), 2)
     conn.send(lim.try_open() is not None)
@@ -100,9 +108,7 @@ def _hold_slot(directory: str, conn) -> None:
 
 
 def test_slots_are_freed_when_a_worker_dies(tmp_path):
-    ctx = multiprocessing.get_context("spawn")
-    parent, child_end = ctx.Pipe()
-    child = ctx.Process(target=_hold_slot, args=(str(tmp_path), child_end), daemon=True)
+    child, parent = _spawned(_hold_slot, str(tmp_path))
     child.start()
     try:
         assert parent.poll(120) and parent.recv() is True
@@ -145,9 +151,7 @@ def test_readyz_waits_for_every_worker(tmp_path):
         _wait(lambda: board.count() == 1, "this worker to load its models")
         r = httpx.get(f"{srv.url}/readyz", timeout=60)
         assert r.status_code == 503 and r.json()["ready"] is False and r.json()["models"] == ["cookie-box"]
-        ctx = multiprocessing.get_context("spawn")
-        parent, child_end = ctx.Pipe()
-        other = ctx.Process(target=_ready_worker, args=(str(run / "ready"), child_end), daemon=True)
+        other, parent = _spawned(_ready_worker, str(run / "ready"))
         other.start()
         try:
             assert parent.poll(120) and parent.recv() is True
@@ -338,9 +342,7 @@ def test_worker_heap_is_frozen_once_ready():
     reach once its models are loaded (service/app.py: _freeze_heap), so that full collections
     during tracking do not stall its event loop for 35-200 ms; run in a process of its own (the
     freeze is process-wide)."""
-    ctx = multiprocessing.get_context("spawn")
-    parent, child_end = ctx.Pipe()
-    child = ctx.Process(target=_frozen_after_warm, args=(str(example_store()), child_end), daemon=True)
+    child, parent = _spawned(_frozen_after_warm, str(example_store()))
     child.start()
     try:
         assert parent.poll(180), "the app did not get ready"
@@ -354,9 +356,7 @@ def test_worker_heap_is_frozen_once_ready():
 def test_load_board(tmp_path):
     """A worker's entry: its count and whether it listens; a dead worker's (unlocked) file is
     ignored and removed."""
-    ctx = multiprocessing.get_context("spawn")
-    parent, child_end = ctx.Pipe()
-    child = ctx.Process(target=_board_worker, args=(str(tmp_path), child_end), daemon=True)
+    child, parent = _spawned(_board_worker, str(tmp_path))
     child.start()
     try:
         assert parent.poll(120) and parent.recv() is True
