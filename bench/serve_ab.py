@@ -31,7 +31,8 @@ KEYS = ("total_fps", "fps_per_stream_min", "fps_per_stream_mean", "latency_p50_m
 
 
 def parse_variant(text: str) -> tuple[str, dict[str, str]]:
-    """``label=VAR=value,VAR=value`` (or ``label=`` for the defaults)."""
+    """``label=VAR=value,VAR=value`` (or ``label=`` for the defaults); ``QUATRACK_WORKERS=N`` sets
+    that variant's worker processes (else ``--workers``)."""
     label, _, rest = text.partition("=")
     env = {}
     for item in filter(None, rest.split(",")):
@@ -44,6 +45,20 @@ def parse_variant(text: str) -> tuple[str, dict[str, str]]:
     if not label:
         raise ValueError(f"variant {text!r}: starts with a label")
     return label, env
+
+
+def cpu_seconds(pids: list[int]) -> float:
+    """User + system CPU time the processes ``pids`` have used so far (Linux /proc/PID/stat, fields
+    14 and 15, in clock ticks): the server's own cost, whatever else the machine runs meanwhile."""
+    total = 0
+    for pid in pids:
+        try:
+            with open(f"/proc/{pid}/stat") as f:
+                fields = f.read().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        total += int(fields[11]) + int(fields[12])
+    return total / os.sysconf("SC_CLK_TCK")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -78,7 +93,8 @@ def main(argv: list[str] | None = None) -> int:
     base = {"QUATRACK_MAX_SESSIONS": str(max(counts) + 1), "QUATRACK_MAX_PENDING_REQUESTS": "16"}
     rows: list[dict] = []
     with contextlib.ExitStack() as stack:
-        servers = {label: stack.enter_context(ServeProcess(args.store, workers=args.workers, env={**base, **env}))
+        servers = {label: stack.enter_context(ServeProcess(args.store, workers=int(env.get("QUATRACK_WORKERS", args.workers)),
+                                                           env={**base, **env}))
                    for label, env in variants}
         for rep in range(args.repeats):
             for n in counts:
@@ -86,36 +102,42 @@ def main(argv: list[str] | None = None) -> int:
                 for label, _ in order:
                     srv = servers[label]
                     load = os.getloadavg()[0]
+                    cpu0, wall0 = cpu_seconds(srv.worker_pids()), time.perf_counter()
                     row = asyncio.run(_streams(f"{srv.ws_url}/v1/objects/{args.object}/track", srv.url, camera,
                                                frames, n, args.fps, args.stagger_s))
+                    cpu = cpu_seconds(srv.worker_pids()) - cpu0
                     rows.append({"variant": label, "repeat": rep, "clients": n, "load": load,
                                  **{k: row[k] for k in KEYS}, "dropped": row["dropped"], "sent": row["frames_sent"],
-                                 "sessions_per_process": row["sessions_per_process"]})
+                                 "sessions_per_process": row["sessions_per_process"],
+                                 "cores_used": cpu / (time.perf_counter() - wall0),
+                                 "cpu_ms_per_frame": 1e3 * cpu / max(row["processed"], 1)})
                     r = rows[-1]
                     print(f"rep {rep} {label:>12} streams {n:2d} load {load:5.2f}: fps {r['total_fps']:5.1f}  "
                           f"lat {r['latency_p50_ms']:5.0f}/{r['latency_p99_ms']:5.0f}  wait {r['wait_p50_ms']:4.0f}/"
                           f"{r['wait_p99_ms']:4.0f}  step {r['step_p50_ms']:4.0f}/{r['step_p99_ms']:4.0f}  io "
                           f"{r['io_p50_ms']:4.0f}/{r['io_p99_ms']:5.0f}  clientlag {r['client_loop_lag_p50_ms']:4.0f}/"
                           f"{r['client_loop_lag_p99_ms']:5.0f}  healthz {r['healthz_p50_ms']:5.1f}/"
-                          f"{r['healthz_p99_ms']:6.1f} (max {r['healthz_max_ms']:6.1f})  sessions per process "
+                          f"{r['healthz_p99_ms']:6.1f} (max {r['healthz_max_ms']:6.1f})  cores {r['cores_used']:.2f}  "
+                          f"CPU/frame {r['cpu_ms_per_frame']:.0f} ms  sessions per process "
                           f"{'+'.join(map(str, r['sessions_per_process'])) or '?'}", flush=True)
                     time.sleep(1.0)
     print("\nmedian over repeats:")
     print("| variant | streams | load | fps/stream min / mean | total fps | latency p50 / p99 | wait p50 / p99 "
           "| step p50 / p99 | io p50 / p99 | clients' loop lag p50 / p99 | /healthz p50 / p99 / max "
-          "| sessions per process (each run) |")
-    print("| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- |")
+          "| server cores used | server CPU per frame (ms) | sessions per process (each run) |")
+    print("| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- |")
     for label, _ in variants:
         for n in counts:
             sel = [r for r in rows if r["variant"] == label and r["clients"] == n]
-            m = {k: _pct([r[k] for r in sel], 50) for k in (*KEYS, "load")}
+            m = {k: _pct([r[k] for r in sel], 50) for k in (*KEYS, "load", "cores_used", "cpu_ms_per_frame")}
             spread = ", ".join("+".join(map(str, r["sessions_per_process"])) or "?" for r in sel)
             print(f"| {label} | {n} | {m['load']:.1f} | {m['fps_per_stream_min']:.1f} / {m['fps_per_stream_mean']:.1f} | "
                   f"{m['total_fps']:.1f} | {m['latency_p50_ms']:.0f} / "
                   f"{m['latency_p99_ms']:.0f} | {m['wait_p50_ms']:.0f} / {m['wait_p99_ms']:.0f} | {m['step_p50_ms']:.0f} / "
                   f"{m['step_p99_ms']:.0f} | {m['io_p50_ms']:.0f} / {m['io_p99_ms']:.0f} | {m['client_loop_lag_p50_ms']:.0f} / "
                   f"{m['client_loop_lag_p99_ms']:.0f} | {m['healthz_p50_ms']:.1f} / "
-                  f"{m['healthz_p99_ms']:.1f} / {m['healthz_max_ms']:.0f} | {spread} |")
+                  f"{m['healthz_p99_ms']:.1f} / {m['healthz_max_ms']:.0f} | {m['cores_used']:.2f} | "
+                  f"{m['cpu_ms_per_frame']:.1f} | {spread} |")
     if args.json:
         with open(args.json, "w") as f:
             json.dump(rows, f)
