@@ -24,7 +24,7 @@ from quatrack.viewsets.store import ObjectModel
 from .images import DEFAULT_MAX_PIXELS, prepare_image
 from .window_search import Window, WindowSearchParams, search_window
 from .match import ModelIndex, index_for, rank_viewsets
-from .pose import PnPSolution, PoseParams, Verification, rival_inliers, solve_pnp, verification, verify
+from .pose import RANSAC_SAMPLE, PnPSolution, PoseParams, Verification, rival_inliers, solve_pnp, verification, verify
 
 
 @dataclass(frozen=True)
@@ -188,9 +188,6 @@ def _pose_from(
         timer["pnp"] = timer.get("pnp", 0.0) + (time.perf_counter() - t0) * 1e3
 
 
-RANSAC_SAMPLE = 5  # points per minimal sample of OpenCV's solvePnPRansac with EPnP
-
-
 def ransac_iterations_bound(n: int, k: int, sample: int = RANSAC_SAMPLE, confidence: float = 0.9999) -> int:
     """RANSAC iterations after which a consensus of at least ``k`` among ``n`` matches would have
     been found with probability ``confidence``: a sample of ``sample`` matches is all inliers
@@ -199,12 +196,15 @@ def ransac_iterations_bound(n: int, k: int, sample: int = RANSAC_SAMPLE, confide
 
     Why: a pose is refused with fewer than ``min_inliers`` inliers anyway, and a set of few
     matches without such a consensus ran all of RANSAC's iterations (1000) before giving up — the
-    slow tail of locate (bench/RESULTS.md, issue 13 speed). With 17 matches and k = 12 the bound
-    is 68 draws; from about 28 matches on it exceeds 1000 and changes nothing. The draws before
-    the cap are the ones RANSAC made anyway: capping only cuts a hopeless search short.
+    slow tail of locate (bench/RESULTS.md, issue 13 speed). With AP3P's samples of 4
+    (:func:`~.pose.ransac_pnp`), 17 matches and k = 12 the bound is 40 draws; from 36 matches on
+    it exceeds 1000 and changes nothing. The draws before the cap are the ones RANSAC made
+    anyway: capping only cuts a hopeless search short.
 
-    >>> ransac_iterations_bound(17, 12), ransac_iterations_bound(12, 12), ransac_iterations_bound(40, 12) > 1000
-    (68, 1, True)
+    >>> ransac_iterations_bound(17, 12), ransac_iterations_bound(12, 12), ransac_iterations_bound(36, 12) > 1000
+    (40, 1, True)
+    >>> ransac_iterations_bound(17, 12, sample=5)  # EPnP's samples of 5 (before session 24)
+    68
     """
     if n <= k:
         return 1

@@ -195,14 +195,39 @@ def _mirror_candidates(camera: PinholeCamera, X: np.ndarray, uv: np.ndarray):
     return [(np.asarray(tv).ravel(), quat.from_rotvec(np.asarray(rv).ravel())) for rv, tv in zip(rvecs[:n], tvecs[:n])]
 
 
+RANSAC_SAMPLE = 4  # matches per minimal sample of :func:`ransac_pnp` without a guess (AP3P)
+
+
+def _sqpnp(camera: PinholeCamera, X: np.ndarray, uv: np.ndarray, rvec: np.ndarray, tvec: np.ndarray):
+    """The pose fitted to the matches by SQPnP (``rvec``, ``tvec``), or the given pose when SQPnP
+    fails (:func:`ransac_pnp` says why it replaces OpenCV's final EPnP fit)."""
+    try:
+        ok, r, t = cv2.solvePnP(X, uv, camera.matrix, camera.dist_coeffs, flags=cv2.SOLVEPNP_SQPNP)
+    except cv2.error:
+        return rvec, tvec
+    return (r, t) if ok else (rvec, tvec)
+
+
 def ransac_pnp(
     camera: PinholeCamera, X: np.ndarray, uv: np.ndarray, reprojection_px: float = 6.0, iterations: int = 1000,
     confidence: float = 0.999, guess: Pose | None = None, min_inliers: int = 6,
 ) -> tuple[Pose, np.ndarray] | None:
     """RANSAC PnP consensus (OpenCV): the pose and the inlier indices, or None.
 
-    Without ``guess`` minimal samples are solved by EPnP; with it, by iterative PnP started at
-    the guess (the tracker's re-anchoring: the pose of the frame the matches were found in)."""
+    Without ``guess`` minimal samples of :data:`RANSAC_SAMPLE` = 4 matches are solved by AP3P
+    (Ke & Roumeliotis 2017; the 4th match picks among its up to four solutions) and the pose is
+    then fitted to the whole consensus by SQPnP (Terzakis & Lourakis 2020: globally optimal,
+    planar or not). With ``guess``, by iterative PnP started at the guess (the tracker's
+    re-anchoring: the pose of the frame the matches were found in).
+
+    Why not EPnP's 5-match samples (before session 24): a draw cost ~40 µs against AP3P's ~10 µs,
+    and a draw is all inliers with probability ``w⁴`` instead of ``w⁵`` (inlier ratio ``w``), so
+    a consensus is found in fewer draws, and OpenCV stops after ``log(1 − confidence) /
+    log(1 − w^s)`` of them. A set of matches without a consensus ran all 1000 draws: ~40 ms of
+    EPnP, the slow tail of ``locate`` (bench/RESULTS.md, session 24). And OpenCV fits its final
+    pose to the consensus by EPnP, whose solution on nearly planar points (one face, mostly)
+    could fall so far off that fewer than half the consensus stayed within ``inlier_px`` — in a
+    zoo scene with 59 true matches among 76, "no consensus"; SQPnP has no such failure."""
     X = np.asarray(X, np.float64).reshape(-1, 3)
     uv = np.asarray(uv, np.float64).reshape(-1, 2)
     if len(X) < max(6, min_inliers):
@@ -215,7 +240,9 @@ def ransac_pnp(
         if guess is None:
             ok, rvec, tvec, inl = cv2.solvePnPRansac(
                 X, uv, camera.matrix, camera.dist_coeffs, iterationsCount=iterations,
-                reprojectionError=reprojection_px, confidence=confidence, flags=cv2.SOLVEPNP_EPNP)
+                reprojectionError=reprojection_px, confidence=confidence, flags=cv2.SOLVEPNP_AP3P)
+            if ok and inl is not None and len(inl) >= max(6, min_inliers):
+                rvec, tvec = _sqpnp(camera, X[inl.ravel()], uv[inl.ravel()], rvec, tvec)
         else:
             rvec0 = cv2.Rodrigues(guess.R)[0]
             ok, rvec, tvec, inl = cv2.solvePnPRansac(
