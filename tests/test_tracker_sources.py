@@ -133,6 +133,31 @@ def test_an_edge_is_found_at_its_subpixel_position():
     assert np.abs(meas[:2, 0] - 100.3).max() < 0.25 and np.allclose(meas[:2, 1], [40.0, 30.0])
 
 
+def test_an_edge_with_a_rival_in_reach_reports_the_rival():
+    """A crease beside a parallel line of the print: two aligned gradient maxima 8 px apart
+    within the search's reach. The stronger is measured; its rival's distance is reported when
+    the rival reaches ``ambiguity ×`` the winner's strength, 0 when it does not or when the
+    edge is alone in reach (then the search is exactly :func:`search_edges`)."""
+    from quatrack.recognition.tracker.edges import edge_candidates, search_edges
+
+    x = np.arange(200, dtype=float)
+
+    def gradients(steps):  # (position, height) of vertical step edges, each anti-aliased
+        row = 60 + sum(h * np.clip(x - p + 0.5, 0.0, 1.0) for p, h in steps)
+        g = cv2.GaussianBlur(np.tile(row, (40, 1)).astype(np.float32), (0, 0), 1.0)
+        return (cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3, scale=0.125),
+                cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3, scale=0.125))
+
+    uv, normal, radius = np.array([[100.0, 20.0]]), np.array([[1.0, 0.0]]), np.array([10.0])
+    gx, gy = gradients([(96.0, 100.0), (104.0, 60.0)])  # the rival at 60 % of the winner
+    meas, found, gap = edge_candidates(gx, gy, uv, normal, radius, 6.0, ambiguity=0.5)
+    assert found[0] and abs(meas[0, 0] - 96.0) < 0.3 and gap[0] == pytest.approx(8.0)
+    np.testing.assert_array_equal(meas, search_edges(gx, gy, uv, normal, radius, 6.0)[0])
+    assert edge_candidates(gx, gy, uv, normal, radius, 6.0, ambiguity=0.7)[2][0] == 0.0
+    gx, gy = gradients([(96.0, 100.0)])  # alone in reach
+    assert edge_candidates(gx, gy, uv, normal, radius, 6.0, ambiguity=0.5)[2][0] == 0.0
+
+
 def test_model_edges_are_measured_where_the_true_pose_puts_them(box):
     """The edge source alone on a rendered frame, predicted 0.4 cm and 0.5° off: its samples
     move to the true edges (across-edge residual at the true pose), away from the prediction."""
@@ -155,6 +180,13 @@ def test_model_edges_are_measured_where_the_true_pose_puts_them(box):
     # ~half the samples land within 1 px of the true edges (the rest on the print's own edges
     # next to them: outliers for the robust adjustment); almost none stay at the prediction
     assert np.mean(across(truth) < 1.0) > 0.4 and np.mean(across(off) < 1.0) < 0.1
+    # taking the strongest whatever else is in reach (edge_ambiguity None) keeps more samples,
+    # a smaller share of them on the true edges: the dropped ones had a rival in reach
+    every = ModelEdges(model.mesh, TrackerParams(edge_ambiguity=None)).measure(
+        FrameContext(frames[3], frame, None, camera, prior), {})
+    n_every = np.linalg.eigh(every.C)[1][:, :, 0]
+    on_truth = np.abs(np.einsum("ij,ij->i", every.uv - camera.project(truth.apply(every.X)), n_every)) < 1.0
+    assert len(every) > len(block) and np.mean(across(truth) < 1.0) > on_truth.mean() + 0.05
 
 
 def test_one_klt_call_for_every_point_source_measures_what_one_call_each_does(box):
