@@ -10,7 +10,9 @@ ones. Reported per run: per-stream achieved fps (answers / s), latency (send →
 frames dropped (sent but never answered: skipped by the server as stale), total frames/s
 processed, ``/healthz`` p50/p99 probed every 50 ms during the run from a separate process (and
 from the clients' own event loop, for comparison: that one also waits for the clients), where a
-frame's latency goes (wait / step / io, see :func:`_breakdown`), RSS of every worker process.
+frame's latency goes (wait / step / io, see :func:`_breakdown`), the server's CPU time per processed
+frame and cores used (:func:`cpu_seconds`: the measure other jobs on the machine change least),
+RSS of every worker process.
 Then REST ``pose`` requests/s. Frames are JPEG-encoded before the clock starts, so the clients'
 own CPU use is small — but they share the machine with the server.
 """
@@ -36,6 +38,22 @@ def _rss_mb(pids: list[int]) -> list[float]:
         except (OSError, StopIteration):
             pass
     return out
+
+
+def cpu_seconds(pids: list[int]) -> float:
+    """User + system CPU time the processes ``pids`` have used so far (Linux /proc/PID/stat, fields
+    14 and 15, in clock ticks): the server's own cost, whatever else the machine runs meanwhile."""
+    import os
+
+    total = 0
+    for pid in pids:
+        try:
+            with open(f"/proc/{pid}/stat") as f:
+                fields = f.read().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        total += int(fields[11]) + int(fields[12])
+    return total / os.sysconf("SC_CLK_TCK")
 
 
 async def _streams(url: str, http_url: str, camera: dict, frames: list, n: int, fps: float,
@@ -275,6 +293,7 @@ def main(args: argparse.Namespace) -> int:
     import json
     import os
     import tempfile
+    import time
     from pathlib import Path
 
     from quatrack.client import video_frames
@@ -324,8 +343,12 @@ def main(args: argparse.Namespace) -> int:
             with setup() as (url, ws_url, pids):
                 rows = []
                 for n in counts:
+                    cpu0, wall0 = cpu_seconds(pids()), time.perf_counter()
                     row = asyncio.run(_streams(f"{ws_url}/v1/objects/{args.object}/track", url, camera, frames, n, args.fps,
                                                getattr(args, "stagger_s", 0.0) or 0.0))
+                    cpu = cpu_seconds(pids()) - cpu0
+                    row["server_cores_used"] = cpu / (time.perf_counter() - wall0)
+                    row["server_cpu_ms_per_frame"] = 1e3 * cpu / max(row["processed"], 1)
                     row["rss_mb"] = _rss_mb(pids())
                     rows.append(row)
                 rest = None
@@ -344,9 +367,9 @@ def main(args: argparse.Namespace) -> int:
           f"each client streams {len(frames)} frames at {args.fps:g} fps")
     print("| set-up | streams | fps/stream min / mean | total fps | latency p50 / p99 (ms) | tracked frames p50 / p99 "
           "| wait / step / io p50 (ms) "
-          "| wait / step / io p99 (ms) | dropped | refused | /healthz p50 / p99 (ms) | in-client p99 | sessions per process "
-          "| RSS per worker (MB) |")
-    print("| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- | --- |")
+          "| wait / step / io p99 (ms) | dropped | refused | /healthz p50 / p99 (ms) | in-client p99 | server cores used "
+          "| server CPU per frame (ms) | sessions per process | RSS per worker (MB) |")
+    print("| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- | --- |")
     for s in report["setups"]:
         for r in s["websocket"]:
             print(f"| {s['setup']} | {r['clients']} | {r['fps_per_stream_min']:.1f} / {r['fps_per_stream_mean']:.1f} | "
@@ -356,6 +379,7 @@ def main(args: argparse.Namespace) -> int:
                   f"{r['wait_p99_ms']:.0f} / {r['step_p99_ms']:.0f} / {r['io_p99_ms']:.0f} | "
                   f"{r['dropped']} of {r['frames_sent']} | {r['refused']} | {r['healthz_p50_ms']:.1f} / "
                   f"{r['healthz_p99_ms']:.1f} | {r['healthz_in_client_p99_ms']:.1f} | "
+                  f"{r['server_cores_used']:.2f} | {r['server_cpu_ms_per_frame']:.1f} | "
                   f"{'+'.join(map(str, r['sessions_per_process'])) or '?'} | "
                   f"{', '.join(f'{x:.0f}' for x in r['rss_mb'])} |"
                   + (f" errors: {r['error_codes']}" if r["error_codes"] else ""))

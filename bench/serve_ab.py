@@ -24,7 +24,7 @@ import os
 import sys
 import time
 
-from quatrack.bench.serve import _pct, _streams
+from quatrack.bench.serve import _pct, _streams, cpu_seconds
 
 KEYS = ("total_fps", "fps_per_stream_min", "fps_per_stream_mean", "latency_p50_ms", "latency_p99_ms", "latency_tracking_p99_ms", "wait_p50_ms", "wait_p99_ms", "step_p50_ms", "step_p99_ms",
         "io_p50_ms", "io_p99_ms", "client_loop_lag_p50_ms", "client_loop_lag_p99_ms", "healthz_p50_ms", "healthz_p99_ms", "healthz_max_ms", "healthz_in_client_p99_ms")
@@ -45,20 +45,6 @@ def parse_variant(text: str) -> tuple[str, dict[str, str]]:
     if not label:
         raise ValueError(f"variant {text!r}: starts with a label")
     return label, env
-
-
-def cpu_seconds(pids: list[int]) -> float:
-    """User + system CPU time the processes ``pids`` have used so far (Linux /proc/PID/stat, fields
-    14 and 15, in clock ticks): the server's own cost, whatever else the machine runs meanwhile."""
-    total = 0
-    for pid in pids:
-        try:
-            with open(f"/proc/{pid}/stat") as f:
-                fields = f.read().rsplit(")", 1)[1].split()
-        except OSError:
-            continue
-        total += int(fields[11]) + int(fields[12])
-    return total / os.sysconf("SC_CLK_TCK")
 
 
 def main(argv: list[str] | None = None) -> int:
