@@ -69,6 +69,9 @@ Failure modes (documented in bench/RESULTS.md, "Session 24"):
 - A newly started worker is seen by the poll within :data:`RELIST_S` (by a gate at once). It
   joins with load 0 and so gets the next connections while it is still loading its models
   (``/readyz`` says 503 meanwhile; a session opened then waits for the model).
+- Over TLS (uvicorn's ``ssl``; ``quatrack serve`` has no TLS, a balancer terminates it) the gate
+  runs after the TLS handshake, whose session cannot move: nothing is passed, bursts are placed as
+  before (listening only).
 - Any error reading the board makes a worker listen and serve (fails open: the old, random
   placement). With asyncio's own loop instead of uvloop the same holds (its accept loop also
   drains the queue; the gate passes the excess).
@@ -363,6 +366,7 @@ class Placement:
         self._thread: int | None = None
         self._published: tuple[bool, int] | None = None
         self._published_at = 0.0
+        self.passing = True  # False over TLS: a socket can be passed on, its TLS session cannot
 
     def inbox_path(self, pid: int) -> Path:
         return self.board.dir / f"{pid}.sock"
@@ -395,7 +399,7 @@ class Placement:
         try:
             with self.board.locked():
                 others = {pid: load for pid, (load, _) in self.board.entries().items()}
-                if others and self.board.own() > min(others.values()):
+                if self.passing and others and self.board.own() > min(others.values()):
                     target = min(others, key=lambda pid: (others[pid], pid))
                 self.board.add(target, +1)
         except OSError:
@@ -623,6 +627,7 @@ class _PlacementLoop:
             server = PausableServer(first, create, spare, on_close=placement.stop)
         finally:
             spare.close()
+        placement.passing = kwargs.get("ssl") is None  # the gate runs after a TLS handshake
         return placement.attach(server, protocol_factory)
 
 
