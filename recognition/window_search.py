@@ -154,12 +154,20 @@ def cell_histograms(
     per = count[lab]
     start = np.cumsum(per) - per
     term_bin = np.arange(start[-1] + per[-1] if len(per) else 0) + np.repeat(first[lab] - start, per)
-    b = bins[term_bin] % n
-    value = np.take(planes, plane_of[b + 1] * plane_size + np.repeat(pix + d * W, per)).astype(np.float64)
-    value -= b == np.repeat(lab, per)  # q ≠ p
-    out = np.zeros((rows * cols, k + pooled), np.float32)
+    offset = plane_of[bins % n + 1] * plane_size  # where each listed bin's b-plane starts
+    value = np.take(planes, offset[term_bin] + np.repeat(pix + d * W, per))
     key = np.repeat(cells * k, per) + term_bin
-    out[:, :k] = np.bincount(key, weights=value, minlength=rows * cols * k).reshape(-1, k)
+    counts = np.bincount(key, weights=value, minlength=rows * cols * k)
+    # q ≠ p: a p labelled a counted itself in its bin (a, a), when that bin is listed; the sums
+    # are whole numbers in float64, so subtracting per cell equals subtracting per term
+    diagonal = np.full(n, -1)
+    on = bins // n == bins % n
+    diagonal[bins[on] // n] = np.flatnonzero(on)
+    own = diagonal[lab]
+    mine = own >= 0
+    counts -= np.bincount(cells[mine] * k + own[mine], minlength=rows * cols * k)
+    out = np.zeros((rows * cols, k + pooled), np.float32)
+    out[:, :k] = counts.reshape(-1, k)
     if pooled:
         # all pairs of a cell: labelled neighbours of each p, less p itself
         valid = (labels >= 0).astype(np.uint8)

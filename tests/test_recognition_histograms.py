@@ -73,6 +73,9 @@ def test_cell_histograms_brute_force(stride):
     bins = np.sort(rng.choice(n * n, 7, replace=False))
     got = cell_histograms(labels, n, d, cell, bins, stride)
     np.testing.assert_allclose(got, compress(ref, bins), atol=1e-4)
+    # pairs of one label (a, a) listed and not: p must not count itself in its own bin
+    own = np.array([0, 3, 6, 7, 18, 21])  # (0,0) (0,3) (1,1) (1,2) (3,3) (4,1)
+    np.testing.assert_allclose(cell_histograms(labels, n, d, cell, own, stride), compress(ref, own), atol=1e-4)
     with pytest.raises(ValueError):
         cell_histograms(labels, n, d, cell, bins[::-1])
 
