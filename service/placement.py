@@ -36,7 +36,7 @@ session exists, and probes and REST calls do not skew the count.
   load field is changed by *deltas* under one exclusive ``flock`` on ``RUN_DIR/placement/.lock``,
   by the worker itself and by a worker passing it a connection, so a connection in flight between
   two workers is already counted for its receiver; the lock is held for a few reads and writes
-  of 48-byte records (microseconds).
+  of 48-byte records (microseconds), and never waited for longer than :data:`LOCK_WAIT_S`.
 - Rule: serve (listen) iff load ≤ the smallest load of the other live workers (ties serve), so the
   least-loaded worker always listens and /healthz, /readyz and /metrics always find a worker.
 - When: the gate decides for each connection; listening is re-decided when this worker's load
@@ -98,6 +98,8 @@ POLL_S = 0.05  # how often a worker re-reads the others' counts
 STALE_S = 10.0  # an entry not refreshed for this long belongs to a stuck worker: ignored
 HEARTBEAT_S = 1.0  # a worker rewrites its unchanged entry this often (what STALE_S checks)
 RELIST_S = 1.0  # the poll looks for newly started workers this often (a gate: always)
+LOCK_WAIT_S = 0.005  # longest wait for the board's lock on the event loop (it is held for microseconds)
+DRIFT_S = 1.0  # a board count that differs from what the worker holds for this long is reset
 PENDING_S = 5.0  # a WebSocket handshake counts as load for at most this long before its session opens
 _RECORD = 48  # bytes per entry: "load listening monotonic-time sessions", space-padded, one write
 
@@ -134,15 +136,31 @@ class LoadBoard:
 
     @contextlib.contextmanager
     def locked(self):
-        """The board's write lock (blocking: held by any worker for a few system calls)."""
+        """The board's write lock, held by any worker for a few system calls. Not waited for
+        indefinitely: a holder that is descheduled, or stopped (SIGSTOP, a debugger), would stall
+        this worker's event loop as long. After :data:`LOCK_WAIT_S` of retries (every 0.2 ms) the
+        caller goes on without it — a count may then be off by one until the connections it
+        concerns close (fails open, like any other board error)."""
         if self._lock is None:
             yield
             return
-        fcntl.flock(self._lock, fcntl.LOCK_EX)
+        deadline = time.monotonic() + LOCK_WAIT_S
+        while True:
+            try:
+                fcntl.flock(self._lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                held = True
+                break
+            except BlockingIOError:
+                if time.monotonic() >= deadline:
+                    held = False
+                    log.warning("placement: the board's lock is held elsewhere; going on without it")
+                    break
+                time.sleep(0.0002)
         try:
             yield
         finally:
-            fcntl.flock(self._lock, fcntl.LOCK_UN)
+            if held:
+                fcntl.flock(self._lock, fcntl.LOCK_UN)
 
     @staticmethod
     def _read(fd: int) -> tuple[int, bool, float, int] | None:
@@ -366,6 +384,7 @@ class Placement:
         self._thread: int | None = None
         self._published: tuple[bool, int] | None = None
         self._published_at = 0.0
+        self._drift_since: float | None = None  # since when the board's count differs from this worker's
         self.passing = True  # False over TLS: a socket can be passed on, its TLS session cannot
 
     def inbox_path(self, pid: int) -> Path:
@@ -534,6 +553,26 @@ class Placement:
                 self._count(-len(expired))
             else:
                 self.evaluate(relist=False)
+            self._heal()
+
+    def _heal(self) -> None:
+        """Reset this worker's load on the board to what it holds (sessions + pending handshakes)
+        when the two have differed for :data:`DRIFT_S`: a connection passed here is in flight for
+        milliseconds, so a longer difference is a count lost when the lock was not had
+        (:meth:`LoadBoard.locked`), and would otherwise skew placement for good."""
+        try:
+            if self.board.own() == self.sessions + len(self.pending):
+                self._drift_since = None
+                return
+            now = time.monotonic()
+            if self._drift_since is None:
+                self._drift_since = now
+            elif now - self._drift_since >= DRIFT_S:
+                with self.board.locked():
+                    self.board.add(self.board.pid, self.sessions + len(self.pending) - self.board.own())
+                self._drift_since = None
+        except OSError:
+            pass
 
     def stop(self) -> None:
         if self._poller is not None:

@@ -440,3 +440,37 @@ def _board_worker(directory: str, conn) -> None:
     board.publish(False, 2)
     conn.send(True)
     time.sleep(120)  # until killed
+
+
+def test_board_lock_is_not_waited_for_forever_and_counts_heal(tmp_path, monkeypatch):
+    """The board's lock held elsewhere (a worker stopped while holding it) does not stall the
+    caller: it goes on without it after LOCK_WAIT_S. A count that then went astray is reset to
+    what the worker holds once it has differed for DRIFT_S (0 here: no waiting in the test)."""
+    import fcntl
+
+    from quatrack.service import placement
+
+    board = LoadBoard(tmp_path)
+    board.join()
+    other = os.open(tmp_path / ".lock", os.O_RDWR)  # another open file: flock-ed apart from the board's
+    fcntl.flock(other, fcntl.LOCK_EX)
+    try:
+        def take():
+            with board.locked():
+                board.add(board.pid, 2)  # e.g. a count another worker's write then lost
+
+        t = threading.Thread(target=take, daemon=True)
+        t.start()
+        t.join(30)
+        assert not t.is_alive(), "waited for the lock held elsewhere"
+    finally:
+        fcntl.flock(other, fcntl.LOCK_UN)
+        os.close(other)
+    assert board.own() == 2
+    monkeypatch.setattr(placement, "DRIFT_S", 0.0)
+    p = placement.Placement(board)  # holds no session, nothing pending
+    p._heal()  # first sight of the difference
+    assert board.own() == 2
+    p._heal()
+    assert board.own() == 0
+    board.leave()
