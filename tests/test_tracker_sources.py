@@ -22,6 +22,7 @@ from quatrack.recognition.match import index_for
 from quatrack.recognition.tracker.mesh_points import MeshPoints, birth_mask
 from quatrack.recognition.tracker.points import pose_spread
 from quatrack.recognition.tracker.sources import FrameContext
+from quatrack.recognition.visibility import visible_points
 from quatrack.recognition.video import Tracker, TrackerParams
 from quatrack.tracking.state import initial_state
 from quatrack.viewsets.render import render
@@ -156,6 +157,72 @@ def test_an_edge_with_a_rival_in_reach_reports_the_rival():
     assert edge_candidates(gx, gy, uv, normal, radius, 6.0, ambiguity=0.7)[2][0] == 0.0
     gx, gy = gradients([(96.0, 100.0)])  # alone in reach
     assert edge_candidates(gx, gy, uv, normal, radius, 6.0, ambiguity=0.5)[2][0] == 0.0
+
+
+@pytest.mark.parametrize("turn_deg", [90.0, 12.0])
+def test_re_anchoring_refuses_matches_that_agree_with_another_pose(box, turn_deg):
+    """Texture repeated on another face (a cube's sides cut from one photo) gives SIFT matches
+    consistent among themselves with the object turned by 90°, and a cube's edges agree with
+    that pose too: merged as a fresh anchor, they turned a right track (and a user's right
+    starting pose) by 90°. Matches whose own pose lies beyond the 5 %/5° criterion from the
+    track's are refused (0 merged, tracks unchanged); the same points matched where the pose
+    puts them are merged."""
+    from types import SimpleNamespace
+
+    from quatrack.recognition.match import Matches
+    from quatrack.recognition.tracker.anchor import Anchor
+    from quatrack.recognition.tracker.points import Tracks
+    from quatrack.viewsets.novel import rotate_about_centre
+
+    model, camera, poses, _ = box
+    pose, mesh = poses[3], model.mesh
+    other = rotate_about_centre(pose, mesh.centre, np.radians([0.0, turn_deg, 0.0]))
+    X = np.concatenate([vs.points3d for vs in model.viewsets])
+    X = X[visible_points(mesh, camera, other, X)[0] & visible_points(mesh, camera, pose, X)[0]][:60]
+    assert len(X) >= 30
+
+    def merge(at):
+        n = len(X)
+        m = Matches(np.arange(n), np.arange(n), np.zeros(n, int), X, np.zeros((n, 3)), np.zeros(n))
+        feats = SimpleNamespace(keypoints=camera.project(at.apply(X)))
+        kept = Tracks(X[:5], camera.project(pose.apply(X[:5])))
+        return Anchor(mesh, None, TrackerParams()).merge(feats, m, camera, pose, kept, wide=False), kept
+
+    (tracks, n, replaced), kept = merge(other)
+    assert n == 0 and not replaced and tracks is kept
+    (tracks, n, replaced), _ = merge(pose)
+    assert n >= 30 and len(tracks) >= n
+
+
+def test_a_start_whose_anchors_disagree_goes_on_the_mesh(box, monkeypatch):
+    """A given pose whose SIFT anchors near it disagree among themselves (matched on repeated
+    texture: no pose fits them) is not refused for that: like a pose with too few anchors, the
+    track starts on corners born on the mesh once the model's edges confirm the pose, and
+    follows the frames; a pose the edges refute is still refused."""
+    from quatrack.recognition.tracker.anchor import Anchor
+    from quatrack.recognition.tracker.points import Tracks
+    from quatrack.tracking import quaternion as quat
+
+    model, camera, poses, frames = box
+    rng = np.random.default_rng(3)
+    X = np.concatenate([vs.points3d for vs in model.viewsets])[:40]
+
+    def scattered(self, img, cam, pose, tracks, wide, alternative=None):  # 40 matches, no consensus
+        return Tracks(X, cam.project(pose.apply(X)) + rng.uniform(-40, 40, (len(X), 2))), len(X), False
+
+    monkeypatch.setattr(Anchor, "now", scattered)
+    tracker = Tracker(model, camera, TrackerParams(), index=index_for(model))
+    tracker.init_pose(poses[0].t, poses[0].q_wxyz)
+    first = tracker.step(frames[0], 0.0)
+    assert first.status == "init" and "born on the mesh" in first.reason
+    monkeypatch.undo()
+    steps = [tracker.step(frames[k], k / FPS) for k in range(1, 6)]
+    assert all(s.status == "tracking" for s in steps)
+    assert max(pose_errors(s.t, s.q_wxyz, poses[k], model.mesh)[0] for k, s in enumerate(steps, 1)) < 0.02 * model.mesh.extent
+    monkeypatch.setattr(Anchor, "now", scattered)
+    wrong = Tracker(model, camera, TrackerParams(), index=index_for(model))
+    wrong.init_pose(poses[0].t + [3.0, 0.0, 0.0], quat.multiply(quat.from_rotvec(np.radians([0, 15, 0])), poses[0].q_wxyz))
+    assert wrong.step(frames[0], 0.0).status == "lost"
 
 
 def test_model_edges_are_measured_where_the_true_pose_puts_them(box):

@@ -137,7 +137,15 @@ class Anchor:
         if len(X) < p.min_anchor_matches:
             return tracks, 0, False
         uv_cur = camera.project(pose.apply(X))
-        disagree = float(np.median(np.linalg.norm(uv_cur - kp, axis=1))) > 0.5 * p.anchor_radius_px
+        off = float(np.median(np.linalg.norm(uv_cur - kp, axis=1)))
+        z = float(pose.apply(self.mesh.centre[None])[0, 2])
+        if off > 0.05 * camera.fx * d / max(z, 1e-9):
+            # consistent among themselves, but they put the object's points more than 5 % of its
+            # apparent size from where the track has them: texture repeated on another face (a
+            # cube's sides cut from one photo) matched them; taken, they turned a right track by
+            # 90°, and the cube's edges agreed. KLT slides a few pixels, not that far.
+            return tracks, 0, False
+        disagree = off > 0.5 * p.anchor_radius_px
         replaced = disagree and len(X) >= 2 * p.min_inliers and not wide
         if len(tracks) and not replaced:
             dist = np.linalg.norm(tracks.uv[:, None, :] - kp[None, :, :], axis=2)

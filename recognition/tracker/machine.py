@@ -361,17 +361,20 @@ class Tracker:
         tracks, _, _ = self._anchors().now(img, self.camera, prior.pose, Tracks.empty(), True,
                                                 lambda f: self._keyframe_matches(f, prior.pose))
         timings["replenish"] = _ms(t0)
-        if len(tracks) < self.params.min_inliers:
+        ok, why, inl = False, f"only {len(tracks)} model points matched near the pose", np.zeros(0, bool)
+        if len(tracks) >= self.params.min_inliers:
+            t0 = time.perf_counter()
+            block = PointBlock.isotropic(self.trained.name, tracks, self.params.sigma_px)
+            ok, why, inl = self._adjust(block)
+            timings["adjust"] = _ms(t0)
+            if not ok:  # they disagree (texture repeated on other faces matched them): as if none
+                self._start_filter(time_s0, pose, cov)  # (the failed adjustment moved the state)
+                prior, tracks = self.filter.predict(time_s), Tracks.empty()
+        if not ok:
             if self._start_on_mesh(img, frame, prior, tracks):
                 self._probation = self.params.probation_frames
                 return self._pose_step(time_s, "init", len(self.mesh_points), reason=f"{how}: no trained view "
                                        "shows this side; points born on the mesh, confirmed by its edges")
-            return self._lost(time_s, f"{how}: only {len(tracks)} model points matched near the pose")
-        t0 = time.perf_counter()
-        block = PointBlock.isotropic(self.trained.name, tracks, self.params.sigma_px)
-        ok, why, inl = self._adjust(block)
-        timings["adjust"] = _ms(t0)
-        if not ok:
             return self._lost(time_s, f"{how}: {why}", int(inl.sum()))
         self.trained.tracks = tracks.keep(inl)
         if how != "given pose" and not self._edges_confirm(frame.gray, self.filter.state.pose, strict=True):
