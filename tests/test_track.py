@@ -194,6 +194,21 @@ def test_reset_and_bad_input(world):
     assert not tracker.tracking
 
 
+def test_a_loss_forgets_what_the_sources_learned_of_their_noise(world):
+    """The edges' variance factor is learned from a track's residuals; a track that failed (blur,
+    an occluder, a wrong pose) can leave it at thousands, which would make the next track's
+    edges weightless for tens of frames. A loss resets it with the point sources' tracks."""
+    tracker = Tracker(world["model"], world["camera"], index=world["index"])
+    tracker.init_pose(world["poses"][0].t, quat.from_matrix(world["poses"][0].R))
+    for k in range(3):
+        tracker.step(world["frames"][k], k / FPS)
+    assert tracker.tracking and len(tracker.trained) > 0
+    tracker.edges.factor.value = 5000.0
+    noise = np.random.default_rng(0).integers(0, 255, world["frames"][3].shape, dtype=np.uint8)
+    assert tracker.step(noise, 3 / FPS).status == "lost"
+    assert tracker.edges.factor.value == 1.0 and len(tracker.trained) == 0
+
+
 # -- the command line ---------------------------------------------------------------------------
 
 @pytest.fixture(scope="module")

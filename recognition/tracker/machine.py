@@ -128,7 +128,7 @@ class Tracker:
         """Forget the state and the last pose: the next frame re-initialises by recognition."""
         self.filter.state = None
         self.filter.prior = None
-        for s in (self.trained, self.mesh_points):
+        for s in (self.trained, self.mesh_points, self.edges):  # tracks, and what each learned of its noise
             s.reset()
         self._prev: Frame | None = None
         self._since_refresh = 0
