@@ -138,9 +138,14 @@ class Tracker:
         self._tracked = 0  # frames tracked since the last (re-)initialisation
         self._probation = 0  # frames left in which the edges must confirm every pose
         self._seen: LastSeen | None = None  # the last good frame before the latest loss (_reacquire)
+        self._capture_job = None  # a view being lifted on the executor (_capture): (future, slot, learn, t, pose)
 
     def learned_viewsets(self) -> list[Viewset]:
-        """The viewsets learned so far in this run (``params.learn``), oldest first."""
+        """The viewsets learned so far in this run (``params.learn``), oldest first (a view still
+        being lifted on the executor is waited for: nothing learned is lost at the end of a run)."""
+        job, self._capture_job = self._capture_job, None
+        if job is not None:
+            self._keep_view(job[0].result(), *job[1:])
         return list(self.learned)
 
     def init_pose(self, t, q_wxyz, time_s: float | None = None) -> None:
@@ -529,11 +534,20 @@ class Tracker:
         direction and the pose is tighter: ``learn_sigma_p`` / ``_deg``). Either needs
         ``learn_min_inliers`` textured points agreeing, ``learn_min_share`` of those measured
         (nothing covers the object), and the model's edges to agree with the image. The cheap
-        tests come first; one SIFT + lifting serves both. (Its time is the ``learn`` stage.)"""
+        tests come first; one SIFT + lifting serves both. (Its time is the ``learn`` stage.)
+
+        With an executor and ``pipelined_refresh`` (live streams), the SIFT + lifting (~45 ms)
+        runs on the executor, as re-anchoring does, and a later step keeps its result: inside the
+        step it set the p99 of two 30 fps streams (bench/RESULTS.md, serving, session 24). One
+        at a time; a loss drops it."""
         p = self.params
+        job = self._capture_job
+        if job is not None and job[0].done():
+            self._capture_job = None
+            self._keep_view(job[0].result(), *job[1:])
         self._learn_wait -= 1
         self._keyframe_wait -= 1
-        if self._tracked < p.learn_after:
+        if self._tracked < p.learn_after or self._capture_job is not None:
             return
         state = self.filter.state
         pose = state.pose
@@ -560,10 +574,20 @@ class Tracker:
             timings["learn"] = _ms(t0)
             return
         mask = birth_mask(mesh, self.camera, pose, p)
-        vs = learned_viewset(f"learned{len(self.learned) + 1}", ctx.image, mask, self.camera, pose, mesh,
-                             params_from_manifest(self.model.manifest), p.learn_min_cos,
-                             self.model.rfch if learn else None)
+        args = (f"learned{len(self.learned) + 1}", ctx.image, mask, self.camera, pose, mesh,
+                params_from_manifest(self.model.manifest), p.learn_min_cos, self.model.rfch if learn else None)
+        if p.pipelined_refresh and self.executor is not None:
+            self._capture_job = (self.executor.submit(learned_viewset, *args), slot, learn, time_s, pose)
+            timings["learn"] = _ms(t0)
+            return
+        vs = learned_viewset(*args)
         timings["learn"] = _ms(t0)
+        self._keep_view(vs, slot, learn, time_s, pose)
+
+    def _keep_view(self, vs: Viewset, slot: int | None, learn: bool, time_s: float, pose: Pose) -> None:
+        """The view lifted by :meth:`_capture` (at ``pose``, taken at ``time_s``): a keyframe in
+        ``slot`` and, with ``learn``, a learned viewset, if it holds enough keypoints."""
+        p, mesh = self.params, self.model.mesh
         if len(vs) < p.learn_min_keypoints:
             return
         if slot is not None:
