@@ -194,6 +194,26 @@ def test_reset_and_bad_input(world):
     assert not tracker.tracking
 
 
+def test_learned_views_are_asked_for_from_the_executor_without_a_deadlock(world):
+    """The service stores a session's learned views from its pool; with one thread, a view still
+    queued on it behind that call would wait for itself forever. It is dropped instead."""
+    import time
+    from concurrent.futures import ThreadPoolExecutor
+
+    pool = ThreadPoolExecutor(1)
+    tracker = Tracker(world["model"], world["camera"], TrackerParams(pipelined_refresh=True, learn=True),
+                      index=world["index"], executor=pool)
+
+    def store():  # as service/learning.py does, on the pool, with a capture queued behind it
+        tracker._capture_job = (pool.submit(time.sleep, 0.0), None, True, 0.0, None)
+        return tracker.learned_viewsets()
+
+    try:
+        assert pool.submit(store).result(timeout=30) == []
+    finally:
+        pool.shutdown(wait=False, cancel_futures=True)  # (a deadlocked thread is freed, not waited for)
+
+
 def test_a_loss_forgets_what_the_sources_learned_of_their_noise(world):
     """The edges' variance factor is learned from a track's residuals; a track that failed (blur,
     an occluder, a wrong pose) can leave it at thousands, which would make the next track's

@@ -141,10 +141,12 @@ class Tracker:
         self._capture_job = None  # a view being lifted on the executor (_capture): (future, slot, learn, t, pose)
 
     def learned_viewsets(self) -> list[Viewset]:
-        """The viewsets learned so far in this run (``params.learn``), oldest first (a view still
-        being lifted on the executor is waited for: nothing learned is lost at the end of a run)."""
+        """The viewsets learned so far in this run (``params.learn``), oldest first. A view being
+        lifted on the executor is waited for; one still queued there is dropped instead: the
+        caller may be running on that executor's only thread (the service stores a session's
+        views from its pool), where waiting for it would never end."""
         job, self._capture_job = self._capture_job, None
-        if job is not None:
+        if job is not None and not job[0].cancel():
             self._keep_view(job[0].result(), *job[1:])
         return list(self.learned)
 

@@ -96,7 +96,7 @@ class TrackerParams:
     edge_sigma_px: float = 1.0  # standard deviation across the edge
     edge_min_grad: float = 6.0  # grey levels per pixel (Sobel /8 of the σ = 1 blurred image)
     # a sample whose search finds a second aligned gradient maximum (> 2 px from the strongest)
-    # this strong is dropped: a crease beside a parallel line of the print (edges.search_edges;
+    # this strong is dropped: a crease beside a parallel line of the print (edges.edge_candidates;
     # None: the strongest is taken whatever else is in reach)
     edge_ambiguity: float | None = 0.5
     # views learned while tracking (quatrack.viewsets.learn; Tracker.learned_viewsets()): when the
