@@ -442,7 +442,12 @@ class Tracker:
         t0 = time.perf_counter()
         ctx = FrameContext(img, frame, self._prev, self.camera, prior)
         follow_together(ctx, self.sources, timings)  # one KLT call for every point source
-        blocks = [s.measure(ctx, timings) for s in self.sources]
+        blocks = []
+        ctx.anchored = False
+        for s in self.sources:  # (trained first: whether it anchors this frame is known to the others)
+            blocks.append(s.measure(ctx, timings))
+            if s is self.trained:
+                ctx.anchored = len(blocks[-1]) >= p.min_inliers
         block = PointBlock.stack(blocks)
         timings["measure"] = _ms(t0)  # visibility + KLT + gating
         if len(block) < p.min_inliers:

@@ -26,6 +26,17 @@ knew, which is the truth. Points born at an uncertain pose count less, and canno
 away from the trained (exact) points. Points whose posterior residual keeps growing (an
 exponential average above ``mesh_retire_px``) are retired: they sit on a wrong face, on
 specular texture, or slid.
+
+That holds while something else gives the pose absolute evidence: the trained points (exact
+3-D), against which a cohort lifted at a pose a little off must not pull. Without them (a side
+no photo shows, a track started on the mesh), the state's error *is* the birth error carried
+forward: the points were lifted at the state's own pose, so a point's residual
+``J ε_k − J_X Q G δ_b`` keeps only the motion since birth (at the birth pose ``J_X Q G = J``)
+and the inherited part cancels. Adding it anyway made the points weightless (σ ≈ 28 px for a
+cohort of 94 lifted at a given pose of 1 %/2°) and the edges, ~10 % of them locked on print
+lines beside the creases, turned a pose started at the truth 5° away in one frame (the zoo
+cube, bench/RESULTS.md, session 25). So a frame whose trained points are fewer than
+``min_inliers`` (:attr:`FrameContext.anchored` false) measures the mesh points at ``σ² I`` alone.
 """
 
 from __future__ import annotations
@@ -180,7 +191,7 @@ class MeshPoints:
 
     def measure(self, ctx: FrameContext, timings: dict) -> PointBlock:
         block, idx = klt_block(self.name, self.mesh, ctx, self.tracks, self.params, timings)
-        if len(block):
+        if len(block) and ctx.anchored:  # (unanchored, the birth error is the state's own: the module)
             block.C = block.C + inherited_spread(ctx.camera, block.X, self.cov_X[idx], self.cohort[idx], ctx.prior)
             g = gate(ctx.camera, block, ctx.prior, self.params.gate_chi2)
             block, idx = block.keep(g), idx[g]

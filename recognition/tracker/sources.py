@@ -41,6 +41,10 @@ class FrameContext:
     _zbuffer: object = None
     # per source name: (its tracks, visible indices, new pixels, KLT ok) from follow_together
     followed: dict = field(default_factory=dict)
+    # the trained points measured in this frame give the pose absolute evidence (at least
+    # min_inliers of them): set by the tracker after measuring them, read by the mesh points
+    # (mesh_points.MeshPoints.measure: whether their birth error is shared with the state's)
+    anchored: bool = True
 
     def zbuffer(self, mesh: Mesh, params: TrackerParams):
         """The visibility z-buffer at the prediction, rendered once for every source."""
