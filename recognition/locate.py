@@ -2,7 +2,8 @@
 
 ``locate`` = :func:`~quatrack.recognition.window_search.search_window` (RFCH window; its time is reported as ``localise``) → SIFT in the window plus a margin → match to every viewset →
 the viewset with most matches → RANSAC PnP + refinement → verification (geometry, then evidence
-in the image a wrong pose cannot fake: :func:`quatrack.recognition.pose.verification`). If the
+in the image a wrong pose cannot fake: :func:`quatrack.recognition.pose.verification`) → the
+verified pose reported as a robust (Cauchy) fit of its inliers (:func:`quatrack.recognition.pose.polish`). If the
 window yields no verified pose, the whole image is searched before giving up. Per-stage times are
 reported. :func:`locate_all` searches every given model (``--object all``).
 """
@@ -24,7 +25,8 @@ from quatrack.viewsets.store import ObjectModel
 from .images import DEFAULT_MAX_PIXELS, prepare_image
 from .window_search import Window, WindowSearchParams, search_window
 from .match import ModelIndex, index_for, rank_viewsets
-from .pose import RANSAC_SAMPLE, PnPSolution, PoseParams, Verification, rival_inliers, solve_pnp, verification, verify
+from .pose import (RANSAC_SAMPLE, PnPSolution, PoseParams, Verification, polish, rival_inliers, solve_pnp, verification,
+                   verify)
 
 
 @dataclass(frozen=True)
@@ -180,6 +182,7 @@ def _pose_from(
             ver = verification(est, grey, camera, model.mesh, uv, params.pose, rival, m.points3d)
             out.verification = ver
             if ver.passed:
+                est = polish(est, camera, m.points3d, uv, params.pose)
                 out.est, out.matches, out.reason, out.viewset = est, len(keep), None, label
                 return out
             out.reason = f"{ver.reason} (viewset {label})"
