@@ -349,6 +349,14 @@ class _PlacementLoop:
         base = super().create_server
         if self.placement is None or sock is None:
             return await base(protocol_factory, *args, sock=sock, **kwargs)
+        # O_NONBLOCK belongs to the socket's open file description, shared by every duplicate in
+        # every worker, and ``socket.dup()`` re-applies the Python object's timeout to it: the
+        # socket uvicorn hands over says "blocking" (None), so each dup made the shared listening
+        # socket blocking until the loop set it back. A worker whose loop then drained the accept
+        # queue blocked in accept() until the next connection came, its accepted connections
+        # unread meanwhile: the 30-60 s handshakes of sessions opened together (issue 15).
+        # Non-blocking on the object too, every duplicate keeps it so.
+        sock.setblocking(False)
         spare = sock.dup()  # before the loop takes ``sock`` over (closing the server closes it)
         try:
             first = await base(protocol_factory, *args, sock=sock, **kwargs)

@@ -313,6 +313,51 @@ def test_a_dead_worker_leaves_the_other_accepting(spread_server):
     _wait_idle(srv)
 
 
+def _listening_socket_modes(srv) -> dict[tuple[int, int], bool]:
+    """{(worker pid, fd): non-blocking?} for every descriptor of the shared listening socket in
+    the workers, from /proc (the socket's inode in /proc/net/tcp*, the O_NONBLOCK bit of each
+    descriptor's open file description in /proc/PID/fdinfo)."""
+    inodes = set()
+    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+        for line in Path(table).read_text().splitlines()[1:]:
+            f = line.split()
+            if f[3] == "0A" and int(f[1].rsplit(":", 1)[1], 16) == srv.port:  # 0A: listening
+                inodes.add(f"socket:[{f[9]}]")
+    modes = {}
+    for pid in srv.worker_pids():
+        for fd in os.listdir(f"/proc/{pid}/fd"):
+            try:
+                if os.readlink(f"/proc/{pid}/fd/{fd}") in inodes:
+                    flags = re.search(r"flags:\s*([0-7]+)", Path(f"/proc/{pid}/fdinfo/{fd}").read_text()).group(1)
+                    modes[(pid, int(fd))] = bool(int(flags, 8) & os.O_NONBLOCK)
+            except OSError:  # closed meanwhile (a pause)
+                pass
+    return modes
+
+
+def test_the_shared_listening_socket_stays_non_blocking(spread_server):
+    """O_NONBLOCK is a property of the listening socket's open file description, which every
+    worker shares. ``socket.dup()`` applies the Python object's timeout to it, and the socket
+    uvicorn hands a worker says "blocking": each duplicate placement made (at start, on every
+    resume) left the shared socket blocking. A worker whose loop then drained the accept queue
+    blocked in accept() until the next connection arrived, the connections it had accepted unread
+    meanwhile: sessions opened together waited 30-60 s for their handshake (about 1 run in 8).
+    Checked at start and after a pause and a resume (a session opened, then closed)."""
+    srv = spread_server
+    _wait(lambda: len(srv.worker_pids()) == 2, "two workers")
+    modes = _listening_socket_modes(srv)
+    assert len(modes) >= 2 and all(modes.values()), modes
+    with contextlib.ExitStack() as stack:
+        busy = _owner(srv, _open_session(srv, stack))
+        _wait(lambda: _listening(srv, busy) is False, "the busy worker to pause")
+        modes = _listening_socket_modes(srv)
+        assert modes and all(modes.values()), modes
+    _wait_idle(srv)
+    _wait(lambda: all(_listening(srv, p) for p in srv.worker_pids()), "both workers to listen again")
+    modes = _listening_socket_modes(srv)
+    assert {pid for pid, _ in modes} == set(srv.worker_pids()) and all(modes.values()), modes
+
+
 def test_workers_decline_permessage_deflate(spread_server):
     """As the in-thread server (tests/test_service_ws.py): quatrack serve's workers too."""
     with connect(f"{spread_server.ws_url}/v1/objects/cookie-box/track", open_timeout=120) as ws:
