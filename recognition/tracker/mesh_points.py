@@ -191,8 +191,9 @@ class MeshPoints:
 
     def measure(self, ctx: FrameContext, timings: dict) -> PointBlock:
         block, idx = klt_block(self.name, self.mesh, ctx, self.tracks, self.params, timings)
-        if len(block) and ctx.anchored:  # (unanchored, the birth error is the state's own: the module)
-            block.C = block.C + inherited_spread(ctx.camera, block.X, self.cov_X[idx], self.cohort[idx], ctx.prior)
+        if len(block):
+            if ctx.anchored:  # (unanchored, the birth error is the state's own: see the module)
+                block.C = block.C + inherited_spread(ctx.camera, block.X, self.cov_X[idx], self.cohort[idx], ctx.prior)
             g = gate(ctx.camera, block, ctx.prior, self.params.gate_chi2)
             block, idx = block.keep(g), idx[g]
         self._idx = idx
