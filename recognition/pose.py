@@ -11,7 +11,7 @@ confidence (issue 13). Poses are judged on the part of the object inside the ima
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Callable
 
 import cv2
@@ -98,6 +98,9 @@ class PoseParams:
     # points lifted near an edge) pulled in depth by 5–6 % of the diameter (zoo seed 0's two
     # near misses; bench/RESULTS.md, session 25). None: the least-squares pose, as before
     robust_scale: float | None = 2.0
+    # another candidate pose that fits all the matches as well (PnPSolution.ties) may differ by at
+    # most this share of the criterion (5 % of the diameter, 5°); None: ties are not judged
+    max_tie_shift: float | None = 1.0
     confidence_coef: tuple[tuple[str, float], ...] = ()  # () = CONFIDENCE_COEF (fitted)
 
 
@@ -123,6 +126,9 @@ class PnPSolution:
     covariance: np.ndarray
     inliers: np.ndarray
     rms_px: float
+    # the other candidate poses that fit all the matches as well (within 3 nats of the best
+    # likelihood; :func:`solve_pnp`): the matches cannot tell them from this one
+    ties: tuple = field(default=(), compare=False)
 
     @property
     def t(self) -> np.ndarray:
@@ -365,7 +371,7 @@ def polish(est: PnPSolution, camera: PinholeCamera, points3d: np.ndarray, uv: np
     err = _reprojection_errors(camera, X, u, t, q)
     if not np.all(np.isfinite(err)):
         return est
-    return PnPSolution(Pose(q, t), est.covariance, idx, float(np.sqrt(np.mean(err**2))))
+    return PnPSolution(Pose(q, t), est.covariance, idx, float(np.sqrt(np.mean(err**2))), est.ties)
 
 
 def match_log_likelihood(errors: np.ndarray, inlier_px: float, area_px: float) -> float:
@@ -467,6 +473,7 @@ def solve_pnp(
         if first is None:
             return None
         candidates = [first]
+        ties: tuple = ()
         t, q, idx = first
         if len(idx) >= 4:
             Xi = X[idx] - X[idx].mean(axis=0)
@@ -489,9 +496,10 @@ def solve_pnp(
             scores = np.array([match_log_likelihood(_reprojection_errors(camera, X, uv, c[0], c[1]), tau, area)
                                for c in candidates])
             best = int(np.argmax(scores))
-            if prior is not None:  # within 3 nats (a likelihood ratio of 20) the fits are a tie
-                tied = [k for k in range(len(candidates)) if scores[k] >= scores[best] - 3.0]
+            tied = [k for k in range(len(candidates)) if scores[k] >= scores[best] - 3.0]  # a likelihood ratio of 20
+            if prior is not None:  # the fits are a tie: the view nearer the matched viewset's
                 best = min(tied, key=lambda k: view_angle_deg(quat.to_matrix(candidates[k][1]), candidates[k][0], *prior))
+            ties = tuple(Pose(candidates[k][1], candidates[k][0]) for k in tied if k != best)
             t, q, idx = candidates[best]
         t, q, cov = refine(camera, X[idx], uv[idx], t, q, params.covariance_inflation)
     except SingularProblemError:
@@ -499,7 +507,7 @@ def solve_pnp(
     err = _reprojection_errors(camera, X[idx], uv[idx], t, q)
     if not (np.all(np.isfinite(t)) and np.all(np.isfinite(q))):
         return None
-    return PnPSolution(Pose(q, t), cov, idx, float(np.sqrt(np.mean(err**2))))
+    return PnPSolution(Pose(q, t), cov, idx, float(np.sqrt(np.mean(err**2))), ties)
 
 
 def projected_bbox(camera: PinholeCamera, vertices: np.ndarray, t: np.ndarray, q: np.ndarray):
@@ -627,6 +635,14 @@ def _centre_jacobian(R: np.ndarray, centre: np.ndarray) -> np.ndarray:
 
 def _skew(v: np.ndarray) -> np.ndarray:
     return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def pose_shift(a: Pose, b: Pose, mesh: Mesh) -> float:
+    """How far apart two poses of the object are against the criterion of a right pose:
+    ``max(|Δc| / (5 % of the diameter), Δθ / 5°)``, ``c`` the object's centre."""
+    c = np.asarray(mesh.centre, float)
+    dc = float(np.linalg.norm((a.R @ c + a.t) - (b.R @ c + b.t)))
+    return pose_sd_ratio(dc, float(np.degrees(quat.angle_between(a.q_wxyz, b.q_wxyz))), mesh.extent)
 
 
 def pose_sd_ratio(centre_sd: float, rotation_sd_deg: float, extent: float) -> float:
@@ -857,6 +873,11 @@ def verification(
     reason = edge_reason(edges, params)
     if reason is None and spread < params.min_spread:
         reason = f"the inliers cover only {100 * spread:.1f} % of the visible object"
+    if reason is None and params.max_tie_shift is not None:
+        shift = max((pose_shift(est.pose, alt, mesh) for alt in est.ties), default=0.0)
+        if shift > params.max_tie_shift:
+            reason = (f"the matches fit another pose as well ({shift:.1f} × the 5 %/5° criterion away): "
+                      f"they cannot tell which")
     if callable(rival):  # measured only for a pose the checks above pass
         rival = int(rival()) if reason is None else 0
     if reason is None and rival >= params.max_rival_ratio * n:
