@@ -3,8 +3,8 @@
 ``serve`` parses options into :class:`Settings`, prepares the run directory the worker processes
 share (:mod:`.workers`) and hands uvicorn the app factory: one worker process per ``--workers``
 (default: the number of cores), all accepting on one socket, each with an event loop that
-follows the placement rule of :mod:`.placement` (no worker accepts while it holds more sessions
-than the least-loaded one).
+follows the placement rule of :mod:`.placement` (a worker serves a new connection only while its
+load is no more than the least-loaded worker's; it passes the others to that one).
 """
 
 from __future__ import annotations
@@ -48,7 +48,8 @@ def run_serve(args: argparse.Namespace) -> int:
         # On SIGTERM every open session is closed with code 1012 (service restart), and its
         # closing handshake completes before the connection is closed (service/shutdown.py).
         # With several workers, each one's event loop comes from service/placement.py: a worker
-        # holding more sessions than the least-loaded one stops accepting connections meanwhile.
+        # holding more sessions than the least-loaded one stops accepting connections meanwhile,
+        # and passes those it accepted in a burst to the least-loaded one before reading them.
         loop = "quatrack.service.placement:loop_factory" if settings.workers > 1 else "auto"
         # No permessage-deflate: the frames are JPEG/PNG/WebP, which deflate cannot shrink, and each
         # one was compressed by the client and inflated on the worker's event loop for nothing.

@@ -57,7 +57,7 @@ class _PerWorker(Collector):
         sessions = GaugeMetricFamily("quatrack_worker_sessions", "open tracking sessions of each worker process "
                                      "(quatrack serve --workers N, N > 1)", labels=["pid"])
         listening = GaugeMetricFamily("quatrack_worker_listening", "1 if the worker accepts new connections: it holds "
-                                      "no more sessions than the least-loaded worker", labels=["pid"])
+                                      "no more sessions and handshakes than the least-loaded worker", labels=["pid"])
         for pid, (n, on) in sorted(board.items()):
             sessions.add_metric([str(pid)], float(n))
             listening.add_metric([str(pid)], 1.0 if on else 0.0)

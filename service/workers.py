@@ -20,10 +20,11 @@ What the workers share lives in one *run directory* (``Settings.run_dir``), wipe
   (:class:`ReadyBoard`); ``/readyz`` answers 200 only when ``workers`` such locks are held, so a
   request that lands on a ready worker does not report the server ready while another one is
   still loading (or has died and is being restarted), and a stopping worker withdraws its file.
-- ``placement/PID``: each worker's session count, ``flock``-ed by it (:mod:`.placement`): a
-  worker holding more sessions than the least-loaded one stops listening on the shared socket
-  until that is no longer so, so the kernel gives new connections to the others (which worker
-  accepts is otherwise whichever wakes first: random).
+- ``placement/PID``: each worker's load (sessions and handshakes), ``flock``-ed by it
+  (:mod:`.placement`): a worker holding more than the least-loaded one stops listening on the
+  shared socket until that is no longer so, so the kernel gives new connections to the others
+  (which worker accepts is otherwise whichever wakes first: random), and passes a connection it
+  accepted anyway (a burst) to the least-loaded one through ``placement/PID.sock``.
 - ``prometheus/``: ``$PROMETHEUS_MULTIPROC_DIR`` for prometheus-client's multiprocess mode.
 
 ``max_pending_requests`` (REST) stays a per-worker limit: a worker's own queue is what it bounds.
