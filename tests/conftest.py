@@ -84,6 +84,31 @@ def wait_until(pred, timeout: float = 60.0) -> bool:
     return False
 
 
+# --- the zoo cube and one scene of it, shared by test_recognition_edge_fit and test_pose_ties
+def zoo_cube_scene(root, camera):
+    """The zoo's cube (mesh in metres) trained from one colour photo into ``root``, a scene of it
+    5° from that photo's view (``random_scene`` seed 11) and its SIFT matches to the model:
+    ``(model, spec, scene, matches, matched keypoints)``. OpenCV's RNG seeded: the same each run."""
+    import cv2
+    import numpy as np
+
+    from quatrack.recognition.match import ModelIndex
+    from quatrack.testing import zoo as Z
+    from quatrack.viewsets.spec import load_spec
+    from quatrack.viewsets.train import train_object
+
+    cv2.setRNGSeed(0)
+    bgs = Z.real_backgrounds()
+    spec = load_spec(Z.write_spec("cube-m", root, 1, grey=False, backgrounds=bgs))
+    model = train_object(spec)
+    sc = Z.random_scene(np.random.default_rng(11), Z.textured("cube-m"), camera, spec.views[0].pose, bgs, 5.0, 0.0, False)
+    cv2.setRNGSeed(0)
+    index = ModelIndex(model)
+    feats = index.describe(sc.image)
+    m = index.match(feats)
+    return model, spec, sc, m, feats.keypoints[m.query_idx]
+
+
 # --- the one-photo cube walk shared by test_learn, test_keyframes and test_tracker_sources
 def one_photo_orbit(root, span_deg: float, n_frames: int, name: str = "small-cube-cm"):
     """A zoo object (the 6 cm cube by default) trained from ONE rendered photo (azimuth 35°,

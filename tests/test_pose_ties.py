@@ -14,14 +14,12 @@ import cv2
 import numpy as np
 import pytest
 
-from quatrack.recognition.match import ModelIndex
+from conftest import zoo_cube_scene
 from quatrack.recognition.pose import PnPSolution, PoseParams, pose_shift, solve_pnp, verification
 from quatrack.testing import zoo as Z
 from quatrack.tracking import quaternion as quat
 from quatrack.tracking.camera import PinholeCamera
 from quatrack.tracking.pose import Pose
-from quatrack.viewsets.spec import load_spec
-from quatrack.viewsets.train import train_object
 
 CAM = Z.zoo_camera()
 
@@ -41,14 +39,7 @@ def test_a_face_seen_from_far_leaves_its_mirror_pose_as_a_tie():
 
 @pytest.fixture(scope="module")
 def cube(tmp_path_factory):
-    cv2.setRNGSeed(0)
-    bgs = Z.real_backgrounds()
-    spec = load_spec(Z.write_spec("cube-m", tmp_path_factory.mktemp("cube"), 1, grey=False, backgrounds=bgs))
-    model = train_object(spec)
-    sc = Z.random_scene(np.random.default_rng(11), Z.textured("cube-m"), CAM, spec.views[0].pose, bgs, 5.0, 0.0, False)
-    index = ModelIndex(model)
-    m = index.match(index.describe(sc.image))
-    uv = index.describe(sc.image).keypoints[m.query_idx]
+    model, spec, sc, m, uv = zoo_cube_scene(tmp_path_factory.mktemp("cube"), CAM)
     est = solve_pnp(CAM, m.points3d, uv, PoseParams(), (spec.views[0].pose.R, spec.views[0].pose.t, model.mesh.centre))
     assert est is not None
     return model.mesh, cv2.cvtColor(sc.image, cv2.COLOR_BGR2GRAY), sc.pose, m.points3d, uv, est

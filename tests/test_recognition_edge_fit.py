@@ -12,30 +12,19 @@ import cv2
 import numpy as np
 import pytest
 
+from conftest import zoo_cube_scene
 from quatrack.recognition.evidence import edge_fit, measure_edges
-from quatrack.recognition.match import ModelIndex
 from quatrack.recognition.pose import PoseParams, solve_pnp, verification, verify
 from quatrack.testing import scenes as S
 from quatrack.testing import zoo as Z
 from quatrack.tracking.pose import Pose
-from quatrack.viewsets.spec import load_spec
-from quatrack.viewsets.train import train_object
 
 CAM = Z.zoo_camera()
 
 
 @pytest.fixture(scope="module")
 def cube(tmp_path_factory):
-    cv2.setRNGSeed(0)
-    bgs = Z.real_backgrounds()
-    spec = load_spec(Z.write_spec("cube-m", tmp_path_factory.mktemp("cube"), 1, grey=False, backgrounds=bgs))
-    model = train_object(spec)
-    sc = Z.random_scene(np.random.default_rng(11), Z.textured("cube-m"), CAM, spec.views[0].pose, bgs, 5.0, 0.0, False)
-    cv2.setRNGSeed(0)
-    index = ModelIndex(model)
-    feats = index.describe(sc.image)
-    m = index.match(feats)
-    return model, spec, sc, m, feats.keypoints[m.query_idx]
+    return zoo_cube_scene(tmp_path_factory.mktemp("cube"), CAM)
 
 
 def _turned_about_centre(pose: Pose, centre, rotvec, shift=np.zeros(3)) -> Pose:
