@@ -325,15 +325,27 @@ def edge_fit(image: EdgeImage | None, mesh: Mesh, camera: PinholeCamera, pose: P
         q = quat.multiply(quat.exp(0.5 * delta[3:]), q)
         if max(np.linalg.norm(delta[:3]) / (0.05 * mesh.extent), np.degrees(np.linalg.norm(delta[3:])) / 5.0) < 0.01:
             break  # the step is 1 % of the criterion
-    R = quat.to_matrix(q)
-    up, _ = project_model_points(camera, X, p, R, jacobian=False)
+    up, _ = project_model_points(camera, X, p, quat.to_matrix(q), jacobian=False)
     rms = float(np.sqrt(np.mean(np.sum((up - uv) ** 2, axis=1))))
-    c = mesh.centre
-    dc = float(np.linalg.norm((R - pose.R) @ c + p - pose.t))
-    dr = float(np.degrees(quat.angle_between(quat.canonical(q), pose.q_wxyz)))
-    if not np.isfinite(dc + dr + rms):
+    if not (np.isfinite(rms) and np.all(np.isfinite(p)) and np.all(np.isfinite(q))):
         return EdgeFit(k, offset, np.inf, np.inf)
-    return EdgeFit(k, offset, max(dc / (0.05 * mesh.extent), dr / 5.0), rms)
+    return EdgeFit(k, offset, pose_shift(Pose(q, p), pose, mesh), rms)
+
+
+def pose_sd_ratio(centre_sd: float, rotation_sd_deg: float, extent: float) -> float:
+    """The pose's spread against the criterion of a right pose: max(σ_centre / (5 % of the
+    diameter), σ_rotation / 5°). Above 1 the 1σ ellipsoid alone spans the criterion."""
+    return float(max(centre_sd / (0.05 * extent), rotation_sd_deg / 5.0))
+
+
+def pose_shift(a: Pose, b: Pose, mesh: Mesh) -> float:
+    """How far apart two poses of the object are against the criterion of a right pose:
+    ``max(|Δc| / (5 % of the diameter), Δθ / 5°)``, ``c`` the object's centre."""
+    from quatrack.tracking import quaternion as quat
+
+    c = np.asarray(mesh.centre, float)
+    dc = float(np.linalg.norm((a.R @ c + a.t) - (b.R @ c + b.t)))
+    return pose_sd_ratio(dc, float(np.degrees(quat.angle_between(a.q_wxyz, b.q_wxyz))), mesh.extent)
 
 
 def inlier_spread(uv: np.ndarray, area_px: float) -> float:

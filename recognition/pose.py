@@ -26,8 +26,8 @@ from quatrack.viewsets.mesh import Mesh
 
 from quatrack.viewsets.render import render
 
-from .evidence import (EdgeEvidence, EdgeFit, EdgeParams, edge_fit, inlier_spread, measure_edges, scaled_camera,
-                       silhouette_inside)
+from .evidence import (EdgeEvidence, EdgeFit, EdgeParams, edge_fit, inlier_spread, measure_edges, pose_sd_ratio,
+                       pose_shift, scaled_camera, silhouette_inside)
 
 
 @dataclass(frozen=True)
@@ -637,20 +637,6 @@ def _skew(v: np.ndarray) -> np.ndarray:
     return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
-def pose_shift(a: Pose, b: Pose, mesh: Mesh) -> float:
-    """How far apart two poses of the object are against the criterion of a right pose:
-    ``max(|Δc| / (5 % of the diameter), Δθ / 5°)``, ``c`` the object's centre."""
-    c = np.asarray(mesh.centre, float)
-    dc = float(np.linalg.norm((a.R @ c + a.t) - (b.R @ c + b.t)))
-    return pose_sd_ratio(dc, float(np.degrees(quat.angle_between(a.q_wxyz, b.q_wxyz))), mesh.extent)
-
-
-def pose_sd_ratio(centre_sd: float, rotation_sd_deg: float, extent: float) -> float:
-    """The pose's spread against the criterion of a right pose: max(σ_centre / (5 % of the
-    diameter), σ_rotation / 5°). Above 1 the 1σ ellipsoid alone spans the criterion."""
-    return float(max(centre_sd / (0.05 * extent), rotation_sd_deg / 5.0))
-
-
 def inlier_faces(face_ids: np.ndarray, mesh: Mesh, crease_deg: float = 30.0, min_share: float = 0.1) -> int:
     """How many differently oriented surfaces carry the inliers: the inliers' mesh faces
     (``face_ids``, −1 = none) grouped greedily by normal (a group holds normals within
@@ -837,10 +823,7 @@ def rival_inliers(camera: PinholeCamera, X: np.ndarray, uv: np.ndarray, est: PnP
     if found is None:
         return 0
     pose, inl = found
-    c = mesh.centre
-    dt = np.linalg.norm((pose.R @ c + pose.t) - (est.R @ c + est.t))
-    dr = np.degrees(quat.angle_between(pose.q_wxyz, est.q))
-    return int(len(inl)) if (dt > 0.05 * mesh.extent or dr > 5.0) else 0
+    return int(len(inl)) if pose_shift(pose, est.pose, mesh) > 1.0 else 0
 
 
 def verification(

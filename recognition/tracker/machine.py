@@ -719,26 +719,30 @@ class Tracker:
         rendering) in the six frames before it was lost at 19 % inside. Re-acquired near that
         pose, it came back 1.7 % / 6.9° off with edges that agreed (a cube's edges match a turned
         cube) and was reported. After such a loss recognition alone restarts the track."""
-        Xc = pose.apply(self.model.mesh.vertices)
-        if np.all(Xc[:, 2] > 1e-9):
-            uv = self.camera.project(Xc)
-            lo, hi = uv.min(axis=0), uv.max(axis=0)
-            if lo[0] >= 0 and lo[1] >= 0 and hi[0] <= self.camera.width - 1 and hi[1] <= self.camera.height - 1:
-                return True
+        if self._box_in_image(pose) is not None:
+            return True
         return silhouette_inside(self.model.mesh, self.camera, pose)[0] >= self.params.reacquire_min_inside
+
+    def _box_in_image(self, pose: Pose) -> float | None:
+        """The area (px²) of the box round the mesh's projected vertices when every vertex is in
+        front of the camera and projects inside the image (the whole object is in view: the
+        silhouette tests need no render), else None."""
+        Xc = pose.apply(self.model.mesh.vertices)
+        if not np.all(Xc[:, 2] > 1e-9):
+            return None
+        uv = self.camera.project(Xc)
+        lo, hi = uv.min(axis=0), uv.max(axis=0)
+        if lo[0] >= 0 and lo[1] >= 0 and hi[0] <= self.camera.width - 1 and hi[1] <= self.camera.height - 1:
+            return float(np.prod(hi - lo))
+        return None
 
     def _implausible(self, pose: Pose) -> str | None:
         """:func:`recognition.pose.plausible`, whose silhouette render is skipped when every
         vertex projects well inside the image (then the whole object is in view) and the
         projection is large (then its area passes): the common case costs no render."""
-        Xc = pose.apply(self.model.mesh.vertices)
-        if np.all(Xc[:, 2] > 1e-9):
-            uv = self.camera.project(Xc)
-            w, h = self.camera.width, self.camera.height
-            lo, hi = uv.min(axis=0), uv.max(axis=0)
-            inside = lo[0] >= 0 and lo[1] >= 0 and hi[0] <= w - 1 and hi[1] <= h - 1
-            if inside and np.prod(hi - lo) >= 0.05 * w * h:
-                return None
+        area = self._box_in_image(pose)
+        if area is not None and area >= 0.05 * self.camera.width * self.camera.height:
+            return None
         return plausible(self.camera, self.model.mesh, pose, self._plausibility)
 
     def _carried(self, ctx: FrameContext | None, blocks, inl) -> bool:
