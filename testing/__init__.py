@@ -5,8 +5,9 @@ outside every pipeline layer, so that neither ``tests/`` nor ``bench/`` owns wha
 and a non-editable install (the Dockerfile's) still finds them:
 
 - :mod:`.scenes`: the bundled cookie box (``example_store``, ``example_model``, ``Renderer``),
-  real room backgrounds from ``box.mp4`` with the box inpainted away, random scenes and
-  ``pose_errors`` (centre distance and rotation angle to the truth);
+  real room backgrounds from ``box.mp4`` with the box inpainted away (stored as files:
+  :mod:`.backgrounds`), random scenes and ``pose_errors`` (centre distance and rotation angle
+  to the truth);
 - :mod:`.zoo`: eight more objects (boxes, cubes, a cylinder, a prism; meshes in mm, cm and m)
   textured from real photographs, their training specs and degraded scenes;
 - :mod:`.sequences`: smooth trajectories and rendered video sequences with their true poses;

@@ -3,8 +3,9 @@
 The object is rendered at a chosen pose, textured from its registered photo (faces the photo
 does not show get the photo's median object colour), and composited over a background. The
 backgrounds are real: frames of the bundled ``box.mp4`` with the real box inpainted away (where
-it is, is known from a verified pose per frame). Then the image is degraded as a camera would:
-colour cast and gain, blur, noise, JPEG, and optionally an occluding patch.
+it is, is known from a verified pose per frame), stored as files (:mod:`.backgrounds`). Then the
+image is degraded as a camera would: colour cast and gain, blur, noise, JPEG, and optionally an
+occluding patch.
 """
 
 from __future__ import annotations
@@ -80,12 +81,22 @@ def bbox_of(mask: np.ndarray) -> tuple[float, float, float, float]:
     return (float(xs.min()), float(ys.min()), float(xs.max() - xs.min() + 1), float(ys.max() - ys.min() + 1))
 
 
-@lru_cache(maxsize=1)
-def video_backgrounds(video: str = str(EXAMPLE / "box.mp4"), every: int = 23, limit: int = 20) -> tuple[np.ndarray, ...]:
-    """Frames of the bundled video with the real box inpainted away.
+def video_backgrounds(limit: int = 20) -> tuple[np.ndarray, ...]:
+    """The first ``limit`` (at most 20) room backgrounds: frames of the bundled video with the real
+    box inpainted away, frozen as files (:mod:`quatrack.testing.backgrounds`), so that a change
+    to recognition does not redraw the scenes. Read-only arrays shared by every caller."""
+    from .backgrounds import frozen_backgrounds
+
+    return frozen_backgrounds()[:limit]
+
+
+def inpaint_video_backgrounds(video: str = str(EXAMPLE / "box.mp4"), every: int = 23, limit: int = 20) -> tuple[np.ndarray, ...]:
+    """Frames of the bundled video with the real box inpainted away, computed now (~10 s CPU; what
+    ``python -m quatrack.testing.backgrounds`` stores).
 
     The box is found in each frame by whole-image recognition; frames where it is not verified
-    are skipped (the box could not be removed from them).
+    are skipped (the box could not be removed from them). The result depends on where
+    recognition puts the box: benchmarks and tests use the stored :func:`video_backgrounds`.
     """
     from quatrack.recognition.locate import LocateParams, locate
     from quatrack.recognition.match import index_for

@@ -288,10 +288,11 @@ def degrade(img: np.ndarray, rng: np.random.Generator, noise=(1.0, 3.0), blur=(0
 
 
 def real_backgrounds() -> tuple[np.ndarray, ...]:
-    """Real backgrounds: frames of the bundled ``box.mp4`` with the real box inpainted away
-    (:func:`quatrack.testing.scenes.video_backgrounds`; computed once per process, ~25 s: it trains the
-    bundled example to find the box). Crops of the raw frames are no substitute: the box shows
-    up in them, and one zoo object is textured from a photo of that box."""
+    """Real backgrounds: frames of the bundled ``box.mp4`` with the real box inpainted away,
+    frozen as files (:func:`quatrack.testing.scenes.video_backgrounds`,
+    :mod:`quatrack.testing.backgrounds`), so a change to recognition leaves the zoo's scenes and
+    models as they were. Crops of the raw frames are no substitute: the box shows up in them, and
+    one zoo object is textured from a photo of that box."""
     from .scenes import video_backgrounds
 
     return video_backgrounds()

@@ -59,3 +59,38 @@ def test_written_spec_loads_with_its_views(tmp_path):
     assert photo.shape == (480, 640)  # grey: one channel
     mask = cv2.imread(str(spec.views[2].mask_path), cv2.IMREAD_GRAYSCALE)
     assert mask.any()
+
+
+def test_backgrounds_are_frozen_files_installed_as_package_data(monkeypatch):
+    """The scenes' room backgrounds are stored files (a change to recognition must not redraw
+    the benchmark's scenes), loaded without running recognition, and listed as package data so
+    a non-editable install has them."""
+    import fnmatch
+    import tomllib
+    from pathlib import Path
+
+    from quatrack.recognition import locate as L
+    from quatrack.testing import backgrounds as B
+    from quatrack.testing import scenes as S
+
+    def no_locate(*a, **k):
+        raise AssertionError("backgrounds must be loaded, not recomputed by locate")
+
+    monkeypatch.setattr(L, "locate", no_locate)
+    B.frozen_backgrounds.cache_clear()
+    bgs = S.video_backgrounds()
+    assert len(bgs) == B.COUNT == 20
+    assert all(a is b for a, b in zip(Z.real_backgrounds(), bgs, strict=True))  # one set, loaded once
+    assert all(a is b for a, b in zip(S.video_backgrounds(limit=4), bgs[:4], strict=True))
+    for bg in bgs:
+        assert bg.shape == (480, 640, 3) and bg.dtype == np.uint8 and not bg.flags.writeable
+        assert bg.std() > 20  # a photograph, not a blank frame
+    files = B.background_paths()
+    assert sum(p.stat().st_size for p in files) < 1_000_000
+    assert (B.DATA / "README.md").is_file()  # source and licence
+    pyproject = tomllib.loads((Path(__file__).resolve().parents[1] / "pyproject.toml").read_text())
+    patterns = pyproject["tool"]["setuptools"]["package-data"]["quatrack.testing"]
+    root = B.DATA.parents[1]  # the quatrack.testing package folder
+    for p in [*files, B.DATA / "README.md"]:
+        rel = p.relative_to(root).as_posix()
+        assert any(fnmatch.fnmatch(rel, pat) for pat in patterns), f"{rel} is not package data"
