@@ -16,7 +16,7 @@ array([[360., 220.]])
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -62,6 +62,15 @@ class PinholeCamera:
     def matrix(self) -> np.ndarray:
         """The 3×3 camera matrix ``K``."""
         return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    def cropped(self, x0: int, y0: int, x1: int, y1: int) -> "PinholeCamera":
+        """The same camera seeing only the pixel box ``[x0, x1) × [y0, y1)``: the principal point
+        moves by the box's corner, so every pixel of the crop has the ray it had in the image.
+
+        >>> PinholeCamera(800.0, 800.0, 320.0, 240.0, width=640, height=480).cropped(100, 50, 300, 250).project([[0.0, 0.0, 1.0]])
+        array([[220., 190.]])
+        """
+        return replace(self, cx=self.cx - x0, cy=self.cy - y0, width=int(x1 - x0), height=int(y1 - y0))
 
     def project(self, X_cam: np.ndarray) -> np.ndarray:
         """Pixel coordinates (n, 2) of points (n, 3) given in *this* camera's frame."""

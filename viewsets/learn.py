@@ -105,7 +105,7 @@ def learned_viewset(label: str, image: np.ndarray, feature_mask: np.ndarray, cam
     x0, y0 = max(int(xs.min()) - m, 0), max(int(ys.min()) - m, 0)
     x1, y1 = min(int(xs.max()) + m + 1, w), min(int(ys.max()) + m + 1, h)
     crop = np.ascontiguousarray(image[y0:y1, x0:x1])
-    cam = dataclasses.replace(camera, cx=camera.cx - x0, cy=camera.cy - y0, width=x1 - x0, height=y1 - y0)
+    cam = camera.cropped(x0, y0, x1, y1)
     rows, cols = slice(y0 - win[1], y1 - win[1]), slice(x0 - win[0], x1 - win[0])  # (inside the window)
     buf = RenderBuffers(buffers.depth[rows, cols], buffers.face[rows, cols])
     mask = np.where((np.asarray(feature_mask)[y0:y1, x0:x1] > 0) & (buf.face >= 0), 255, 0).astype(np.uint8)
