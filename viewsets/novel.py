@@ -8,7 +8,7 @@ get no keypoints.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -16,7 +16,8 @@ import numpy as np
 from quatrack.tracking.camera import PinholeCamera
 
 from .mesh import Mesh
-from .render import RenderBuffers, pixel_rays, render
+from .render import RenderBuffers, footprint, pixel_rays, render
+from .viewset import Viewset, ViewsetParams, build_viewset
 from quatrack.tracking.pose import Pose
 
 BACKGROUND = 127  # neutral grey: keypoints are taken only well inside the textured mask anyway
@@ -134,3 +135,53 @@ def render_textured_view(
                     borderValue=(BACKGROUND,) * 3)
     img[~textured] = BACKGROUND
     return img, textured.astype(np.uint8) * 255, buf
+
+
+def turned_about_view(pose: Pose, centre: np.ndarray, angles_deg: tuple[float, ...]) -> list[tuple[str, Pose]]:
+    """Labelled poses of the object turned by ``±a`` (each ``a`` in ``angles_deg``) about the
+    *camera's* x and y axes through the object's centre ``c``: what a camera moving round the
+    object (up, down, left, right) sees next. About camera axis ``e`` the rotation is
+    ``R' = exp(a[e]×)·R``, i.e. the object-frame rotation vector ``a·Rᵀe`` of
+    :func:`rotate_about_centre`; the centre's camera position ``R c + t`` stays.
+
+    >>> p = Pose.from_rvec([0.0, 0.0, 0.0], [0.0, 0.0, 5.0])
+    >>> [(lab, np.round(np.degrees(q.rvec), 1).tolist()) for lab, q in turned_about_view(p, np.zeros(3), (20.0,))]
+    [('camx+20', [20.0, 0.0, 0.0]), ('camx-20', [-20.0, 0.0, 0.0]), ('camy+20', [0.0, 20.0, 0.0]), ('camy-20', [0.0, -20.0, 0.0])]
+    """
+    c = np.asarray(centre, float)
+    out = []
+    for i, axis in enumerate("xy"):
+        e = np.zeros(3)
+        e[i] = 1.0
+        for a in angles_deg:
+            for sgn in (1, -1):
+                out.append((f"cam{axis}{sgn * a:+g}", rotate_about_centre(pose, c, pose.R.T @ e * np.radians(sgn * a))))
+    return out
+
+
+def synthetic_viewset(label: str, mesh: Mesh, groups: np.ndarray, src_image: np.ndarray, src_camera: PinholeCamera,
+                      src_pose: Pose, camera: PinholeCamera, pose: Pose, params: ViewsetParams,
+                      min_source_cos: float = 0.3, margin_px: int = 16) -> Viewset | None:
+    """The viewset of the object at ``pose`` in ``camera``, textured from ``src_image`` (seen by
+    ``src_camera`` at ``src_pose``: any crop of a frame, :meth:`PinholeCamera.cropped`) as
+    :func:`render_textured_view` does, but rendered and described only over the object's box
+    (plus ``margin_px``) — the same rays, a fraction of the pixels: ~15 ms instead of ~100 ms
+    for a 640×480 frame. Keypoints are returned in ``camera``'s pixels, the viewset flagged
+    ``synthetic`` and ``learned`` (made at run time, not by training). None when the object is
+    not in view or nothing of it is textured."""
+    box = footprint(mesh, camera, pose)
+    if box is None:
+        return None
+    w, h = int(camera.width), int(camera.height)
+    x0, y0 = max(box[0] - margin_px, 0), max(box[1] - margin_px, 0)
+    x1, y1 = min(box[2] + margin_px, w), min(box[3] + margin_px, h)
+    win = camera.cropped(x0, y0, x1, y1)
+    src_buffers = render(mesh, src_camera, src_pose)
+    img, textured, buf = render_textured_view(mesh, groups, src_image, src_camera, src_pose, src_buffers, win, pose,
+                                              min_source_cos)
+    if not textured.any():
+        return None
+    vs = build_viewset(label, -1, True, img, textured, win, pose, mesh, buf, params)
+    bx, by, bw, bh = vs.bbox
+    return replace(vs, camera=camera, keypoints=(vs.keypoints + np.array([x0, y0], np.float32)).astype(np.float32),
+                   bbox=(bx + x0, by + y0, bw, bh), learned=True)
