@@ -53,6 +53,11 @@ class LocateParams:
     # model describes its own. A single model is searched exactly as before
     fallback_scale_steps: int | None = 4
     viewsets_tried: int = 2  # the best and the runner-up
+    # each tried viewset's matches found again against that view alone (ModelIndex.match_view)
+    # instead of the shared index's share of them: for models with many near-identical views
+    # (the tracker's keyframes and their synthetic views), whose votes split between them
+    rematch_views: bool = False
+    prefer_tried: int = 8  # locate(prefer=…): that many of the preferred views are tried, the most matched first
     pool_all: bool = True  # then all matches of every viewset together
     whole_image_fallback: bool = True
     # RANSAC on few matches stops after the draws that would have found a consensus of
@@ -136,27 +141,36 @@ class _Search:
 
 def _pose_from(
     features: Features, index: ModelIndex, model: ObjectModel, camera: PinholeCamera,
-    window: tuple | None, params: LocateParams, timer: dict, grey: np.ndarray,
+    window: tuple | None, params: LocateParams, timer: dict, grey: np.ndarray, prefer=None,
 ) -> _Search:
     """Match, rank viewsets by votes, PnP on the best one's matches (then the runner-up's, then
-    all matches pooled); the first pose that passes the geometric checks and the image evidence
-    wins (a rival consensus among the other matches counts against it)."""
+    the most matched of ``prefer``, then all matches pooled); the first pose that passes the
+    geometric checks and the image evidence wins (a rival consensus among the other matches
+    counts against it)."""
     t0 = time.perf_counter()
     matches = index.match(features)
     ranked = rank_viewsets(matches, len(model.viewsets))
+    views = ranked[: params.viewsets_tried]
+    own = {v: index.match_view(features, v) for v in views} if params.rematch_views else {}
+    if prefer is not None and len(prefer):
+        # the preferred views, each re-matched alone, the most matched first
+        extra = {int(v): index.match_view(features, int(v)) for v in prefer if int(v) not in views}
+        order = sorted(extra, key=lambda v: -len(extra[v]))[: params.prefer_tried]
+        own.update((v, extra[v]) for v in order)
+        views = views + order
     timer["match"] = timer.get("match", 0.0) + (time.perf_counter() - t0) * 1e3
     t0 = time.perf_counter()
-    trials = [(model.viewsets[v].label, np.flatnonzero(matches.viewset == v)) for v in ranked[: params.viewsets_tried]]
-    if params.pool_all and ranked:
-        trials.append((model.viewsets[ranked[0]].label, np.arange(len(matches))))
+    trials = [(model.viewsets[v].label, np.flatnonzero(matches.viewset == v), own.get(v)) for v in views]
+    if params.pool_all and ranked:  # (the shared index's matches)
+        trials.append((model.viewsets[ranked[0]].label, np.arange(len(matches)), None))
     out = _Search(None, len(trials[0][1]) if trials else 0, "no viewset has enough matches",
                   trials[0][0] if trials else None)
     uv_all = features.keypoints[matches.query_idx] if len(matches) else np.zeros((0, 2))
     try:
-        for label, keep in trials:
+        for label, keep, alone in trials:
+            m, keep = (matches.subset(keep), keep) if alone is None else (alone, np.arange(len(alone)))
             if len(keep) < params.pose.min_inliers:
                 continue
-            m = matches.subset(keep)
             vs = model.viewsets[int(np.bincount(m.viewset).argmax())]
             prior = (vs.pose.R, vs.pose.t, model.mesh.centre)
             uv = features.keypoints[m.query_idx]
@@ -173,12 +187,14 @@ def _pose_from(
                 out.reason = f"{why} (viewset {label})"
                 continue
             # a rival: the best other consensus among all matches that are not this pose's inliers
-            inl_all = keep[est.inliers]
+            # (as rows of all matches; a re-matched view's inliers by their query features)
+            inl_all = keep[est.inliers] if alone is None else \
+                np.flatnonzero(np.isin(matches.query_idx, m.query_idx[est.inliers]))
             rest = np.setdiff1d(np.arange(len(matches)), inl_all)
             # measured only if the pose passes the cheaper checks before the rival's (a RANSAC)
             rival = (lambda inl_all=inl_all, est=est: rival_inliers(
                 camera, matches.points3d, uv_all, PnPSolution(est.pose, est.covariance, inl_all, est.rms_px),
-                model.mesh, params.pose)) if len(rest) >= params.pose.min_inliers else 0
+                model.mesh, params.pose, grey)) if len(rest) >= params.pose.min_inliers else 0
             ver = verification(est, grey, camera, model.mesh, uv, params.pose, rival, m.points3d)
             out.verification = ver
             if ver.passed:
@@ -268,7 +284,7 @@ def shared_features(shared: dict, key, scale: float, steps: int | None, describe
 
 def _describe_and_pose(img, box, scale: float, index: ModelIndex, model: ObjectModel, camera: PinholeCamera,
                        window: tuple | None, params: LocateParams, timer: dict, grey: np.ndarray,
-                       shared: dict | None = None) -> _Search:
+                       shared: dict | None = None, prefer=None) -> _Search:
     """SIFT of ``img`` (its crop ``box``, or all of it) shrunk by ``scale``, then the pose search.
     ``shared``: features of whole-image passes already described for this image (by SIFT
     parameters and scale), read and filled in (:func:`locate_all`)."""
@@ -279,12 +295,12 @@ def _describe_and_pose(img, box, scale: float, index: ModelIndex, model: ObjectM
         feats = shared_features(shared, (img.shape, index.viewset_params), float(scale), params.fallback_scale_steps,
                                 lambda s: index.describe(img, None, scale=s))
     timer["match"] += (time.perf_counter() - t0) * 1e3
-    return _pose_from(feats, index, model, camera, window, params, timer, grey)
+    return _pose_from(feats, index, model, camera, window, params, timer, grey, prefer)
 
 
 def locate(
     image: np.ndarray, camera: PinholeCamera, model: ObjectModel, params: LocateParams = LocateParams(),
-    index: ModelIndex | None = None, shared: dict | None = None,
+    index: ModelIndex | None = None, shared: dict | None = None, prefer=None,
 ) -> Located:
     """Find ``model`` in ``image`` (any bit depth/channels) seen by ``camera``; never raises for
     an image without the object (``found`` is False), raises ImageError for an unusable image.
@@ -293,7 +309,11 @@ def locate(
     once per loaded model and cached); pass it when calling in a loop. ``shared``: a dict kept
     across the calls for *one* image (several models, :func:`locate_all`): the whole-image
     fallback reuses a pass described for another model at the same or a slightly finer scale
-    (:func:`shared_features`).
+    (:func:`shared_features`). ``prefer``: indices of viewsets where the caller expects the
+    object (the tracker: its latest keyframes' views, as an object lost in a video mostly comes
+    back near where it went); after the best-voted views, ``params.prefer_tried`` of them are
+    tried too, each re-matched alone, the most matched first: texture repeated on other faces
+    can outvote the right view by 3 to 1 (a zoo cube seen 30° beyond its last keyframe).
 
     Examples
     --------
@@ -352,10 +372,10 @@ def locate(
     if win is not None and win.found:
         box = _crop_box(win.bbox, params.margin, w, h)
         scale = sift_scale(win.bbox, params.sift_object_px)
-        res = _describe_and_pose(img, box, scale, index, model, cam, win.bbox, params, timer, grey)
+        res = _describe_and_pose(img, box, scale, index, model, cam, win.bbox, params, timer, grey, prefer=prefer)
         if res.est is None and scale < 1.0 and params.retry_full_resolution:
             first = res
-            res = _describe_and_pose(img, box, 1.0, index, model, cam, win.bbox, params, timer, grey)
+            res = _describe_and_pose(img, box, 1.0, index, model, cam, win.bbox, params, timer, grey, prefer=prefer)
             if res.verification is None:
                 res.verification = first.verification
     # the whole image is searched when there is no window search, or when the window looked
@@ -369,7 +389,7 @@ def locate(
         if window_failed and params.fallback_object_px is not None:
             scale = min(scale, sift_scale((0, 0, typical_object_px(model, w), 0), params.fallback_object_px))
         first = res
-        res = _describe_and_pose(img, None, scale, index, model, cam, None, params, timer, grey, shared)
+        res = _describe_and_pose(img, None, scale, index, model, cam, None, params, timer, grey, shared, prefer)
         if res.verification is None:
             res.verification = first.verification
     est = res.est

@@ -16,6 +16,7 @@ from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
+from scipy.spatial.distance import cdist
 
 from quatrack.viewsets.features import Features
 from quatrack.viewsets.mesh import surface_normals
@@ -78,6 +79,7 @@ class ModelIndex:
         self.point_tol = params.same_point_tol * float(model.mesh.extent)
         self.normals = surface_normals(model.mesh, self.points3d)
         self._local = threading.local()  # cv2 matchers are not safe to share across threads
+        self._views: dict[int, tuple] = {}  # match_view's per-view arrays (a dict's item set is atomic)
 
     def _matcher(self) -> cv2.flann_Index:
         """This thread's FLANN k-d forest over all descriptors (built on first use)."""
@@ -146,6 +148,43 @@ class ModelIndex:
         r = rows[q, 0]
         d = dist[q, 0]
         # one model point may be the nearest of several query features: keep the closest
+        order = np.argsort(d, kind="stable")
+        q, r, d = q[order], r[order], d[order]
+        _, first = np.unique(r, return_index=True)
+        q, r, d = q[first], r[first], d[first]
+        return Matches(q, r, self.row_viewset[r], self.points3d[r], self.normals[r], d)
+
+    def match_view(self, features: Features, v: int) -> Matches:
+        """Ratio-tested matches of ``features`` to viewset ``v`` alone (exhaustive: a view holds
+        a few hundred descriptors).
+
+        Why: in the shared index one physical point is described by every view that sees it,
+        and each query feature votes only for the view of its nearest neighbour, so a point
+        seen by ten near-identical views (a keyframe's synthetic views) lends the right view a
+        tenth of its vote and its matches. :meth:`match` still ranks the views; re-matched
+        alone, the chosen view gets back all the matches it can give (a turned cube: 10 → 35).
+        The ratio test's second neighbour is the nearest of *another* 3-D point of that view,
+        as in :meth:`match`."""
+        view = self._views.get(v)
+        if view is None:  # (per view, once: its rows, descriptors, their norms, which points differ)
+            rows = np.flatnonzero(self.row_viewset == v)
+            P = self.points3d[rows]
+            D = self.descriptors[rows]
+            view = self._views[v] = (rows, D, (D * D).sum(1), cdist(P, P) > self.point_tol)
+        rows, D, DD, differ = view
+        empty = Matches(np.zeros(0, int), np.zeros(0, int), np.zeros(0, int), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0))
+        if len(features) == 0 or len(rows) < 2:
+            return empty
+        Q = np.asarray(features.descriptors, np.float32)
+        # squared L2 by ‖q‖² − 2 q·d + ‖d‖² (one matrix product)
+        d2 = np.maximum((Q * Q).sum(1)[:, None] - 2.0 * Q @ D.T + DD[None, :], 0.0)
+        nearest = np.argmin(d2, axis=1)
+        other = differ[nearest]  # (query, view point): another 3-D point
+        second = np.where(other, d2, np.inf).min(axis=1)
+        d1 = d2[np.arange(len(Q)), nearest]
+        good = d1 < (self.params.ratio**2) * second
+        q = np.flatnonzero(good)
+        r, d = rows[nearest[q]], np.sqrt(d1[q])
         order = np.argsort(d, kind="stable")
         q, r, d = q[order], r[order], d[order]
         _, first = np.unique(r, return_index=True)

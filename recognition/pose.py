@@ -825,10 +825,14 @@ def edge_reason(edges: EdgeEvidence, params: PoseParams = PoseParams()) -> str |
 
 
 def rival_inliers(camera: PinholeCamera, X: np.ndarray, uv: np.ndarray, est: PnPSolution, mesh: Mesh,
-                  params: PoseParams = PoseParams()) -> int:
+                  params: PoseParams = PoseParams(), grey: np.ndarray | None = None) -> int:
     """Inliers of the best *different* pose among the matches that are not ``est``'s inliers (a
     second consensus: repeated texture, a symmetric object). 0 if none; a rival differs by more
-    than 5 % of the diameter or 5°."""
+    than 5 % of the diameter or 5°. With ``grey`` (the 8-bit grey image), a rival must also have
+    the image's edges on its model edges (:func:`edge_reason`): texture repeated on another face
+    makes a consensus whose outline is not in the image, and then the shape has told the two
+    apart (a zoo cube seen 30° beyond its tracker's last keyframe: the right pose had 21
+    inliers, the repeated texture's 84 with 27 % of its edges on image edges)."""
     rest = np.setdiff1d(np.arange(len(X)), est.inliers)
     if len(rest) < max(6, params.min_inliers // 2):
         return 0
@@ -836,7 +840,11 @@ def rival_inliers(camera: PinholeCamera, X: np.ndarray, uv: np.ndarray, est: PnP
     if found is None:
         return 0
     pose, inl = found
-    return int(len(inl)) if pose_shift(pose, est.pose, mesh) > 1.0 else 0
+    if pose_shift(pose, est.pose, mesh) <= 1.0:
+        return 0
+    if grey is not None and edge_reason(measure_edges(grey, mesh, camera, pose, params.edges)[0], params) is not None:
+        return 0
+    return int(len(inl))
 
 
 def verification(

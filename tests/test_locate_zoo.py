@@ -252,24 +252,31 @@ def test_a_pose_carried_by_one_face_and_wrong_is_refused(cube, bgs):
     assert ok.confidence > ver.confidence
 
 
-def test_a_symmetric_objects_turned_pose_is_refused_by_its_rival(bgs):
-    """The hexagonal prism turned by 60° about its axis has the same outline and edges: only
-    the matches can tell. Matches relabelled by the turn (all of them) outvote the true ones
-    (85 % of them): PnP takes the turned pose, and the true consensus among the other matches
-    is its rival."""
-    from quatrack.recognition.pose import rival_inliers
-
+@pytest.fixture(scope="module")
+def hex_scene(bgs):
+    """The hexagonal prism trained from one grey photo, a grey scene of it 5° from that view, and
+    its matches: ``(model, scene, X, uv)``."""
     name = "hex-prism-m"
-    obj = Z.textured(name)
     cv2.setRNGSeed(0)
     import tempfile
 
     with tempfile.TemporaryDirectory() as tmp:
         spec = load_spec(Z.write_spec(name, tmp, 1, grey=True, backgrounds=bgs))
         model = train_object(spec)
-    mesh = model.mesh
     sc = _scene(name, spec, bgs, 5, angle=5.0, grey=True)
-    X, uv, m = _matches(model, sc.image)
+    X, uv, _ = _matches(model, sc.image)
+    return model, sc, X, uv
+
+
+def test_a_symmetric_objects_turned_pose_is_refused_by_its_rival(hex_scene):
+    """The hexagonal prism turned by 60° about its axis has the same outline and edges: only
+    the matches can tell. Matches relabelled by the turn (all of them) outvote the true ones
+    (85 % of them): PnP takes the turned pose, and the true consensus among the other matches
+    is its rival — whose outline the image shows, so it counts even when the edges are asked."""
+    from quatrack.recognition.pose import rival_inliers
+
+    model, sc, X, uv = hex_scene
+    mesh = model.mesh
     assert len(X) >= 30
     turn = cv2.Rodrigues(np.array([0.0, 0.0, np.radians(60.0)]))[0]  # the prism's axis is its z
     c0 = mesh.centre
@@ -283,10 +290,38 @@ def test_a_symmetric_objects_turned_pose_is_refused_by_its_rival(bgs):
     assert dr > 50.0  # the larger, turned consensus (RANSAC is seeded)
     rival = rival_inliers(CAM, X_all, uv_all, est, mesh)
     assert rival >= 0.8 * len(est.inliers)
-    ver = verification(est, sc.image if sc.image.ndim == 2 else cv2.cvtColor(sc.image, cv2.COLOR_BGR2GRAY),
-                       CAM, mesh, uv_all, PoseParams(), rival)
+    grey = sc.image if sc.image.ndim == 2 else cv2.cvtColor(sc.image, cv2.COLOR_BGR2GRAY)
+    assert rival_inliers(CAM, X_all, uv_all, est, mesh, grey=grey) == rival
+    ver = verification(est, grey, CAM, mesh, uv_all, PoseParams(), rival)
     assert ver.edges.agreement > 0.5  # the outline cannot tell …
     assert not ver.passed and "another pose" in ver.reason  # … the rival does
+
+
+def test_a_rival_whose_outline_is_not_in_the_image_does_not_count(hex_scene):
+    """Texture repeated elsewhere on an object makes a second consensus at a pose whose outline
+    the image does not show (here: the true matches' image points claimed again by model points
+    shifted 40 % of the diameter along the prism's axis, 85 % of them). Counted blindly, that
+    rival refuses the right pose; asked whether the image's edges lie on its model edges, it is
+    no rival, and the right pose passes."""
+    from quatrack.recognition.pose import rival_inliers
+
+    model, sc, X, uv = hex_scene
+    mesh = model.mesh
+    X_shifted = X + np.array([0.0, 0.0, 0.4 * mesh.extent])
+    keep = np.random.default_rng(1).random(len(X)) < 0.85
+    X_all = np.vstack([X, X_shifted[keep]])
+    uv_all = np.vstack([uv, uv[keep]])
+    cv2.setRNGSeed(0)
+    est = solve_pnp(CAM, X_all, uv_all)
+    assert est is not None and _correct(_Answer(est.t, est.q), sc.pose, mesh)  # the larger, true consensus
+    grey = sc.image if sc.image.ndim == 2 else cv2.cvtColor(sc.image, cv2.COLOR_BGR2GRAY)
+    blind = rival_inliers(CAM, X_all, uv_all, est, mesh)
+    assert blind >= PoseParams().max_rival_ratio * len(est.inliers)
+    refused = verification(est, grey, CAM, mesh, uv_all, PoseParams(), blind)
+    assert not refused.passed and "another pose" in refused.reason
+    assert rival_inliers(CAM, X_all, uv_all, est, mesh, grey=grey) == 0
+    ver = verification(est, grey, CAM, mesh, uv_all, PoseParams(), 0)
+    assert ver.passed, ver.reason
 
 
 def test_locate_never_reports_a_wrong_pose_on_zoo_scenes(cube, bgs):
