@@ -19,6 +19,7 @@ from quatrack.testing.sequences import box_sequence, clutter_background
 from quatrack.cli import main
 from quatrack.recognition.klt import make_frame, track_points
 from quatrack.recognition.match import index_for
+from quatrack.recognition.tracker.keyframes import Capture
 from quatrack.recognition.video import Tracker, TrackerParams
 from quatrack.recognition.visibility import visible_points
 from quatrack.tracking import quaternion as quat
@@ -205,7 +206,7 @@ def test_learned_views_are_asked_for_from_the_executor_without_a_deadlock(world)
                       index=world["index"], executor=pool)
 
     def store():  # as service/learning.py does, on the pool, with a capture queued behind it
-        tracker._capture_job = (pool.submit(time.sleep, 0.0), None, True, 0.0, None)
+        tracker._capture_job = Capture(None, True, 0.0, None, future=pool.submit(time.sleep, 0.0))
         return tracker.learned_viewsets()
 
     try:

@@ -16,8 +16,21 @@ video lost). The tracker remembers instead: while it tracks with a confident pos
 - at most ``keyframes_max``: the oldest goes.
 
 After a loss the tracker's recognition searches the model's views and the keyframes together
-(:meth:`Keyframes.search_model`: one FLANN index over all of them), with recognition's own
+(:meth:`Keyframes.refind_model`: one FLANN index over all of them), with recognition's own
 window search, pose search and verification: one search per frame, whichever view is nearest.
+
+SIFT matches a view only so far round (~20–30° for a textured face). An object that left the
+frame comes back turned, and a camera moving round it soon sees its sides from further than that
+from every keyframe: on the zoo walks the sides were 25–40° from the nearest keyframe after the
+slide out of the frame, and nothing re-found them. So each keyframe keeps its frame's crop of the
+object, and after a loss it gains *synthetic views* (:meth:`Keyframes.synthesise`): the crop
+re-rendered on the mesh at the keyframe's pose turned by ``±a`` about the camera's x and y axes
+(:func:`quatrack.viewsets.novel.turned_about_view`; the planar faces warped by the homographies
+they induce, as training's novel views are), described and lifted like any view. They are made
+lazily, a few keyframes per lost frame (the most recent first), since a run that is never lost
+never needs them; re-anchoring while tracking does not search them
+(:meth:`Keyframes.search_model`). Near-identical views split the shared index's votes, so the
+tracker's recognition re-matches each tried view alone (``LocateParams.rematch_views``).
 
 Keyframes live in memory for the run only; the stored model changes only through learned views
 (``TrackerParams.learn``), whose rules are stricter because they outlive the run.
@@ -25,13 +38,18 @@ Keyframes live in memory for the run only; the stored model changes only through
 
 from __future__ import annotations
 
+from concurrent.futures import Future
 from dataclasses import dataclass, replace
 
 import numpy as np
 
+from quatrack.tracking.camera import PinholeCamera
 from quatrack.tracking.pose import Pose
+from quatrack.viewsets.mesh import Mesh, planar_groups
+from quatrack.viewsets.novel import synthetic_viewset, turned_about_view
+from quatrack.viewsets.render import footprint
 from quatrack.viewsets.store import ObjectModel
-from quatrack.viewsets.viewset import Viewset
+from quatrack.viewsets.viewset import Viewset, ViewsetParams
 
 from ..match import ModelIndex
 
@@ -44,6 +62,40 @@ class Keyframe:
     time_s: float
     direction: np.ndarray
     viewset: Viewset
+    # the frame's crop of the object and the camera of that crop (PinholeCamera.cropped), to
+    # render synthetic views from; None: none kept
+    crop: np.ndarray | None = None
+    crop_camera: PinholeCamera | None = None
+    synthetic: tuple[Viewset, ...] | None = None  # made by Keyframes.synthesise (None: not yet)
+
+
+@dataclass
+class Capture:
+    """A view the tracker is keeping (``Tracker._capture``): the keyframe slot it goes to (None:
+    not a keyframe), whether it is also learned, when and at which pose it was seen, the
+    frame's crop of the object (for :meth:`Keyframes.synthesise`; keyframes only) and, while
+    its lifting runs on the executor, the future that returns its :class:`Viewset`."""
+
+    slot: int | None
+    learn: bool
+    time_s: float
+    pose: Pose
+    crop: np.ndarray | None = None
+    crop_camera: PinholeCamera | None = None
+    future: Future | None = None
+
+
+def object_crop(image: np.ndarray, camera: PinholeCamera, mesh: Mesh, pose: Pose,
+                margin_px: int = 16) -> tuple[np.ndarray | None, PinholeCamera | None]:
+    """A copy of the object's box in ``image`` (its mesh's :func:`~quatrack.viewsets.render.footprint`
+    at ``pose``, plus ``margin_px``) and the camera of that crop; ``(None, None)`` if not in view."""
+    box = footprint(mesh, camera, pose)
+    if box is None:
+        return None, None
+    h, w = image.shape[:2]
+    x0, y0 = max(box[0] - margin_px, 0), max(box[1] - margin_px, 0)
+    x1, y1 = min(box[2] + margin_px, w), min(box[3] + margin_px, h)
+    return image[y0:y1, x0:x1].copy(), camera.cropped(x0, y0, x1, y1)
 
 
 class Keyframes:
@@ -56,6 +108,8 @@ class Keyframes:
         self.renew_s = float(renew_s)
         self.items: list[Keyframe] = []
         self._search: tuple[ObjectModel, ModelIndex, ObjectModel] | None = None  # (base, index, model)
+        self._refind: tuple | None = None  # the same with synthetic views, + the latest keyframes' views
+        self._groups: tuple[Mesh, np.ndarray] | None = None  # the mesh's planar groups (texturing)
 
     def __len__(self) -> int:
         return len(self.items)
@@ -96,7 +150,7 @@ class Keyframes:
             self.items.append(keyframe)
             if len(self.items) > self.max:
                 self.items.pop(int(np.argmin([k.time_s for k in self.items])))
-        self._search = None
+        self._search = self._refind = None
 
     def search_model(self, base: ObjectModel) -> tuple[ObjectModel, ModelIndex]:
         """``base`` with the keyframes added to its viewsets (labelled ``keyframeK``), and its
@@ -107,3 +161,45 @@ class Keyframes:
             model = replace(base, viewsets=list(base.viewsets) + views)
             cached = self._search = (base, ModelIndex(model), model)
         return cached[2], cached[1]
+
+    def refind_model(self, base: ObjectModel, recent: int = 2) -> tuple[ObjectModel, ModelIndex, np.ndarray]:
+        """:meth:`search_model` plus the keyframes' synthetic views made so far (labelled
+        ``keyframeK-camy+20`` …): what recognition searches after a loss; and the indices (in
+        that model's viewsets) of the views of the ``recent`` latest keyframes, for
+        ``locate(prefer=…)``: an object lost in a video mostly comes back near where it went."""
+        cached = self._refind
+        if cached is None or cached[0] is not base:
+            views, owner = [], []
+            for i, k in enumerate(self.items):
+                views.append(replace(k.viewset, label=f"keyframe{i + 1}"))
+                views += [replace(v, label=f"keyframe{i + 1}-{v.label}") for v in k.synthetic or ()]
+                owner += [i] * (1 + len(k.synthetic or ()))
+            model = replace(base, viewsets=list(base.viewsets) + views)
+            latest = np.argsort([-k.time_s for k in self.items], kind="stable")[:recent]
+            prefer = len(base.viewsets) + np.flatnonzero(np.isin(owner, latest))
+            cached = self._refind = (base, ModelIndex(model), model, prefer)
+        return cached[2], cached[1], cached[3]
+
+    def synthesise(self, mesh: Mesh, params: ViewsetParams, angles_deg: tuple[float, ...], budget: int,
+                   min_cos: float = 0.3) -> int:
+        """Make the synthetic views (see the module) of at most ``budget`` keyframes that have a
+        crop and none yet, the most recent first; returns how many keyframes got them. A view
+        with fewer than 12 lifted keypoints is not kept (12: recognition's minimum inliers)."""
+        todo = sorted((i for i, k in enumerate(self.items) if k.synthetic is None and k.crop is not None),
+                      key=lambda i: -self.items[i].time_s)[:max(int(budget), 0)]
+        if not todo:
+            return 0
+        if self._groups is None or self._groups[0] is not mesh:
+            self._groups = (mesh, planar_groups(mesh))
+        groups = self._groups[1]
+        for i in todo:
+            k = self.items[i]
+            pose, camera = k.viewset.pose, k.viewset.camera
+            made = []
+            for label, turned in turned_about_view(pose, self.centre, angles_deg):
+                vs = synthetic_viewset(label, mesh, groups, k.crop, k.crop_camera, pose, camera, turned, params, min_cos)
+                if vs is not None and len(vs) >= 12:
+                    made.append(vs)
+            self.items[i] = replace(k, synthetic=tuple(made))
+        self._refind = None
+        return len(todo)

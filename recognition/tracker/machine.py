@@ -65,7 +65,7 @@ from .anchor import Anchor, AnchorJob
 from .params import INITIAL_VELOCITY_SIGMA, TrackerParams, TrackStep
 from .points import PointBlock, Tracks, mahalanobis2, score_statistic
 from .edges import ModelEdges, fit_image
-from .keyframes import Keyframe, Keyframes
+from .keyframes import Capture, Keyframe, Keyframes, object_crop
 from .mesh_points import MeshPoints, birth_mask, confident
 from .reacquire import LastSeen, hull_mask, object_shift, shifted_pose
 from .sources import FrameContext, MeasurementSource, TrainedPoints, follow_together
@@ -119,6 +119,9 @@ class Tracker:
         self._keyframe_wait = 0
         self._frame = -1
         self._pending: tuple[Pose, float | None] | None = None
+        # the track was started on this run's keyframes (re-found after a loss), not on the model's
+        # own views nor the user's pose: it keeps no view (TrackerParams.capture_second_hand)
+        self._second_hand = False
         self.reset()
         if params.pipelined_refresh and params.refresh_every and executor is not None:
             executor.submit(lambda: self._index()._matcher())  # warm the anchor thread's index
@@ -138,7 +141,7 @@ class Tracker:
         self._tracked = 0  # frames tracked since the last (re-)initialisation
         self._probation = 0  # frames left in which the edges must confirm every pose
         self._seen: LastSeen | None = None  # the last good frame before the latest loss (_reacquire)
-        self._capture_job = None  # a view being lifted on the executor (_capture): (future, slot, learn, t, pose)
+        self._capture_job: Capture | None = None  # a view being lifted on the executor (_capture)
 
     def learned_viewsets(self) -> list[Viewset]:
         """The viewsets learned so far in this run (``params.learn``), oldest first. A view being
@@ -146,8 +149,8 @@ class Tracker:
         caller may be running on that executor's only thread (the service stores a session's
         views from its pool), where waiting for it would never end."""
         job, self._capture_job = self._capture_job, None
-        if job is not None and not job[0].cancel():
-            self._keep_view(job[0].result(), *job[1:])
+        if job is not None and not job.future.cancel():
+            self._keep_view(job.future.result(), job)
         return list(self.learned)
 
     def init_pose(self, t, q_wxyz, time_s: float | None = None) -> None:
@@ -187,11 +190,16 @@ class Tracker:
         if self.phase == "init":
             step = self._initialise(img, frame, time_s, timings)
         else:
-            seen = LastSeen(self.filter.state, self._prev, self.trained.tracks, copy.copy(self.mesh_points))
+            seen = LastSeen(self.filter.state, self._prev, self.trained.tracks, copy.copy(self.mesh_points),
+                            second_hand=self._second_hand)
             held = self._tracked >= self.params.reacquire_min_run  # (a loss resets the count)
             step = self._track(img, frame, time_s, timings)
-            if step.status == "lost" and seen.frame is not None and held and self._determined(seen.state.pose):
-                self._seen = seen  # a track that held: re-acquire near it (reacquire_min_run)
+            if (step.status == "lost" and seen.frame is not None and held and self._determined(seen.state.pose)
+                    and not seen.second_hand):
+                # a track that held: re-acquire near it (reacquire_min_run); not one re-found on
+                # keyframes: picked up again from its own drifted pose, over and over, it reached
+                # 10 % of the diameter in depth on the zoo's prism (recognition restarts it instead)
+                self._seen = seen
         self._prev = frame if step.status != "lost" else None
         timings["total"] = _ms(t_start)
         step.timings_ms = timings
@@ -322,7 +330,8 @@ class Tracker:
                         if self.mesh_points in self.sources:  # corners on what came into view
                             self.mesh_points.spawn(FrameContext(img, frame, None, self.camera, self.filter.state),
                                                    self.filter.state, vouched=False)
-                        followed = LastSeen(self.filter.state, frame, self.trained.tracks, copy.copy(self.mesh_points), True)
+                        followed = LastSeen(self.filter.state, frame, self.trained.tracks, copy.copy(self.mesh_points), True,
+                                            seen.second_hand)
                 self._lost(time_s, "")
                 step = None
         finally:
@@ -330,6 +339,7 @@ class Tracker:
         timings["reacquire"] = _ms(t0)
         if step is not None:
             step.status, step.reason = "init", "re-acquired near the last pose"
+            self._second_hand = seen.second_hand  # (the same track, picked up again)
             self._probation = p.probation_frames
         elif followed is not None:
             # Followed, not reported: the next frame's attempt starts from this one, one frame
@@ -349,14 +359,21 @@ class Tracker:
             pose, t_given = self._pending
             self._pending = None
             cov, how = self._initial_covariance(), "given pose"
+            self._second_hand = False
             time_s0 = time_s if t_given is None or t_given > time_s else t_given
         else:
             t0 = time.perf_counter()
-            model, index = self.model, self._index()
+            model, index, prefer = self.model, self._index(), None
             if len(self.keyframes):  # the sides seen earlier in this run too (keyframes.py)
-                model, index = self.keyframes.search_model(self.model)
-            loc = locate(img, self.camera, model, self.params.locate, index=index)
+                p = self.params
+                if p.keyframe_synthetic_deg and self.keyframes.synthesise(
+                        self.model.mesh, params_from_manifest(self.model.manifest), p.keyframe_synthetic_deg,
+                        p.keyframe_synthetic_per_frame):
+                    timings["synthesise"] = _ms(t0)
+                model, index, prefer = self.keyframes.refind_model(self.model)
+            loc = locate(img, self.camera, model, self.params.locate, index=index, prefer=prefer)
             how = f"re-found on this run's {loc.viewset}" if loc.found and loc.viewset.startswith("keyframe") else "recognition"
+            self._second_hand = how != "recognition"
             timings["locate"] = _ms(t0)
             if not loc.found:
                 return self._lost(time_s, f"not found: {loc.reason}")
@@ -541,7 +558,10 @@ class Tracker:
         direction and the pose is tighter: ``learn_sigma_p`` / ``_deg``). Either needs
         ``learn_min_inliers`` textured points agreeing, ``learn_min_share`` of those measured
         (nothing covers the object), and the model's edges to agree with the image. The cheap
-        tests come first; one SIFT + lifting serves both. (Its time is the ``learn`` stage.)
+        tests come first; one SIFT + lifting serves both. (Its time is the ``learn`` stage.) A
+        track re-found on this run's keyframes keeps nothing unless trained points anchor the
+        frame (``capture_second_hand``). A keyframe keeps the frame's crop of the object, from
+        which its synthetic views are made after a loss (:meth:`.keyframes.Keyframes.synthesise`).
 
         With an executor and ``pipelined_refresh`` (live streams), the SIFT + lifting (~45 ms)
         runs on the executor, as re-anchoring does, and a later step keeps its result: inside the
@@ -549,12 +569,14 @@ class Tracker:
         at a time; a loss drops it."""
         p = self.params
         job = self._capture_job
-        if job is not None and job[0].done():
+        if job is not None and job.future.done():
             self._capture_job = None
-            self._keep_view(job[0].result(), *job[1:])
+            self._keep_view(job.future.result(), job)
         self._learn_wait -= 1
         self._keyframe_wait -= 1
         if self._tracked < p.learn_after or self._capture_job is not None:
+            return
+        if self._second_hand and not (p.capture_second_hand or ctx.anchored):
             return
         state = self.filter.state
         pose = state.pose
@@ -583,23 +605,29 @@ class Tracker:
         mask = birth_mask(mesh, self.camera, pose, p)
         args = (f"learned{len(self.learned) + 1}", ctx.image, mask, self.camera, pose, mesh,
                 params_from_manifest(self.model.manifest), p.learn_min_cos, self.model.rfch if learn else None)
+        cap = Capture(slot, learn, time_s, pose)
+        if slot is not None and p.keyframe_synthetic_deg:  # (the crop: its synthetic views, after a loss)
+            cap.crop, cap.crop_camera = object_crop(ctx.image, self.camera, mesh, pose)
         if p.pipelined_refresh and self.executor is not None:
-            self._capture_job = (self.executor.submit(learned_viewset, *args), slot, learn, time_s, pose)
+            cap.future = self.executor.submit(learned_viewset, *args)
+            self._capture_job = cap
             timings["learn"] = _ms(t0)
             return
         vs = learned_viewset(*args)
         timings["learn"] = _ms(t0)
-        self._keep_view(vs, slot, learn, time_s, pose)
+        self._keep_view(vs, cap)
 
-    def _keep_view(self, vs: Viewset, slot: int | None, learn: bool, time_s: float, pose: Pose) -> None:
-        """The view lifted by :meth:`_capture` (at ``pose``, taken at ``time_s``): a keyframe in
-        ``slot`` and, with ``learn``, a learned viewset, if it holds enough keypoints."""
+    def _keep_view(self, vs: Viewset, cap: Capture) -> None:
+        """The view lifted by :meth:`_capture` (:class:`Capture`: at ``cap.pose``, taken at
+        ``cap.time_s``): a keyframe in ``cap.slot`` and, with ``cap.learn``, a learned viewset,
+        if it holds enough keypoints."""
         p, mesh = self.params, self.model.mesh
         if len(vs) < p.learn_min_keypoints:
             return
-        if slot is not None:
-            self.keyframes.add(Keyframe(time_s, pose.viewing_direction(mesh.centre), replace(vs, cooccurrence=None)), slot)
-        if not learn:
+        if cap.slot is not None:
+            self.keyframes.add(Keyframe(cap.time_s, cap.pose.viewing_direction(mesh.centre), replace(vs, cooccurrence=None),
+                                        cap.crop, cap.crop_camera), cap.slot)
+        if not cap.learn:
             return
         model = with_learned(self.model, [vs], p.learn_max_views, p.learn_min_angle_deg)
         if model is self.model:

@@ -133,6 +133,20 @@ class TrackerParams:
     keyframe_min_angle_deg: float = 15.0
     keyframe_renew_s: float = 3.0
     keyframe_every: int = 10
+    # after a loss, each keyframe gains synthetic views: its crop re-rendered on the mesh at its
+    # pose turned by ± each of these angles about the camera's x and y axes (keyframes.py; () none),
+    # made for at most keyframe_synthetic_per_frame keyframes per lost frame (~15 ms per view).
+    # Zoo walks (bench/RESULTS.md, session 26): re-found after the slide out of the frame on the
+    # sides seen before it
+    keyframe_synthetic_deg: tuple[float, ...] = (20.0, 40.0)
+    keyframe_synthetic_per_frame: int = 2
+    # a track re-found on this run's keyframes keeps no keyframe nor learned view of its own while
+    # no trained point anchors its frame (FrameContext.anchored): its points were lifted at a pose
+    # that inherits the keyframe's error, and a view taken from it would pass that error on again
+    # (zoo cube: a keyframe taken 1.5-3 % off after a restart re-found the object 6.9 % off, 24
+    # poses beyond 5 %/5°); nor is it re-acquired near its last pose after a loss (the same drift,
+    # picked up again and again: 10 % in depth on the zoo's prism)
+    capture_second_hand: bool = False
     # after a loss, for reacquire_s the tracker first tries to pick the track up again near the
     # last good pose (Tracker._reacquire: KLT from that frame, the edges confirming) before recognition
     reacquire_s: float = 2.0
@@ -172,7 +186,9 @@ class TrackerParams:
     initial_sigma_deg: float = 2.0
     klt: KLTParams = field(default_factory=KLTParams)
     visibility: VisibilityParams = field(default_factory=VisibilityParams)
-    locate: LocateParams = field(default_factory=LocateParams)
+    # recognition after a loss re-matches each tried view alone (LocateParams.rematch_views): the
+    # keyframes and their synthetic views repeat the same points and split the shared index's votes
+    locate: LocateParams = field(default_factory=lambda: LocateParams(rematch_views=True))
     adjust: AdjustOptions = field(
         # Gauss–Newton from the prediction converges in 2–3 steps here; 4 is a measured margin.
         # The stop rule ‖∇F‖ < ε mixes 1/length (position) and 1/rad terms, so ε is tiny: the
