@@ -185,6 +185,46 @@ def test_keyframes_synthetic_views_find_the_object_turned_beyond_every_keyframe(
         assert dp < 0.05 * d and da < 5.0, (s.frame, dp / d, da)
 
 
+def test_with_an_executor_synthetic_views_are_made_there(walk, monkeypatch):
+    """Live streams: the synthetic views (≈ 0.25 s per lost frame's batch) are made on the
+    caller's executor, never in the step, one batch at a time, and attached by a later step.
+    (An executor that runs each job at once, so which step sees it done is known.)"""
+    from concurrent.futures import Executor, Future
+
+    from quatrack.recognition.tracker import keyframes as K
+
+    calls = []
+    real = K.synthetic_views
+    monkeypatch.setattr(K, "synthetic_views", lambda *a, **k: calls.append(len(a[0])) or real(*a, **k))
+
+    class AtOnce(Executor):
+        def __init__(self):
+            self.jobs = 0
+
+        def submit(self, fn, *args, **kwargs):
+            self.jobs += fn is K.synthetic_views
+            f = Future()
+            f.set_result(fn(*args, **kwargs))
+            return f
+
+    pool = AtOnce()
+    cv2.setRNGSeed(7)
+    tracker = Tracker(walk.model, walk.cam, TrackerParams(pipelined_refresh=True, reacquire_s=0.0),
+                      index=index_for(walk.model), executor=pool)
+    tracker.init_pose(walk.poses[0].t, walk.poses[0].q_wxyz)
+    for k, f in enumerate(walk.frames):
+        tracker.step(f, k / FPS)
+    kf = tracker.keyframes
+    missing = []
+    for i in range(len(kf) + 2):  # frames without the object: lost
+        missing.append(sum(k.synthetic is None for k in kf.items))
+        tracker.step(walk.bg, (len(walk.frames) + i) / FPS)
+    assert len(kf) >= 3 and missing[0] > 0 and sum(k.synthetic is None for k in kf.items) == 0, missing
+    assert calls and len(calls) == pool.jobs  # every batch made on the executor
+    assert all(c <= 2 for c in calls)  # (keyframe_synthetic_per_frame)
+    assert all(len(k.synthetic) >= 4 for k in kf.items)
+
+
 @pytest.mark.parametrize("where", ["far side", "walk on"])
 def test_without_keyframes_and_re_acquisition_those_sides_are_not_found(walk, where):
     back = _far_side(walk) if where == "far side" else _walk_on(walk)

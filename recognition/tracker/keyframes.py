@@ -38,7 +38,7 @@ Keyframes live in memory for the run only; the stored model changes only through
 
 from __future__ import annotations
 
-from concurrent.futures import Future
+from concurrent.futures import Executor, Future
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -110,6 +110,7 @@ class Keyframes:
         self._search: tuple[ObjectModel, ModelIndex, ObjectModel] | None = None  # (base, index, model)
         self._refind: tuple | None = None  # the same with synthetic views, + the latest keyframes' views
         self._groups: tuple[Mesh, np.ndarray] | None = None  # the mesh's planar groups (texturing)
+        self._job: tuple[Future, list[Keyframe]] | None = None  # synthetic views being made on an executor
 
     def __len__(self) -> int:
         return len(self.items)
@@ -181,25 +182,56 @@ class Keyframes:
         return cached[2], cached[1], cached[3]
 
     def synthesise(self, mesh: Mesh, params: ViewsetParams, angles_deg: tuple[float, ...], budget: int,
-                   min_cos: float = 0.3) -> int:
+                   min_cos: float = 0.3, executor: Executor | None = None) -> int:
         """Make the synthetic views (see the module) of at most ``budget`` keyframes that have a
-        crop and none yet, the most recent first; returns how many keyframes got them. A view
-        with fewer than 12 lifted keypoints is not kept (12: recognition's minimum inliers)."""
+        crop and none yet, the most recent first; returns how many keyframes got them (in this
+        call). With an ``executor`` (live streams) they are made there, one batch at a time, and
+        a later call attaches them: ~15 ms per view would otherwise stall the lost frame's step
+        (2 keyframes × 8 views ≈ 0.25 s)."""
+        done = 0
+        job = self._job
+        if job is not None and job[0].done():
+            self._job = None
+            done = self._attach(job[1], job[0].result())
+        if self._job is not None:
+            return done
         todo = sorted((i for i, k in enumerate(self.items) if k.synthetic is None and k.crop is not None),
                       key=lambda i: -self.items[i].time_s)[:max(int(budget), 0)]
         if not todo:
-            return 0
+            return done
         if self._groups is None or self._groups[0] is not mesh:
             self._groups = (mesh, planar_groups(mesh))
-        groups = self._groups[1]
-        for i in todo:
-            k = self.items[i]
-            pose, camera = k.viewset.pose, k.viewset.camera
-            made = []
-            for label, turned in turned_about_view(pose, self.centre, angles_deg):
-                vs = synthetic_viewset(label, mesh, groups, k.crop, k.crop_camera, pose, camera, turned, params, min_cos)
-                if vs is not None and len(vs) >= 12:
-                    made.append(vs)
-            self.items[i] = replace(k, synthetic=tuple(made))
+        keys = [self.items[i] for i in todo]
+        work = (synthetic_views, keys, mesh, self._groups[1], self.centre, params, tuple(angles_deg), min_cos)
+        if executor is not None:
+            self._job = (executor.submit(*work), keys)
+            return done
+        return done + self._attach(keys, work[0](*work[1:]))
+
+    def _attach(self, keys: list[Keyframe], views: list[tuple[Viewset, ...]]) -> int:
+        """Give each keyframe of ``keys`` (still kept: not renewed or dropped meanwhile) its views."""
+        n = 0
+        for key, made in zip(keys, views):
+            for i, k in enumerate(self.items):
+                if k is key:
+                    self.items[i] = replace(k, synthetic=made)
+                    n += 1
         self._refind = None
-        return len(todo)
+        return n
+
+
+def synthetic_views(keyframes: list[Keyframe], mesh: Mesh, groups: np.ndarray, centre: np.ndarray,
+                    params: ViewsetParams, angles_deg: tuple[float, ...], min_cos: float = 0.3) -> list[tuple[Viewset, ...]]:
+    """Each keyframe's synthetic views (:func:`~quatrack.viewsets.novel.synthetic_viewset` at its
+    pose turned by :func:`~quatrack.viewsets.novel.turned_about_view`); a view with fewer than 12
+    lifted keypoints is not kept (12: recognition's minimum inliers). Pure: runs on any thread."""
+    out = []
+    for k in keyframes:
+        pose, camera = k.viewset.pose, k.viewset.camera
+        made = []
+        for label, turned in turned_about_view(pose, centre, angles_deg):
+            vs = synthetic_viewset(label, mesh, groups, k.crop, k.crop_camera, pose, camera, turned, params, min_cos)
+            if vs is not None and len(vs) >= 12:
+                made.append(vs)
+        out.append(tuple(made))
+    return out

@@ -366,9 +366,10 @@ class Tracker:
             model, index, prefer = self.model, self._index(), None
             if len(self.keyframes):  # the sides seen earlier in this run too (keyframes.py)
                 p = self.params
-                if p.keyframe_synthetic_deg and self.keyframes.synthesise(
-                        self.model.mesh, params_from_manifest(self.model.manifest), p.keyframe_synthetic_deg,
-                        p.keyframe_synthetic_per_frame):
+                if p.keyframe_synthetic_deg:
+                    self.keyframes.synthesise(self.model.mesh, params_from_manifest(self.model.manifest),
+                                              p.keyframe_synthetic_deg, p.keyframe_synthetic_per_frame,
+                                              executor=self.executor if p.pipelined_refresh else None)
                     timings["synthesise"] = _ms(t0)
                 model, index, prefer = self.keyframes.refind_model(self.model)
             loc = locate(img, self.camera, model, self.params.locate, index=index, prefer=prefer)
