@@ -251,15 +251,16 @@ async def _rest(url: str, name: str, camera: dict, images: list[bytes], total: i
             "requests_per_s": total / wall, "latency_p50_ms": _pct(lat, 50), "latency_p99_ms": _pct(lat, 99)}
 
 
-def _setups(store, workers: list[int], threads: int, max_sessions: int, replicas: bool, tmp):
+def _setups(store, workers: list[int], threads: int | None, max_sessions: int, replicas: bool, tmp):
     """(label, context manager yielding (url, ws_url, pids()))."""
     import contextlib
     from pathlib import Path
 
     from quatrack.service.server import ServeProcess
 
-    env = {"QUATRACK_MAX_SESSIONS": str(max_sessions), "QUATRACK_THREADS": str(threads),
-           "QUATRACK_MAX_PENDING_REQUESTS": "16"}
+    env = {"QUATRACK_MAX_SESSIONS": str(max_sessions), "QUATRACK_MAX_PENDING_REQUESTS": "16"}
+    if threads is not None:  # (else as quatrack serve: cores ÷ workers)
+        env["QUATRACK_THREADS"] = str(threads)
 
     @contextlib.contextmanager
     def single(n):
@@ -318,7 +319,7 @@ def main(args: argparse.Namespace) -> int:
         raise ValueError("--clients: numbers between 1 and 64")
     if not workers or min(sizes) < 1 or max(sizes) > 64:
         raise ValueError("--workers: numbers between 1 and 64")
-    if not 0.5 <= args.seconds <= 600 or not 0 < args.fps <= 240 or args.threads < 1 or args.rest_requests < 0:
+    if not 0.5 <= args.seconds <= 600 or not 0 < args.fps <= 240 or (args.threads is not None and args.threads < 1) or args.rest_requests < 0:
         raise ValueError("--seconds must be 0.5-600, --fps 0-240, --threads ≥ 1, --rest-requests ≥ 0")
     replicas = {"yes": True, "no": False}.get(args.replicas, find_nginx() is not None)
     if replicas and find_nginx() is None:
@@ -363,7 +364,8 @@ def main(args: argparse.Namespace) -> int:
         print(json.dumps(report))
         return 0
     la = report["load_average_at_start"]
-    print(f"{cores} cores, load average at start {la[0]:.2f}; {args.threads} thread(s) per worker; "
+    per_worker = "cores ÷ workers" if args.threads is None else args.threads
+    print(f"{cores} cores, load average at start {la[0]:.2f}; {per_worker} thread(s) per worker; "
           f"each client streams {len(frames)} frames at {args.fps:g} fps")
     print("| set-up | streams | fps/stream min / mean | total fps | latency p50 / p99 (ms) | tracked frames p50 / p99 "
           "| wait / step / io p50 (ms) "

@@ -90,7 +90,8 @@ def _add_bench(parser: argparse.ArgumentParser) -> None:
     serve.add_argument("--clients", default="1,2,4,8,16", help="numbers of concurrent streams (default 1,2,4,8,16)")
     serve.add_argument("--workers", default=None, metavar="N,...",
                        help="worker-process counts to compare (default 1 and the number of cores)")
-    serve.add_argument("--threads", type=int, default=2, metavar="N", help="CPU threads per worker process (default 2, as quatrack serve)")
+    serve.add_argument("--threads", type=int, default=None, metavar="N",
+                       help="CPU threads per worker process (default: as quatrack serve, cores ÷ workers)")
     serve.add_argument("--replicas", default="auto", choices=["auto", "yes", "no"],
                        help="also two 1-worker replicas behind nginx (default: when nginx is installed)")
     serve.add_argument("--seconds", type=float, default=5.0, help="length of each run: frames each client streams / fps (default 5)")

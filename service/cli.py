@@ -19,7 +19,7 @@ def add_serve(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--workers", type=int, default=None, metavar="N",
                         help="worker processes, each with its own sessions (default: the number of cores, or $QUATRACK_WORKERS)")
     parser.add_argument("--threads", type=int, default=None, metavar="N",
-                        help="CPU threads per worker process (default 2, or $QUATRACK_THREADS)")
+                        help="CPU threads per worker process (default: cores ÷ workers, at least 1, or $QUATRACK_THREADS)")
     parser.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"])
 
 

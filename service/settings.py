@@ -55,7 +55,8 @@ class Settings(BaseSettings):
         (), description="comma-separated origins allowed by CORS, e.g. `https://example.org`; `*` allows any")
     workers: int = Field(default_factory=_cores, ge=1, le=256,
                          description="worker processes, each with its own models and sessions (default: the number of cores)")
-    threads: int = Field(2, ge=1, le=64, description="CPU threads per worker process doing recognition and tracking")
+    threads: int | None = Field(None, ge=1, le=64, description="CPU threads per worker process doing recognition and "
+                                "tracking (default: the number of cores ÷ workers, at least 1)")
     thread_nice: int = Field(5, ge=0, le=19, description="nice value of those threads (Linux, per thread), "
                                                          "so that the event loop (probes, frames in, poses "
                                                          "out) gets a core first; 0: off")
@@ -85,6 +86,18 @@ class Settings(BaseSettings):
         if isinstance(v, str):
             return tuple(o.strip() for o in v.split(",") if o.strip())
         return v
+
+    @field_validator("threads", mode="after")
+    @classmethod
+    def _threads_per_core(cls, v: int | None, info) -> int:
+        """Default: the cores shared out between the workers. Why: on 2 cores, 2 workers of 2
+        threads each (4 threads) processed 87.7 frames/s from 16 streams and 1 worker of 2
+        threads 62.1 (×1.41); 2 workers of 1 thread 92.2 against 1 worker of 1 thread 45.8
+        (×2.01), with a lower p99 (bench/RESULTS.md, serving, session 26). One worker still gets
+        every core."""
+        if v is not None:
+            return v
+        return max(1, _cores() // max(1, int(info.data.get("workers") or 1)))
 
     @field_validator("store", mode="after")
     @classmethod
