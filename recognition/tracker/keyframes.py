@@ -30,7 +30,14 @@ they induce, as training's novel views are), described and lifted like any view.
 lazily, a few keyframes per lost frame (the most recent first), since a run that is never lost
 never needs them; re-anchoring while tracking does not search them
 (:meth:`Keyframes.search_model`). Near-identical views split the shared index's votes, so the
-tracker's recognition re-matches each tried view alone (``LocateParams.rematch_views``).
+tracker's recognition re-matches each tried view alone (``LocateParams.rematch_views``), and it
+also tries the views of the latest keyframes (``locate(prefer=…)``): an object lost in a video
+mostly comes back near where it went, and texture repeated on other faces can outvote it there.
+
+A track re-found on keyframes is *second-hand* (``Tracker._second_hand``): its points were lifted at
+a pose that carries the keyframe's error, so it keeps no keyframe or learned view of its own while
+no trained point anchors its frame, and it is not re-acquired near its own last pose after a loss
+(``TrackerParams.capture_second_hand``): either passed the error on, and it grew.
 
 Keyframes live in memory for the run only; the stored model changes only through learned views
 (``TrackerParams.learn``), whose rules are stricter because they outlive the run.
