@@ -16,6 +16,8 @@ from dataclasses import replace
 import cv2
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from conftest import zoo_cube_scene
 from quatrack.recognition.match import ModelIndex
@@ -104,3 +106,24 @@ def test_a_frame_rendered_turned_matches_a_frame_taken_there(cube, turn_deg):
     bound = 0.01 if turn_deg <= 20.0 else 0.03  # (a face seen more obliquely in the frame: warped less exactly)
     assert dt < bound * mesh.extent and dr < 100 * bound, (dt / mesh.extent, dr)
     assert found[1] is None or len(found[1].inliers) < len(est.inliers)
+
+
+_vec = st.lists(st.floats(-1.0, 1.0, allow_nan=False), min_size=3, max_size=3)
+
+
+@given(rvec=_vec, tvec=_vec, centre=_vec, angle=st.floats(-60.0, 60.0, allow_nan=False))
+def test_a_turn_about_a_camera_axis_keeps_the_centre_and_rotates_by_that_angle(rvec, tvec, centre, angle):
+    """turned_about_view's formula: ``R' = exp(a[e]×) R`` about the camera's x and y axes, and the
+    object's centre stays where the camera saw it (``R' c + t' = R c + t``)."""
+    from quatrack.tracking.pose import Pose
+
+    pose = Pose.from_rvec(np.asarray(rvec), np.asarray(tvec) + [0.0, 0.0, 5.0])
+    c = np.asarray(centre)
+    turned = dict(turned_about_view(pose, c, (abs(angle) + 1.0,)))
+    a = np.radians(abs(angle) + 1.0)
+    for axis, e in (("x", [1.0, 0, 0]), ("y", [0, 1.0, 0])):
+        for sgn in (1, -1):
+            t = turned[f"cam{axis}{sgn * (abs(angle) + 1.0):+g}"]
+            np.testing.assert_allclose(t.R @ c + t.t, pose.R @ c + pose.t, atol=1e-9)
+            expected = cv2.Rodrigues(np.asarray(e) * sgn * a)[0] @ pose.R
+            np.testing.assert_allclose(t.R, expected, atol=1e-9)
