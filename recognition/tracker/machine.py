@@ -190,12 +190,11 @@ class Tracker:
         if self.phase == "init":
             step = self._initialise(img, frame, time_s, timings)
         else:
-            seen = LastSeen(self.filter.state, self._prev, self.trained.tracks, copy.copy(self.mesh_points),
-                            second_hand=self._second_hand)
+            seen = LastSeen(self.filter.state, self._prev, self.trained.tracks, copy.copy(self.mesh_points))
             held = self._tracked >= self.params.reacquire_min_run  # (a loss resets the count)
             step = self._track(img, frame, time_s, timings)
             if (step.status == "lost" and seen.frame is not None and held and self._determined(seen.state.pose)
-                    and not seen.second_hand):
+                    and not self._second_hand):
                 # a track that held: re-acquire near it (reacquire_min_run); not one re-found on
                 # keyframes: picked up again from its own drifted pose, over and over, it reached
                 # 10 % of the diameter in depth on the zoo's prism (recognition restarts it instead)
@@ -330,8 +329,7 @@ class Tracker:
                         if self.mesh_points in self.sources:  # corners on what came into view
                             self.mesh_points.spawn(FrameContext(img, frame, None, self.camera, self.filter.state),
                                                    self.filter.state, vouched=False)
-                        followed = LastSeen(self.filter.state, frame, self.trained.tracks, copy.copy(self.mesh_points), True,
-                                            seen.second_hand)
+                        followed = LastSeen(self.filter.state, frame, self.trained.tracks, copy.copy(self.mesh_points), True)
                 self._lost(time_s, "")
                 step = None
         finally:
@@ -339,7 +337,7 @@ class Tracker:
         timings["reacquire"] = _ms(t0)
         if step is not None:
             step.status, step.reason = "init", "re-acquired near the last pose"
-            self._second_hand = seen.second_hand  # (the same track, picked up again)
+            self._second_hand = False  # (the same first-hand track, picked up again: only those are kept in _seen)
             self._probation = p.probation_frames
         elif followed is not None:
             # Followed, not reported: the next frame's attempt starts from this one, one frame

@@ -38,7 +38,6 @@ class LastSeen:
     trained: Tracks
     mesh: MeshPoints
     followed: bool = False  # a frame after the loss whose pose the measurements supported (not reported)
-    second_hand: bool = False  # the track had been re-found on the run's keyframes (Tracker._second_hand)
 
 
 def hull_mask(camera: PinholeCamera, vertices: np.ndarray, pose: Pose) -> np.ndarray:
