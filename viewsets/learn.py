@@ -90,12 +90,11 @@ def learned_viewset(label: str, image: np.ndarray, feature_mask: np.ndarray, cam
     :func:`~.render.footprint`): the same buffers there as the whole frame's render."""
     empty = Viewset(label, -1, False, camera, pose, np.zeros((0, 2), np.float32), np.zeros((0, 128), np.float32),
                     np.zeros((0, 3)), (0, 0, 0, 0), learned=True)
-    box = footprint(mesh, camera, pose)
-    if box is None:
+    m = 16 + (int(np.ceil(3 * max(rfch.scales))) + rfch.distance if rfch is not None else 0)
+    win = footprint(mesh, camera, pose, m)
+    if win is None:
         return empty
     w, h = int(camera.width), int(camera.height)
-    m = 16 + (int(np.ceil(3 * max(rfch.scales))) + rfch.distance if rfch is not None else 0)
-    win = (max(box[0] - m, 0), max(box[1] - m, 0), min(box[2] + m, w), min(box[3] + m, h))
     buffers = render_window(mesh, camera, pose, win)
     obj = buffers.face >= 0
     if not obj.any():
@@ -122,9 +121,7 @@ def learned_viewset(label: str, image: np.ndarray, feature_mask: np.ndarray, cam
         labels = np.full(inside.shape, -1, np.int32)
         labels[inside] = label_planes(planes[:, inside][:, :, None], rfch.centres, rfch.desc_mean, rfch.desc_std).ravel()
         co = cooccurrence(labels, buf.mask, len(rfch.centres), rfch.distance)
-    bx, by, bw, bh = vs.bbox
-    return dataclasses.replace(vs, camera=camera, keypoints=(vs.keypoints + np.array([x0, y0], np.float32)).astype(np.float32),
-                               bbox=(bx + x0, by + y0, bw, bh), learned=True, cooccurrence=co)
+    return dataclasses.replace(vs.uncropped(camera, x0, y0), learned=True, cooccurrence=co)
 
 
 def _train_width(model: ObjectModel) -> float:

@@ -169,12 +169,10 @@ def synthetic_viewset(label: str, mesh: Mesh, groups: np.ndarray, src_image: np.
     for a 640×480 frame. Keypoints are returned in ``camera``'s pixels, the viewset flagged
     ``synthetic`` and ``learned`` (made at run time, not by training). None when the object is
     not in view or nothing of it is textured."""
-    box = footprint(mesh, camera, pose)
+    box = footprint(mesh, camera, pose, margin_px)
     if box is None:
         return None
-    w, h = int(camera.width), int(camera.height)
-    x0, y0 = max(box[0] - margin_px, 0), max(box[1] - margin_px, 0)
-    x1, y1 = min(box[2] + margin_px, w), min(box[3] + margin_px, h)
+    x0, y0, x1, y1 = box
     win = camera.cropped(x0, y0, x1, y1)
     src_buffers = render(mesh, src_camera, src_pose)
     img, textured, buf = render_textured_view(mesh, groups, src_image, src_camera, src_pose, src_buffers, win, pose,
@@ -182,6 +180,4 @@ def synthetic_viewset(label: str, mesh: Mesh, groups: np.ndarray, src_image: np.
     if not textured.any():
         return None
     vs = build_viewset(label, -1, True, img, textured, win, pose, mesh, buf, params)
-    bx, by, bw, bh = vs.bbox
-    return replace(vs, camera=camera, keypoints=(vs.keypoints + np.array([x0, y0], np.float32)).astype(np.float32),
-                   bbox=(bx + x0, by + y0, bw, bh), learned=True)
+    return replace(vs.uncropped(camera, x0, y0), learned=True)

@@ -138,9 +138,10 @@ def render_window(mesh: Mesh, camera: PinholeCamera, pose: Pose, window: tuple[i
     return _rasterise(mesh, camera, pose, batch_small=True, window=window)
 
 
-def footprint(mesh: Mesh, camera: PinholeCamera, pose: Pose) -> tuple[int, int, int, int] | None:
+def footprint(mesh: Mesh, camera: PinholeCamera, pose: Pose, margin_px: int = 0) -> tuple[int, int, int, int] | None:
     """The pixel box (x0, y0, x1, y1; ends exclusive) holding every pixel :func:`render` may
-    draw — the union of its triangles' boxes, clipped to the image — or None when it draws none."""
+    draw — the union of its triangles' boxes, grown by ``margin_px`` on every side (room for a
+    filter's or a descriptor's neighbourhood), clipped to the image — or None when it draws none."""
     if camera.width is None or camera.height is None:
         raise ValueError("the camera needs an image size to render")
     w, h = int(camera.width), int(camera.height)
@@ -151,7 +152,9 @@ def footprint(mesh: Mesh, camera: PinholeCamera, pose: Pose) -> tuple[int, int, 
     boxes = boxes[(boxes[:, 2] >= boxes[:, 0]) & (boxes[:, 3] >= boxes[:, 1])]
     if not len(boxes):
         return None
-    return int(boxes[:, 0].min()), int(boxes[:, 1].min()), int(boxes[:, 2].max()) + 1, int(boxes[:, 3].max()) + 1
+    m = int(margin_px)
+    return (max(int(boxes[:, 0].min()) - m, 0), max(int(boxes[:, 1].min()) - m, 0),
+            min(int(boxes[:, 2].max()) + 1 + m, w), min(int(boxes[:, 3].max()) + 1 + m, h))
 
 
 def _front_triangles(mesh: Mesh, pose: Pose):

@@ -3,7 +3,7 @@ its 3-D point on the model, so that matching a query to a viewset gives 2-D/3-D 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -52,6 +52,14 @@ class Viewset:
 
     def __len__(self) -> int:
         return len(self.keypoints)
+
+    def uncropped(self, camera: PinholeCamera, x0: int, y0: int) -> "Viewset":
+        """This viewset, built on a crop whose top-left corner is pixel ``(x0, y0)`` of ``camera``'s
+        image (:meth:`PinholeCamera.cropped`), in that whole image: keypoints and box shifted by
+        the corner, the camera the whole image's. The 3-D points are the same: so are the rays."""
+        bx, by, bw, bh = self.bbox
+        return replace(self, camera=camera, keypoints=(self.keypoints + np.array([x0, y0], np.float32)).astype(np.float32),
+                       bbox=(bx + x0, by + y0, bw, bh))
 
 
 def silhouette_bbox(mask: np.ndarray) -> tuple[int, int, int, int]:

@@ -96,12 +96,10 @@ def object_crop(image: np.ndarray, camera: PinholeCamera, mesh: Mesh, pose: Pose
                 margin_px: int = 16) -> tuple[np.ndarray | None, PinholeCamera | None]:
     """A copy of the object's box in ``image`` (its mesh's :func:`~quatrack.viewsets.render.footprint`
     at ``pose``, plus ``margin_px``) and the camera of that crop; ``(None, None)`` if not in view."""
-    box = footprint(mesh, camera, pose)
+    box = footprint(mesh, camera, pose, margin_px)
     if box is None:
         return None, None
-    h, w = image.shape[:2]
-    x0, y0 = max(box[0] - margin_px, 0), max(box[1] - margin_px, 0)
-    x1, y1 = min(box[2] + margin_px, w), min(box[3] + margin_px, h)
+    x0, y0, x1, y1 = box
     return image[y0:y1, x0:x1].copy(), camera.cropped(x0, y0, x1, y1)
 
 

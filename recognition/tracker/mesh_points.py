@@ -75,14 +75,12 @@ def birth_mask(mesh: Mesh, ctx_camera, pose, params: TrackerParams) -> np.ndarra
     (tests/test_step_speed_equivalence.py compares it with the whole-frame form)."""
     cam = ctx_camera
     small = scaled_camera(cam, 0.5)
-    box = footprint(mesh, small, pose)
+    r = max(1, int(round(0.5 * params.mesh_edge_margin_px)))
+    box = footprint(mesh, small, pose, r + 3)
     if box is None:
         return np.zeros((cam.height, cam.width), np.uint8)
     out = np.zeros((small.height, small.width), np.uint8)
-    r = max(1, int(round(0.5 * params.mesh_edge_margin_px)))
-    pad = r + 3
-    x0, y0 = max(box[0] - pad, 0), max(box[1] - pad, 0)
-    x1, y1 = min(box[2] + pad, small.width), min(box[3] + pad, small.height)
+    x0, y0, x1, y1 = box
     buf = render_window(mesh, small, pose, (x0, y0, x1, y1))
     ok = buf.face >= 0
     if ok.any():
