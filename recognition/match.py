@@ -145,14 +145,7 @@ class ModelIndex:
         second = np.where(has_other, dist[np.arange(len(rows)), np.argmax(other, axis=1)], np.inf)
         good = ok & (dist[:, 0] < self.params.ratio * second)
         q = np.flatnonzero(good)
-        r = rows[q, 0]
-        d = dist[q, 0]
-        # one model point may be the nearest of several query features: keep the closest
-        order = np.argsort(d, kind="stable")
-        q, r, d = q[order], r[order], d[order]
-        _, first = np.unique(r, return_index=True)
-        q, r, d = q[first], r[first], d[first]
-        return Matches(q, r, self.row_viewset[r], self.points3d[r], self.normals[r], d)
+        return self._closest_per_row(q, rows[q, 0], dist[q, 0])
 
     def match_view(self, features: Features, v: int) -> Matches:
         """Ratio-tested matches of ``features`` to viewset ``v`` alone (exhaustive: a view holds
@@ -184,7 +177,11 @@ class ModelIndex:
         d1 = d2[np.arange(len(Q)), nearest]
         good = d1 < (self.params.ratio**2) * second
         q = np.flatnonzero(good)
-        r, d = rows[nearest[q]], np.sqrt(d1[q])
+        return self._closest_per_row(q, rows[nearest[q]], np.sqrt(d1[q]))
+
+    def _closest_per_row(self, q: np.ndarray, r: np.ndarray, d: np.ndarray) -> Matches:
+        """The matches query ``q`` ↔ model row ``r`` at distance ``d``: one model point may be the
+        nearest of several query features, and keeps the closest."""
         order = np.argsort(d, kind="stable")
         q, r, d = q[order], r[order], d[order]
         _, first = np.unique(r, return_index=True)

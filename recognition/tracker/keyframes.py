@@ -163,10 +163,20 @@ class Keyframes:
         matching index (built once per change of the keyframes or of ``base``)."""
         cached = self._search
         if cached is None or cached[0] is not base:
-            views = [replace(k.viewset, label=f"keyframe{i + 1}") for i, k in enumerate(self.items)]
-            model = replace(base, viewsets=list(base.viewsets) + views)
+            model = replace(base, viewsets=list(base.viewsets) + self._views(synthetic=False)[0])
             cached = self._search = (base, ModelIndex(model), model)
         return cached[2], cached[1]
+
+    def _views(self, synthetic: bool) -> tuple[list[Viewset], list[int]]:
+        """The keyframes' views labelled ``keyframeK`` (and, with ``synthetic``, their synthetic
+        views, ``keyframeK-camy+20`` …), and for each view the index of its keyframe."""
+        views, owner = [], []
+        for i, k in enumerate(self.items):
+            extra = (k.synthetic or ()) if synthetic else ()
+            views.append(replace(k.viewset, label=f"keyframe{i + 1}"))
+            views += [replace(v, label=f"keyframe{i + 1}-{v.label}") for v in extra]
+            owner += [i] * (1 + len(extra))
+        return views, owner
 
     def refind_model(self, base: ObjectModel, recent: int = 2) -> tuple[ObjectModel, ModelIndex, np.ndarray]:
         """:meth:`search_model` plus the keyframes' synthetic views made so far (labelled
@@ -175,11 +185,7 @@ class Keyframes:
         ``locate(prefer=…)``: an object lost in a video mostly comes back near where it went."""
         cached = self._refind
         if cached is None or cached[0] is not base:
-            views, owner = [], []
-            for i, k in enumerate(self.items):
-                views.append(replace(k.viewset, label=f"keyframe{i + 1}"))
-                views += [replace(v, label=f"keyframe{i + 1}-{v.label}") for v in k.synthetic or ()]
-                owner += [i] * (1 + len(k.synthetic or ()))
+            views, owner = self._views(synthetic=True)
             model = replace(base, viewsets=list(base.viewsets) + views)
             latest = np.argsort([-k.time_s for k in self.items], kind="stable")[:recent]
             prefer = len(base.viewsets) + np.flatnonzero(np.isin(owner, latest))
