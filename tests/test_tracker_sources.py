@@ -285,18 +285,19 @@ def test_one_klt_call_for_every_point_source_measures_what_one_call_each_does(bo
         np.testing.assert_array_equal(a.C, b.C)
 
 
-def test_edges_cannot_outvote_the_trained_points(box):
-    """Trained points where the object is; three times as many edge samples that all say it is
-    3 px to the right (a search locked onto the print beside each outline). The joint
-    adjustment leans towards the edges; the score test (Tracker._unless_outvoted) sees the
-    trained points disagree and adjusts again without the edges."""
-    from quatrack.recognition.tracker.points import PointBlock, score_statistic
+def _points_and_edges_disagree(box, points: str, second_hand: bool = False):
+    """A tracker one frame after the truth; 60 points (source ``points``) where the object is,
+    and three times as many edge samples that all say it is 3 px to the right (a search locked
+    onto the print beside each outline), adjusted jointly. Returns the tracker, the blocks, the
+    stacked block, the joint inlier mask and ``px``: a state's centre's x offset from the truth."""
+    from quatrack.recognition.tracker.points import PointBlock
     from quatrack.tracking.pose import Pose
 
     model, camera, poses, frames = box
     tracker = Tracker(model, camera, TrackerParams(), index=index_for(model))
     tracker.init_pose(poses[0].t, poses[0].q_wxyz)
     tracker.step(frames[0], 0.0)
+    tracker._second_hand = second_hand
     truth = tracker.filter.state.pose
     tracker.filter.predict(1.0 / FPS)
     rng = np.random.default_rng(3)
@@ -308,14 +309,40 @@ def test_edges_cannot_outvote_the_trained_points(box):
     uv_e = camera.project(off.apply(X[60:])) + rng.normal(0.0, 0.3, (240, 2))
     C_t = np.broadcast_to(np.eye(2), (60, 2, 2)).copy()
     C_e = np.broadcast_to(np.diag([1.0, 2500.0]), (240, 2, 2)).copy()  # across the edge: x
-    blocks = [PointBlock("trained", X[:60], uv_t, C_t), PointBlock("mesh", np.zeros((0, 3)), np.zeros((0, 2)), np.zeros((0, 2, 2))),
-              PointBlock("edges", X[60:], uv_e, C_e)]
+    empty = PointBlock("", np.zeros((0, 3)), np.zeros((0, 2)), np.zeros((0, 2, 2)))
+    pts = PointBlock(points, X[:60], uv_t, C_t)
+    blocks = [pts, empty, PointBlock("edges", X[60:], uv_e, C_e)] if points == "trained" else \
+        [empty, pts, PointBlock("edges", X[60:], uv_e, C_e)]
     block = PointBlock.stack(blocks)
     ok, _, inl = tracker._adjust(block)
-    assert ok and inl[:60].sum() >= 50  # the trained points still count as inliers…
-    joint = tracker.filter.state
-    px = lambda s: (camera.project(s.pose.apply(model.mesh.centre[None])) - camera.project(truth.apply(model.mesh.centre[None])))[0, 0]
-    assert px(joint) > 1.5  # …of a pose the edges dragged more than half-way
-    assert score_statistic(camera, blocks[0].keep(inl[:60]), joint) > TrackerParams().texture_chi2
+    centre = model.mesh.centre[None]
+    px = lambda s: (camera.project(s.pose.apply(centre)) - camera.project(truth.apply(centre)))[0, 0]
+    assert ok and inl[:60].sum() >= 50  # the points still count as inliers…
+    assert px(tracker.filter.state) > 1.5  # …of a pose the edges dragged more than half-way
+    return tracker, blocks, block, inl, px
+
+
+def test_edges_cannot_outvote_the_trained_points(box):
+    """The score test (Tracker._unless_outvoted) sees the trained points disagree with the joint
+    pose the edges dragged and adjusts again without the edges."""
+    from quatrack.recognition.tracker.points import score_statistic
+
+    tracker, blocks, block, inl, px = _points_and_edges_disagree(box, "trained")
+    camera = box[1]
+    assert score_statistic(camera, blocks[0].keep(inl[:60]), tracker.filter.state) > TrackerParams().texture_chi2
     kept = tracker._unless_outvoted(blocks, block, inl)
     assert abs(px(tracker.filter.state)) < 0.3 and not kept[60:].any() and kept[:60].sum() >= 55
+
+
+def test_mesh_points_judge_the_edges_only_in_a_second_hand_track(box):
+    """Without trained points in view, the points born on the mesh judge the edges in a track
+    re-found on keyframes (their texture is all there is); in a first-hand track they do not
+    (lifted at the tracker's own poses, they may be the ones that are off) and the joint pose stays."""
+    tracker, blocks, block, inl, px = _points_and_edges_disagree(box, "mesh", second_hand=True)
+    kept = tracker._unless_outvoted(blocks, block, inl)
+    assert abs(px(tracker.filter.state)) < 0.3 and not kept[60:].any() and kept[:60].sum() >= 55
+
+    tracker, blocks, block, inl, px = _points_and_edges_disagree(box, "mesh", second_hand=False)
+    joint = px(tracker.filter.state)
+    kept = tracker._unless_outvoted(blocks, block, inl)
+    assert px(tracker.filter.state) == joint and np.array_equal(kept, inl)

@@ -705,29 +705,43 @@ class Tracker:
         return True, None, inl
 
     def _unless_outvoted(self, blocks: list[PointBlock], block: PointBlock, inl: np.ndarray) -> np.ndarray:
-        """The edges must not outvote the trained points, the anchors. Edge samples outnumber
-        the points several times, and a model edge whose search locked onto the wrong gradient
-        (a cylinder's rim onto the print beside it) pulls the pose along it frame after frame
-        while every point, within its gate, still counts as an inlier. The trained points'
-        score statistic at the joint pose (:func:`~.points.score_statistic`, ``T ~ χ²₆`` when
-        they agree with it) tells: beyond ``texture_chi2`` this frame is adjusted again without
-        the edges (when that succeeds). Only the trained points judge: their 3-D positions come
-        from training, while points born on the mesh were lifted at the tracker's own poses and
-        may be the ones that are off (on a side no photo shows the edges are then right) —
-        and only while SIFT still finds the trained texture where it is tracked (the last
-        re-anchoring succeeded): trained tracks on faces turning away slide, and then the edges
-        are right.
-        Returns the inlier mask of the adjustment kept."""
-        anchors = np.zeros(len(block), bool)
+        """The edges must not outvote the textured points. Edge samples outnumber the points
+        several times, and a model edge whose search locked onto the wrong gradient (a
+        cylinder's rim onto the print beside it) pulls the pose along it frame after frame
+        while every point, within its gate, still counts as an inlier. The judges' score
+        statistic at the joint pose (:func:`~.points.score_statistic`, ``T ~ χ²₆`` when they
+        agree with it) tells: beyond ``texture_chi2`` this frame is adjusted again without the
+        edges (when that succeeds).
+
+        The judges are the trained points, the anchors, while at least ``min_inliers`` of them
+        are inliers — and only while SIFT still finds the trained texture where it is tracked
+        (the last re-anchoring succeeded): trained tracks on faces turning away slide, and then
+        the edges are right. Points born on the mesh do not judge beside them: they were lifted
+        at the tracker's own poses and may be the ones that are off (on a side no photo shows
+        the edges are then right). In a *second-hand* track (re-found on keyframes) without
+        trained points in view the points born on the mesh are all the texture there is, and
+        they judge: there the edges, under a lighting change, locked onto the print next to the
+        outline and turned the zoo cube 1.6 → 4.2 % in one frame while the points alone kept
+        1.1 % (four renderings of the six walks: poses beyond 5 %/5° 7 → 4, bench/RESULTS.md,
+        session 27). Returns the inlier mask of the adjustment kept."""
+        judges = np.zeros(len(block), bool)
+        mesh = np.zeros(len(block), bool)
         textured = np.zeros(len(block), bool)
         start = 0
         for s, b in zip(self.sources, blocks):
-            anchors[start : start + len(b)] = s is self.trained
+            judges[start : start + len(b)] = s is self.trained
+            mesh[start : start + len(b)] = s is self.mesh_points
             textured[start : start + len(b)] = s is not self.edges
             start += len(b)
-        if self._failed_refreshes or int((anchors & inl).sum()) < self.params.min_inliers:
+        min_inl = self.params.min_inliers
+        if int((judges & inl).sum()) >= min_inl:
+            if self._failed_refreshes:
+                return inl
+        elif self._second_hand:
+            judges = mesh
+        if int((judges & inl).sum()) < min_inl:
             return inl
-        if score_statistic(self.camera, block.keep(anchors & inl), self.filter.state) <= self.params.texture_chi2:
+        if score_statistic(self.camera, block.keep(judges & inl), self.filter.state) <= self.params.texture_chi2:
             return inl
         joint = self.filter.state
         good, _, inl_tex = self._adjust(block.keep(textured))
