@@ -21,6 +21,13 @@ poses (% of the diameter, degrees), poses off by more than 5 % / 5°; step time 
 tracking steps and per-stage means; NEES of the reported pose covariance against the truth
 (``eᵀ P⁻¹ e``, ``e = [p_true − p, δθ]`` with ``R_true = Exp(δθ) R``: 6 degrees of freedom, so
 its mean is 6 for an honest covariance, larger when it is overconfident).
+
+One rendering of six walks is six samples of what can go wrong: a rule tuned until they pass may
+only move the failure to a frame they do not contain. ``renderings`` (``--renderings N``) walks
+round every object N times, each with other seeds (training photo's background, walk's
+background, occluder, shake): seed ``k + 10 r`` for the k-th object of :data:`SEQUENCES` and the
+r-th rendering; the first rendering is the one the benchmark always used. The report ends with
+the totals over every walk.
 """
 
 from __future__ import annotations
@@ -205,8 +212,28 @@ def prepare(name: str, seconds: float, seed: int, workdir: Path, backgrounds, or
     return model, seq
 
 
+RENDERING_SEED_STEP = 10  # the r-th rendering of the k-th sequence: seed k + 10 r
+
+
+def walks(names, renderings: int = 1) -> list[tuple[str, str, int]]:
+    """``(key, object name, seed)`` of every walk: ``renderings`` per object, keyed ``name`` for
+    the first and ``name#r`` for the r-th (r ≥ 1); the seed follows the object's place in
+    :data:`SEQUENCES` (so ``--sequences`` picks the same walks the full benchmark has).
+
+    >>> walks(["wide-box-cm"], 2)
+    [('wide-box-cm', 'wide-box-cm', 5), ('wide-box-cm#1', 'wide-box-cm', 15)]
+    """
+    out = []
+    for r in range(renderings):
+        for i, name in enumerate(names):
+            k = SEQUENCES.index(name) if name in SEQUENCES else i
+            out.append((name if r == 0 else f"{name}#{r}", name, k + RENDERING_SEED_STEP * r))
+    return out
+
+
 def study(names=SEQUENCES, seconds: float = 10.0, passes=("truth", "recognition", "learned"), orbit: OrbitParams | None = None,
-          width: int = 640, height: int = 480, backgrounds=None, progress: bool = True, out_path: str | None = None) -> dict:
+          width: int = 640, height: int = 480, backgrounds=None, progress: bool = True, out_path: str | None = None,
+          renderings: int = 1) -> dict:
     """Everything in the module docstring; returns one JSON-able dict. The truth-initialised
     passes of every sequence run first (the tracking figures), then the recognition passes
     (slow where recognition fails: it runs on every frame without a pose). ``out_path``: the
@@ -218,7 +245,7 @@ def study(names=SEQUENCES, seconds: float = 10.0, passes=("truth", "recognition"
     bgs = backgrounds if backgrounds is not None else Z.real_backgrounds()
     with_learned, learn_ok = learn_api()
     out = {"machine": f"{os.cpu_count()} cores", "load_before": os.getloadavg(), "seconds": seconds,
-           "learned_viewsets_api": learn_ok, "sequences": {}}
+           "learned_viewsets_api": learn_ok, "renderings": renderings, "sequences": {}}
 
     def save():
         out["load_after"] = os.getloadavg()
@@ -228,26 +255,26 @@ def study(names=SEQUENCES, seconds: float = 10.0, passes=("truth", "recognition"
 
     prepared = {}
     with tempfile.TemporaryDirectory(prefix="quatrack-track-zoo-") as tmp:
-        for i, name in enumerate(names):
+        for key, name, seed in walks(names, renderings):
             ts = time.perf_counter()
-            model, seq = prepare(name, seconds, i, Path(tmp), bgs, orbit, width, height)
+            model, seq = prepare(name, seconds, seed, Path(tmp) / key.replace("#", "-"), bgs, orbit, width, height)
             d = float(model.mesh.extent)
-            res = {"unit": Z.zoo_object(name).unit, "diameter": d, "frames": len(seq),
+            res = {"unit": Z.zoo_object(name).unit, "seed": seed, "diameter": d, "frames": len(seq),
                    "visible_min": float(seq.visible.min()), "frames_below_30pct": int((seq.visible < 0.3).sum()),
                    "occluded_max": float(seq.occluded.max()), "prepare_s": time.perf_counter() - ts}
             index = index_for(model)
             learned = []
             if "truth" in passes:
                 params = TrackerParams(learn=True) if learn_ok else TrackerParams()
-                r = run_pass(model, seq, params, True, index, f"{name}: truth-initialised" if progress else None)
+                r = run_pass(model, seq, params, True, index, f"{key}: truth-initialised" if progress else None)
                 res["truth"] = figures(r, seq.visible, d)
                 res["truth"]["shortfalls"] = shortfalls(res["truth"])
                 res["truth"]["reasons_lost"] = sorted({why for why in r.reasons if why})[:8]
                 learned = r.learned
                 res["learned_viewsets"] = len(learned)
             res["total_s"] = time.perf_counter() - ts
-            out["sequences"][name] = res
-            prepared[name] = (model, seq, index, learned)
+            out["sequences"][key] = res
+            prepared[key] = (model, seq, index, learned)
             save()
         for name, (model, seq, index, learned) in prepared.items():
             res = out["sequences"][name]
@@ -285,6 +312,11 @@ def report(res: dict) -> str:
                      f"{f['lost_visible']:>9} | {_f(f['t_mean_pct'])}/{_f(f['t_max_pct'])} | {_f(f['r_mean_deg'])}/"
                      f"{_f(f['r_max_deg'])} | {f['bad']:>4} | {_f(f['step_p50_ms'], '.1f')}/{_f(f['step_p95_ms'], '.1f')} | "
                      f"{_f(f['nees_mean'], '.1f')}/{_f(f['nees_median'], '.1f')}")
+    truth = [s["truth"] for s in res["sequences"].values() if s.get("truth")]
+    if len(truth) > 1:
+        lines.append(f"all {len(truth)} walks: lost while >= 30 % visible {sum(f['lost_visible'] for f in truth)}, "
+                     f"poses beyond 5 %/5° {sum(f['bad'] for f in truth)}, tracked poses "
+                     f"{sum(f['frames'] - f['lost'] for f in truth)}")
     lines.append("re-initialisation (no initial pose): first pose at frame / share of frames with a pose / lost>=30% / "
                  "mean %diam, deg / >5%/5deg")
     for name, s in res["sequences"].items():
@@ -315,10 +347,10 @@ def report(res: dict) -> str:
     return "\n".join(lines)
 
 
-def main(as_json: bool = False, seconds: float = 10.0, names: list[str] | None = None) -> int:
-    res = study(tuple(names) if names else SEQUENCES, seconds, progress=not as_json)
+def main(as_json: bool = False, seconds: float = 10.0, names: list[str] | None = None, renderings: int = 1) -> int:
+    res = study(tuple(names) if names else SEQUENCES, seconds, progress=not as_json, renderings=renderings)
     print(json.dumps(res) if as_json else report(res))
     return 0
 
 
-__all__ = ["SEQUENCES", "study", "run_pass", "figures", "nees", "report", "main"]
+__all__ = ["SEQUENCES", "walks", "study", "run_pass", "figures", "nees", "report", "main"]

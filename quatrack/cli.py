@@ -74,6 +74,9 @@ def _add_bench(parser: argparse.ArgumentParser) -> None:
     )
     tz.add_argument("--sequences", metavar="A,B", help="zoo objects to walk round (default: six; see testing/zoo.py)")
     tz.add_argument("--seconds", type=float, default=10.0, help="length of each sequence at 30 fps (default 10)")
+    tz.add_argument("--renderings", type=int, default=1, metavar="N",
+                    help="walk round each object N times, each rendering with other seeds (backgrounds, training "
+                         "photo, occluder, shake); the first is always the same (default 1)")
     tz.add_argument("--json", action="store_true", help="print one JSON object instead of the report")
     serve = sub.add_parser(
         "serve",
@@ -137,7 +140,9 @@ def _run_bench(args: argparse.Namespace) -> int:
                 raise UserError(f"--sequences: no zoo object {n!r} (known: {', '.join(o.name for o in zoo.ZOO)})")
         if not 1.0 <= args.seconds <= 60.0:
             raise UserError("--seconds must be between 1 and 60")
-        return track_zoo.main(args.json, args.seconds, names)
+        if not 1 <= args.renderings <= 20:
+            raise UserError("--renderings must be between 1 and 20")
+        return track_zoo.main(args.json, args.seconds, names, args.renderings)
     if args.benchmark == "locate":
         from quatrack.bench import locate as bench_locate
 

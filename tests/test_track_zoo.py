@@ -195,3 +195,14 @@ def test_the_bench_computes_its_figures_from_the_truth(cube):
     s = res["sequences"]["small-cube-cm"]
     assert s["frames"] == 30 and s["truth"]["frames"] == 30 and s["truth"]["t_mean_pct"] is not None
     assert "small-cube-cm" in B.report(res)
+
+
+def test_more_renderings_are_other_walks_and_the_first_is_the_usual_one():
+    """--renderings N: every object walked N times with other seeds; the first rendering of each
+    object has the seed it always had (its place in SEQUENCES, whatever --sequences picks)."""
+    from quatrack.bench.track_zoo import SEQUENCES, walks
+
+    w = walks(SEQUENCES, 3)
+    assert len(w) == 18 and len({key for key, _, _ in w}) == 18 and len({seed for _, _, seed in w}) == 18
+    assert [(key, seed) for key, _, seed in w[:6]] == [(n, k) for k, n in enumerate(SEQUENCES)]
+    assert walks(["hex-prism-m"], 2) == [("hex-prism-m", "hex-prism-m", 4), ("hex-prism-m#1", "hex-prism-m", 14)]
