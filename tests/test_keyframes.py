@@ -141,6 +141,31 @@ def test_the_object_is_found_again_on_a_side_no_photo_shows(walk):
         assert dp < 0.05 * d and da < 5.0, (s.frame, dp / d, da)
 
 
+def test_a_re_found_track_reports_the_error_it_carries_from_its_birth(walk):
+    """Re-found on keyframes, the track is carried by points lifted at its own poses: while no
+    trained point is in view its reported covariance adds the re-found pose's covariance, turned
+    with the object (carried_covariance); with trained points in view it does not; a first-hand
+    track never does. The truth lies within the reported covariance's 99.9 % ellipsoid."""
+    from quatrack.tracking import quaternion as quat
+    from quatrack.tracking.systematic import carried_covariance
+
+    tracker, steps, back = _track(walk, TrackerParams(reacquire_s=0.0))
+    assert tracker._second_hand and tracker._birth is not None
+    s = tracker.filter.state
+    tracker._anchored = True
+    anchored = tracker._pose_step(1.0, "tracking", 0)
+    tracker._anchored = False
+    carried = tracker._pose_step(1.0, "tracking", 0).covariance - anchored.covariance
+    np.testing.assert_allclose(carried, carried_covariance(s.R, *tracker._birth), rtol=1e-9, atol=1e-15)
+    assert np.trace(carried[:3, :3]) > 0.5 * np.trace(tracker._birth[1][:3, :3])
+    for st, truth in zip(steps[N_FRAMES + 3 :], back):
+        dq = quat.multiply(truth.q_wxyz, quat.conjugate(np.asarray(st.q_wxyz)))
+        e = np.concatenate([truth.t - st.t, quat.to_rotvec(quat.canonical(dq))])
+        assert e @ np.linalg.solve(st.covariance, e) < 22.46, st.frame  # χ²₆ at 99.9 %
+    first, _, _ = _track(walk, TrackerParams(), _walk_on(walk))  # re-acquired near its last pose
+    assert first._birth is None
+
+
 def test_the_track_is_picked_up_again_near_the_last_pose(walk):
     """Re-acquisition: the object comes back near where it went (turned 6° further while
     unseen); KLT from the last good frame picks the track up at once, the edges confirming."""

@@ -61,3 +61,27 @@ def systematic_floor(R: np.ndarray, p: np.ndarray, centre: np.ndarray, diameter:
     T = np.eye(6)
     T[:3, 3:] = skew(Rc)
     return T @ S @ T.T
+
+
+def carried_covariance(R: np.ndarray, R_birth: np.ndarray, cov_birth: np.ndarray) -> np.ndarray:
+    """The covariance over ``[p, δθ]`` at the pose ``R`` of an error the track has carried, fixed to
+    the object, since a birth at the pose ``R_birth`` with covariance ``cov_birth``.
+
+    A track re-found on its own keyframes and carried by points lifted at its own poses keeps its
+    birth error as an error of the object's points: ``X → X + u + ω × X`` (object frame). With
+    ``X_cam = R X + p`` and ``q_true = exp(δθ/2) * q`` that is ``δp = R u`` and ``δθ = R ω`` at any
+    pose, so with ``B = blockdiag(R R_bᵀ, R R_bᵀ)``
+
+        carried = B · cov_birth · Bᵀ.
+
+    At the birth pose it is the birth covariance; it turns with the object:
+
+    >>> C = np.diag([1.0, 0.0, 0.0, 0.0, 0.0, 4.0])
+    >>> Rz = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # 90° about z
+    >>> np.diag(carried_covariance(Rz, np.eye(3), C))
+    array([0., 1., 0., 0., 0., 4.])
+    """
+    A = np.asarray(R, float) @ np.asarray(R_birth, float).T
+    B = np.zeros((6, 6))
+    B[:3, :3] = B[3:, 3:] = A
+    return B @ np.asarray(cov_birth, float) @ B.T

@@ -49,7 +49,7 @@ from quatrack.tracking.filter import PoseFilter
 from quatrack.tracking.measurements import project_model_points
 from quatrack.tracking.motion import make_motion_model
 from quatrack.tracking.pose import Pose
-from quatrack.tracking.systematic import systematic_floor
+from quatrack.tracking.systematic import carried_covariance, systematic_floor
 from quatrack.viewsets.learn import is_new_direction, learned_viewset, with_learned
 from quatrack.viewsets.store import ObjectModel
 from quatrack.viewsets.viewset import Viewset, params_from_manifest
@@ -136,6 +136,10 @@ class Tracker:
         self._prev: Frame | None = None
         self._since_refresh = 0
         self._failed_refreshes = 0
+        # a second-hand track's birth: (R, covariance) of the pose it was re-found at, whose error
+        # it carries while no trained point is in view (_pose_step); None for a first-hand track
+        self._birth: tuple[np.ndarray, np.ndarray] | None = None
+        self._anchored = False  # the latest frame's trained points were enough to anchor it
         self._pending = None
         self._anchor_job: AnchorJob | None = None
         self._tracked = 0  # frames tracked since the last (re-)initialisation
@@ -243,11 +247,19 @@ class Tracker:
 
     def _pose_step(self, time_s: float, status: str, inliers: int, reason: str | None = None) -> TrackStep:
         """The step that reports the filter's pose, with the filter's covariance plus the
-        systematic floor (:mod:`quatrack.tracking.systematic`, ``params.systematic_*``)."""
+        systematic floor (:mod:`quatrack.tracking.systematic`, ``params.systematic_*``), plus,
+        in a second-hand track's frame without trained points in view, the error it carries from
+        its birth (:func:`~quatrack.tracking.systematic.carried_covariance` of the re-found pose's
+        covariance). There the points born on the mesh were lifted at the track's own poses: they
+        measure its motion since the re-finding, not where the object is, and the filter, which
+        counts them as absolute, claims the accuracy of the motion (zoo walks: NEES median 9–18
+        in those frames, 2–4 elsewhere; bench/RESULTS.md, session 27). The track is the same."""
         s, p = self.filter.state, self.params
         cov = s.pose_covariance + systematic_floor(s.R, s.p, self.model.mesh.centre, self.diameter,
                                                    p.systematic_pct / 100.0, p.systematic_depth_ratio,
                                                    np.radians(p.systematic_deg))
+        if self._birth is not None and not self._anchored:
+            cov = cov + carried_covariance(s.R, *self._birth)
         return TrackStep(self._frame, time_s, status, s.p.copy(), quat.canonical(s.q), s.v.copy(), s.omega.copy(),
                          cov, inliers, reason=reason)
 
@@ -357,7 +369,7 @@ class Tracker:
             pose, t_given = self._pending
             self._pending = None
             cov, how = self._initial_covariance(), "given pose"
-            self._second_hand = False
+            self._second_hand, self._birth = False, None
             time_s0 = time_s if t_given is None or t_given > time_s else t_given
         else:
             t0 = time.perf_counter()
@@ -378,6 +390,7 @@ class Tracker:
                 return self._lost(time_s, f"not found: {loc.reason}")
             pose, cov, time_s0 = Pose(loc.q_wxyz, loc.t), loc.covariance, time_s
             cov = 0.5 * (cov + cov.T) + 1e-9 * np.eye(6)
+            self._birth = (pose.R, cov) if self._second_hand else None
         self._start_filter(time_s0, pose, cov)
         prior = self.filter.predict(time_s)
         t0 = time.perf_counter()
@@ -400,6 +413,7 @@ class Tracker:
                                        "shows this side; points born on the mesh, confirmed by its edges")
             return self._lost(time_s, f"{how}: {why}", int(inl.sum()))
         self.trained.tracks = tracks.keep(inl)
+        self._anchored = len(self.trained) >= self.params.min_inliers
         if how != "given pose" and not self._edges_confirm(frame.gray, self.filter.state.pose, strict=True):
             # recognition allows its edge refit to move a pose by the whole 5 %/5° criterion; a
             # pose the tracker reports must pass its own, stricter test (max_edge_shift)
@@ -425,6 +439,7 @@ class Tracker:
             return False
         self.trained.tracks = tracks
         self._since_refresh = 0
+        self._anchored = False
         return True
 
     def _track(self, img: np.ndarray, frame: Frame, time_s: float, timings: dict) -> TrackStep:
@@ -463,7 +478,7 @@ class Tracker:
         for s in self.sources:  # (trained first: whether it anchors this frame is known to the others)
             blocks.append(s.measure(ctx, timings))
             if s is self.trained:
-                ctx.anchored = len(blocks[-1]) >= p.min_inliers
+                ctx.anchored = self._anchored = len(blocks[-1]) >= p.min_inliers
         block = PointBlock.stack(blocks)
         timings["measure"] = _ms(t0)  # visibility + KLT + gating
         if len(block) < p.min_inliers:
