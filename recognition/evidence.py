@@ -282,13 +282,14 @@ def edge_fit(image: EdgeImage | None, mesh: Mesh, camera: PinholeCamera, pose: P
     is re-estimated with the inliers (σ ``point_sigma_px``) by Gauss–Newton with Cauchy weights
     ``1 / (1 + r²/2²)`` (r in σ), from the pose, updating ``p ← p + δp``, ``q ← exp(δθ/2) q``. A right
     pose is where its edges are: it barely moves. A pose the points hold a few pixels off the
-    image's edges moves towards them, by a share of the criterion :class:`EdgeFit` reports."""
+    image's edges moves towards them, by a share of the criterion :class:`EdgeFit` reports.
+    Without points (none given) the edges alone are refitted: a pose no point may vouch for."""
     from quatrack.tracking import quaternion as quat
     from quatrack.tracking.measurements import project_model_points
 
     from .tracker.edges import search_edges
 
-    if image is None or len(image.uv) < 6 or len(points3d) < 3:
+    if image is None or len(image.uv) < 6 or 0 < len(points3d) < 3:
         return EdgeFit()
     origin = np.asarray(image.origin, float)
     radius = params.radius_px + params.radius_share * image.size + reach * image.size
@@ -325,8 +326,10 @@ def edge_fit(image: EdgeImage | None, mesh: Mesh, camera: PinholeCamera, pose: P
         q = quat.multiply(quat.exp(0.5 * delta[3:]), q)
         if max(np.linalg.norm(delta[:3]) / (0.05 * mesh.extent), np.degrees(np.linalg.norm(delta[3:])) / 5.0) < 0.01:
             break  # the step is 1 % of the criterion
-    up, _ = project_model_points(camera, X, p, quat.to_matrix(q), jacobian=False)
-    rms = float(np.sqrt(np.mean(np.sum((up - uv) ** 2, axis=1))))
+    rms = 0.0
+    if m:
+        up, _ = project_model_points(camera, X, p, quat.to_matrix(q), jacobian=False)
+        rms = float(np.sqrt(np.mean(np.sum((up - uv) ** 2, axis=1))))
     if not (np.isfinite(rms) and np.all(np.isfinite(p)) and np.all(np.isfinite(q))):
         return EdgeFit(k, offset, np.inf, np.inf)
     return EdgeFit(k, offset, pose_shift(Pose(q, p), pose, mesh), rms)

@@ -166,6 +166,36 @@ def test_a_re_found_track_reports_the_error_it_carries_from_its_birth(walk):
     assert first._birth is None
 
 
+def test_a_pose_re_found_on_keyframes_must_be_where_the_edges_alone_put_it(walk):
+    """A second-hand start on the mesh (re-found on the tracker's own keyframes, no trained view
+    of that side) is judged by the edge refit on the edges alone, before any point is born at
+    it: the true pose starts; one turned 4° about the centre and 2.5 % off is refused, although
+    the model's edges still lie near image edges (the agreement test passes it)."""
+    from quatrack.recognition.klt import make_frame
+    from quatrack.recognition.tracker.points import Tracks
+    from quatrack.tracking import quaternion as quat
+    from quatrack.tracking.pose import Pose
+
+    tracker, _, back = _track(walk, TrackerParams(reacquire_s=0.0))
+    truth = back[-1]
+    img = Z.degrade(Z.compose(*walk.obj.render(walk.cam, truth), walk.bg), np.random.default_rng(43))
+    frame = make_frame(cv2.cvtColor(img, cv2.COLOR_BGR2GRAY))
+    c = walk.model.mesh.centre
+    q = quat.multiply(quat.from_rotvec(np.radians([4.0, 0.0, 0.0])), truth.q_wxyz)
+    shift = np.array([0.025 * walk.model.mesh.extent, 0.0, 0.0])
+    off = Pose(q, truth.R @ c + truth.t - quat.to_matrix(q) @ c + shift)
+
+    def start(pose):
+        tracker.reset()
+        tracker._second_hand = True
+        tracker._start_filter(0.0, pose, tracker._initial_covariance())
+        return tracker._start_on_mesh(img, frame, tracker.filter.predict(1.0 / FPS), Tracks.empty())
+
+    assert start(Pose(truth.q_wxyz, truth.t))
+    assert tracker._edges_confirm(frame.gray, off)  # the agreement test alone would take it
+    assert not start(off)
+
+
 def test_the_track_is_picked_up_again_near_the_last_pose(walk):
     """Re-acquisition: the object comes back near where it went (turned 6° further while
     unseen); KLT from the last good frame picks the track up at once, the edges confirming."""
