@@ -252,8 +252,9 @@ class Tracker:
         its birth (:func:`~quatrack.tracking.systematic.carried_covariance` of the re-found pose's
         covariance). There the points born on the mesh were lifted at the track's own poses: they
         measure its motion since the re-finding, not where the object is, and the filter, which
-        counts them as absolute, claims the accuracy of the motion (zoo walks: NEES median 9–18
-        in those frames, 2–4 elsewhere; bench/RESULTS.md, session 27). The track is the same."""
+        counts them as absolute, claims the accuracy of the motion (zoo walks: NEES median 6–37
+        in those frames, 2–5 in the other frames of the same walks; bench/RESULTS.md, session 27).
+        The track is the same."""
         s, p = self.filter.state, self.params
         cov = s.pose_covariance + systematic_floor(s.R, s.p, self.model.mesh.centre, self.diameter,
                                                    p.systematic_pct / 100.0, p.systematic_depth_ratio,
