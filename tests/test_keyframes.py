@@ -317,9 +317,9 @@ def test_a_track_lost_sliding_out_of_the_frame_is_not_re_acquired_near_its_last_
         img = Z.degrade(Z.compose(*walk.obj.render(walk.cam, pose), walk.bg), np.random.default_rng(i))
         steps.append(tracker.step(img, (11 + i) / FPS))
         shares.append(silhouette_inside(walk.model.mesh, walk.cam, pose)[0])
-        if not steps[-1].has_pose:
+        if not tracker.tracking:  # (a pose the edges doubt is withheld while the track goes on)
             break
-    assert not steps[-1].has_pose and shares[-2] < TrackerParams().reacquire_min_inside, (steps[-1].reason, shares[-3:])
+    assert not steps[-1].has_pose and shares[-2] < TrackerParams().reacquire_min_inside, ([s.reason for s in steps], shares[-3:])
     assert tracker._seen is None
 
 

@@ -214,7 +214,7 @@ class MeshPoints:
             self.cov_X, self.cohort = np.zeros((0, 3, 3)), np.zeros(0, int)
             self.vouched = np.zeros(0, bool)
         self._since_spawn += 1
-        if (self._since_spawn >= p.mesh_spawn_every and len(self.tracks) < 0.7 * p.mesh_max_points
+        if (self._since_spawn >= p.mesh_spawn_every and len(self.tracks) < 0.7 * p.mesh_max_points and ctx.vouched
                 and confident(state, self.diameter, p.mesh_spawn_sigma_p, p.mesh_spawn_sigma_deg)):
             self.spawn(ctx, state)
 

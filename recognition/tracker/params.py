@@ -173,6 +173,10 @@ class TrackerParams:
     # again without the edges (Tracker._unless_outvoted): χ²₆ at 0.999; 0 turns the test off
     texture_chi2: float = 22.46
     audit_every: int = 3  # tracked frames between audits (0: none); each costs an edge refit
+    # a pose the edges doubt (the audit, a strict test on probation) is withheld, not ended: the
+    # track goes on for up to doubt_frames frames, each tested strictly, and is reported again
+    # from the first the edges confirm (Tracker._doubt); 0: lost at once
+    doubt_frames: int = 5
     # The reported covariance is the filter's plus a systematic floor (quatrack.tracking.systematic:
     # the error the measurements share, which the filter's independent-measurement covariance
     # leaves out): the centre's 1-σ error systematic_pct % of the diameter across the line of

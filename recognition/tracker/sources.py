@@ -45,6 +45,9 @@ class FrameContext:
     # min_inliers of them): set by the tracker after measuring them, read by the mesh points
     # (mesh_points.MeshPoints.measure: whether their birth error is shared with the state's)
     anchored: bool = True
+    # the tracker reports this frame's pose: not one withheld while the edges doubt the track
+    # (Tracker._doubt); sources learn only from such frames (births on the mesh, the outline's colours)
+    vouched: bool = True
 
     def zbuffer(self, mesh: Mesh, params: TrackerParams):
         """The visibility z-buffer at the prediction, rendered once for every source."""
