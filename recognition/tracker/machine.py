@@ -12,8 +12,10 @@ States and transitions (Kragic & Kyrki's Fig. 1 loop):
   view shows is found again; with no trained point near such a pose, the track starts on
   corners born on the mesh once the edges confirm it.
 - **tracking**: each frame is *predict → measure → adjust*: the motion model gives the prior;
-  every source (:mod:`.sources`) measures its tracks in the frame (KLT from the previous frame,
-  starting from the projections at the prediction; gated by ``rᵀ(J P Jᵀ + C)⁻¹r < χ²``); one
+  every source measures the frame — the trained points and the points born on the mesh by KLT
+  from the previous frame, starting from their projections at the prediction (:mod:`.sources`,
+  :mod:`.mesh_points`), the model's sharp edges by their gradients (:mod:`.edges`), the
+  object's outline by its colours (:mod:`.contour`); gated by ``rᵀ(J P Jᵀ + C)⁻¹r < χ²``; one
   adjustment (:meth:`PoseFilter.update`, eq. 24, Huber weights) takes every block; measurements
   still off after it are outliers, removed and the adjustment redone. Re-anchoring
   (:mod:`.anchor`) refreshes the trained points every ``refresh_every`` frames or when they
@@ -27,6 +29,10 @@ States and transitions (Kragic & Kyrki's Fig. 1 loop):
   (:mod:`quatrack.viewsets.learn`); the tracker's model then holds it, so re-anchoring and
   re-initialisation (recognition) search the trained and the learned views
   (:meth:`Tracker.learned_viewsets` gives them to the caller, which may store them).
+- **in doubt** (not a state: a pause of *tracking*): a pose the model's edges refit too far (the
+  audit every ``audit_every`` frames, or the strict test of a track on probation) is withheld —
+  the step answers ``lost`` — while the track goes on, tested strictly every frame, for up to
+  ``doubt_frames`` frames; the first the edges confirm is reported again (:meth:`Tracker._doubt`).
 - **lost**: too few measurements agree, residuals too large, the pose implausible
   (:func:`recognition.pose.plausible`: behind the camera, too little of it in the image), or
   repeated refreshes find no texture → the state is dropped and the next frame is *init* again.
@@ -64,6 +70,7 @@ from ..visibility import merge_points
 from .anchor import Anchor, AnchorJob
 from .params import INITIAL_VELOCITY_SIGMA, TrackerParams, TrackStep
 from .points import PointBlock, Tracks, mahalanobis2, score_statistic
+from .contour import Contour
 from .edges import ModelEdges, fit_image
 from .keyframes import Capture, Keyframe, Keyframes, object_crop
 from .mesh_points import MeshPoints, birth_mask, confident
@@ -105,8 +112,11 @@ class Tracker:
         # the trained points always exist (re-anchoring and initialisation fill them); without
         # "trained" in params.sources they are not measured after the first frame
         self.edges = ModelEdges(model.mesh, params)
-        self.sources: list[MeasurementSource] = [s for s in (self.trained, self.mesh_points, self.edges)
+        self.contour = Contour(model.mesh, params)
+        self.sources: list[MeasurementSource] = [s for s in (self.trained, self.mesh_points, self.edges, self.contour)
                                                  if s.name in params.sources]
+        # the outline's sources: they carry the pose, but only texture says it is this object's
+        self._shape_sources = (self.edges, self.contour)
         self._anchor: Anchor | None = None
         # while tracking, the measurements judge: the object may lie mostly outside the image
         self._plausibility = replace(PoseParams(), min_visible_fraction=params.min_inside)
@@ -131,7 +141,7 @@ class Tracker:
         """Forget the state and the last pose: the next frame re-initialises by recognition."""
         self.filter.state = None
         self.filter.prior = None
-        for s in (self.trained, self.mesh_points, self.edges):  # tracks, and what each learned of its noise
+        for s in (self.trained, self.mesh_points, self.edges, self.contour):  # tracks, what each learned
             s.reset()
         self._prev: Frame | None = None
         self._since_refresh = 0
@@ -522,11 +532,12 @@ class Tracker:
             return self._lost(time_s, why, n_inl)
         # edges refine and carry the pose, but clutter has edges everywhere: the object's own
         # texture (trained or mesh-born points) must still be there to vouch for it
-        n_points = self._inliers_of(blocks, inl, exclude=self.edges)
-        n_textured = sum(len(b) for s, b in zip(self.sources, blocks) if s is not self.edges)
-        if n_points < p.min_inliers and len(blocks) > 1 and self.edges in self.sources:
+        n_points = self._inliers_of(blocks, inl, exclude=self._shape_sources)
+        n_textured = sum(len(b) for s, b in zip(self.sources, blocks) if s not in self._shape_sources)
+        shaped = any(s in self.sources for s in self._shape_sources)
+        if n_points < p.min_inliers and len(blocks) > 1 and shaped:
             return self._lost(time_s, f"only {n_points} textured points agree", n_inl)
-        if p.texture_chi2 and self.edges in self.sources and len(blocks) > 1:
+        if p.texture_chi2 and shaped and len(blocks) > 1:
             inl = self._unless_outvoted(blocks, block, inl)
             n_inl = int(inl.sum())
         why = self._implausible(self.filter.state.pose)
@@ -781,7 +792,7 @@ class Tracker:
         for s, b in zip(self.sources, blocks):
             judges[start : start + len(b)] = s is self.trained
             mesh[start : start + len(b)] = s is self.mesh_points
-            textured[start : start + len(b)] = s is not self.edges
+            textured[start : start + len(b)] = s not in self._shape_sources
             start += len(b)
         min_inl = self.params.min_inliers
         if int((judges & inl).sum()) >= min_inl:
@@ -852,11 +863,11 @@ class Tracker:
             self._failed_refreshes = 0
         return ok
 
-    def _inliers_of(self, blocks, inl, only=None, exclude=None) -> int:
-        """Inliers among the blocks of one source (``only``) or of all but one (``exclude``)."""
+    def _inliers_of(self, blocks, inl, only=None, exclude: tuple = ()) -> int:
+        """Inliers among the blocks of one source (``only``) or of all but some (``exclude``)."""
         start, n = 0, 0
         for s, b in zip(self.sources, blocks):
-            if (only is None or s is only) and s is not exclude:
+            if (only is None or s is only) and s not in exclude:
                 n += int(inl[start : start + len(b)].sum())
             start += len(b)
         return n

@@ -81,8 +81,9 @@ class TrackerParams:
     min_inside: float = 0.2  # a tracked pose with less of its silhouette inside the image is lost
     # measurement sources (recognition/tracker/sources.py): "trained" (the viewsets' points, the
     # anchors), "mesh" (corners born on the mesh at the current pose: recognition/tracker/mesh_points.py),
-    # "edges" (sharp model edges searched along their normals: recognition/tracker/edges.py)
-    sources: tuple[str, ...] = ("trained", "mesh", "edges")
+    # "edges" (sharp model edges searched along their normals: recognition/tracker/edges.py),
+    # "contour" (the outline located by colour statistics: recognition/tracker/contour.py)
+    sources: tuple[str, ...] = ("trained", "mesh", "edges", "contour")
     mesh_max_points: int = 100
     mesh_spawn_every: int = 5  # frames between births
     mesh_spawn_sigma_p: float = 0.01  # births only when the pose's 1-σ error is below (× diameter)
@@ -99,6 +100,20 @@ class TrackerParams:
     # this strong is dropped: a crease beside a parallel line of the print (edges.edge_candidates;
     # None: the strongest is taken whatever else is in reach)
     edge_ambiguity: float | None = 0.5
+    # "contour": the object's outline located by colour statistics along lines across it
+    # (recognition/tracker/contour.py, after SRT3D): a line every contour_step_px of the outline,
+    # searching ± 3σ of the prediction (at most contour_max_reach_px) with contour_margin_px more
+    # read beyond; smoothed step functions of amplitude contour_alpha and slope contour_slope_px
+    # (SRT3D's 0.43 and 1.3); at least contour_sigma_min_px across; colour histograms learned at
+    # the rates contour_rate_f (object) and contour_rate_b (surroundings) per frame
+    contour_step_px: float = 8.0
+    contour_max_reach_px: float = 20.0
+    contour_margin_px: float = 8.0
+    contour_alpha: float = 0.43
+    contour_slope_px: float = 1.3
+    contour_sigma_min_px: float = 0.5
+    contour_rate_f: float = 0.1
+    contour_rate_b: float = 0.2
     # views learned while tracking (quatrack.viewsets.learn; Tracker.learned_viewsets()): when the
     # pose is confident (1-σ below learn_sigma_p × diameter and learn_sigma_deg), at least
     # learn_min_inliers textured points agree and are learn_min_share of those measured (nothing
@@ -205,9 +220,10 @@ class TrackerParams:
         noise = DEFAULT_MOTION_NOISE.get(self.motion_model)
         if noise is None:
             raise ValueError(f"unknown motion model {self.motion_model!r}; expected one of {sorted(DEFAULT_MOTION_NOISE)}")
-        bad = set(self.sources) - {"trained", "mesh", "edges"}
+        bad = set(self.sources) - {"trained", "mesh", "edges", "contour"}
         if bad or not self.sources:
-            raise ValueError(f"unknown measurement source(s) {sorted(bad)}; expected some of 'trained', 'mesh', 'edges'")
+            raise ValueError(f"unknown measurement source(s) {sorted(bad)}; expected some of 'trained', 'mesh', "
+                             "'edges', 'contour'")
         unknown = set(self.motion_noise) - set(noise)
         if unknown:
             raise ValueError(f"motion model {self.motion_model!r} has no parameter(s) {sorted(unknown)}; "

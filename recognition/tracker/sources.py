@@ -9,7 +9,8 @@ A source keeps its own tracks between frames. Per frame the machine calls
 
 The sources (issue 12): :class:`TrainedPoints` (the viewsets' 3-D points followed by KLT,
 re-anchored by SIFT: :mod:`.anchor`), :class:`~.mesh_points.MeshPoints` (corners born on the
-mesh at the current pose).
+mesh at the current pose), :class:`~.edges.ModelEdges` (the mesh's sharp edges found by their
+gradients) and :class:`~.contour.Contour` (the object's outline found by its colours).
 """
 
 from __future__ import annotations
