@@ -21,7 +21,7 @@ that puts half the object out of frame is judged on the half that is in.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -265,6 +265,7 @@ class EdgeFit:
     offset_px: float = 0.0
     shift: float = 0.0
     points_rms_px: float = 0.0  # the inliers' reprojection RMS at the refitted pose
+    pose: Pose | None = field(default=None, compare=False)  # the refitted pose (None: no refit; its shift compares)
 
 
 def edge_fit(image: EdgeImage | None, mesh: Mesh, camera: PinholeCamera, pose: Pose, points3d: np.ndarray,
@@ -332,7 +333,8 @@ def edge_fit(image: EdgeImage | None, mesh: Mesh, camera: PinholeCamera, pose: P
         rms = float(np.sqrt(np.mean(np.sum((up - uv) ** 2, axis=1))))
     if not (np.isfinite(rms) and np.all(np.isfinite(p)) and np.all(np.isfinite(q))):
         return EdgeFit(k, offset, np.inf, np.inf)
-    return EdgeFit(k, offset, pose_shift(Pose(q, p), pose, mesh), rms)
+    refit = Pose(q, p)
+    return EdgeFit(k, offset, pose_shift(refit, pose, mesh), rms, refit)
 
 
 def pose_sd_ratio(centre_sd: float, rotation_sd_deg: float, extent: float) -> float:

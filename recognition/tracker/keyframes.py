@@ -234,8 +234,9 @@ class Keyframes:
 def synthetic_views(keyframes: list[Keyframe], mesh: Mesh, groups: np.ndarray, centre: np.ndarray,
                     params: ViewsetParams, angles_deg: tuple[float, ...], min_cos: float = 0.3) -> list[tuple[Viewset, ...]]:
     """Each keyframe's synthetic views (:func:`~quatrack.viewsets.novel.synthetic_viewset` at its
-    pose turned by :func:`~quatrack.viewsets.novel.turned_about_view`); a view with fewer than 12
-    lifted keypoints is not kept (12: recognition's minimum inliers). Pure: runs on any thread."""
+    pose turned by :func:`~quatrack.viewsets.novel.turned_about_view`, a face textured where the
+    crop sees it at ``|cos| ≥ min_cos``); a view with fewer than 12 lifted keypoints is not kept
+    (12: recognition's minimum inliers). Pure: runs on any thread."""
     out = []
     for k in keyframes:
         pose, camera = k.viewset.pose, k.viewset.camera

@@ -155,6 +155,11 @@ class TrackerParams:
     # sides seen before it
     keyframe_synthetic_deg: tuple[float, ...] = (20.0, 40.0)
     keyframe_synthetic_per_frame: int = 2
+    # a face of the crop is textured in a synthetic view where the crop sees it at |cos| ≥
+    # keyframe_synthetic_min_cos: the views stay within 40° of the keyframe, where a face it saw
+    # obliquely is seen about as obliquely (training's 0.3 dropped the zoo flat box's large face,
+    # seen at cos 0.3 from below, from every view near that one: nothing re-found it after the slide)
+    keyframe_synthetic_min_cos: float = 0.1
     # a track re-found on this run's keyframes keeps no keyframe nor learned view of its own while
     # no trained point anchors its frame (FrameContext.anchored): its points were lifted at a pose
     # that inherits the keyframe's error, and a view taken from it would pass that error on again
