@@ -421,3 +421,31 @@ def test_outline_and_mesh_points_follow_a_known_motion(box):
     d = model.mesh.extent
     assert err[:, 0].mean() < 0.01 * d and err[:, 1].mean() < 1.0
     assert any(s.timings_ms.get("contour") is not None for s in steps[1:])
+
+
+def test_the_outline_posterior_is_the_whole_product():
+    """outline_posterior sums the flat far terms of log P(d) by running sums and evaluates only
+    the terms near each candidate: the same mean and spread as the whole product, on noisy
+    random lines (the outline anywhere in reach, pixels that say nothing among them)."""
+    from quatrack.recognition.tracker.contour import outline_posterior
+
+    alpha, slope = 0.43, 1.3
+    rng = np.random.default_rng(0)
+    for R in (3, 12, 20):
+        x = np.arange(-(R + 8), R + 9, dtype=float)
+        edge = rng.uniform(-R, R, 200)
+        p = np.clip(np.where(x[None] < edge[:, None], 0.8, 0.2) + rng.normal(0, 0.25, (200, len(x))), 0.01, 0.99)
+        p[rng.random(p.shape) < 0.1] = 0.5
+        radius = rng.uniform(3, R, 200) if R > 3 else np.full(200, 3.0)
+        d = np.arange(-R, R + 1, dtype=float)
+        hF = 0.5 - alpha * np.tanh((x[None, :] - d[:, None]) / (2.0 * slope))
+        ll = np.log((1 - p)[:, None, :] + hF[None] * (2 * p - 1)[:, None, :]).sum(axis=2)
+        ll = np.where(np.abs(d)[None] <= radius[:, None], ll, -np.inf)
+        P = np.exp(ll - ll.max(axis=1, keepdims=True))
+        P /= P.sum(axis=1, keepdims=True)
+        mu = P @ d
+        sd = np.sqrt(np.einsum("nd,nd->n", P, (d[None] - mu[:, None]) ** 2))
+        mu_f, var_f, _ = outline_posterior(p, x, radius, alpha, slope)
+        assert np.abs(mu_f - mu).max() < 0.02 and np.abs(np.sqrt(var_f) - sd).max() < 0.02
+        within = np.abs(edge) < radius - 1.0  # (and the lines find the outlines within their reach)
+        assert np.abs(mu - edge)[within].mean() < 1.0

@@ -186,9 +186,15 @@ class ColourModel:
 def outline_posterior(p_f: np.ndarray, x: np.ndarray, radius: np.ndarray, alpha: float,
                       slope: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Where each line's outline lies (see the module, step 3): for pixel posteriors ``p_f``
-    (n, L) at offsets ``x`` (L,) along the lines and search radii ``radius`` (n,), the mean
-    ``μ`` and variance ``σ²`` of ``P(d)`` over the whole pixels ``d`` within ``±radius``, and
-    ``P(d)`` itself (n, D) over ``d = −R … R`` (``R`` the largest radius).
+    (n, L) at whole-pixel offsets ``x`` (L,) along the lines and search radii ``radius`` (n,),
+    the mean ``μ`` and variance ``σ²`` of ``P(d)`` over the whole pixels ``d`` within
+    ``±radius``, and ``P(d)`` itself (n, D) over ``d = −R … R`` (``R`` the largest radius).
+
+    ``log P(d) = Σₓ log(1 − p_f + h_F(x − d)(2p_f − 1))`` + const. The smoothed step is flat
+    beyond ``w = ⌈5.5 s⌉`` px of ``d`` (``tanh(w / 2s) > 0.99``, ``h_F`` within ``0.005 α`` of
+    ``½ ± α``), so the terms beyond come from two running sums of their flat values and only
+    ``2w + 1`` terms per candidate are evaluated: about a quarter of the work of the whole
+    product, the same ``μ`` within ~0.01 px.
 
     A line that is object up to 3 px outside the predicted outline and background beyond:
 
@@ -198,12 +204,30 @@ def outline_posterior(p_f: np.ndarray, x: np.ndarray, radius: np.ndarray, alpha:
     >>> round(float(mu[0]), 1), round(float(np.sqrt(var[0])), 1)  # (the step lies between 3 and 4)
     (3.5, 1.5)
     """
+    n, L = p_f.shape
     R = int(np.ceil(radius.max())) if len(radius) else 0
     d = np.arange(-R, R + 1, dtype=float)
-    hF = 0.5 - alpha * np.tanh((x[None, :] - d[:, None]) / (2.0 * slope))  # (D, L)
-    q = 2.0 * p_f - 1.0  # mix = (1 − p) + h_F (2p − 1)
-    mix = (1.0 - p_f)[:, None, :] + hF[None, :, :] * q[:, None, :]  # (n, D, L)
-    ll = np.log(np.maximum(mix, 1e-12)).sum(axis=2)
+    w = int(np.ceil(5.5 * slope))
+    a = 1.0 - p_f
+    q = 2.0 * p_f - 1.0  # the mixture: (1 − p) + h_F (2p − 1)
+    inside = np.log(np.maximum(a + (0.5 + alpha) * q, 1e-12))  # h_F far inside the outline
+    outside = np.log(np.maximum(a + (0.5 - alpha) * q, 1e-12))  # … far outside it
+    before = np.concatenate([np.zeros((n, 1)), np.cumsum(inside, axis=1)], axis=1)  # Σ over indices < j
+    after = np.concatenate([np.cumsum(outside[:, ::-1], axis=1)[:, ::-1], np.zeros((n, 1))], axis=1)  # ≥ j
+    centre = np.rint(d - x[0]).astype(int)  # index of x = d
+    t = np.arange(-w, w + 1)
+    J = centre[:, None] + t[None, :]  # (D, 2w+1)
+    valid = (J >= 0) & (J < L)
+    Jc = np.clip(J, 0, L - 1)
+    hF = 0.5 - alpha * np.tanh(t / (2.0 * slope))  # h_F(x − d) at x − d = t
+    a32, q32 = a.astype(np.float32), q.astype(np.float32)  # (the bulk of the work: single precision)
+    mix = a32[:, Jc] + hF.astype(np.float32)[None, None, :] * q32[:, Jc]  # (n, D, 2w+1)
+    np.maximum(mix, np.float32(1e-12), out=mix)
+    np.log(mix, out=mix)
+    mix[:, ~valid] = 0.0
+    near = mix.sum(axis=2, dtype=np.float64)
+    lo, hi = np.clip(centre - w, 0, L), np.clip(centre + w + 1, 0, L)
+    ll = before[:, lo] + near + after[:, hi]
     ll = np.where(np.abs(d)[None, :] <= radius[:, None], ll, -np.inf)
     ll -= ll.max(axis=1, keepdims=True)
     P = np.exp(ll)
