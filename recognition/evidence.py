@@ -31,6 +31,8 @@ from quatrack.tracking.pose import Pose
 from quatrack.viewsets.mesh import Mesh
 from quatrack.viewsets.render import render
 
+from .visibility import segment_samples
+
 
 def scaled_camera(camera: PinholeCamera, s: float, pad: int = 0) -> PinholeCamera:
     """The camera of the image resized by ``s`` (pixel centres preserved), then enlarged by
@@ -76,24 +78,6 @@ class EdgeParams:
     min_edge_len: int = 6  # samples (× step_px) for an edge to be judged on its own
 
 
-def _edge_pairs(mesh: Mesh) -> tuple[np.ndarray, np.ndarray]:
-    """Unique edges (k, 2) vertex indices and their two adjacent faces (k, 2); -1 when open."""
-    F = mesh.faces
-    e = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
-    owner = np.tile(np.arange(len(F)), 3)
-    key = np.sort(e, axis=1)
-    order = np.lexsort((key[:, 1], key[:, 0]))
-    key, owner = key[order], owner[order]
-    new = np.r_[True, np.any(key[1:] != key[:-1], axis=1)]
-    starts = np.flatnonzero(new)
-    counts = np.diff(np.r_[starts, len(key)])
-    faces = np.full((len(starts), 2), -1)
-    faces[:, 0] = owner[starts]
-    two = counts >= 2
-    faces[two, 1] = owner[starts[two] + 1]
-    return key[starts], faces
-
-
 def edge_samples(mesh: Mesh, camera: PinholeCamera, pose: Pose, params: EdgeParams = EdgeParams(),
                  depth: np.ndarray | None = None, depth_scale: float = 0.5):
     """Visible model edge samples: pixels (n, 2), unit image normals (n, 2) and the index of the
@@ -105,7 +89,7 @@ def edge_samples(mesh: Mesh, camera: PinholeCamera, pose: Pose, params: EdgePara
 
 def _edge_samples(mesh: Mesh, camera: PinholeCamera, pose: Pose, params: EdgeParams, depth, depth_scale):
     """:func:`edge_samples` plus the samples' points in the object frame (n, 3)."""
-    pairs, faces = _edge_pairs(mesh)
+    pairs, faces, _ = mesh.edge_faces
     N = mesh.face_normals
     V = pose.apply(mesh.vertices)
     if np.any(V[:, 2] <= 1e-9):
@@ -120,17 +104,7 @@ def _edge_samples(mesh: Mesh, camera: PinholeCamera, pose: Pose, params: EdgePar
     keep = open_ | (crease & (facing[f0] | facing[f1s])) | silhouette
     if not keep.any():
         return np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, int), np.zeros((0, 3))
-    A, B = V[pairs[keep, 0]], V[pairs[keep, 1]]
-    ua, ub = camera.project(A), camera.project(B)
-    length = np.linalg.norm(ub - ua, axis=1)
-    n_s = np.maximum(1, np.ceil(length / params.step_px)).astype(int)
-    seg = np.repeat(np.arange(len(A)), n_s)
-    s = (np.concatenate([np.arange(k) for k in n_s]) + 0.5) / np.repeat(n_s, n_s)
-    P = A[seg] * (1 - s[:, None]) + B[seg] * s[:, None]  # 3-D samples, camera frame
-    uv = camera.project(P)
-    d = ub[seg] - ua[seg]
-    d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-9)
-    normal = np.column_stack([-d[:, 1], d[:, 0]])
+    seg, P, uv, normal = segment_samples(V[pairs[keep, 0]], V[pairs[keep, 1]], camera, params.step_px)
     w, h = camera.width, camera.height
     b = params.border_px
     ok = (uv[:, 0] >= b) & (uv[:, 1] >= b) & (uv[:, 0] <= w - 1 - b) & (uv[:, 1] <= h - 1 - b)

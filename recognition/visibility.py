@@ -106,25 +106,37 @@ def visible_points(
 
 def mesh_edges(mesh: Mesh, angle_deg: float = 1.0) -> np.ndarray:
     """Edges (k, 2, 3) between faces that are not coplanar, and boundary edges: the wireframe
-    a viewer expects (a box's 12 edges, not its triangulation's diagonals)."""
-    F = mesh.faces
+    a viewer expects (a box's 12 edges, not its triangulation's diagonals). (An edge shared by
+    other than two faces is always one; faces of opposite normals count as coplanar.)"""
+    edges, faces, counts = mesh.edge_faces
     normals = mesh.face_normals
-    e = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
-    owner = np.tile(np.arange(len(F)), 3)
-    key = np.sort(e, axis=1)
-    order = np.lexsort((key[:, 1], key[:, 0]))
-    key, owner = key[order], owner[order]
-    out = []
-    cos_tol = np.cos(np.radians(angle_deg))
-    i = 0
-    while i < len(key):
-        j = i + 1
-        while j < len(key) and np.array_equal(key[j], key[i]):
-            j += 1
-        faces = owner[i:j]
-        if len(faces) != 2 or abs(float(normals[faces[0]] @ normals[faces[1]])) < cos_tol:
-            out.append(key[i])
-        i = j
-    if not out:
+    cos = np.abs(np.einsum("ij,ij->i", normals[faces[:, 0]], normals[np.maximum(faces[:, 1], 0)]))
+    keep = (counts != 2) | (cos < np.cos(np.radians(angle_deg)))
+    if not keep.any():
         return np.zeros((0, 2, 3))
-    return mesh.vertices[np.array(out)]
+    return mesh.vertices[edges[keep]]
+
+
+def segment_samples(A: np.ndarray, B: np.ndarray, camera: PinholeCamera,
+                    step_px: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Samples along 3-D segments with camera-frame ends ``A``, ``B`` (k, 3), about every
+    ``step_px`` pixels of their projections: each projected segment is cut into
+    ``max(1, ⌈length / step_px⌉)`` equal parts, sampled at the middle of each. Returns per sample
+    its segment (n,), its camera-frame point (n, 3), pixel (n, 2) and the unit normal of its
+    projected segment (n, 2), the direction turned by +90° (x right, y down: its right side).
+
+    >>> cam = PinholeCamera(100.0, 100.0, 50.0, 50.0, width=100, height=100)
+    >>> seg, P, uv, n = segment_samples(np.array([[0.0, 0, 1]]), np.array([[0.3, 0, 1]]), cam, 10.0)
+    >>> seg.tolist(), uv[:, 0].tolist(), n[0].tolist()
+    ([0, 0, 0], [55.0, 65.0, 75.0], [-0.0, 1.0])
+    """
+    if len(A) == 0:
+        return np.zeros(0, int), np.zeros((0, 3)), np.zeros((0, 2)), np.zeros((0, 2))
+    ua, ub = camera.project(A), camera.project(B)
+    n_s = np.maximum(1, np.ceil(np.linalg.norm(ub - ua, axis=1) / step_px)).astype(int)
+    seg = np.repeat(np.arange(len(A)), n_s)
+    s = (np.concatenate([np.arange(k) for k in n_s]) + 0.5) / np.repeat(n_s, n_s)
+    P = A[seg] * (1 - s[:, None]) + B[seg] * s[:, None]
+    d = ub[seg] - ua[seg]
+    d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-9)
+    return seg, P, camera.project(P), np.column_stack([-d[:, 1], d[:, 0]])

@@ -34,6 +34,37 @@ class Mesh:
         n.setflags(write=False)
         return n
 
+    @cached_property
+    def edge_faces(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The mesh's unique edges (k, 2) (vertex indices, the smaller first), the faces on their
+        two sides (k, 2) (−1 where an edge has one face, the mesh's boundary; an edge of more than
+        two faces keeps its first two) and how many faces share each edge (k,); read-only,
+        computed once per mesh (silhouettes, creases and wireframes are all read from it).
+
+        >>> tetra = make_mesh(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1.0]]),
+        ...                   np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]]))
+        >>> edges, faces, counts = tetra.edge_faces
+        >>> len(edges), bool((faces >= 0).all()), counts.tolist()
+        (6, True, [2, 2, 2, 2, 2, 2])
+        """
+        F = np.asarray(self.faces)
+        e = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
+        owner = np.tile(np.arange(len(F)), 3)
+        key = np.sort(e, axis=1)
+        order = np.lexsort((key[:, 1], key[:, 0]))
+        key, owner = key[order], owner[order]
+        new = np.r_[True, np.any(key[1:] != key[:-1], axis=1)]
+        starts = np.flatnonzero(new)
+        counts = np.diff(np.r_[starts, len(key)])
+        faces = np.full((len(starts), 2), -1)
+        faces[:, 0] = owner[starts]
+        two = counts >= 2
+        faces[two, 1] = owner[starts[two] + 1]
+        out = (key[starts], faces, counts)
+        for a in out:
+            a.setflags(write=False)
+        return out
+
     @property
     def centre(self) -> np.ndarray:
         """Centre of the bounding box: novel views rotate about it."""

@@ -49,7 +49,7 @@ from quatrack.tracking.measurements import project_model_points
 from quatrack.tracking.state import FilterState
 from quatrack.viewsets.mesh import Mesh
 
-from ..visibility import scaled_camera
+from ..visibility import segment_samples
 from .params import TrackerParams
 from .points import PointBlock, VarianceFactor, mahalanobis2, posterior_m2
 from .sources import FrameContext
@@ -59,41 +59,12 @@ _BINS = 16  # per colour channel
 _PRIOR = 1e-4  # added to every histogram bin (no colour is impossible)
 
 
-def mesh_topology(mesh: Mesh) -> tuple[np.ndarray, np.ndarray]:
-    """The mesh's unique edges (k, 2) (vertex indices) and their faces (k, 2) (−1 where an
-    edge has one face: the mesh's boundary). An edge shared by more than two faces keeps its
-    first two.
-
-    >>> from quatrack.viewsets.mesh import make_mesh
-    >>> tetra = make_mesh(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1.0]]),
-    ...                   np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]]))
-    >>> edges, faces = mesh_topology(tetra)
-    >>> len(edges), bool((faces >= 0).all())
-    (6, True)
-    """
-    F = np.asarray(mesh.faces)
-    e = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
-    owner = np.tile(np.arange(len(F)), 3)
-    key = np.sort(e, axis=1)
-    order = np.lexsort((key[:, 1], key[:, 0]))
-    key, owner = key[order], owner[order]
-    first = np.ones(len(key), bool)
-    first[1:] = np.any(key[1:] != key[:-1], axis=1)
-    starts = np.flatnonzero(first)
-    counts = np.diff(np.append(starts, len(key)))
-    faces = np.full((len(starts), 2), -1, int)
-    faces[:, 0] = owner[starts]
-    two = counts >= 2
-    faces[two, 1] = owner[starts[two] + 1]
-    return key[starts], faces
-
-
-def silhouette_samples(mesh: Mesh, topology: tuple[np.ndarray, np.ndarray], camera, pose, step_px: float,
-                       zbuffer, scale: float, margin_px: float) -> tuple[np.ndarray, np.ndarray]:
+def silhouette_samples(mesh: Mesh, camera, pose, step_px: float, zbuffer, scale: float,
+                       margin_px: float) -> tuple[np.ndarray, np.ndarray]:
     """Samples of the object's outer outline at ``pose``: object points (n, 3) on silhouette
     edges and their image normals (n, 2), turned outwards (see the module, step 1). ``zbuffer``
     is the visibility render at ``scale`` of the image."""
-    edges, faces = topology
+    edges, faces, _ = mesh.edge_faces
     V = np.asarray(mesh.vertices, float)
     normals = mesh.face_normals
     eye = -pose.R.T @ pose.t  # the camera's centre, object frame
@@ -104,21 +75,10 @@ def silhouette_samples(mesh: Mesh, topology: tuple[np.ndarray, np.ndarray], came
     sil = f0 != f1
     if not sil.any():
         return np.zeros((0, 3)), np.zeros((0, 2))
-    E = V[edges[sil]]  # (k, 2, 3)
-    A, B = pose.apply(E[:, 0]), pose.apply(E[:, 1])
-    ok = (A[:, 2] > 1e-9) & (B[:, 2] > 1e-9)
-    E, A, B = E[ok], A[ok], B[ok]
-    if len(E) == 0:
-        return np.zeros((0, 3)), np.zeros((0, 2))
-    ua, ub = camera.project(A), camera.project(B)
-    n_s = np.clip(np.floor(np.linalg.norm(ub - ua, axis=1) / step_px), 1, 400).astype(int)
-    seg = np.repeat(np.arange(len(E)), n_s)
-    s = (np.concatenate([np.arange(k) for k in n_s]) + 0.5) / np.repeat(n_s, n_s)
-    X = E[seg, 0] * (1 - s[:, None]) + E[seg, 1] * s[:, None]
-    uv = camera.project(pose.apply(X))
-    d = ub[seg] - ua[seg]
-    d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-9)
-    n = np.column_stack([-d[:, 1], d[:, 0]])
+    A, B = pose.apply(V[edges[sil, 0]]), pose.apply(V[edges[sil, 1]])
+    front = (A[:, 2] > 1e-9) & (B[:, 2] > 1e-9)
+    _, Xc, uv, n = segment_samples(A[front], B[front], camera, step_px)
+    X = (Xc - pose.t) @ pose.R
     w, h = camera.width, camera.height
     inside = (uv[:, 0] >= margin_px) & (uv[:, 1] >= margin_px) & (uv[:, 0] <= w - 1 - margin_px) & (uv[:, 1] <= h - 1 - margin_px)
     # which side is the object's: the z-buffer a little beyond the z-buffer's own pixel each way
@@ -245,7 +205,6 @@ class Contour:
 
     def __init__(self, mesh: Mesh, params: TrackerParams) -> None:
         self.mesh, self.params = mesh, params
-        self.topology = mesh_topology(mesh)
         self.factor = VarianceFactor(1)
         self.colours = ColourModel()
         # this frame's lines, for settle: (bins, informative, x, normals, uv at the prior, kept)
@@ -283,7 +242,7 @@ class Contour:
         p = self.params
         empty = PointBlock(self.name, np.zeros((0, 3)), np.zeros((0, 2)), np.zeros((0, 2, 2)))
         self._lines = None
-        X, normal = silhouette_samples(self.mesh, self.topology, ctx.camera, ctx.prior.pose, p.contour_step_px,
+        X, normal = silhouette_samples(self.mesh, ctx.camera, ctx.prior.pose, p.contour_step_px,
                                        ctx.zbuffer(self.mesh, p), p.visibility.scale, 2.0)
         if len(X) == 0:
             return empty

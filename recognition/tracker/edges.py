@@ -34,7 +34,7 @@ from quatrack.tracking.measurements import project_model_points
 from quatrack.tracking.state import FilterState
 from quatrack.viewsets.mesh import Mesh
 
-from ..visibility import mesh_edges, scaled_camera
+from ..visibility import mesh_edges, scaled_camera, segment_samples
 from .params import TrackerParams
 from .points import PointBlock, VarianceFactor, mahalanobis2, posterior_m2
 from .sources import FrameContext
@@ -52,19 +52,8 @@ def edge_points(mesh: Mesh, edges3d: np.ndarray, camera, state: FilterState, par
     pose = state.pose
     A, B = pose.apply(E[:, 0]), pose.apply(E[:, 1])
     front = (A[:, 2] > 1e-9) & (B[:, 2] > 1e-9)
-    E, A, B = E[front], A[front], B[front]
-    if len(E) == 0:
-        return np.zeros((0, 3)), np.zeros((0, 2))
-    ua, ub = camera.project(A), camera.project(B)
-    n_s = np.clip(np.ceil(np.linalg.norm(ub - ua, axis=1) / params.edge_step_px), 1, 400).astype(int)
-    seg = np.repeat(np.arange(len(E)), n_s)
-    s = (np.concatenate([np.arange(k) for k in n_s]) + 0.5) / np.repeat(n_s, n_s)
-    X = E[seg, 0] * (1 - s[:, None]) + E[seg, 1] * s[:, None]
-    Xc = pose.apply(X)
-    uv = camera.project(Xc)
-    d = ub[seg] - ua[seg]
-    d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-9)
-    normal = np.column_stack([-d[:, 1], d[:, 0]])
+    _, Xc, uv, normal = segment_samples(A[front], B[front], camera, params.edge_step_px)
+    X = (Xc - pose.t) @ pose.R
     w, h = camera.width, camera.height
     m = params.visibility.margin_px
     ok = (uv[:, 0] >= m) & (uv[:, 1] >= m) & (uv[:, 0] <= w - 1 - m) & (uv[:, 1] <= h - 1 - m)
