@@ -5,7 +5,9 @@
 - model edges (recognition/tracker/edges.py): a sub-pixel step edge found by the 1-D search,
   and edges alone following a known motion;
 - a camera orbiting a cube trained from ONE photo, round to faces the photo never shows: the
-  trained points alone lose it, the mesh-born points follow it to the end.
+  trained points alone lose it, the mesh-born points follow it to the end;
+- the outline (recognition/tracker/contour.py) found by colour, and followed;
+- a dead stop after a fast slide: the outline's sources search round the points' pose.
 """
 
 from __future__ import annotations
@@ -15,8 +17,8 @@ import numpy as np
 import pytest
 
 from conftest import one_photo_orbit
-from quatrack.testing.scenes import pose_errors
-from quatrack.testing.sequences import box_sequence, clutter_background
+from quatrack.testing.scenes import EXAMPLE, Renderer, pose_errors
+from quatrack.testing.sequences import box_sequence, clutter_background, compose
 from quatrack.recognition.klt import make_frame
 from quatrack.recognition.match import index_for
 from quatrack.recognition.tracker.mesh_points import MeshPoints, birth_mask
@@ -24,6 +26,7 @@ from quatrack.recognition.tracker.points import pose_spread
 from quatrack.recognition.tracker.sources import FrameContext
 from quatrack.recognition.visibility import visible_points
 from quatrack.recognition.video import Tracker, TrackerParams
+from quatrack.tracking.pose import Pose
 from quatrack.tracking.state import initial_state
 from quatrack.viewsets.render import render
 
@@ -449,3 +452,35 @@ def test_the_outline_posterior_is_the_whole_product():
         assert np.abs(mu_f - mu).max() < 0.02 and np.abs(np.sqrt(var_f) - sd).max() < 0.02
         within = np.abs(edge) < radius - 1.0  # (and the lines find the outlines within their reach)
         assert np.abs(mu - edge)[within].mean() < 1.0
+
+
+def _jolted(box, stop: int, px_per_frame: float):
+    """The box's frames with a slide right at ``px_per_frame`` that stops dead at frame ``stop``."""
+    model, camera, poses, _ = box
+    renderer = Renderer.from_spec(EXAMPLE / "object.json")
+    rng = np.random.default_rng(5)
+    bg = clutter_background(4)
+    out_poses, frames = [], []
+    for k, p in enumerate(poses[: stop + 4]):
+        z = p.apply(model.mesh.centre[None])[0, 2]
+        shifted = Pose(p.q_wxyz, p.t + np.array([px_per_frame * min(k, stop) * z / camera.fx, 0.0, 0.0]))
+        out_poses.append(shifted)
+        frames.append(compose(renderer, camera, shifted, bg, rng))
+    return out_poses, frames
+
+
+def test_a_dead_stop_is_followed_by_the_outline_sources_too(box):
+    """The box slides right at 45 px a frame and stops dead: the prediction overshoots by 45 px.
+    The edges and the outline search a few px round the prediction; they must search round the
+    points' own pose instead (Tracker._recentred), or they lock onto the print beside the
+    prediction and outvote the points (with ``recentre_px=0`` the pose is lost at the stop)."""
+    model, camera, _, _ = box
+    poses, frames = _jolted(box, stop=8, px_per_frame=45.0)
+    tracker = Tracker(model, camera, TrackerParams(), index=index_for(model))
+    tracker.init_pose(poses[0].t, poses[0].q_wxyz)
+    steps = [tracker.step(f, k / FPS) for k, f in enumerate(frames)]
+    d = model.mesh.extent
+    for k, (s, p) in enumerate(zip(steps, poses)):
+        assert s.has_pose, (k, s.reason)
+        dt, dr = pose_errors(s.t, s.q_wxyz, p, model.mesh)
+        assert dt < 0.03 * d and dr < 3.0, (k, dt / d, dr)

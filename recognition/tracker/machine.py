@@ -49,12 +49,13 @@ import cv2
 import numpy as np
 
 from quatrack.tracking import quaternion as quat
-from quatrack.tracking.adjust import SingularProblemError
+from quatrack.tracking.adjust import SingularProblemError, adjust
 from quatrack.tracking.camera import PinholeCamera
 from quatrack.tracking.filter import PoseFilter
 from quatrack.tracking.measurements import project_model_points
 from quatrack.tracking.motion import make_motion_model
 from quatrack.tracking.pose import Pose
+from quatrack.tracking.state import FilterState
 from quatrack.tracking.systematic import carried_covariance, systematic_floor
 from quatrack.viewsets.learn import is_new_direction, learned_viewset, with_learned
 from quatrack.viewsets.store import ObjectModel
@@ -520,12 +521,19 @@ class Tracker:
         t0 = time.perf_counter()
         ctx = FrameContext(img, frame, self._prev, self.camera, prior)
         follow_together(ctx, self.sources, timings)  # one KLT call for every point source
-        blocks = []
         ctx.anchored = False
-        for s in self.sources:  # (trained first: whether it anchors this frame is known to the others)
-            blocks.append(s.measure(ctx, timings))
+        measured: dict = {}
+        for s in self.sources:  # the points first (the trained first: whether they anchor this
+            if s in self._shape_sources:  # frame is known to the mesh points)
+                continue
+            measured[s] = s.measure(ctx, timings)
             if s is self.trained:
-                ctx.anchored = self._anchored = len(blocks[-1]) >= p.min_inliers
+                ctx.anchored = self._anchored = len(measured[s]) >= p.min_inliers
+        shape_ctx = self._recentred(ctx, list(measured.values()), timings)
+        for s in self.sources:
+            if s in self._shape_sources:
+                measured[s] = s.measure(shape_ctx, timings)
+        blocks = [measured[s] for s in self.sources]
         block = PointBlock.stack(blocks)
         timings["measure"] = _ms(t0)  # visibility + KLT + gating
         if len(block) < p.min_inliers:
@@ -552,8 +560,9 @@ class Tracker:
             return self._lost(time_s, f"pose: {why}", n_inl)
         start = 0
         ctx.vouched = not self._doubted  # (a track in doubt learns nothing: Tracker._doubt)
+        shape_ctx.vouched = ctx.vouched
         for s, b in zip(self.sources, blocks):
-            s.settle(ctx, b, inl[start : start + len(b)], self.filter.state)
+            s.settle(shape_ctx if s in self._shape_sources else ctx, b, inl[start : start + len(b)], self.filter.state)
             start += len(b)
         self._tracked += 1
         if self._probation > 0 or self._doubted:
@@ -773,29 +782,74 @@ class Tracker:
             return None
         return fit
 
-    def _adjust(self, block: PointBlock) -> tuple[bool, str | None, np.ndarray]:
-        """Adjust the prior to the block; redo without the outliers (posterior Mahalanobis
-        residual beyond ``outlier_px / sigma_px``). Returns ``(ok, why, inlier mask)``."""
+    def _recentred(self, ctx: FrameContext, point_blocks: list[PointBlock], timings: dict) -> FrameContext:
+        """Where the outline's sources search: at the prediction, unless the points say it is off.
+
+        The edges and the outline search a few px across the predicted outline (at most
+        ``contour_max_reach_px``); when the motion changes abruptly (an object stopped, a camera
+        jolted) the prediction can be tens of px off, and there they lock onto the print or the
+        background next to the prediction, agree with it and outvote the points, which KLT
+        followed from the previous frame to where the object is (the cookie box stopping after a
+        slide at 47 px a frame: lost, "only 2 textured points agree"). So when the points' median
+        innovation exceeds ``recentre_px`` they are adjusted alone first (a *pilot*, by
+        :meth:`_two_passes` as :meth:`_adjust`); when that moves the model's
+        vertices in the image by more than ``recentre_px``, the outline's sources search
+        around the pilot's pose, with the prediction's covariance (how far to search is the
+        prediction's business). The joint adjustment still starts from the prediction."""
         p = self.params
-        n_all = len(block)
-        keep = np.ones(n_all, bool)
-        inl = keep
+        if not p.recentre_px or not any(s in self.sources for s in self._shape_sources):
+            return ctx
+        points = PointBlock.stack(point_blocks) if point_blocks else None
+        if points is None or len(points) < p.min_inliers:
+            return ctx
+        t0 = time.perf_counter()
+        uv, _ = project_model_points(self.camera, points.X, ctx.prior.p, ctx.prior.R, False)
+        if np.median(np.linalg.norm(points.uv - uv, axis=1)) <= p.recentre_px:
+            return ctx  # (the points agree with the prediction: no pilot needed, the usual case)
+        state, _, _, _ = self._two_passes(points, lambda m: adjust(ctx.prior, [m], self.filter.options,
+                                                                  self.motion.estimates_velocity).state)
+        timings["pilot"] = _ms(t0)
+        if state is None:
+            return ctx
+        V = self.model.mesh.vertices
+        A, B = ctx.prior.pose.apply(V), state.pose.apply(V)
+        if not (np.all(A[:, 2] > 1e-9) and np.all(B[:, 2] > 1e-9)):
+            return ctx
+        if np.max(np.linalg.norm(self.camera.project(B) - self.camera.project(A), axis=1)) <= p.recentre_px:
+            return ctx
+        moved = replace(ctx.prior, p=state.p.copy(), q=state.q.copy())
+        return replace(ctx, prior=moved, _zbuffer=None)
+
+    def _two_passes(self, block: PointBlock, solve) -> tuple[FilterState | None, str | None, np.ndarray, np.ndarray]:
+        """Adjust to the block by ``solve`` (measurements → state), then once more without the
+        outliers (posterior Mahalanobis residual beyond ``outlier_px / sigma_px``). Returns
+        ``(state, None, inlier mask, squared residuals)``, or ``(None, why, mask, …)``."""
+        p = self.params
+        keep = np.ones(len(block), bool)
+        inl, m2, state = keep, np.zeros(len(block)), None
         limit2 = (p.outlier_px / p.sigma_px) ** 2
-        m2 = np.zeros(n_all)
         for _ in range(2):
             if keep.sum() < p.min_inliers:
-                return False, f"only {int(keep.sum())} points agree", keep
+                return None, f"only {int(keep.sum())} points agree", keep, m2
             try:
-                result = self.filter.update([block.keep(keep).measurements(self.camera)])
+                state = solve(block.keep(keep).measurements(self.camera))
             except (SingularProblemError, np.linalg.LinAlgError):
-                return False, "the points do not determine the pose", keep
-            s = result.state
-            uv, _ = project_model_points(self.camera, block.X, s.p, s.R, False)
+                return None, "the points do not determine the pose", keep, m2
+            uv, _ = project_model_points(self.camera, block.X, state.p, state.R, False)
             m2 = mahalanobis2(uv - block.uv, block.C)
             inl = m2 < limit2
             if np.array_equal(inl, keep) or inl.sum() < p.min_inliers:
                 break
             keep = inl
+        return state, None, inl, m2
+
+    def _adjust(self, block: PointBlock) -> tuple[bool, str | None, np.ndarray]:
+        """Adjust the prior to the block; redo without the outliers (posterior Mahalanobis
+        residual beyond ``outlier_px / sigma_px``). Returns ``(ok, why, inlier mask)``."""
+        p = self.params
+        s, why, inl, m2 = self._two_passes(block, lambda m: self.filter.update([m]).state)
+        if s is None:
+            return False, why, inl
         n = int(inl.sum())
         if n < p.min_inliers:
             return False, f"only {n} points agree", inl

@@ -114,6 +114,9 @@ class TrackerParams:
     contour_sigma_min_px: float = 0.5
     contour_rate_f: float = 0.1
     contour_rate_b: float = 0.2
+    # the outline's sources (edges, contour) search around the points' own pose when that moves
+    # the mesh's vertices by more than recentre_px from the prediction (Tracker._recentred; 0: never)
+    recentre_px: float = 3.0
     # views learned while tracking (quatrack.viewsets.learn; Tracker.learned_viewsets()): when the
     # pose is confident (1-σ below learn_sigma_p × diameter and learn_sigma_deg), at least
     # learn_min_inliers textured points agree and are learn_min_share of those measured (nothing
