@@ -14,13 +14,17 @@ from quatrack.recognition.video import Tracker, TrackerParams
 TRACKER_KIND = "recognition.video.Tracker"
 
 
-def make_tracker(model, camera, index, max_pixels: int, executor: Executor | None = None, learn: bool = False) -> Tracker:
+def make_tracker(model, camera, index, max_pixels: int, executor: Executor | None = None, learn: bool = False,
+                 sources: tuple[str, ...] | None = None) -> Tracker:
     """A fresh tracker sharing the model and its index (both read-only), set for live streams:
     re-anchoring runs in the background on ``executor`` (the service's pool, owned by its
     lifespan) between frames (``pipelined_refresh``) on a smaller window with fewer features,
     so that no frame waits for SIFT (bench/RESULTS.md, service). Without an executor it runs
     in the step. (A thread of its own for re-anchoring, apart from the frames' pool, was
-    measured in session 18 and gained nothing: bench/RESULTS.md.) ``learn``: keep views of unseen sides (service/learning.py stores them)."""
+    measured in session 18 and gained nothing: bench/RESULTS.md.) ``learn``: keep views of unseen sides (service/learning.py stores them). ``sources``: the
+    measurement sources (``QUATRACK_TRACKER_SOURCES``; None: the tracker's default)."""
     params = TrackerParams(pipelined_refresh=True, anchor_max_side=320, anchor_max_features=400, learn=learn)
+    if sources is not None:
+        params = replace(params, sources=tuple(sources))
     params = replace(params, locate=replace(params.locate, max_pixels=max_pixels))
     return Tracker(model, camera, params, index=index, executor=executor)

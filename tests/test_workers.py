@@ -182,6 +182,28 @@ def test_settings_from_environment(monkeypatch):
         Settings.from_env(threads=0)
 
 
+def test_the_tracker_sources_are_a_setting(monkeypatch):
+    """QUATRACK_TRACKER_SOURCES picks the sessions' measurement sources (the outline by colour
+    costs about a fifth of a step: bench/RESULTS.md); an unknown one is refused, naming it."""
+    from quatrack.recognition.match import index_for
+    from quatrack.service.tracker_factory import make_tracker
+    from quatrack.testing.scenes import EXAMPLE, example_model
+    from quatrack.viewsets.camera import load_camera
+
+    assert Settings().tracker_sources == ("trained", "mesh", "edges", "contour")
+    monkeypatch.setenv("QUATRACK_TRACKER_SOURCES", "trained, mesh,edges")
+    s = Settings.from_env()
+    assert s.tracker_sources == ("trained", "mesh", "edges")
+    assert s.to_env()[env_name("tracker_sources")] == "trained,mesh,edges"
+    model = example_model()
+    tracker = make_tracker(model, load_camera(EXAMPLE / "camera.json"), index_for(model), 4_000_000,
+                           sources=s.tracker_sources)
+    assert [src.name for src in tracker.sources] == ["trained", "mesh", "edges"]
+    monkeypatch.setenv("QUATRACK_TRACKER_SOURCES", "trained,outline")
+    with pytest.raises(ValueError, match="outline"):
+        Settings.from_env()
+
+
 def test_readme_documents_every_setting():
     readme = (ROOT / "README.md").read_text()
     for name in Settings.model_fields:
