@@ -104,7 +104,7 @@ def _edge_samples(mesh: Mesh, camera: PinholeCamera, pose: Pose, params: EdgePar
     keep = open_ | (crease & (facing[f0] | facing[f1s])) | silhouette
     if not keep.any():
         return np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, int), np.zeros((0, 3))
-    seg, P, uv, normal = segment_samples(V[pairs[keep, 0]], V[pairs[keep, 1]], camera, params.step_px)
+    seg, P, uv, normal = segment_samples(V[pairs[keep, 0]], V[pairs[keep, 1]], camera, params.step_px, None)
     w, h = camera.width, camera.height
     b = params.border_px
     ok = (uv[:, 0] >= b) & (uv[:, 1] >= b) & (uv[:, 0] <= w - 1 - b) & (uv[:, 1] <= h - 1 - b)

@@ -117,11 +117,13 @@ def mesh_edges(mesh: Mesh, angle_deg: float = 1.0) -> np.ndarray:
     return mesh.vertices[edges[keep]]
 
 
-def segment_samples(A: np.ndarray, B: np.ndarray, camera: PinholeCamera,
-                    step_px: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def segment_samples(A: np.ndarray, B: np.ndarray, camera: PinholeCamera, step_px: float,
+                    max_per_segment: int | None = 400) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Samples along 3-D segments with camera-frame ends ``A``, ``B`` (k, 3), about every
     ``step_px`` pixels of their projections: each projected segment is cut into
-    ``max(1, ⌈length / step_px⌉)`` equal parts, sampled at the middle of each. Returns per sample
+    ``max(1, ⌈length / step_px⌉)`` equal parts (at most ``max_per_segment``: an end just in front
+    of the camera projects millions of px away, and its segment would ask for millions of
+    samples; None: no bound), sampled at the middle of each. Returns per sample
     its segment (n,), its camera-frame point (n, 3), pixel (n, 2) and the unit normal of its
     projected segment (n, 2), the direction turned by +90° (x right, y down: its right side).
 
@@ -133,7 +135,10 @@ def segment_samples(A: np.ndarray, B: np.ndarray, camera: PinholeCamera,
     if len(A) == 0:
         return np.zeros(0, int), np.zeros((0, 3)), np.zeros((0, 2)), np.zeros((0, 2))
     ua, ub = camera.project(A), camera.project(B)
-    n_s = np.maximum(1, np.ceil(np.linalg.norm(ub - ua, axis=1) / step_px)).astype(int)
+    n_s = np.maximum(1, np.ceil(np.linalg.norm(ub - ua, axis=1) / step_px))
+    if max_per_segment is not None:
+        n_s = np.minimum(n_s, max_per_segment)
+    n_s = n_s.astype(int)
     seg = np.repeat(np.arange(len(A)), n_s)
     s = (np.concatenate([np.arange(k) for k in n_s]) + 0.5) / np.repeat(n_s, n_s)
     P = A[seg] * (1 - s[:, None]) + B[seg] * s[:, None]

@@ -257,7 +257,6 @@ class Contour:
         mu, var, _ = outline_posterior(pf, x, radius, p.contour_alpha, p.contour_slope_px)
         sd = np.sqrt(var)
         kept = (np.abs(mu) < radius - 0.5) & (sd < 0.5 * radius) & (informative.sum(axis=1) >= 0.5 * len(x))
-        self._lines = (bins, informative, x, normal, uv, kept)
         if not kept.any():
             timings["contour"] = (time.perf_counter() - t0) * 1e3
             return empty
@@ -277,15 +276,14 @@ class Contour:
         if self._lines is None or not ctx.vouched:
             return
         bins, informative, x, normal, uv, kept = self._lines
-        rows = kept[inliers] if len(kept) == len(inliers) else kept
+        if len(kept) != len(inliers):  # (not this frame's block)
+            return
+        rows = kept[inliers]
         if len(rows) < 8:
             return
         p = self.params
         # where the posterior's outline lies along each line: the object's side of it is object
-        X = block.X[inliers] if len(kept) == len(inliers) else None
-        if X is None:
-            return
-        uv_post, _ = project_model_points(ctx.camera, X, state.p, state.R, False)
+        uv_post, _ = project_model_points(ctx.camera, block.X[inliers], state.p, state.R, False)
         d = np.einsum("ij,ij->i", uv_post - uv[rows], normal[rows])
         rel = x[None, :] - d[:, None]
         ok = informative[rows]

@@ -116,8 +116,8 @@ class Tracker:
         self.contour = Contour(model.mesh, params)
         self.sources: list[MeasurementSource] = [s for s in (self.trained, self.mesh_points, self.edges, self.contour)
                                                  if s.name in params.sources]
-        # the outline's sources: they carry the pose, but only texture says it is this object's
-        self._shape_sources = (self.edges, self.contour)
+        # the outline's sources in use: they carry the pose, but only texture says it is this object's
+        self._shape_sources = tuple(s for s in (self.edges, self.contour) if s in self.sources)
         self._anchor: Anchor | None = None
         # while tracking, the measurements judge: the object may lie mostly outside the image
         self._plausibility = replace(PoseParams(), min_visible_fraction=params.min_inside)
@@ -549,10 +549,9 @@ class Tracker:
         # texture (trained or mesh-born points) must still be there to vouch for it
         n_points = self._inliers_of(blocks, inl, exclude=self._shape_sources)
         n_textured = sum(len(b) for s, b in zip(self.sources, blocks) if s not in self._shape_sources)
-        shaped = any(s in self.sources for s in self._shape_sources)
-        if n_points < p.min_inliers and len(blocks) > 1 and shaped:
+        if n_points < p.min_inliers and len(blocks) > 1 and self._shape_sources:
             return self._lost(time_s, f"only {n_points} textured points agree", n_inl)
-        if p.texture_chi2 and shaped and len(blocks) > 1:
+        if p.texture_chi2 and self._shape_sources and len(blocks) > 1:
             inl = self._unless_outvoted(blocks, block, inl)
             n_inl = int(inl.sum())
         why = self._implausible(self.filter.state.pose)
@@ -801,10 +800,10 @@ class Tracker:
         around the pilot's pose, with the prediction's covariance (how far to search is the
         prediction's business). The joint adjustment still starts from the prediction."""
         p = self.params
-        if not p.recentre_px or not any(s in self.sources for s in self._shape_sources):
+        if not p.recentre_px or not self._shape_sources:
             return ctx
-        points = PointBlock.stack(point_blocks) if point_blocks else None
-        if points is None or len(points) < p.min_inliers:
+        points = PointBlock.stack(point_blocks)
+        if len(points) < p.min_inliers:
             return ctx
         t0 = time.perf_counter()
         uv, _ = project_model_points(self.camera, points.X, ctx.prior.p, ctx.prior.R, False)
