@@ -24,6 +24,16 @@ class UserError(Exception):
     """Bad input from the user: reported as one line, exit status 2."""
 
 
+def _zoo_options(p: argparse.ArgumentParser) -> None:
+    """The zoo benchmarks' walks (track-zoo, edge-judge: the same walks) and output."""
+    p.add_argument("--sequences", metavar="A,B", help="zoo objects to walk round (default: six; see testing/zoo.py)")
+    p.add_argument("--seconds", type=float, default=10.0, help="length of each walk at 30 fps (default 10)")
+    p.add_argument("--renderings", type=int, default=1, metavar="N",
+                   help="walk round each object N times, each rendering with other seeds (backgrounds, training "
+                        "photo, occluder, shake); the first is always the same (default 1)")
+    p.add_argument("--json", action="store_true", help="print one JSON object instead of the report")
+
+
 def _add_bench(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="benchmark", required=True, metavar="BENCHMARK")
     ude = sub.add_parser(
@@ -72,23 +82,15 @@ def _add_bench(parser: argparse.ArgumentParser) -> None:
         description="Rendered 360° walks round zoo objects (mm, cm, m) trained from ONE photo, with ground truth: "
                     "losses, errors, NEES, step times, and re-initialisation with and without learned viewsets.",
     )
-    tz.add_argument("--sequences", metavar="A,B", help="zoo objects to walk round (default: six; see testing/zoo.py)")
-    tz.add_argument("--seconds", type=float, default=10.0, help="length of each sequence at 30 fps (default 10)")
-    tz.add_argument("--renderings", type=int, default=1, metavar="N",
-                    help="walk round each object N times, each rendering with other seeds (backgrounds, training "
-                         "photo, occluder, shake); the first is always the same (default 1)")
-    tz.add_argument("--json", action="store_true", help="print one JSON object instead of the report")
+    _zoo_options(tz)
     ej = sub.add_parser(
         "edge-judge",
         help="how well the model's edges judge a pose: false alarms at the truth, wrong poses caught",
         description="On the track-zoo walks' frames (rendered, with ground truth; nothing tracked or trained), "
-                    "the edge judges' refusals at the true pose, at 0.3 and at 1.2 of the 5 %%/5° criterion from it.",
+                    "the edge judges' refusals at the true pose, at 0.3 and at 1.2 of the 5 %/5° criterion from it.",
     )
-    ej.add_argument("--sequences", metavar="A,B", help="zoo objects (default: the six of track-zoo)")
-    ej.add_argument("--renderings", type=int, default=1, metavar="N", help="walks per object, as track-zoo (default 1)")
+    _zoo_options(ej)
     ej.add_argument("--every", type=int, default=5, metavar="K", help="judge every K-th frame (default 5)")
-    ej.add_argument("--seconds", type=float, default=10.0, help="length of each walk at 30 fps (default 10)")
-    ej.add_argument("--json", action="store_true", help="print one JSON object instead of the report")
     serve = sub.add_parser(
         "serve",
         help="the service under load: 1..16 concurrent 30 fps streams against 1 and N workers and two replicas behind nginx",
@@ -118,6 +120,22 @@ def _add_bench(parser: argparse.ArgumentParser) -> None:
     serve.add_argument("--json", action="store_true", help="print one JSON object instead of the tables")
 
 
+def _zoo_walks(args: argparse.Namespace) -> list[str] | None:
+    """The zoo benchmarks' ``--sequences`` (None: their default), with ``--seconds`` and
+    ``--renderings`` checked."""
+    from quatrack.testing import zoo
+
+    names = args.sequences.split(",") if args.sequences else None
+    for n in names or ():
+        if n not in {o.name for o in zoo.ZOO}:
+            raise UserError(f"--sequences: no zoo object {n!r} (known: {', '.join(o.name for o in zoo.ZOO)})")
+    if not 1.0 <= args.seconds <= 60.0:
+        raise UserError("--seconds must be between 1 and 60")
+    if not 1 <= args.renderings <= 20:
+        raise UserError("--renderings must be between 1 and 20")
+    return names
+
+
 def _run_bench(args: argparse.Namespace) -> int:
     if args.benchmark == "ude-cube":
         from quatrack.bench import ude_cube
@@ -143,29 +161,12 @@ def _run_bench(args: argparse.Namespace) -> int:
         return track.main(args.json, args.seconds, args.locate_frames, args.sheet)
     if args.benchmark == "track-zoo":
         from quatrack.bench import track_zoo
-        from quatrack.testing import zoo
 
-        names = args.sequences.split(",") if args.sequences else None
-        for n in names or ():
-            if n not in {o.name for o in zoo.ZOO}:
-                raise UserError(f"--sequences: no zoo object {n!r} (known: {', '.join(o.name for o in zoo.ZOO)})")
-        if not 1.0 <= args.seconds <= 60.0:
-            raise UserError("--seconds must be between 1 and 60")
-        if not 1 <= args.renderings <= 20:
-            raise UserError("--renderings must be between 1 and 20")
-        return track_zoo.main(args.json, args.seconds, names, args.renderings)
+        return track_zoo.main(args.json, args.seconds, _zoo_walks(args), args.renderings)
     if args.benchmark == "edge-judge":
         from quatrack.bench import edge_judge
-        from quatrack.testing import zoo
 
-        names = args.sequences.split(",") if args.sequences else None
-        for n in names or ():
-            if n not in {o.name for o in zoo.ZOO}:
-                raise UserError(f"--sequences: no zoo object {n!r} (known: {', '.join(o.name for o in zoo.ZOO)})")
-        if not 1.0 <= args.seconds <= 60.0:
-            raise UserError("--seconds must be between 1 and 60")
-        if not 1 <= args.renderings <= 20:
-            raise UserError("--renderings must be between 1 and 20")
+        names = _zoo_walks(args)
         if args.every < 1:
             raise UserError("--every must be >= 1")
         return edge_judge.main(args.json, names, args.renderings, args.every, args.seconds)
