@@ -50,3 +50,14 @@ def test_on_a_clean_walk_true_poses_pass_and_poses_beyond_the_criterion_are_caug
     assert not any(v.refused["agreement"] for v in at[0.0])
     for j in ("edges-refit", "agreement-gain"):
         assert np.mean([v.refused[j] for v in at[1.2]]) >= 0.8, j
+
+
+def test_the_cli_refuses_bad_options_with_a_message(capsys):
+    from quatrack.cli import main
+
+    assert main(["bench", "edge-judge", "--every", "0"]) == 2
+    assert "--every must be >= 1" in capsys.readouterr().err
+    assert main(["bench", "edge-judge", "--sequences", "teapot"]) == 2
+    assert "no zoo object 'teapot'" in capsys.readouterr().err
+    assert main(["bench", "track-zoo", "--renderings", "0"]) == 2
+    assert "--renderings must be between 1 and 20" in capsys.readouterr().err
