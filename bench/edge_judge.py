@@ -92,15 +92,11 @@ class Verdict:
 def judge(gray: np.ndarray, mesh, camera, pose: Pose, max_edge_shift: float, gain: float = GAIN) -> tuple[dict, float, float]:
     """The three judges' verdicts on ``pose`` (True: refused), the refit's shift and gain."""
     from quatrack.recognition.evidence import edge_fit, measure_edges
-    from quatrack.recognition.pose import PoseParams
+    from quatrack.recognition.pose import PoseParams, edges_agree
 
     pp = PoseParams()
-
-    def agrees(ev) -> bool:
-        return ev.samples >= pp.min_edge_samples and ev.agreement >= pp.min_edge_agreement and ev.lead >= pp.min_edge_lead
-
     ev, image = measure_edges(gray, mesh, camera, pose, pp.edges)
-    ok = image is not None and agrees(ev)
+    ok = image is not None and edges_agree(ev, pp)
     shift = g = float("nan")
     if image is not None:
         fit = edge_fit(image, mesh, camera, pose, np.zeros((0, 3)), np.zeros((0, 2)), pp.edges, pp.edge_fit_reach)

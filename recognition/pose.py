@@ -846,6 +846,18 @@ def match_influence(est: PnPSolution, camera: PinholeCamera, mesh: Mesh, points3
     return pose_sd_ratio(float(dc.max()), float(dr.max()), mesh.extent)  # max over i of each's max
 
 
+def edges_agree(edges: EdgeEvidence, params: PoseParams = PoseParams()) -> bool:
+    """Enough visible model edge samples, enough of them on aligned image edges, well above this
+    image's chance level: :func:`edge_reason`'s tests without its marginal-agreement rule (a
+    whole visible edge missing), the edge test the tracker asks of a pose it follows.
+
+    >>> edges_agree(EdgeEvidence(100, 0.6, 0.2)), edges_agree(EdgeEvidence(100, 0.6, 0.4)), edges_agree(EdgeEvidence(5, 0.9, 0.1))
+    (True, False, False)
+    """
+    return (edges.samples >= params.min_edge_samples and edges.agreement >= params.min_edge_agreement
+            and edges.lead >= params.min_edge_lead)
+
+
 def edge_reason(edges: EdgeEvidence, params: PoseParams = PoseParams()) -> str | None:
     """Why the model's visible edges refuse a pose (None if they do not): too few to judge, too
     few on image edges, a whole visible edge missing while the agreement is marginal, or no

@@ -66,7 +66,7 @@ from ..klt import Frame, make_frame
 from ..locate import locate
 from ..match import ModelIndex, index_for
 from ..evidence import EdgeFit, edge_fit, measure_edges, silhouette_inside
-from ..pose import PoseParams, plausible
+from ..pose import PoseParams, edges_agree, plausible
 from ..visibility import merge_points
 from .anchor import Anchor, AnchorJob
 from .params import INITIAL_VELOCITY_SIGMA, TrackerParams, TrackStep
@@ -724,8 +724,7 @@ class Tracker:
         if strict:
             return self._edge_shift(gray, pose) <= self.params.max_edge_shift
         pp = PoseParams()
-        ev, _ = measure_edges(gray, self.model.mesh, self.camera, pose, pp.edges)
-        return ev.samples >= pp.min_edge_samples and ev.agreement >= pp.min_edge_agreement and ev.lead >= pp.min_edge_lead
+        return edges_agree(measure_edges(gray, self.model.mesh, self.camera, pose, pp.edges)[0], pp)
 
     def _edge_settled(self, gray: np.ndarray, pose: Pose) -> Pose | None:
         """A pose re-found on this run's keyframes, settled on the model's edges alone (no point
@@ -777,8 +776,7 @@ class Tracker:
         mesh = self.model.mesh
         if agreement:
             ev, image = measure_edges(gray, mesh, self.camera, pose, pp.edges)
-            if not (ev.samples >= pp.min_edge_samples and ev.agreement >= pp.min_edge_agreement
-                    and ev.lead >= pp.min_edge_lead):
+            if not edges_agree(ev, pp):
                 return EdgeFit(ev.samples, shift=np.inf)
         else:  # (the audit: only the refit, on the gradients it reads: the same fit, edges.fit_image)
             image = fit_image(gray, mesh, self.camera, pose, pp.edges, pp.edge_fit_reach)
