@@ -20,7 +20,9 @@ inside the image and not occluded ÷ the whole silhouette); mean / max error of 
 poses (% of the diameter, degrees), poses off by more than 5 % / 5°; step time p50 / p95 of
 tracking steps and per-stage means; NEES of the reported pose covariance against the truth
 (``eᵀ P⁻¹ e``, ``e = [p_true − p, δθ]`` with ``R_true = Exp(δθ) R``: 6 degrees of freedom, so
-its mean is 6 for an honest covariance, larger when it is overconfident).
+its mean is 6 for an honest covariance, larger when it is overconfident), the share of frames
+whose 95 % ellipsoid holds the truth, and the NEES of the centre and of the rotation apart
+(:func:`nees_parts`: 3 degrees of freedom each, median 2.37 when honest).
 
 One rendering of six walks is six samples of what can go wrong: a rule tuned until they pass may
 only move the failure to a frame they do not contain. ``renderings`` (``--renderings N``) walks
@@ -68,6 +70,36 @@ def nees(step, truth) -> float:
         return float("inf")
 
 
+# χ² quantiles (3 and 6 degrees of freedom): the median and 95 % of an honest NEES
+CHI2_MEDIAN = {3: 2.366, 6: 5.348}
+CHI2_95 = {3: 7.815, 6: 12.592}
+
+
+def nees_parts(step, truth, centre) -> tuple[float, float]:
+    """The NEES of the object's centre and of the rotation apart (3 degrees of freedom each).
+
+    One 6-dof NEES can look honest while its halves are not: a position covariance far too
+    cautious hides a rotation covariance far too confident. The centre ``c`` (object frame) is
+    where the position error means something whatever the mesh's origin: its error
+    ``e_c = (R_true c + p_true) − (R c + p)``, to first order ``e_p − [R c]ₓ δθ``, so its
+    covariance is that block of ``S P Sᵀ``, ``S = [[I, −[R c]ₓ], [0, I]]``; the rotation's is
+    ``P``'s own ``δθ`` block. Returns ``(centre NEES, rotation NEES)``."""
+    from quatrack.tracking.rotation import skew
+
+    P = np.asarray(step.covariance, float)
+    q = np.asarray(step.q_wxyz, float)
+    R, c = quat.to_matrix(q), np.asarray(centre, float)
+    e_c = (truth.R @ c + truth.t) - (R @ c + np.asarray(step.t, float))
+    dtheta = quat.to_rotvec(quat.canonical(quat.multiply(truth.q_wxyz, quat.conjugate(q))))
+    S = np.eye(6)
+    S[:3, 3:] = -skew(R @ c)
+    P_c = (S @ P @ S.T)[:3, :3]
+    try:
+        return float(e_c @ np.linalg.solve(P_c, e_c)), float(dtheta @ np.linalg.solve(P[3:, 3:], dtheta))
+    except np.linalg.LinAlgError:
+        return float("inf"), float("inf")
+
+
 @dataclass
 class Run:
     """One pass: per frame the status, errors (mesh units, degrees), NEES and timings."""
@@ -76,6 +108,8 @@ class Run:
     t_err: list[float] = field(default_factory=list)
     r_err: list[float] = field(default_factory=list)
     nees: list[float] = field(default_factory=list)
+    nees_centre: list[float] = field(default_factory=list)  # nees_parts, per frame (nan: no pose)
+    nees_rotation: list[float] = field(default_factory=list)
     timings: list[dict] = field(default_factory=list)
     reasons: list = field(default_factory=list)
     learned: list = field(default_factory=list)
@@ -107,10 +141,16 @@ def run_pass(model, seq: OrbitSequence, params, init_from_truth: bool, index=Non
             run.t_err.append(dt)
             run.r_err.append(dr)
             run.nees.append(nees(step, seq.poses[k]) if step.covariance is not None else float("nan"))
+            parts = (nees_parts(step, seq.poses[k], model.mesh.centre) if step.covariance is not None
+                     else (float("nan"), float("nan")))
+            run.nees_centre.append(parts[0])
+            run.nees_rotation.append(parts[1])
         else:
             run.t_err.append(float("nan"))
             run.r_err.append(float("nan"))
             run.nees.append(float("nan"))
+            run.nees_centre.append(float("nan"))
+            run.nees_rotation.append(float("nan"))
         if bar:
             bar.update(step.status)
     if bar:
@@ -142,6 +182,12 @@ def figures(run: Run, visible: np.ndarray, diameter: float) -> dict:
     first = int(np.argmax(has)) if has.any() else None
     bad = has & ((t > TARGETS["bad_pct"]) | (r > TARGETS["bad_deg"]))
     ok_e = e[track & np.isfinite(e)]
+
+    def part(values) -> np.ndarray:  # a NEES half over the tracked frames (none for a Run without it)
+        v = np.asarray(values, float)
+        return v[track & np.isfinite(v)] if len(v) == len(st) else np.zeros(0)
+
+    ok_c, ok_r = part(run.nees_centre), part(run.nees_rotation)
     after = np.flatnonzero(~has & (np.arange(len(st)) > (first if first is not None else len(st))))
     first_lost = int(after[0]) if len(after) else None
     return {
@@ -167,6 +213,10 @@ def figures(run: Run, visible: np.ndarray, diameter: float) -> dict:
         "nees_mean": float(np.mean(ok_e)) if len(ok_e) else None,
         "nees_median": float(np.median(ok_e)) if len(ok_e) else None,
         "nees_p95": _pct(ok_e, 95),
+        # the share of tracked frames whose 95 % ellipsoid holds the truth (95 when honest)
+        "nees_in95_pct": 100.0 * float(np.mean(ok_e < CHI2_95[6])) if len(ok_e) else None,
+        "nees_centre_median": _pct(ok_c, 50),
+        "nees_rotation_median": _pct(ok_r, 50),
     }
 
 
@@ -303,7 +353,7 @@ def report(res: dict) -> str:
     lines = [f"machine {res['machine']}, load {res['load_before'][0]:.1f} before, {res['load_after'][0]:.1f} after; "
              f"{res['seconds']:g} s per sequence; learned viewsets API: {'yes' if res['learned_viewsets_api'] else 'missing'}",
              "sequence (unit)      frames <30%vis  lost lost>=30% | t mean/max %diam | r mean/max deg | >5%/5deg | "
-             "step p50/p95 ms | NEES mean/median"]
+             "step p50/p95 ms | NEES mean/median | in 95 % ellipsoid | NEES centre/rotation median (3 dof: 2.37)"]
     for name, s in res["sequences"].items():
         f = s.get("truth")
         if not f:
@@ -311,7 +361,8 @@ def report(res: dict) -> str:
         lines.append(f"{name + ' (' + s['unit'] + ')':<20} {s['frames']:>6} {s['frames_below_30pct']:>6} {f['lost']:>5} "
                      f"{f['lost_visible']:>9} | {_f(f['t_mean_pct'])}/{_f(f['t_max_pct'])} | {_f(f['r_mean_deg'])}/"
                      f"{_f(f['r_max_deg'])} | {f['bad']:>4} | {_f(f['step_p50_ms'], '.1f')}/{_f(f['step_p95_ms'], '.1f')} | "
-                     f"{_f(f['nees_mean'], '.1f')}/{_f(f['nees_median'], '.1f')}")
+                     f"{_f(f['nees_mean'], '.1f')}/{_f(f['nees_median'], '.1f')} | {_f(f.get('nees_in95_pct'), '.0f')} % | "
+                     f"{_f(f.get('nees_centre_median'))}/{_f(f.get('nees_rotation_median'))}")
     truth = [s["truth"] for s in res["sequences"].values() if s.get("truth")]
     if len(truth) > 1:
         lines.append(f"all {len(truth)} walks: lost while >= 30 % visible {sum(f['lost_visible'] for f in truth)}, "
@@ -353,4 +404,4 @@ def main(as_json: bool = False, seconds: float = 10.0, names: list[str] | None =
     return 0
 
 
-__all__ = ["SEQUENCES", "walks", "study", "run_pass", "figures", "nees", "report", "main"]
+__all__ = ["SEQUENCES", "walks", "study", "run_pass", "figures", "nees", "nees_parts", "report", "main"]

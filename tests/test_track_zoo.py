@@ -206,3 +206,51 @@ def test_more_renderings_are_other_walks_and_the_first_is_the_usual_one():
     assert len(w) == 18 and len({key for key, _, _ in w}) == 18 and len({seed for _, _, seed in w}) == 18
     assert [(key, seed) for key, _, seed in w[:6]] == [(n, k) for k, n in enumerate(SEQUENCES)]
     assert walks(["hex-prism-m"], 2) == [("hex-prism-m", "hex-prism-m", 4), ("hex-prism-m#1", "hex-prism-m", 14)]
+
+
+def test_the_nees_halves_judge_the_centre_and_the_rotation_apart():
+    """A pose off only by a shift has a rotation NEES of 0; one turned about the object's centre
+    (not its origin, which then moves) has a centre NEES of 0; each half is eᵀP⁻¹e of its own
+    error under the matching block of P (worked out by hand below)."""
+    from types import SimpleNamespace
+
+    from quatrack.tracking import quaternion as quat
+    from quatrack.tracking.pose import Pose
+
+    centre = np.array([1.0, 0.0, 0.0])  # the mesh's centre lies 1 unit along x of its origin
+    P = np.diag([0.01] * 3 + [1e-4] * 3)
+    est = SimpleNamespace(t=np.array([0.0, 0.0, 5.0]), q_wxyz=np.array([1.0, 0.0, 0.0, 0.0]), covariance=P)
+    shifted = Pose(est.q_wxyz, est.t + [0.1, 0.0, 0.0])
+    c, r = B.nees_parts(est, shifted, centre)
+    # centre covariance 0.01 I + 1e-4 (‖Rc‖² I − Rc Rcᵀ) = diag(0.01, 0.0101, 0.0101); error along x
+    assert c == pytest.approx(0.1**2 / 0.01) and r == pytest.approx(0.0, abs=1e-12)
+    # turned by 0.02 rad about z round the centre: the origin moves, the centre does not
+    q = quat.from_rotvec(np.array([0.0, 0.0, 0.02]))
+    R = quat.to_matrix(q)
+    turned = Pose(q, est.t + centre - R @ centre)
+    c, r = B.nees_parts(est, turned, centre)
+    assert c == pytest.approx(0.0, abs=1e-12) and r == pytest.approx(0.02**2 / 1e-4)
+    # the 6-dof NEES of the same pose counts the origin's move as an error of position too
+    assert B.nees(est, turned) == pytest.approx(r + 0.02**2 / 0.01, rel=1e-3)  # the origin moved 0.02 along y
+
+
+def test_the_nees_figures_are_medians_and_the_ellipsoid_share_over_tracked_frames():
+    run = B.Run()
+    for k in range(10):
+        lost = k in (3, 4)
+        run.status.append("lost" if lost else "tracking")
+        run.t_err.append(float("nan") if lost else 0.1)
+        run.r_err.append(float("nan") if lost else 0.1)
+        run.nees.append(float("nan") if lost else (20.0 if k < 2 else 4.0))  # 2 of 8 beyond χ²₆'s 95 %
+        run.nees_centre.append(float("nan") if lost else float(k))
+        run.nees_rotation.append(float("nan") if lost else 2.0 * k)
+        run.timings.append({"total": 1.0})
+    f = B.figures(run, np.ones(10), 1.0)
+    assert f["nees_in95_pct"] == pytest.approx(75.0)
+    tracked = [0, 1, 2, 5, 6, 7, 8, 9]
+    assert f["nees_centre_median"] == pytest.approx(np.median(tracked))
+    assert f["nees_rotation_median"] == pytest.approx(2.0 * np.median(tracked))
+    # a Run without the halves (older callers) reports them as missing, not as zero
+    run.nees_centre, run.nees_rotation = [], []
+    f = B.figures(run, np.ones(10), 1.0)
+    assert f["nees_centre_median"] is None and f["nees_rotation_median"] is None
