@@ -59,20 +59,24 @@ def pose_error(step, truth, mesh) -> tuple[float, float]:
     return dt, float(np.degrees(quat.angle_between(np.asarray(step.q_wxyz), truth.q_wxyz)))
 
 
+def _pose_error(step, truth) -> tuple[np.ndarray, np.ndarray]:
+    """``e = [p_true − p, δθ]`` (``q_true = exp(δθ/2) * q``) of a step against the truth, and
+    the step's rotation matrix."""
+    q = np.asarray(step.q_wxyz, float)
+    dtheta = quat.to_rotvec(quat.canonical(quat.multiply(truth.q_wxyz, quat.conjugate(q))))
+    return np.concatenate([truth.t - np.asarray(step.t, float), dtheta]), quat.to_matrix(q)
+
+
 def nees(step, truth) -> float:
     """``eᵀ P⁻¹ e`` over ``[p, δθ]`` (the state's convention: ``q_true = exp(δθ/2) * q``)."""
-    P = np.asarray(step.covariance, float)
-    dq = quat.multiply(truth.q_wxyz, quat.conjugate(np.asarray(step.q_wxyz, float)))
-    e = np.concatenate([truth.t - np.asarray(step.t, float), quat.to_rotvec(quat.canonical(dq))])
+    e, _ = _pose_error(step, truth)
     try:
-        return float(e @ np.linalg.solve(P, e))
+        return float(e @ np.linalg.solve(np.asarray(step.covariance, float), e))
     except np.linalg.LinAlgError:
         return float("inf")
 
 
-# χ² quantiles (3 and 6 degrees of freedom): the median and 95 % of an honest NEES
-CHI2_MEDIAN = {3: 2.366, 6: 5.348}
-CHI2_95 = {3: 7.815, 6: 12.592}
+NEES_95 = 12.592  # χ²₆'s 95 % quantile: an honest 95 % ellipsoid holds the truth in 95 % of frames
 
 
 def nees_parts(step, truth, centre) -> tuple[float, float]:
@@ -87,15 +91,14 @@ def nees_parts(step, truth, centre) -> tuple[float, float]:
     from quatrack.tracking.rotation import skew
 
     P = np.asarray(step.covariance, float)
-    q = np.asarray(step.q_wxyz, float)
-    R, c = quat.to_matrix(q), np.asarray(centre, float)
-    e_c = (truth.R @ c + truth.t) - (R @ c + np.asarray(step.t, float))
-    dtheta = quat.to_rotvec(quat.canonical(quat.multiply(truth.q_wxyz, quat.conjugate(q))))
+    e, R = _pose_error(step, truth)
+    c = np.asarray(centre, float)
+    e_c = e[:3] + (truth.R - R) @ c  # (R_true c + p_true) − (R c + p), exactly
     S = np.eye(6)
     S[:3, 3:] = -skew(R @ c)
     P_c = (S @ P @ S.T)[:3, :3]
     try:
-        return float(e_c @ np.linalg.solve(P_c, e_c)), float(dtheta @ np.linalg.solve(P[3:, 3:], dtheta))
+        return float(e_c @ np.linalg.solve(P_c, e_c)), float(e[3:] @ np.linalg.solve(P[3:, 3:], e[3:]))
     except np.linalg.LinAlgError:
         return float("inf"), float("inf")
 
@@ -136,21 +139,15 @@ def run_pass(model, seq: OrbitSequence, params, init_from_truth: bool, index=Non
         run.reasons.append(step.reason if step.status == "lost" else None)
         if step.status == "init" and k > 0:
             run.inits.append(step.reason or "")
-        if step.has_pose:
-            dt, dr = pose_error(step, seq.poses[k], model.mesh)
-            run.t_err.append(dt)
-            run.r_err.append(dr)
-            run.nees.append(nees(step, seq.poses[k]) if step.covariance is not None else float("nan"))
-            parts = (nees_parts(step, seq.poses[k], model.mesh.centre) if step.covariance is not None
-                     else (float("nan"), float("nan")))
-            run.nees_centre.append(parts[0])
-            run.nees_rotation.append(parts[1])
-        else:
-            run.t_err.append(float("nan"))
-            run.r_err.append(float("nan"))
-            run.nees.append(float("nan"))
-            run.nees_centre.append(float("nan"))
-            run.nees_rotation.append(float("nan"))
+        nan = float("nan")
+        dt, dr = pose_error(step, seq.poses[k], model.mesh) if step.has_pose else (nan, nan)
+        judged = step.has_pose and step.covariance is not None
+        centre, rotation = nees_parts(step, seq.poses[k], model.mesh.centre) if judged else (nan, nan)
+        run.t_err.append(dt)
+        run.r_err.append(dr)
+        run.nees.append(nees(step, seq.poses[k]) if judged else nan)
+        run.nees_centre.append(centre)
+        run.nees_rotation.append(rotation)
         if bar:
             bar.update(step.status)
     if bar:
@@ -214,7 +211,7 @@ def figures(run: Run, visible: np.ndarray, diameter: float) -> dict:
         "nees_median": float(np.median(ok_e)) if len(ok_e) else None,
         "nees_p95": _pct(ok_e, 95),
         # the share of tracked frames whose 95 % ellipsoid holds the truth (95 when honest)
-        "nees_in95_pct": 100.0 * float(np.mean(ok_e < CHI2_95[6])) if len(ok_e) else None,
+        "nees_in95_pct": 100.0 * float(np.mean(ok_e < NEES_95)) if len(ok_e) else None,
         "nees_centre_median": _pct(ok_c, 50),
         "nees_rotation_median": _pct(ok_r, 50),
     }
