@@ -233,3 +233,57 @@ def test_a_window_of_the_render_equals_the_whole_render_there(camera):
                 np.testing.assert_array_equal(part.depth, full.depth[y0:y1, x0:x1])
                 cut += int((part.face >= 0).any() and (full.face >= 0).sum() > (part.face >= 0).sum())
     assert cut >= 6 and shown >= 4
+
+
+def test_a_closed_outward_mesh_is_recognised_and_a_flipped_or_open_one_is_not():
+    """:attr:`Mesh.closed_outward` decides whether the z-buffer may skip faces turned away."""
+    box = box_mesh()
+    # (the hull's simplices are wound either way: the box made outward, as load_mesh does)
+    from quatrack.viewsets.mesh import outward_faces
+
+    box = make_mesh(box.vertices, outward_faces(box.vertices, box.faces))
+    assert box.closed_outward
+    assert not make_mesh(box.vertices, box.faces[:, ::-1]).closed_outward  # inside out
+    assert not make_mesh(box.vertices, box.faces[1:]).closed_outward  # a hole
+    # a seam: the vertices of one face duplicated (as exporters split them for texture
+    # coordinates); merged by position it is still closed
+    V = np.vstack([box.vertices, box.vertices[box.faces[0]]])
+    F = box.faces.copy()
+    F[0] = len(box.vertices) + np.arange(3)
+    assert make_mesh(V, F).closed_outward
+
+
+@pytest.mark.parametrize("name", ["cube-m", "cylinder-mm", "hex-prism-m"])
+def test_skipping_the_faces_a_closed_mesh_turns_away_changes_no_pixel(name):
+    """Faces turned away are hidden behind faces turned towards the camera: the culled render's
+    mask and depths equal the full z-buffer's, and its faces too but at exact ties on a shared
+    silhouette edge (none occur here)."""
+    from quatrack.testing import zoo as Z
+    from quatrack.viewsets.render import _rasterise
+
+    mesh = Z.textured(name).mesh
+    assert mesh.closed_outward
+    cam = Z.zoo_camera()
+    rng = np.random.default_rng(3)
+    for _ in range(12):
+        a, e = rng.uniform(0, 2 * np.pi), rng.uniform(-1.3, 1.3)
+        eye = mesh.centre + 2.5 * mesh.extent * np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])
+        pose = Z.look_at(eye, mesh.centre)
+        culled, full = _rasterise(mesh, cam, pose, True, cull=True), _rasterise(mesh, cam, pose, True, cull=False)
+        seen = full.face >= 0
+        assert seen.sum() > 1000
+        np.testing.assert_array_equal(culled.face >= 0, seen)
+        np.testing.assert_array_equal(culled.depth[seen], full.depth[seen])
+        assert (culled.face != full.face).sum() <= 1e-4 * seen.sum()
+
+
+def test_no_face_is_skipped_with_the_camera_inside_the_mesh():
+    """From inside a closed mesh every face seen is turned away from the camera: none may be
+    skipped (the camera inside the bounding box turns the culling off)."""
+    box = box_mesh()
+    from quatrack.viewsets.mesh import outward_faces
+
+    box = make_mesh(box.vertices, outward_faces(box.vertices, box.faces))
+    inside = Pose.from_matrix(np.eye(3), -box.centre)  # the camera at the box's centre, looking along +z
+    buf = render(box, CAM, inside)
+    assert (buf.face >= 0).all()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from functools import cached_property
 
 import numpy as np
 
@@ -32,14 +33,17 @@ class FilterState:
     omega: np.ndarray
     covariance: np.ndarray
 
-    @property
+    @cached_property
     def R(self) -> np.ndarray:
-        """Rotation matrix of ``q``."""
-        return quat.to_matrix(self.q)
+        """Rotation matrix of ``q``, read-only (computed once: a step asks for it ~30 times)."""
+        R = quat.to_matrix(self.q)
+        R.setflags(write=False)
+        return R
 
-    @property
+    @cached_property
     def pose(self) -> Pose:
-        """``(q, p)`` as the project's :class:`~tracking.pose.Pose` (canonical quaternion)."""
+        """``(q, p)`` as the project's :class:`~tracking.pose.Pose` (canonical quaternion),
+        computed once (a state's ``p`` and ``q`` are never changed in place)."""
         return Pose(self.q, self.p)
 
     @property

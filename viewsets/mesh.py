@@ -65,6 +65,31 @@ class Mesh:
             a.setflags(write=False)
         return out
 
+    @cached_property
+    def closed_outward(self) -> bool:
+        """Whether the surface is closed with every normal pointing out: each edge (vertices
+        merged by position, so seams split for texture coordinates do not open it) is shared by
+        exactly two faces that run along it in opposite directions, and the signed volume
+        ``Σ V₀·(V₁ × V₂) / 6`` is positive. Then, seen from outside, a face turned away from the
+        camera is always hidden behind one turned towards it, and a z-buffer need not test it
+        (:func:`~.render.render`).
+
+        >>> tetra = make_mesh(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1.0]]),
+        ...                   np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]]))
+        >>> tetra.closed_outward, make_mesh(tetra.vertices, tetra.faces[:, ::-1]).closed_outward
+        (True, False)
+        """
+        _, same = np.unique(self.vertices, axis=0, return_inverse=True)
+        F = same.reshape(-1)[self.faces]
+        directed = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
+        # closed and consistently wound: every directed edge once, and its reverse once
+        once = np.unique(directed, axis=0)
+        if len(once) != len(directed) or not np.array_equal(once, np.unique(directed[:, ::-1], axis=0)):
+            return False
+        tri = self.triangles
+        volume = float(np.einsum("ij,ij->", tri[:, 0], np.cross(tri[:, 1], tri[:, 2]))) / 6.0
+        return volume > 0.0
+
     @property
     def centre(self) -> np.ndarray:
         """Centre of the bounding box: novel views rotate about it."""

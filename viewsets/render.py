@@ -115,7 +115,8 @@ def render(mesh: Mesh, camera: PinholeCamera, pose: Pose) -> RenderBuffers:
     its depth is the ray/plane intersection ``z = (n·V₀) / (n·(x, y, 1))``. Each triangle is
     tested over its pixel bounding box. The bounding boxes and normalised corners of all
     triangles are computed at once. Triangles with a corner at or behind the camera plane are
-    skipped (callers check that the object lies in front of the camera).
+    skipped (callers check that the object lies in front of the camera). Faces a closed mesh
+    turns away from the camera are not tested (:func:`_front_triangles`: they are hidden anyway).
 
     Triangles are tested one at a time over their box, where without distortion ``x`` depends
     on the column only and ``y`` on the row only, so the per-pixel terms are a row times a
@@ -157,20 +158,33 @@ def footprint(mesh: Mesh, camera: PinholeCamera, pose: Pose, margin_px: int = 0)
             min(int(boxes[:, 2].max()) + 1 + m, w), min(int(boxes[:, 3].max()) + 1 + m, h))
 
 
-def _front_triangles(mesh: Mesh, pose: Pose):
+def _front_triangles(mesh: Mesh, pose: Pose, cull: bool = False):
     """Camera-frame triangles (m, 3, 3), their (unnormalised) normals and plane offsets, and the
-    indices of those :func:`render` tests (in front of the camera, not seen edge-on)."""
+    indices of those :func:`render` tests (in front of the camera, not seen edge-on).
+
+    ``cull``: also leave out the faces turned away from the camera (``n·V₀ > 0``: the camera is
+    on their inner side) when the mesh is closed with outward normals
+    (:attr:`~.mesh.Mesh.closed_outward`) and the camera lies outside its bounding box. Such a
+    face is then always behind a face turned towards the camera, so the buffers are the same
+    but where a ray meets both exactly on the edge they share (a tie at the silhouette, where
+    the last bit of the two depths decides); it halves a convex object's triangles."""
     tris = pose.apply(mesh.vertices)[mesh.faces]  # (m, 3, 3) camera frame
     normals = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
     offsets = np.einsum("ij,ij->i", normals, tris[:, 0])
-    ids = np.flatnonzero(np.all(tris[:, :, 2] > _NEAR, axis=1) & (offsets != 0.0))  # else behind, or edge-on
-    return tris, normals, offsets, ids
+    tested = np.all(tris[:, :, 2] > _NEAR, axis=1) & (offsets != 0.0)  # else behind, or edge-on
+    if cull and mesh.closed_outward:
+        eye = -pose.R.T @ pose.t  # the camera centre in the object frame
+        V = mesh.vertices
+        if np.any(eye < V.min(axis=0)) or np.any(eye > V.max(axis=0)):
+            tested &= offsets < 0.0
+    return tris, normals, offsets, np.flatnonzero(tested)
 
 
 def _rasterise(mesh: Mesh, camera: PinholeCamera, pose: Pose, batch_small: bool,
-               window: tuple[int, int, int, int] | None = None) -> RenderBuffers:
+               window: tuple[int, int, int, int] | None = None, cull: bool = True) -> RenderBuffers:
     """:func:`render`'s z-buffer; ``batch_small``: test a mesh's many small triangles together;
-    ``window``: only over that pixel box (:func:`render_window`)."""
+    ``window``: only over that pixel box (:func:`render_window`); ``cull``: skip the faces a
+    closed mesh turns away from the camera (:func:`_front_triangles`)."""
     W, H = int(camera.width), int(camera.height)
     wx0, wy0, wx1, wy1 = (0, 0, W, H) if window is None else (int(v) for v in window)
     if not (0 <= wx0 <= wx1 <= W and 0 <= wy0 <= wy1 <= H):
@@ -179,7 +193,7 @@ def _rasterise(mesh: Mesh, camera: PinholeCamera, pose: Pose, batch_small: bool,
     rays = pixel_rays(camera)[wy0:wy1, wx0:wx1]
     depth = np.full((h, w), np.inf, dtype=np.float64)
     face = np.full((h, w), -1, dtype=np.int32)
-    tris, normals, offsets, ids = _front_triangles(mesh, pose)
+    tris, normals, offsets, ids = _front_triangles(mesh, pose, cull)
     if not len(ids) or not w or not h:
         return RenderBuffers(depth, face)
     boxes = _pixel_bboxes(camera, tris[ids], W, H)
