@@ -76,6 +76,20 @@ def _add_bench(parser: argparse.ArgumentParser) -> None:
                        help="box.mp4 frames also given to per-frame recognition, for comparison (default 150)")
     track.add_argument("--sheet", default="track_contact_sheet.png", metavar="PNG", help="contact sheet of overlays")
     track.add_argument("--json", action="store_true", help="print one JSON object instead of the report")
+    ab = sub.add_parser(
+        "track-ab",
+        help="tracker settings compared in one process on one video, the trackers stepping in turn on each frame",
+        description="The service's tracker settings with TrackerParams fields replaced (NAME=JSON, e.g. "
+                    "'w17={\"klt\": {\"win\": 17}}') against the defaults ('base') on one video (default box.mp4): "
+                    "step CPU p50/mean/p90, frames without a pose, poses' distance from base's. The variants step in turn "
+                    "on every frame, so the machine's changing speed falls on all alike.",
+    )
+    ab.add_argument("variants", nargs="*", metavar="NAME=JSON", help="variants to compare with the defaults")
+    ab.add_argument("--video", help="the video (default: the bundled box.mp4)")
+    ab.add_argument("--camera", help="its camera JSON (default: the bundled example's)")
+    ab.add_argument("--spec", help="the object's spec, trained first (default: the bundled example's)")
+    ab.add_argument("--frames", type=int, default=300, metavar="N", help="frames of the video (default 300)")
+    ab.add_argument("--json", action="store_true", help="print one JSON object instead of the table")
     tz = sub.add_parser(
         "track-zoo",
         help="tracking any object from any side: zoo objects trained from one photo, a camera walking round them",
@@ -159,6 +173,10 @@ def _run_bench(args: argparse.Namespace) -> int:
         if not args.sheet.lower().endswith(".png"):
             raise UserError("--sheet must name a .png file")
         return track.main(args.json, args.seconds, args.locate_frames, args.sheet)
+    if args.benchmark == "track-ab":
+        from quatrack.bench import track_ab
+
+        return track_ab.main(args.variants, args.video, args.camera, args.spec, args.frames, args.json)
     if args.benchmark == "track-zoo":
         from quatrack.bench import track_zoo
 
