@@ -70,3 +70,38 @@ def test_kept_while_enough_is_visible_and_never_far_off(run):
             assert dt < 0.05 * d and dr < 5.0, (k, dt / d, dr)
     # the occluded phase is tracked, not re-initialised
     assert all(steps[k].status == "tracking" for k in HAND)
+
+
+def test_a_track_its_trained_points_anchor_is_audited_less_often(monkeypatch):
+    """The audit (an edge refit, ``Tracker._edge_shift`` without the agreement test) runs every
+    ``audit_every_anchored``-th tracked frame while trained points anchor the track — on
+    ``box.mp4`` they always do — and every ``audit_every``-th frame otherwise (here: with the
+    anchored interval turned off)."""
+    from dataclasses import replace
+
+    import cv2
+
+    from quatrack.recognition.video import Tracker, TrackerParams
+    from quatrack.viewsets.camera import load_camera
+
+    cap = cv2.VideoCapture(str(EXAMPLE / "box.mp4"))
+    frames = [cap.read()[1] for _ in range(14)]
+    cap.release()
+    model, camera = example_model(), load_camera(EXAMPLE / "camera.json")
+    audits = []
+    original = Tracker._edge_shift
+
+    def counted(self, gray, pose, agreement=True, points=True):
+        if not agreement:
+            audits[-1] += 1
+        return original(self, gray, pose, agreement, points)
+
+    monkeypatch.setattr(Tracker, "_edge_shift", counted)
+    base = TrackerParams()
+    assert (base.audit_every, base.audit_every_anchored) == (3, 6)
+    for params in (base, replace(base, audit_every_anchored=None)):
+        audits.append(0)
+        tracker = Tracker(model, camera, params)
+        statuses = [tracker.step(f, k / 30).status for k, f in enumerate(frames)]
+        assert statuses[0] == "init" and set(statuses[1:]) == {"tracking"}
+    assert audits == [13 // 6, 13 // 3]  # (13 tracked frames after the first)

@@ -30,7 +30,8 @@ States and transitions (Kragic & Kyrki's Fig. 1 loop):
   re-initialisation (recognition) search the trained and the learned views
   (:meth:`Tracker.learned_viewsets` gives them to the caller, which may store them).
 - **in doubt** (not a state: a pause of *tracking*): a pose the model's edges refit too far (the
-  audit every ``audit_every`` frames, or the strict test of a track on probation) is withheld —
+  audit every ``audit_every`` frames — ``audit_every_anchored`` while trained points anchor the
+  track —, or the strict test of a track on probation) is withheld —
   the step answers ``lost`` — while the track goes on, tested strictly every frame, for up to
   ``doubt_frames`` frames; the first the edges confirm is reported again (:meth:`Tracker._doubt`).
 - **lost**: too few measurements agree, residuals too large, the pose implausible
@@ -572,7 +573,7 @@ class Tracker:
             self._probation = max(self._probation - 1, 0)
             if not self._edges_confirm(frame.gray, self.filter.state.pose, strict=True):
                 return self._doubt(time_s, "the model's edges do not confirm the pose", n_inl)
-        elif p.audit_every and self._tracked % p.audit_every == 0:
+        elif (every := self._audit_interval(ctx)) and self._tracked % every == 0:
             # The audit: points lifted at a pose that was off, or edges locked on the wrong
             # gradient, agree among themselves with a pose that is off; the edge refit is
             # evidence from the model's shape that they cannot fake.
@@ -626,6 +627,22 @@ class Tracker:
                 return self._lost(time_s, "the object's texture is no longer found where it is tracked", n_inl)
         self._capture(ctx, n_points, n_textured, time_s, timings)
         return self._pose_step(time_s, "tracking", n_inl)
+
+    def _audit_interval(self, ctx: FrameContext) -> int:
+        """Tracked frames between audits: ``audit_every_anchored`` while this frame's trained
+        points anchor the track (at least ``min_inliers`` measured, the last re-anchoring found
+        the trained texture, and the track was not re-found on this run's keyframes), else
+        ``audit_every``. Why: what the audit catches — points lifted at a pose that was off,
+        edges locked onto the print, agreeing among themselves — the trained points, matched
+        afresh by SIFT every ``refresh_every`` frames, already judge (:meth:`_unless_outvoted`);
+        where they are absent the audit is the only judge. On the 24 zoo walks auditing anchored
+        frames every 6th frame instead of every 3rd changed no status, reason or error; on
+        ``box.mp4`` (always anchored) it left the poses the same and saved ~1 ms a frame
+        (bench/RESULTS.md, session 32)."""
+        p = self.params
+        if p.audit_every_anchored and ctx.anchored and not (self._second_hand or self._failed_refreshes):
+            return p.audit_every_anchored
+        return p.audit_every
 
     def _capture(self, ctx: FrameContext, n_points: int, n_textured: int, time_s: float, timings: dict) -> None:
         """Keep this frame's view, lifted onto the mesh at the pose (:func:`learned_viewset`): as a

@@ -196,6 +196,8 @@ class TrackerParams:
     # again without the edges (Tracker._unless_outvoted): χ²₆ at 0.999; 0 turns the test off
     texture_chi2: float = 22.46
     audit_every: int = 3  # tracked frames between audits (0: none); each costs an edge refit
+    # … while the frame's trained points anchor the track (None: audit_every; Tracker._audit_interval)
+    audit_every_anchored: int | None = 6
     # a pose the edges doubt (the audit, a strict test on probation) is withheld, not ended: the
     # track goes on for up to doubt_frames frames, each tested strictly, and is reported again
     # from the first the edges confirm (Tracker._doubt); 0: lost at once
