@@ -88,6 +88,7 @@ def compare(frames, times, model, camera, variants: list[tuple[str, object]], in
     variant, ``base`` (the first) included."""
     from quatrack.recognition.match import index_for
     from quatrack.recognition.video import Tracker
+    from quatrack.tracking.pose import Pose
 
     index = index if index is not None else index_for(model)
     trackers = [(name, Tracker(model, camera, params, index=index, executor=None)) for name, params in variants]
@@ -103,8 +104,7 @@ def compare(frames, times, model, camera, variants: list[tuple[str, object]], in
                 raise ValueError(f"variant {name!r}: the tracker failed ({type(exc).__name__}: {exc})") from None
             cpu[name].append((time.thread_time() - t0) * 1e3)
             has = step.status != "lost" and step.t is not None
-            centres[name].append(None if not has else
-                                 np.asarray(step.t, float) + _rotate(step.q_wxyz, c))
+            centres[name].append(Pose(step.q_wxyz, step.t).apply(c) if has else None)
     diameter = float(model.mesh.extent)
     rows = []
     ref = centres[trackers[0][0]]
@@ -117,12 +117,6 @@ def compare(frames, times, model, camera, variants: list[tuple[str, object]], in
                      "from_base_median_pct": float(np.median(d)) / diameter * 100 if d else None,
                      "from_base_max_pct": float(np.max(d)) / diameter * 100 if d else None})
     return rows
-
-
-def _rotate(q_wxyz, x: np.ndarray) -> np.ndarray:
-    from quatrack.tracking import quaternion as quat
-
-    return quat.to_matrix(np.asarray(q_wxyz, float)) @ x
 
 
 def report(rows: list[dict]) -> str:

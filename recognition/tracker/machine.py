@@ -636,7 +636,8 @@ class Tracker:
         edges locked onto the print, agreeing among themselves — the trained points, matched
         afresh by SIFT every ``refresh_every`` frames, already judge (:meth:`_unless_outvoted`);
         where they are absent the audit is the only judge. On the 24 zoo walks auditing anchored
-        frames every 6th frame instead of every 3rd changed no status, reason or error; on
+        frames every 6th frame instead of every 3rd changed no status and no pose (one withheld
+        frame was withheld by the strict test instead of the audit); on
         ``box.mp4`` (always anchored) it left the poses the same and saved ~1 ms a frame
         (bench/RESULTS.md, session 32)."""
         p = self.params
