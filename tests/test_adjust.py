@@ -361,3 +361,35 @@ def test_gauss_newton_reports_the_cost_at_its_solution(robust):
     recorded = adjust(prior, blocks, AdjustOptions(robust=robust, max_iterations=3, record=True))
     assert recorded.cost == pytest.approx(F, rel=1e-12)
     assert [r.cost for r in recorded.history][0] > F
+
+
+def test_decrement_tolerance_is_validated():
+    with pytest.raises(ValueError, match="decrement_tolerance"):
+        AdjustOptions(decrement_tolerance=0.0)
+    assert AdjustOptions(decrement_tolerance=1e-3).decrement_tolerance == 1e-3
+
+
+@given(seed=st.integers(0, 10_000), robust=st.sampled_from(["none", "huber", "cauchy"]),
+       tol=st.sampled_from([1e-1, 1e-2, 1e-3]))
+def test_newton_decrement_stops_within_its_tolerance_of_the_minimum(seed, robust, tol):
+    """The rule stops when the next step Δ has ΔᵀAΔ < tol. For least squares Δ is the Newton
+    step, so the state returned lies within that squared Mahalanobis distance of the minimum
+    (in the metric of the covariance it returns; 1.5·tol leaves room for the curvature beyond
+    second order). With a robust loss, Gauss–Newton on the reweighted problem ignores how the
+    weights change and converges only linearly, so the distance left can be a few times the
+    last step (up to 2.3·tol over seeds 0–299 with Cauchy weights): 4·tol there."""
+    rng = np.random.default_rng(seed)
+    X = box_points(30, seed)
+    sigma = 0.8
+    blocks = [PointMeasurements.create(CAM, X, observe(X, sigma=sigma, rng=rng), sigma)]
+    prior = prior_around(P_TRUE + rng.normal(0, 5, 3), quat.multiply(quat.from_rotvec(rng.normal(0, 0.03, 3)), Q_TRUE))
+    exact = adjust(prior, blocks, AdjustOptions(robust=robust, max_iterations=50, gradient_tolerance=1e-12))
+    early = adjust(prior, blocks, AdjustOptions(robust=robust, max_iterations=50, gradient_tolerance=1e-12,
+                                                decrement_tolerance=tol))
+    assert early.converged and early.iterations <= exact.iterations
+    d = np.concatenate([exact.state.p - early.state.p,
+                        quat.to_rotvec(quat.multiply(exact.state.q, quat.conjugate(early.state.q))),
+                        exact.state.v - early.state.v, exact.state.omega - early.state.omega])
+    m2 = float(d @ np.linalg.solve(early.state.covariance, d))
+    assert m2 < (1.5 if robust == "none" else 4.0) * tol, (m2, tol)
+

@@ -12,7 +12,11 @@ same arithmetic without building ``D``. The iteration stops when ``‖∇F‖ = 
 (eq. 29), and the new covariance is ``(DᵀD)⁻¹`` at that point (eq. 30).
 
 Options beyond the paper: Levenberg–Marquardt damping (his closing remark, for large
-measurement noise) and M-estimator weights (IRLS) against outliers.
+measurement noise), M-estimator weights (IRLS) against outliers, and a stop rule without units:
+the Newton decrement ``λ² = ΔᵀAΔ`` of the next step (``AdjustOptions.decrement_tolerance``).
+``‖∇F‖`` adds a gradient per unit of length to one per radian, so its ε means something
+different for a mesh in mm and one in m; ``λ²`` measures the step in standard deviations of
+the estimate itself.
 """
 
 from __future__ import annotations
@@ -45,6 +49,11 @@ class AdjustOptions:
     robust_scale: float | None = None
     damping: float = 1e-3  # Levenberg–Marquardt's initial λ (relative to diag(DᵀD))
     record: bool = False  # keep a per-iteration history (Ude's Table 1)
+    # Gauss–Newton also stops, without taking it, when the next step's Newton decrement
+    # λ² = −bᵀΔ = ΔᵀAΔ (the step's length in the metric of the current information, where 1 is
+    # one standard deviation; Boyd & Vandenberghe, Convex Optimization, §9.5.1) is below this:
+    # unlike ‖∇F‖ it has no unit (None: Ude's rule alone)
+    decrement_tolerance: float | None = None
 
     def __post_init__(self) -> None:
         if self.method not in ("gauss-newton", "levenberg-marquardt"):
@@ -53,6 +62,8 @@ class AdjustOptions:
             raise ValueError(f"unknown robust loss {self.robust!r}; expected one of {robust.LOSSES}")
         if self.max_iterations < 1 or not self.gradient_tolerance > 0:
             raise ValueError("max_iterations must be >= 1 and gradient_tolerance > 0")
+        if self.decrement_tolerance is not None and not self.decrement_tolerance > 0:
+            raise ValueError("decrement_tolerance must be > 0 (or None)")
 
 
 @dataclass(frozen=True)
@@ -306,12 +317,16 @@ def _minimise(problem: _Problem, x, options: AdjustOptions):
     need_cost = not gn or options.record  # Gauss–Newton needs only the final cost
     cost, A, b, w = problem.evaluate(x, cost=need_cost)
     iterations = 0
+    small_step = False
     while True:
         g2 = float(b @ b)
         if g2 < options.gradient_tolerance**2 or iterations >= options.max_iterations:
             break
         if gn:
             delta = -_spd_solve(A, b)
+            if options.decrement_tolerance is not None and -float(b @ delta) < options.decrement_tolerance:
+                small_step = True  # x is the minimum to within a small share of a standard deviation
+                break
             x_new = problem.retract(x, delta)
             if options.record:
                 history.append(_record(delta, g2, cost))
@@ -333,7 +348,7 @@ def _minimise(problem: _Problem, x, options: AdjustOptions):
             x = x_new
             cost, A, b, w = problem.evaluate(x)
         iterations += 1
-    converged = float(b @ b) < options.gradient_tolerance**2
+    converged = small_step or float(b @ b) < options.gradient_tolerance**2
     if cost is None:
         cost = problem.last_cost()
     return x, cost, A, b, w, iterations, converged, tuple(history)
