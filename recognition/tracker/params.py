@@ -226,7 +226,11 @@ class TrackerParams:
     adjust: AdjustOptions = field(
         # Gauss–Newton from the prediction converges in 2–3 steps here; 4 is a measured margin.
         # The stop rule ‖∇F‖ < ε mixes 1/length (position) and 1/rad terms, so ε is tiny: the
-        # iterations stop at convergence, not earlier in one mesh unit than in another.
+        # iterations stop at convergence, not earlier in one mesh unit than in another. (The
+        # unit-free rule, AdjustOptions.decrement_tolerance = 1e-3, stops a step below ~3 % of a
+        # standard deviation and saves ~1.2 ms of the ~4 ms adjust stage on box.mp4; not the
+        # default: its slightly different poses sent one zoo walk's unanchored track in the dim
+        # phase to 5.1 % before the audit caught it, bench/RESULTS.md, session 33.)
         default_factory=lambda: AdjustOptions(method="gauss-newton", robust="huber", max_iterations=4,
                                               gradient_tolerance=1e-7)
     )
