@@ -397,6 +397,41 @@ def test_the_outline_is_found_where_the_true_pose_puts_it(box, grey):
     assert np.median(sd) < (3.5 if grey else 1.6)
 
 
+@pytest.mark.parametrize("gain, cast", [(0.6, (0.85, 1.0, 1.15)), (1.5, (1.0, 1.0, 1.0))])
+def test_the_outline_is_found_after_the_light_changes(box, gain, cast):
+    """Colours learned under one light, the outline searched under another (the image's gain
+    times a colour cast, as the zoo's lighting change and a camera's auto-exposure do): the
+    pixels are read relative to the frame's mean colour (``contour_normalise``, off by default),
+    so the lines
+    still find the outline where the true pose puts it. Read raw, the learned colours no longer
+    match and the lines land several pixels off."""
+    from dataclasses import replace
+
+    from quatrack.recognition.tracker.contour import Contour
+    from quatrack.tracking import quaternion as quat
+
+    model, camera, poses, frames = box
+    truth = poses[3]
+    before = frames[3]
+    after = np.clip(before.astype(np.float32) * gain * np.array(cast, np.float32), 0, 255).astype(np.uint8)
+    P = np.diag([0.3**2] * 3 + [np.radians(0.7) ** 2] * 3)
+    off = Pose(quat.multiply(quat.from_rotvec(np.radians([0.3, -0.4, 0.0])), truth.q_wxyz), truth.t + [0.4, -0.2, 0.0])
+
+    def found(normalise: bool):
+        src = Contour(model.mesh, replace(TrackerParams(), contour_normalise=normalise))
+        for img, pose in ((before, truth), (after, off)):
+            frame = make_frame(cv2.cvtColor(img, cv2.COLOR_BGR2GRAY))
+            block = src.measure(FrameContext(img, frame, None, camera, initial_state(0.0, pose.t, pose.q_wxyz, P)), {})
+        n = np.linalg.eigh(block.C)[1][:, :, 0]
+        return [float(np.median(np.abs(np.einsum("ij,ij->i", block.uv - camera.project(p.apply(block.X)), n))))
+                for p in (truth, off)]
+
+    at_truth, at_off = found(True)
+    assert at_truth < 1.0 and at_off > 2.5 * at_truth
+    raw_truth, _ = found(False)
+    assert raw_truth > 3.0 * at_truth
+
+
 def test_outline_lines_stop_at_the_objects_far_side():
     """A line across a thin object reads its inside only up to the far side: beyond it lies
     background again, which would otherwise pull the outline inwards."""

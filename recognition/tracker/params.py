@@ -114,6 +114,11 @@ class TrackerParams:
     contour_sigma_min_px: float = 0.5
     contour_rate_f: float = 0.1
     contour_rate_b: float = 0.2
+    # read the outline's pixels relative to the frame's mean colour (contour.frame_gains), so that
+    # a change of light keeps the learned colours valid. Off: on the zoo walks it kept a wide box
+    # tracked through the dimming (137 → 72 frames lost) whose unanchored track then drifted past
+    # 5 % in the blur (bench/RESULTS.md, session 33): it waits on a judge of such tracks
+    contour_normalise: bool = False
     # the outline's sources (edges, contour) search around the points' own pose when that moves
     # the mesh's vertices by more than recentre_px from the prediction (Tracker._recentred; 0: never)
     recentre_px: float = 3.0
