@@ -20,8 +20,9 @@ background round it. Every frame:
    With ``contour_normalise`` (off by default: see its comment) a pixel is read relative to its
    frame's mean colour (:func:`frame_gains`: each channel × 128 / its mean), so a change of light
    that scales the whole image (the zoo's dimming with a colour cast, a camera's auto-exposure)
-   leaves the bins where the histograms learned them. Read raw, a gain of 0.6 with a cast moved the found outline from
-   0.3 to 9.5 px off the true one on a rendered box (tests/test_tracker_sources.py).
+   leaves the bins where the histograms learned them. Read raw, a gain of 0.6 with a cast moved
+   the found outline from 0.3 to 9.5 px off the true one on a rendered box
+   (tests/test_tracker_sources.py).
 3. **The outline's position along the line.** With smoothed step functions
    ``h_F(x) = ½ − α tanh(x / 2s)``, ``h_B = 1 − h_F`` (α = ``contour_alpha``, s =
    ``contour_slope_px``: the object's inside is probably object, its outside probably not,
