@@ -387,9 +387,7 @@ def test_newton_decrement_stops_within_its_tolerance_of_the_minimum(seed, robust
     early = adjust(prior, blocks, AdjustOptions(robust=robust, max_iterations=50, gradient_tolerance=1e-12,
                                                 decrement_tolerance=tol))
     assert early.converged and early.iterations <= exact.iterations
-    d = np.concatenate([exact.state.p - early.state.p,
-                        quat.to_rotvec(quat.multiply(exact.state.q, quat.conjugate(early.state.q))),
+    d = np.concatenate([pose_error(early.state.p, early.state.q, exact.state.p, exact.state.q),
                         exact.state.v - early.state.v, exact.state.omega - early.state.omega])
     m2 = float(d @ np.linalg.solve(early.state.covariance, d))
     assert m2 < (1.5 if robust == "none" else 4.0) * tol, (m2, tol)
-

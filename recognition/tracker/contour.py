@@ -121,18 +121,15 @@ def bin_index(bgr: np.ndarray) -> np.ndarray:
 
 def frame_gains(image: np.ndarray) -> np.ndarray:
     """Per-channel gains (3,) that bring ``image``'s mean colour to mid-grey: ``128 / mean``,
-    within ¼…4 (a black frame stays a black frame). A grey image's channels get one gain, so
-    its pixels stay grey (:func:`bin_index`'s grey path).
+    within ¼…4 (a black frame stays a black frame). A grey image's channels have one mean, so
+    they get one gain and its pixels stay grey (:func:`bin_index`'s grey path).
 
     >>> img = np.full((4, 4, 3), (32, 64, 128), np.uint8)
     >>> frame_gains(img).tolist()
     [4.0, 2.0, 1.0]
     """
     m = np.asarray(cv2.mean(image)[:3], np.float32)
-    g = np.clip(128.0 / np.maximum(m, 1.0), 0.25, 4.0).astype(np.float32)
-    if np.all(m == m[0]):
-        g[:] = g[0]
-    return g
+    return np.clip(128.0 / np.maximum(m, 1.0), 0.25, 4.0).astype(np.float32)
 
 
 @dataclass
