@@ -292,3 +292,23 @@ def test_the_centre_error_is_split_along_and_across_the_line_of_sight():
     run.depth_err, run.lateral_err = [], []  # a Run without the split (older callers): missing, not zero
     f = B.figures(run, np.ones(3), 10.0)
     assert f["bad_depth"] is None and f["depth_mean_pct"] is None
+
+
+def test_the_image_floor_only_widens_the_reported_covariance(cube):
+    """The systematic floors enter nothing the tracker decides: with and without the image floor
+    the same frames give the same statuses and poses, and the reported covariances differ by
+    exactly image_floor at the reported pose (the object's vertices, ``systematic_px`` px)."""
+    from quatrack.recognition.video import Tracker
+    from quatrack.tracking import quaternion as quat
+    from quatrack.tracking.systematic import image_floor
+
+    model, seq = cube
+    on, off = (Tracker(model, seq.camera, TrackerParams(systematic_px=px), index=index_for(model)) for px in (0.3, None))
+    for tr in (on, off):
+        tr.init_pose(seq.poses[0].t, seq.poses[0].q_wxyz)
+    for k in range(8):
+        a, b = on.step(seq.image(k), k / seq.fps), off.step(seq.image(k), k / seq.fps)
+        assert a.status == b.status and a.has_pose
+        assert np.array_equal(a.t, b.t) and np.array_equal(a.q_wxyz, b.q_wxyz)
+        F = image_floor(seq.camera, quat.to_matrix(a.q_wxyz), a.t, model.mesh.vertices, 0.3)
+        assert np.any(F) and np.allclose(np.asarray(a.covariance) - np.asarray(b.covariance), F, rtol=1e-6, atol=1e-15)

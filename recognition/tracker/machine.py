@@ -57,7 +57,7 @@ from quatrack.tracking.measurements import project_model_points
 from quatrack.tracking.motion import make_motion_model
 from quatrack.tracking.pose import Pose
 from quatrack.tracking.state import FilterState
-from quatrack.tracking.systematic import carried_covariance, systematic_floor
+from quatrack.tracking.systematic import carried_covariance, image_floor, systematic_floor
 from quatrack.viewsets.learn import is_new_direction, learned_viewset, with_learned
 from quatrack.viewsets.store import ObjectModel
 from quatrack.viewsets.viewset import Viewset, params_from_manifest
@@ -105,6 +105,9 @@ class Tracker:
         self.index = index
         self.executor = executor
         self.diameter = float(model.mesh.extent)
+        # the object's points for the image floor (_pose_step): its vertices, at most 256 of them
+        V = model.mesh.vertices
+        self._floor_points = V[np.linspace(0, len(V) - 1, min(len(V), 256)).astype(int)]
         self.motion = make_motion_model(params.motion_model, **params.motion_noise_params(self.diameter))
         self.filter = PoseFilter(self.motion, params.adjust)
         pts = np.concatenate([vs.points3d for vs in model.viewsets]) if model.viewsets else np.zeros((0, 3))
@@ -278,7 +281,9 @@ class Tracker:
 
     def _pose_step(self, time_s: float, status: str, inliers: int, reason: str | None = None) -> TrackStep:
         """The step that reports the filter's pose, with the filter's covariance plus the
-        systematic floor (:mod:`quatrack.tracking.systematic`, ``params.systematic_*``), plus,
+        systematic floors (:mod:`quatrack.tracking.systematic`: the pose-level one,
+        ``params.systematic_pct`` / ``_depth_ratio`` / ``_deg``, and the image one of
+        ``params.systematic_px`` shared by the object's points), plus,
         in a second-hand track's frame without trained points in view, the error it carries from
         its birth (:func:`~quatrack.tracking.systematic.carried_covariance` of the re-found pose's
         covariance). There the points born on the mesh were lifted at the track's own poses: they
@@ -290,6 +295,8 @@ class Tracker:
         cov = s.pose_covariance + systematic_floor(s.R, s.p, self.model.mesh.centre, self.diameter,
                                                    p.systematic_pct / 100.0, p.systematic_depth_ratio,
                                                    np.radians(p.systematic_deg))
+        if p.systematic_px:
+            cov = cov + image_floor(self.camera, s.R, s.p, self._floor_points, p.systematic_px)
         if self._birth is not None and not self._anchored:
             cov = cov + carried_covariance(s.R, *self._birth)
         return TrackStep(self._frame, time_s, status, s.p.copy(), quat.canonical(s.q), s.v.copy(), s.omega.copy(),
