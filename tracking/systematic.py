@@ -37,6 +37,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .camera import PinholeCamera
+from .measurements import project_model_points
 from .rotation import skew
 
 
@@ -72,7 +74,7 @@ def systematic_floor(R: np.ndarray, p: np.ndarray, centre: np.ndarray, diameter:
     return T @ S @ T.T
 
 
-def image_floor(camera, R: np.ndarray, p: np.ndarray, points: np.ndarray, sigma_px: float) -> np.ndarray:
+def image_floor(camera: PinholeCamera, R: np.ndarray, p: np.ndarray, points: np.ndarray, sigma_px: float) -> np.ndarray:
     """The 6×6 floor over ``[p, δθ]`` of an image error of ``sigma_px`` pixels shared by the object's
     ``points`` (object frame, e.g. its mesh's vertices) at the pose ``(R, p)``:
 
@@ -100,8 +102,6 @@ def image_floor(camera, R: np.ndarray, p: np.ndarray, points: np.ndarray, sigma_
     >>> bool(sd[0] > 0.01)
     True
     """
-    from .measurements import project_model_points
-
     R, p = np.asarray(R, float), np.asarray(p, float)
     X = np.asarray(points, float)
     X = X[(X @ R[2] + p[2]) > 0]  # (in front of the camera)
