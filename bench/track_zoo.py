@@ -51,11 +51,17 @@ SEQUENCES = ("cube-m", "flat-box-mm", "tall-box-cm", "cylinder-mm", "hex-prism-m
 TARGETS = {"visible": 0.3, "mean_pct": 0.5, "mean_deg": 0.5, "bad_pct": 5.0, "bad_deg": 5.0, "step_p50_ms": 10.0}
 
 
-def pose_error(step, truth, mesh) -> tuple[float, float]:
-    """(distance between the centres in mesh units, rotation angle in degrees)."""
+def _centres(step, truth, mesh) -> tuple[np.ndarray, np.ndarray]:
+    """The object's centre in the camera frame at the step's pose and at the truth."""
     R = quat.to_matrix(step.q_wxyz)
     c = mesh.centre
-    dt = float(np.linalg.norm((R @ c + step.t) - (truth.R @ c + truth.t)))
+    return R @ c + np.asarray(step.t, float), truth.R @ c + truth.t
+
+
+def pose_error(step, truth, mesh) -> tuple[float, float]:
+    """(distance between the centres in mesh units, rotation angle in degrees)."""
+    est, true = _centres(step, truth, mesh)
+    dt = float(np.linalg.norm(est - true))
     return dt, float(np.degrees(quat.angle_between(np.asarray(step.q_wxyz), truth.q_wxyz)))
 
 
@@ -77,9 +83,8 @@ def centre_error_split(step, truth, mesh) -> tuple[float, float]:
     >>> [round(v, 6) for v in centre_error_split(step, truth, mesh)]
     [-0.4, 0.3]
     """
-    R = quat.to_matrix(step.q_wxyz)
-    c = truth.R @ mesh.centre + truth.t
-    e = (R @ mesh.centre + np.asarray(step.t, float)) - c
+    est, c = _centres(step, truth, mesh)
+    e = est - c
     u = c / np.linalg.norm(c)
     depth = float(e @ u)
     return depth, float(np.linalg.norm(e - depth * u))
