@@ -118,17 +118,15 @@ def render(mesh: Mesh, camera: PinholeCamera, pose: Pose) -> RenderBuffers:
     skipped (callers check that the object lies in front of the camera). Faces a closed mesh
     turns away from the camera are not tested (:func:`_front_triangles`: they are hidden anyway).
 
-    Triangles are tested one at a time over their box, where without distortion ``x`` depends
-    on the column only and ``y`` on the row only, so the per-pixel terms are a row times a
-    column (numpy broadcasting) — except, in a mesh of many triangles, those whose box holds at
-    most ``_SMALL_BOX`` pixels: they are tested together, each (triangle, pixel) pair one
-    element of flat arrays (:func:`_render_small`; a cylinder's 96 triangles took 3.3 ms one
-    at a time at 160×120, the tracker's z-buffer of every frame). The arithmetic per pixel is
-    the same either way and the result does not depend on the order (the nearest depth, ties
-    to the lower index), so the buffers equal the plain loop's (:func:`render_reference`) bit
-    for bit (tests/test_viewsets_render.py).
+    The per-pixel test runs compiled (:func:`_zbuffer`, numba): one triangle after another in
+    index order, each over its box, the same arithmetic in the same order as the plain numpy
+    loop over triangles (:func:`render_reference`), whose buffers it equals bit for bit
+    (tests/test_viewsets_render.py). Why compiled: the tracker renders a z-buffer 2–4 times a
+    frame, and the numpy loop's cost is per triangle (a dozen array operations each, over boxes
+    of a few hundred pixels): a cylinder's 48 front triangles took 2.2 ms at 160×120, 0.4 ms
+    compiled (bench/RESULTS.md, session 35).
     """
-    return _rasterise(mesh, camera, pose, batch_small=True)
+    return _rasterise(mesh, camera, pose)
 
 
 def render_window(mesh: Mesh, camera: PinholeCamera, pose: Pose, window: tuple[int, int, int, int]) -> RenderBuffers:
@@ -136,7 +134,7 @@ def render_window(mesh: Mesh, camera: PinholeCamera, pose: Pose, window: tuple[i
     only (``x1``, ``y1`` exclusive, inside the image): ``render(...)[y0:y1, x0:x1]`` bit for bit
     — the same rays (the full image's, sliced), the same triangles' tests on the pixels of their
     boxes inside the window — without the cost of the rest of the image."""
-    return _rasterise(mesh, camera, pose, batch_small=True, window=window)
+    return _rasterise(mesh, camera, pose, window=window)
 
 
 def footprint(mesh: Mesh, camera: PinholeCamera, pose: Pose, margin_px: int = 0) -> tuple[int, int, int, int] | None:
@@ -180,11 +178,12 @@ def _front_triangles(mesh: Mesh, pose: Pose, cull: bool = False):
     return tris, normals, offsets, np.flatnonzero(tested)
 
 
-def _rasterise(mesh: Mesh, camera: PinholeCamera, pose: Pose, batch_small: bool,
-               window: tuple[int, int, int, int] | None = None, cull: bool = True) -> RenderBuffers:
-    """:func:`render`'s z-buffer; ``batch_small``: test a mesh's many small triangles together;
-    ``window``: only over that pixel box (:func:`render_window`); ``cull``: skip the faces a
-    closed mesh turns away from the camera (:func:`_front_triangles`)."""
+def _rasterise(mesh: Mesh, camera: PinholeCamera, pose: Pose, window: tuple[int, int, int, int] | None = None,
+               cull: bool = True, compiled: bool = True) -> RenderBuffers:
+    """:func:`render`'s z-buffer; ``window``: only over that pixel box (:func:`render_window`);
+    ``cull``: skip the faces a closed mesh turns away from the camera (:func:`_front_triangles`);
+    ``compiled``: the per-pixel test by :func:`_zbuffer`, else by the numpy loop over triangles
+    (:func:`render_reference`)."""
     W, H = int(camera.width), int(camera.height)
     wx0, wy0, wx1, wy1 = (0, 0, W, H) if window is None else (int(v) for v in window)
     if not (0 <= wx0 <= wx1 <= W and 0 <= wy0 <= wy1 <= H):
@@ -200,17 +199,14 @@ def _rasterise(mesh: Mesh, camera: PinholeCamera, pose: Pose, batch_small: bool,
     if window is not None:  # (the boxes in the window's pixels, clipped to it)
         boxes = np.column_stack([np.maximum(boxes[:, 0], wx0) - wx0, np.maximum(boxes[:, 1], wy0) - wy0,
                                  np.minimum(boxes[:, 2], wx1 - 1) - wx0, np.minimum(boxes[:, 3], wy1 - 1) - wy0])
-    nx, ny = boxes[:, 2] - boxes[:, 0] + 1, boxes[:, 3] - boxes[:, 1] + 1
-    keep = (nx > 0) & (ny > 0)
-    ids, boxes, nx, ny = ids[keep], boxes[keep], nx[keep], ny[keep]
+    keep = (boxes[:, 2] >= boxes[:, 0]) & (boxes[:, 3] >= boxes[:, 1])
+    ids, boxes = ids[keep], boxes[keep]
     corners = tris[ids, :, :2] / tris[ids, :, 2:3]  # normalised corners (x, y)
+    if compiled:
+        _compiled_zbuffer()(ids.astype(np.int64), np.ascontiguousarray(boxes, dtype=np.int64), corners, normals, offsets,
+                 np.ascontiguousarray(rays), depth, face, _NEAR)
+        return RenderBuffers(depth, face)
     distorted = camera.has_distortion
-    small = nx * ny <= _SMALL_BOX
-    tied = batch_small and bool(small.sum() >= _SMALL_MIN)  # the small ones done together first
-    if tied:
-        _render_small(ids[small], boxes[small], nx[small], corners[small], normals, offsets, rays, distorted,
-                      depth.reshape(-1), face.reshape(-1))
-        ids, boxes, corners = ids[~small], boxes[~small], corners[~small]
     if not distorted:
         rx_row, ry_col = rays[0, :, 0][None, :], rays[:, 0, 1][:, None]
     for i, (x0, y0, x1, y1), p in zip(ids.tolist(), boxes.tolist(), corners.tolist()):
@@ -230,60 +226,58 @@ def _rasterise(mesh: Mesh, camera: PinholeCamera, pose: Pose, batch_small: bool,
         dsub = depth[y0 : y1 + 1, x0 : x1 + 1]
         fsub = face[y0 : y1 + 1, x0 : x1 + 1]
         closer = inside & (z > _NEAR) & (z < dsub)
-        if tied:  # as near as a small triangle done before, and of a lower index
-            closer |= inside & (z == dsub) & (fsub > i)
         np.copyto(dsub, z, where=closer)
         np.copyto(fsub, i, where=closer)
     return RenderBuffers(depth, face)
 
 
-_SMALL_BOX = 400  # pixels: triangles whose box is at most this big are tested together (render) …
-_SMALL_MIN = 32  # … when there are at least this many (a box's 12 or a prism's 24 cost less one at a time)
+def _zbuffer(ids, boxes, corners, normals, offsets, rays, depth, face, near):  # pragma: no cover (compiled)
+    """The per-pixel test of :func:`_rasterise`, compiled: triangles ``ids`` (ascending) over
+    their ``boxes`` ((m, 4) inclusive pixel boxes of ``rays``/``depth``/``face``), with normalised
+    ``corners`` (m, 3, 2), their planes' ``normals`` and ``offsets`` (indexed by id); a pixel
+    takes a triangle strictly nearer than what it holds (ties: the earlier, lower id). The
+    expressions are the numpy loop's, term for term, so the results are the same bits (numba
+    does not contract ``a·b + c`` into fused multiply–adds without ``fastmath``)."""
+    for j in range(ids.shape[0]):
+        i = ids[j]
+        p0x, p0y = corners[j, 0, 0], corners[j, 0, 1]
+        p1x, p1y = corners[j, 1, 0], corners[j, 1, 1]
+        p2x, p2y = corners[j, 2, 0], corners[j, 2, 1]
+        n0, n1, n2 = normals[i, 0], normals[i, 1], normals[i, 2]
+        off = offsets[i]
+        for y in range(boxes[j, 1], boxes[j, 3] + 1):
+            for x in range(boxes[j, 0], boxes[j, 2] + 1):
+                rx, ry = rays[y, x, 0], rays[y, x, 1]
+                e0 = (p1x - p0x) * (ry - p0y) - (p1y - p0y) * (rx - p0x)
+                e1 = (p2x - p1x) * (ry - p1y) - (p2y - p1y) * (rx - p1x)
+                e2 = (p0x - p2x) * (ry - p2y) - (p0y - p2y) * (rx - p2x)
+                if not (min(min(e0, e1), e2) >= 0.0 or max(max(e0, e1), e2) <= 0.0):
+                    continue  # the three edge functions disagree in sign: outside
+                den = n0 * rx + n1 * ry + n2
+                if den == 0.0:  # (the ray parallel to the plane: numpy's ±inf, never nearer)
+                    continue
+                z = off / den
+                if z > near and z < depth[y, x]:
+                    depth[y, x] = z
+                    face[y, x] = i
 
 
-def _render_small(ids, boxes, nx, p, normals, offsets, rays, distorted: bool, depth: np.ndarray,
-                  face: np.ndarray) -> None:
-    """:func:`render`'s test of the triangles ``ids`` together, on the flat, still empty
-    ``depth`` and ``face`` buffers: every (triangle, pixel of its box) pair is one element;
-    each pixel keeps its smallest depth (``np.minimum.at``) and, among the triangles at exactly
-    that depth, the lowest index."""
-    w = rays.shape[1]
-    sizes = nx * (boxes[:, 3] - boxes[:, 1] + 1)
-    start = np.cumsum(sizes) - sizes
-    tri = np.repeat(np.arange(len(ids)), sizes)
-    k = np.arange(int(sizes.sum())) - start[tri]
-    nxt = nx[tri]
-    x = boxes[tri, 0] + k % nxt
-    y = boxes[tri, 1] + k // nxt
-    if distorted:
-        rx, ry = rays[y, x, 0], rays[y, x, 1]
-    else:
-        rx, ry = rays[0, x, 0], rays[y, 0, 1]
-    q = p[tri]  # (N, 3, 2)
-    e0 = (q[:, 1, 0] - q[:, 0, 0]) * (ry - q[:, 0, 1]) - (q[:, 1, 1] - q[:, 0, 1]) * (rx - q[:, 0, 0])
-    e1 = (q[:, 2, 0] - q[:, 1, 0]) * (ry - q[:, 1, 1]) - (q[:, 2, 1] - q[:, 1, 1]) * (rx - q[:, 1, 0])
-    e2 = (q[:, 0, 0] - q[:, 2, 0]) * (ry - q[:, 2, 1]) - (q[:, 0, 1] - q[:, 2, 1]) * (rx - q[:, 2, 0])
-    lo, hi = np.minimum(np.minimum(e0, e1), e2), np.maximum(np.maximum(e0, e1), e2)
-    n = normals[ids][tri]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        z = offsets[ids][tri] / (n[:, 0] * rx + n[:, 1] * ry + n[:, 2])
-    cand = ((lo >= 0) | (hi <= 0)) & (z > _NEAR) & (z < np.inf)
-    if not cand.any():
-        return
-    pix, z, tri = (y * w + x)[cand], z[cand], tri[cand]
-    np.minimum.at(depth, pix, z)
-    won = z == depth[pix]
-    best = np.full(len(depth), len(ids), np.int64)
-    np.minimum.at(best, pix[won], tri[won])
-    hit = np.flatnonzero(best < len(ids))
-    face[hit] = ids[best[hit]]
+@lru_cache(maxsize=1)
+def _compiled_zbuffer():
+    """:func:`_zbuffer` compiled by numba on first use (imported then: 0.5 s that commands which
+    never render do not pay), cached on disk beside this file (``cache=True``: ~1 s to compile
+    once, ~0.2 s to load afterwards); ``nogil``: a background re-anchoring renders beside the
+    frame's step."""
+    import numba
+
+    return numba.njit(cache=True, nogil=True)(_zbuffer)
 
 
 def render_reference(mesh: Mesh, camera: PinholeCamera, pose: Pose) -> RenderBuffers:
-    """:func:`render` with every triangle tested one at a time over its box (the plain loop, as
-    before session 22): the reference the batched test of small triangles must equal bit for
-    bit (tests/test_viewsets_render.py)."""
-    return _rasterise(mesh, camera, pose, batch_small=False)
+    """:func:`render` with every triangle tested one at a time over its box by numpy (the plain
+    loop, as before session 22): the reference the compiled test must equal bit for bit
+    (tests/test_viewsets_render.py)."""
+    return _rasterise(mesh, camera, pose, compiled=False)
 
 
 def cast_rays(mesh: Mesh, pose: Pose, rays_xy: np.ndarray, chunk: int = 4096):
