@@ -23,7 +23,7 @@ def make_tracker(model, camera, index, max_pixels: int, executor: Executor | Non
     in the step. (A thread of its own for re-anchoring, apart from the frames' pool, was
     measured in session 18 and gained nothing: bench/RESULTS.md.) ``learn``: keep views of unseen sides (service/learning.py stores them). ``sources``: the
     measurement sources (``QUATRACK_TRACKER_SOURCES``; None: the tracker's default)."""
-    params = TrackerParams(pipelined_refresh=True, anchor_max_side=320, anchor_max_features=400, learn=learn)
+    params = TrackerParams(learn=learn).for_live_streams()
     if sources is not None:
         params = replace(params, sources=tuple(sources))
     params = replace(params, locate=replace(params.locate, max_pixels=max_pixels))

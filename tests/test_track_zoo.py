@@ -195,11 +195,14 @@ def test_the_bench_computes_its_figures_from_the_truth(cube):
     assert f["t_max_pct"] == pytest.approx(8.0) and f["step_p50_ms"] == 12.0
     miss = B.shortfalls(f)
     assert any("lost" in m for m in miss) and any("> 5 %" in m for m in miss) and any("step" in m for m in miss)
-    # a tiny real study: one object, one second, the truth-initialised pass only
-    res = B.study(("small-cube-cm",), seconds=1.0, passes=("truth",), backgrounds=_backgrounds(), progress=False)
+    # a tiny real study: one object, one second, the truth-initialised and live passes
+    res = B.study(("small-cube-cm",), seconds=1.0, passes=("truth", "live"), backgrounds=_backgrounds(), progress=False)
     s = res["sequences"]["small-cube-cm"]
     assert s["frames"] == 30 and s["truth"]["frames"] == 30 and s["truth"]["t_mean_pct"] is not None
-    assert "small-cube-cm" in B.report(res)
+    assert s["truth"]["background_mean_ms"] is None  # (offline: everything in the step)
+    assert s["live"]["frames"] == 30 and s["live"]["t_mean_pct"] is not None and s["live"]["background_mean_ms"] > 0
+    text = B.report(res)
+    assert "small-cube-cm" in text and "live stream" in text
 
 
 def test_more_renderings_are_other_walks_and_the_first_is_the_usual_one():

@@ -8,7 +8,7 @@ a die or a car, gives the same track up to the unit (tests/test_tracker_units.py
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -263,6 +263,13 @@ class TrackerParams:
     def motion_noise_params(self, diameter: float) -> dict[str, float]:
         """The motion model's noise parameters (mesh units) for an object of this diameter."""
         return motion_noise(self.motion_model, diameter, self.motion_noise)
+
+    def for_live_streams(self) -> "TrackerParams":
+        """These settings as a live stream runs them (the service's sessions; ``bench track-zoo``'s
+        live pass): re-anchoring and the lifting of views on the caller's executor beside the
+        next frames' steps (``pipelined_refresh``), SIFT on the window shrunk to 320 px with its
+        400 strongest features, so that no frame waits for SIFT (see the fields' comments)."""
+        return replace(self, pipelined_refresh=True, anchor_max_side=320, anchor_max_features=400)
 
 
 @dataclass
