@@ -282,3 +282,23 @@ def test_no_face_is_skipped_with_the_camera_inside_the_mesh():
     inside = Pose.from_matrix(np.eye(3), -box.centre)  # the camera at the box's centre, looking along +z
     buf = render(box, CAM, inside)
     assert (buf.face >= 0).all()
+
+
+def test_the_z_buffer_compiles_without_a_writable_cache(monkeypatch):
+    """A read-only install without a home directory has nowhere to keep numba's cache: the
+    z-buffer is then compiled in the process, and renders the same."""
+    import numba.core.caching as caching
+
+    from quatrack.viewsets import render as R
+
+    monkeypatch.setattr(caching.CacheImpl, "_locator_classes", [])
+    R._compiled_zbuffer.cache_clear()
+    try:
+        box = box_mesh()
+        pose = pose_looking_at(box.centre, [0.3, -0.5, 0.2], 40.0)
+        buf, ref = render(box, CAM, pose), R.render_reference(box, CAM, pose)
+        assert (buf.face >= 0).any()
+        np.testing.assert_array_equal(buf.face, ref.face)
+        np.testing.assert_array_equal(buf.depth, ref.depth)
+    finally:
+        R._compiled_zbuffer.cache_clear()  # (the next render compiles again, with the cache)

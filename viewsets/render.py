@@ -270,7 +270,10 @@ def _compiled_zbuffer():
     frame's step."""
     import numba
 
-    return numba.njit(cache=True, nogil=True)(_zbuffer)
+    try:
+        return numba.njit(cache=True, nogil=True)(_zbuffer)
+    except RuntimeError:  # no writable cache location (a read-only install, no home): compile per process
+        return numba.njit(nogil=True)(_zbuffer)
 
 
 def render_reference(mesh: Mesh, camera: PinholeCamera, pose: Pose) -> RenderBuffers:
