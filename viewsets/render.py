@@ -203,8 +203,9 @@ def _rasterise(mesh: Mesh, camera: PinholeCamera, pose: Pose, window: tuple[int,
     ids, boxes = ids[keep], boxes[keep]
     corners = tris[ids, :, :2] / tris[ids, :, 2:3]  # normalised corners (x, y)
     if compiled:
-        _compiled_zbuffer()(ids.astype(np.int64), np.ascontiguousarray(boxes, dtype=np.int64), corners, normals, offsets,
-                 np.ascontiguousarray(rays), depth, face, _NEAR)
+        zbuffer = _compiled_zbuffer()
+        zbuffer(ids.astype(np.int64), np.ascontiguousarray(boxes, dtype=np.int64), corners, normals, offsets,
+                np.ascontiguousarray(rays), depth, face, _NEAR)
         return RenderBuffers(depth, face)
     distorted = camera.has_distortion
     if not distorted:
