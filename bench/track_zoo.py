@@ -360,6 +360,7 @@ def study(names=SEQUENCES, seconds: float = 10.0, passes=("truth", "live", "reco
         if out_path:
             Path(out_path).write_text(json.dumps(out))
 
+    params = TrackerParams(learn=True) if learn_ok else TrackerParams()  # (the truth-initialised passes: they learn views)
     prepared = {}
     with tempfile.TemporaryDirectory(prefix="quatrack-track-zoo-") as tmp:
         for key, name, seed in walks(names, renderings):
@@ -372,7 +373,6 @@ def study(names=SEQUENCES, seconds: float = 10.0, passes=("truth", "live", "reco
             index = index_for(model)
             learned = []
             if "truth" in passes:
-                params = TrackerParams(learn=True) if learn_ok else TrackerParams()
                 r = run_pass(model, seq, params, True, index, f"{key}: truth-initialised" if progress else None)
                 res["truth"] = figures(r, seq.visible, d)
                 res["truth"]["shortfalls"] = shortfalls(res["truth"])
@@ -382,8 +382,7 @@ def study(names=SEQUENCES, seconds: float = 10.0, passes=("truth", "live", "reco
             if "live" in passes:
                 from quatrack.recognition.tracker.lagged import LaggedExecutor
 
-                params = (TrackerParams(learn=True) if learn_ok else TrackerParams()).for_live_streams()
-                r = run_pass(model, seq, params, True, index, f"{key}: live" if progress else None, LaggedExecutor(lag=2))
+                r = run_pass(model, seq, params.for_live_streams(), True, index, f"{key}: live" if progress else None, LaggedExecutor(lag=2))
                 res["live"] = figures(r, seq.visible, d)
             res["total_s"] = time.perf_counter() - ts
             out["sequences"][key] = res

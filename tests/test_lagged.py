@@ -33,7 +33,7 @@ def test_errors_come_back_through_the_future_and_shutdown_drains_or_drops():
     ex.tick()
     with pytest.raises(ZeroDivisionError):
         bad.result()
-    kept, dropped = ex.submit(lambda: 5), None
+    kept = ex.submit(lambda: 5)
     ex.shutdown(wait=True)
     assert kept.result() == 5
     dropped = ex.submit(lambda: 6)
@@ -50,7 +50,7 @@ def walk(tmp_path_factory):
 
 def _run(walk):
     ex = LaggedExecutor(lag=2)
-    params = TrackerParams(pipelined_refresh=True, anchor_max_side=320, anchor_max_features=400)
+    params = TrackerParams().for_live_streams()  # (the service's settings)
     tracker = Tracker(walk.model, walk.cam, params, index=index_for(walk.model), executor=ex)
     tracker.init_pose(walk.poses[0].t, walk.poses[0].q_wxyz)
     out = []
