@@ -58,6 +58,9 @@ from quatrack.viewsets.render import footprint
 from quatrack.viewsets.store import ObjectModel
 from quatrack.viewsets.viewset import Viewset, ViewsetParams
 
+from quatrack.viewsets.texture import TextureReference
+
+from ..appearance import TextureAgreement, texture_agreement
 from ..match import ModelIndex
 
 
@@ -116,6 +119,7 @@ class Keyframes:
         self._refind: tuple | None = None  # the same with synthetic views, + the latest keyframes' views
         self._groups: tuple[Mesh, np.ndarray] | None = None  # the mesh's planar groups (texturing)
         self._job: tuple[Future, list[Keyframe]] | None = None  # synthetic views being made on an executor
+        self._references: dict[int, tuple[Keyframe, TextureReference]] = {}  # each crop with its z-buffer
 
     def __len__(self) -> int:
         return len(self.items)
@@ -192,6 +196,26 @@ class Keyframes:
             cached = self._refind = (base, ModelIndex(model), model, prefer)
         return cached[2], cached[1], cached[3]
 
+    def texture_agreement(self, image: np.ndarray, camera: PinholeCamera, pose: Pose, mesh: Mesh) -> TextureAgreement:
+        """How well ``image`` agrees at ``pose`` with the object as the keyframes' crops show it
+        (:func:`..appearance.texture_agreement`); each crop's z-buffer is rendered once."""
+        refs, kept = [], {}
+        for k in self.items:
+            if k.crop is None:
+                continue
+            cached = self._references.get(id(k))
+            if cached is None or cached[0] is not k:
+                cached = (k, TextureReference(k.crop, k.crop_camera, k.viewset.pose).rendered(mesh))
+            kept[id(k)] = cached
+            refs.append(cached[1])
+        self._references = kept
+        return texture_agreement(image, camera, pose, mesh, self._planar_groups(mesh), refs)
+
+    def _planar_groups(self, mesh: Mesh) -> np.ndarray:
+        if self._groups is None or self._groups[0] is not mesh:
+            self._groups = (mesh, planar_groups(mesh))
+        return self._groups[1]
+
     def synthesise(self, mesh: Mesh, params: ViewsetParams, angles_deg: tuple[float, ...], budget: int,
                    min_cos: float = 0.3, executor: Executor | None = None) -> int:
         """Make the synthetic views (see the module) of at most ``budget`` keyframes that have a
@@ -210,10 +234,8 @@ class Keyframes:
                       key=lambda i: -self.items[i].time_s)[:max(int(budget), 0)]
         if not todo:
             return done
-        if self._groups is None or self._groups[0] is not mesh:
-            self._groups = (mesh, planar_groups(mesh))
         keys = [self.items[i] for i in todo]
-        work = (synthetic_views, keys, mesh, self._groups[1], self.centre, params, tuple(angles_deg), min_cos)
+        work = (synthetic_views, keys, mesh, self._planar_groups(mesh), self.centre, params, tuple(angles_deg), min_cos)
         if executor is not None:
             self._job = (executor.submit(*work), keys)
             return done

@@ -429,6 +429,9 @@ class Tracker:
             if not loc.found:
                 return self._lost(time_s, f"not found: {loc.reason}")
             pose, cov, time_s0 = Pose(loc.q_wxyz, loc.t), loc.covariance, time_s
+            why = self._unlike_keyframes(frame.gray, pose, timings)
+            if why:
+                return self._lost(time_s, f"{how}, refused: {why}")
             cov = 0.5 * (cov + cov.T) + 1e-9 * np.eye(6)
             self._birth = (pose.R, cov) if self._second_hand else None
         self._start_filter(time_s0, pose, cov)
@@ -463,6 +466,23 @@ class Tracker:
         if self.mesh_points in self.sources:  # the first corners on the mesh, at the refined pose
             self.mesh_points.spawn(FrameContext(img, frame, None, self.camera, prior), self.filter.state)
         return self._pose_step(time_s, "init", int(inl.sum()), reason=how)
+
+    def _unlike_keyframes(self, grey: np.ndarray, pose: Pose, timings: dict) -> str | None:
+        """Why a pose found after a loss does not look as the object looked in this run's
+        keyframes (their crops rendered at the pose correlate with the frame below
+        ``refind_min_texture_ncc``: :mod:`..appearance`), or None (it does, or no keyframe saw
+        what the pose shows). SIFT consensus and the edges cannot tell apart faces that share
+        texture and outline; the rest of the texture can."""
+        p = self.params
+        if not p.refind_min_texture_ncc or not len(self.keyframes):
+            return None
+        t0 = time.perf_counter()
+        agreement = self.keyframes.texture_agreement(grey, self.camera, pose, self.model.mesh)
+        timings["texture"] = _ms(t0)
+        if agreement.pixels and agreement.ncc < p.refind_min_texture_ncc:
+            return (f"the keyframes' texture rendered at the pose correlates {agreement.ncc:.2f} with the frame "
+                    f"over {agreement.pixels} px (at least {p.refind_min_texture_ncc:g} needed)")
+        return None
 
     def _start_on_mesh(self, img: np.ndarray, frame: Frame, prior, tracks: Tracks) -> bool:
         """A pose (the user's, or found again on a keyframe) on a side no trained view shows

@@ -168,6 +168,13 @@ class TrackerParams:
     # obliquely is seen about as obliquely (training's 0.3 dropped the zoo flat box's large face,
     # seen at cos 0.3 from below, from every view near that one: nothing re-found it after the slide)
     keyframe_synthetic_min_cos: float = 0.1
+    # a pose found after a loss (recognition, or re-found on keyframes) must look, where the
+    # keyframes saw the object, as it looked then: their crops rendered at the pose correlate
+    # with the frame at least this well (recognition/appearance.py: NCC, pixel-weighted over the
+    # keyframes; ~1 right, ~0 another face's texture). A cube whose faces share texture and
+    # outline was re-found 90° off on one of its synthetic keyframe views and reported for 12
+    # frames (zoo walk, session 36). 0: off
+    refind_min_texture_ncc: float = 0.5
     # a track re-found on this run's keyframes keeps no keyframe nor learned view of its own while
     # no trained point anchors its frame (FrameContext.anchored): its points were lifted at a pose
     # that inherits the keyframe's error, and a view taken from it would pass that error on again
