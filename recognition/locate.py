@@ -20,8 +20,10 @@ import numpy as np
 from quatrack.tracking.camera import PinholeCamera
 from quatrack.tracking.pose import Pose
 from quatrack.viewsets.features import Features
+from quatrack.viewsets.mesh import planar_groups
 from quatrack.viewsets.store import ObjectModel
 
+from .appearance import texture_agreement
 from .images import DEFAULT_MAX_PIXELS, prepare_image
 from .window_search import Window, WindowSearchParams, search_window
 from .match import ModelIndex, index_for, rank_viewsets
@@ -64,6 +66,12 @@ class LocateParams:
     # ``pose.min_inliers`` with this probability (:func:`ransac_iterations_bound`)
     ransac_bound_confidence: float = 0.9999
     use_window: bool = True  # False: skip localisation, match in the whole image
+    # a verified pose must look as the model's photos show the object (ObjectModel.appearance,
+    # recognition/appearance.py): their crops rendered at the pose correlate with the image at
+    # least this well where they show what the pose shows (~1 right; ~0 another face's texture;
+    # faces sharing texture and outline — a cube turned by 90° — pass SIFT consensus and the
+    # edges). 0: off; a model without photos (stored before session 36) is not judged so
+    min_texture_ncc: float = 0.5
     max_pixels: int = DEFAULT_MAX_PIXELS
 
 
@@ -199,12 +207,28 @@ def _pose_from(
             out.verification = ver
             if ver.passed:
                 est = polish(est, camera, m.points3d, uv, params.pose)
+                ver = out.verification = _with_texture(ver, model, grey, camera, est.pose, params.min_texture_ncc)
+            if ver.passed:
                 out.est, out.matches, out.reason, out.viewset = est, len(keep), None, label
                 return out
             out.reason = f"{ver.reason} (viewset {label})"
         return out
     finally:
         timer["pnp"] = timer.get("pnp", 0.0) + (time.perf_counter() - t0) * 1e3
+
+
+def _with_texture(ver: Verification, model: ObjectModel, grey: np.ndarray, camera: PinholeCamera, pose: Pose,
+                  min_ncc: float) -> Verification:
+    """``ver`` with the texture evidence of ``pose`` (:func:`~.appearance.texture_agreement` of
+    the model's photos), refused below ``min_ncc`` where they show what the pose shows."""
+    if not min_ncc or not model.appearance:
+        return ver
+    a = texture_agreement(grey, camera, pose, model.mesh, planar_groups(model.mesh), model.appearance)
+    ver = replace(ver, texture_ncc=None if not a.pixels else a.ncc, texture_pixels=a.pixels)
+    if a.pixels and a.ncc < min_ncc:
+        return replace(ver, passed=False, reason=f"the object's photos rendered at the pose correlate {a.ncc:.2f} "
+                       f"with the image over {a.pixels} px (at least {min_ncc:g} needed): another face's texture")
+    return ver
 
 
 def ransac_iterations_bound(n: int, k: int, sample: int = RANSAC_SAMPLE, confidence: float = 0.9999) -> int:

@@ -771,6 +771,10 @@ class Verification:
     match_influence: float = 0.0  # :func:`match_influence`
     features: tuple[tuple[str, float], ...] = ()  # the confidence's inputs
     edge_fit: EdgeFit = EdgeFit()  # the pose refitted with the edges (:func:`~.evidence.edge_fit`)
+    # the model's photos rendered at the pose against the image (recognition/appearance.py):
+    # NCC (None: not measured, no photo shows what the pose shows) and the pixels compared
+    texture_ncc: float | None = None
+    texture_pixels: int = 0
 
     def to_json(self) -> dict:
         return {
@@ -793,6 +797,8 @@ class Verification:
             "edge_offset_px": round(self.edge_fit.offset_px, 3),
             "edge_shift": round(self.edge_fit.shift, 4) if np.isfinite(self.edge_fit.shift) else None,
             "edge_fit_rms_px": round(self.edge_fit.points_rms_px, 3),
+            "texture_ncc": None if self.texture_ncc is None else round(self.texture_ncc, 4),
+            "texture_pixels": int(self.texture_pixels),
             "reason": self.reason,
         }
 

@@ -99,6 +99,10 @@ def test_training_with_a_mask_learns_only_the_unmasked_part(tmp_path, bgs):
     vs = next(v for v in model.viewsets if v.label == "view0")
     assert len(vs) > 0
     assert np.all(vs.keypoints[:, 0] >= np.median(xs) - 1)
+    ref = model.appearance[0]  # the photo's texture evidence: only where the mask shows the object
+    x0 = int(round(CAM.cx - ref.camera.cx))
+    cols = np.flatnonzero(ref.mask.any(axis=0)) + x0
+    assert cols.min() >= np.median(xs) - 1 and ref.mask.any()
 
 
 # -- queries partly out of frame; grey -------------------------------------------------------------

@@ -74,6 +74,40 @@ def test_store_roundtrip_is_exact(base_store):
         assert a.camera.fx == b.camera.fx and a.camera.width == b.camera.width
     np.testing.assert_array_equal(m.rfch.histogram, m2.rfch.histogram)
     np.testing.assert_array_equal(m.mesh.faces, m2.mesh.faces)
+    assert len(m.appearance) == len(m2.appearance) == 1  # the photo's crop (viewsets/texture.py)
+    for a, b in zip(m.appearance, m2.appearance):
+        np.testing.assert_array_equal(a.image, b.image)
+        np.testing.assert_array_equal(a.mask, b.mask)
+        np.testing.assert_array_equal(a.pose.R, b.pose.R)
+        assert (a.camera.fx, a.camera.cx, a.camera.width) == (b.camera.fx, b.camera.cx, b.camera.width)
+
+
+def test_a_model_stored_without_photos_loads_with_none(base_store, tmp_path):
+    """Models stored before session 36 have no ``ap_*`` arrays: they load, and recognition does
+    not judge their poses by texture (LocateParams.min_texture_ncc needs photos)."""
+    from dataclasses import replace
+
+    m = load_model(base_store, "cookie-box")
+    save_model(tmp_path, replace(m, appearance=[]))
+    with np.load(model_path(tmp_path, "cookie-box") / store_mod.ARRAYS) as z:
+        assert not [k for k in z.files if k.startswith("ap_")]
+    assert load_model(tmp_path, "cookie-box").appearance == []
+
+
+def test_the_photo_crop_keeps_what_the_photo_shows_of_the_object(base_store):
+    """The stored crop is the photo's grey pixels round the object, and its mask is the object's
+    silhouette at the photo's pose: the crop's camera projects the mesh where the crop shows it."""
+    from quatrack.viewsets.render import render
+
+    ref = load_model(base_store, "cookie-box").appearance[0]
+    spec = load_spec(EXAMPLE / "object.json")
+    photo = cv2.cvtColor(cv2.imread(str(spec.views[0].image_path)), cv2.COLOR_BGR2GRAY)
+    sil = render(load_model(base_store, "cookie-box").mesh, ref.camera, ref.pose).face >= 0
+    assert ref.mask.shape == ref.image.shape == sil.shape
+    assert np.mean((ref.mask > 0) == sil) > 0.99 and sil.mean() > 0.5
+    x0, y0 = int(round(spec.views[0].camera.cx - ref.camera.cx)), int(round(spec.views[0].camera.cy - ref.camera.cy))
+    h, w = ref.image.shape
+    np.testing.assert_array_equal(ref.image, photo[y0 : y0 + h, x0 : x0 + w])
 
 
 def test_default_store_honours_env(monkeypatch, tmp_path):
@@ -308,6 +342,8 @@ def test_any_corrupt_model_is_that_objects_store_error(base_store, tmp_path, how
     for a, b in zip(model.viewsets, original.viewsets, strict=True):
         np.testing.assert_array_equal(a.descriptors, b.descriptors)
         np.testing.assert_array_equal(a.points3d, b.points3d)
+    for a, b in zip(model.appearance, original.appearance, strict=True):
+        np.testing.assert_array_equal(a.image, b.image)
 
 
 @pytest.mark.parametrize("how", [("truncate", 0.5), ("truncate", 0.0), ("zero", 0.3, 4096),

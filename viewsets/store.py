@@ -30,6 +30,7 @@ from .mesh import Mesh
 from .names import check_object_name
 from .rfch import RFCHModel
 from quatrack.tracking.pose import Pose
+from .texture import TextureReference
 from .viewset import Viewset
 
 SCHEMA_VERSION = 1
@@ -46,6 +47,9 @@ class ObjectModel:
     viewsets: list[Viewset]
     mesh: Mesh
     manifest: dict = field(default_factory=dict)
+    # the registered photos' grey crops of the object (viewsets/texture.py): evidence a wrong
+    # pose cannot fake (recognition/appearance.py). Models stored before session 36 have none.
+    appearance: list[TextureReference] = field(default_factory=list)
 
 
 def default_store() -> Path:
@@ -95,7 +99,49 @@ def _model_arrays(model: ObjectModel) -> dict[str, np.ndarray]:
         "vs_bbox": np.array([v.bbox for v in vs], dtype=np.int64).reshape(-1, 4),
         "vs_synthetic": np.array([v.synthetic for v in vs], dtype=bool),
         "vs_source": np.array([v.source_view for v in vs], dtype=np.int64),
+        **_appearance_arrays(model.appearance),
     }
+
+
+def _appearance_arrays(refs: list[TextureReference]) -> dict[str, np.ndarray]:
+    """The photos' crops flattened (``ap_pixels``, ``ap_mask``: uint8, one after another, each
+    ``ap_shape`` rows × columns), with their cameras and poses; nothing for a model without."""
+    if not refs:
+        return {}
+    return {
+        "ap_shape": np.array([r.image.shape[:2] for r in refs], dtype=np.int64),
+        "ap_pixels": np.concatenate([r.image.ravel() for r in refs]).astype(np.uint8),
+        "ap_mask": np.concatenate([(np.full(r.image.shape[:2], 255, np.uint8) if r.mask is None else r.mask).ravel()
+                                   for r in refs]).astype(np.uint8),
+        "ap_camera": np.array([_camera_row(r.camera) for r in refs]),
+        "ap_R": np.array([r.pose.R for r in refs]),
+        "ap_t": np.array([r.pose.t for r in refs]),
+    }
+
+
+def _appearance(a: dict[str, np.ndarray]) -> list[TextureReference]:
+    """The references back from :func:`_appearance_arrays`' arrays (none when absent)."""
+    if "ap_shape" not in a:
+        return []
+    shape, pix, mask = a["ap_shape"], a["ap_pixels"], a["ap_mask"]
+    n = len(shape)
+    if shape.ndim != 2 or shape.shape[1] != 2 or np.any(shape < 1):
+        raise ValueError("appearance crops have invalid sizes")
+    sizes = shape[:, 0] * shape[:, 1]
+    if pix.ndim != 1 or len(pix) != sizes.sum() or mask.shape != pix.shape or pix.dtype != np.uint8:
+        raise ValueError("appearance pixels do not match their sizes")
+    for key, tail in (("ap_camera", (14,)), ("ap_R", (3, 3)), ("ap_t", (3,))):
+        if a[key].shape != (n, *tail) or not np.all(np.isfinite(a[key])):
+            raise ValueError(f"array {key!r} has shape {a[key].shape}")
+    out, start = [], 0
+    for i in range(n):
+        h, w = (int(x) for x in shape[i])
+        c = a["ap_camera"][i]
+        cam = PinholeCamera(c[0], c[1], c[2], c[3], c[6:], width=int(c[4]), height=int(c[5]))
+        out.append(TextureReference(pix[start : start + h * w].reshape(h, w), cam,
+                                    Pose.from_matrix(a["ap_R"][i], a["ap_t"][i]), mask[start : start + h * w].reshape(h, w)))
+        start += h * w
+    return out
 
 
 def save_model(store: str | Path, model: ObjectModel, overwrite: bool = True) -> Path:
@@ -247,7 +293,7 @@ def _build_model(name: str, manifest: dict, a: dict[str, np.ndarray]) -> ObjectM
     mesh = Mesh(a["mesh_vertices"], a["mesh_faces"])
     if manifest.get("name", name) != name:
         raise ValueError(f"manifest names object {manifest.get('name')!r}")
-    return ObjectModel(name, rfch, viewsets, mesh, manifest)
+    return ObjectModel(name, rfch, viewsets, mesh, manifest, _appearance(a))
 
 
 def list_models(store: str | Path) -> list[str]:

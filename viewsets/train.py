@@ -24,6 +24,7 @@ from .render import RenderBuffers, render
 from .rfch import RFCHParams, train_rfch
 from .spec import ObjectSpec, ViewSpec
 from .store import ObjectModel
+from .texture import crop_reference
 from .viewset import Viewset, ViewsetParams, build_viewset
 
 
@@ -168,7 +169,9 @@ def train_object(
     if progress:
         progress(1)
     manifest = _manifest(spec, params, mesh, views, viewsets, rfch, time.perf_counter() - t0)
-    return ObjectModel(spec.name, rfch, viewsets, mesh, manifest)
+    appearance = [crop_reference(v.image, v.spec.camera, v.spec.pose, cv2.bitwise_and(v.mask, v.buffers.mask))
+                  for v in views]
+    return ObjectModel(spec.name, rfch, viewsets, mesh, manifest, [r for r in appearance if r is not None])
 
 
 def _build_viewsets(mesh: Mesh, views: list[_View], params: TrainParams, progress, warn, on_total) -> list[Viewset]:
