@@ -20,7 +20,6 @@ import numpy as np
 from quatrack.tracking.camera import PinholeCamera
 from quatrack.tracking.pose import Pose
 from quatrack.viewsets.features import Features
-from quatrack.viewsets.mesh import planar_groups
 from quatrack.viewsets.store import ObjectModel
 
 from .appearance import texture_agreement
@@ -207,7 +206,7 @@ def _pose_from(
             out.verification = ver
             if ver.passed:
                 est = polish(est, camera, m.points3d, uv, params.pose)
-                ver = out.verification = _with_texture(ver, model, grey, camera, est.pose, params.min_texture_ncc)
+                ver = out.verification = _with_texture(ver, model, index, grey, camera, est.pose, params.min_texture_ncc)
             if ver.passed:
                 out.est, out.matches, out.reason, out.viewset = est, len(keep), None, label
                 return out
@@ -217,13 +216,14 @@ def _pose_from(
         timer["pnp"] = timer.get("pnp", 0.0) + (time.perf_counter() - t0) * 1e3
 
 
-def _with_texture(ver: Verification, model: ObjectModel, grey: np.ndarray, camera: PinholeCamera, pose: Pose,
-                  min_ncc: float) -> Verification:
+def _with_texture(ver: Verification, model: ObjectModel, index: ModelIndex, grey: np.ndarray, camera: PinholeCamera,
+                  pose: Pose, min_ncc: float) -> Verification:
     """``ver`` with the texture evidence of ``pose`` (:func:`~.appearance.texture_agreement` of
-    the model's photos), refused below ``min_ncc`` where they show what the pose shows."""
-    if not min_ncc or not model.appearance:
+    the model's photos, rendered once in ``index``), refused below ``min_ncc`` where they show
+    what the pose shows."""
+    if not min_ncc or not index.appearance:
         return ver
-    a = texture_agreement(grey, camera, pose, model.mesh, planar_groups(model.mesh), model.appearance)
+    a = texture_agreement(grey, camera, pose, model.mesh, index.planes, index.appearance)
     ver = replace(ver, texture_ncc=None if not a.pixels else a.ncc, texture_pixels=a.pixels)
     if a.pixels and a.ncc < min_ncc:
         return replace(ver, passed=False, reason=f"the object's photos rendered at the pose correlate {a.ncc:.2f} "

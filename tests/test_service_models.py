@@ -106,7 +106,8 @@ def scaled(model, k: float):
     """The same object at k times the size: the same image then gives k times the distance."""
     vs = [dataclasses.replace(v, points3d=v.points3d * k, pose=type(v.pose)(v.pose.q_wxyz, v.pose.t * k))
           for v in model.viewsets]
-    return dataclasses.replace(model, viewsets=vs, mesh=Mesh(model.mesh.vertices * k, model.mesh.faces))
+    photos = [dataclasses.replace(r, pose=type(r.pose)(r.pose.q_wxyz, r.pose.t * k)) for r in model.appearance]
+    return dataclasses.replace(model, viewsets=vs, mesh=Mesh(model.mesh.vertices * k, model.mesh.faces), appearance=photos)
 
 
 def test_retrained_and_deleted_models_are_picked_up_live(tmp_path, frames):

@@ -86,6 +86,7 @@ def render_textured_view(
     pose: Pose,
     min_source_cos: float = 0.3,
     src_mask: np.ndarray | None = None,
+    buffers: RenderBuffers | None = None,
 ) -> tuple[np.ndarray, np.ndarray, RenderBuffers]:
     """Render the object at ``pose`` in ``camera``, textured from the registered photo.
 
@@ -93,8 +94,10 @@ def render_textured_view(
     novel view. A pixel is textured only if its face is seen at |cos| ≥ ``min_source_cos`` in
     the photo and the photo shows that same plane there (not occluded by the object itself, nor
     masked out by ``src_mask``, the user's mask of the photo: non-zero = the object is seen).
+    ``buffers``: the z-buffer of ``pose`` in ``camera`` if already rendered (several photos
+    rendered at one pose share it).
     """
-    buf = render(mesh, camera, pose)
+    buf = render(mesh, camera, pose) if buffers is None else buffers
     h, w = buf.face.shape
     rays = pixel_rays(camera)
     normals = mesh.face_normals

@@ -170,10 +170,10 @@ class TrackerParams:
     keyframe_synthetic_min_cos: float = 0.1
     # a pose found after a loss (recognition, or re-found on keyframes) must look, where the
     # keyframes saw the object, as it looked then: their crops rendered at the pose correlate
-    # with the frame at least this well (recognition/appearance.py: NCC, pixel-weighted over the
-    # keyframes; ~1 right, ~0 another face's texture). A cube whose faces share texture and
-    # outline was re-found 90° off on one of its synthetic keyframe views and reported for 12
-    # frames (zoo walk, session 36). 0: off
+    # with the frame at least this well (recognition/appearance.py: the median NCC of blocks;
+    # ~1 right, ~0 another face's texture, e.g. the same outline turned by a symmetry). It does
+    # not catch texture that truly repeats (a zoo walk's cube re-found 90° off reads 0.98: the
+    # matched face carries the pixels of the face it is taken for). 0: off
     refind_min_texture_ncc: float = 0.5
     # a track re-found on this run's keyframes keeps no keyframe nor learned view of its own while
     # no trained point anchors its frame (FrameContext.anchored): its points were lifted at a pose
