@@ -302,3 +302,75 @@ def test_the_z_buffer_compiles_without_a_writable_cache(monkeypatch):
         np.testing.assert_array_equal(buf.depth, ref.depth)
     finally:
         R._compiled_zbuffer.cache_clear()  # (the next render compiles again, with the cache)
+
+
+def _reference_textured_lookup(mesh, groups, src_camera, src_pose, src_face, src_mask, face, rays, pose, min_cos):
+    """The homography lookup of ``render_textured_view`` written plainly in numpy, plane group
+    by plane group (the code before it was compiled): the photo's coordinates of each pixel."""
+    from quatrack.viewsets.novel import plane_homography
+
+    h, w = face.shape
+    src_group = np.where(src_face >= 0, groups[np.maximum(src_face, 0)], -1)
+    offsets = np.einsum("ij,ij->i", mesh.face_normals, mesh.triangles[:, 0])
+    centre = -src_pose.R.T @ src_pose.t
+    map_x, map_y = np.full((h, w), -1.0, np.float32), np.full((h, w), -1.0, np.float32)
+    textured = np.zeros((h, w), bool)
+    pix_group = np.where(face >= 0, groups[np.maximum(face, 0)], -1)
+    for g in np.unique(pix_group[pix_group >= 0]):
+        f0 = int(np.nonzero(groups == g)[0][0])
+        n, d = mesh.face_normals[f0], offsets[f0]
+        ray = mesh.triangles[groups == g].reshape(-1, 3).mean(axis=0) - centre
+        if abs(n @ ray) / np.linalg.norm(ray) < min_cos:
+            continue
+        vs, us = np.nonzero(pix_group == g)
+        r = rays[vs, us]
+        Xs = np.column_stack([r, np.ones(len(r))]) @ plane_homography(n, d, pose, src_pose).T
+        front = Xs[:, 2] > 0
+        uv = np.full((len(r), 2), -1.0)
+        uv[front] = src_camera.project(Xs[front])
+        ui, vi = np.rint(uv[:, 0]).astype(int), np.rint(uv[:, 1]).astype(int)
+        inside = front & (ui >= 0) & (vi >= 0) & (ui < src_face.shape[1]) & (vi < src_face.shape[0])
+        seen = np.zeros(len(r), bool)
+        seen[inside] = src_group[vi[inside], ui[inside]] == g
+        if src_mask is not None:
+            seen[inside] &= src_mask[vi[inside], ui[inside]] > 0
+        map_x[vs[seen], us[seen]], map_y[vs[seen], us[seen]] = uv[seen, 0], uv[seen, 1]
+        textured[vs[seen], us[seen]] = True
+    return map_x, map_y, textured
+
+
+@pytest.mark.parametrize("camera", [CAM, CAM_DIST], ids=["pinhole", "distorted"])
+@pytest.mark.parametrize("masked", [False, True], ids=["whole", "masked"])
+def test_the_compiled_texture_lookup_equals_the_numpy_one(camera, masked):
+    """``render_textured_view``'s per-pixel lookup runs compiled (numba): the photo's pixel of
+    every rendered pixel, hence the rendered image, the same bits as the plain numpy lookup —
+    over a window of the image, with lens distortion, with the user's mask of the photo, and
+    with faces the photo sees too obliquely to texture."""
+    from quatrack.viewsets.novel import render_textured_view
+    from quatrack.viewsets.render import pixel_rays
+
+    mesh = box_mesh()
+    groups = planar_groups(mesh)
+    src_pose = pose_looking_at(mesh.centre, [0.5, -0.6, 0.2], 60.0)
+    src_buf = render(mesh, camera, src_pose)
+    rng = np.random.default_rng(1)
+    photo = rng.integers(0, 256, (480, 640, 3), dtype=np.uint8)
+    mask = None
+    if masked:
+        mask = np.zeros((480, 640), np.uint8)
+        mask[:, :330] = 255  # the user masked out the photo's right part
+    checked, untextured = 0, 0
+    # (the last pose shows only a face the photo sees too obliquely: nothing textured)
+    for rvec, window in [([0.9, -0.2, 0.1], None), ([0.7, -0.4, 0.1], (150, 100, 470, 400)), ([1.5, 0.2, 0.0], None)]:
+        pose = pose_looking_at(mesh.centre, rvec, 55.0)
+        cam = camera if window is None else camera.cropped(*window)
+        img, textured, buf = render_textured_view(mesh, groups, photo, camera, src_pose, src_buf, cam, pose, 0.3, mask)
+        mx, my, tex = _reference_textured_lookup(mesh, groups, camera, src_pose, src_buf.face, mask, buf.face,
+                                                 pixel_rays(cam), pose, 0.3)
+        np.testing.assert_array_equal(textured > 0, tex)
+        ref = cv2.remap(photo, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=(127,) * 3)
+        ref[~tex] = 127
+        np.testing.assert_array_equal(img, ref)
+        checked += int(tex.sum())
+        untextured += int(((buf.face >= 0) & ~tex).sum())
+    assert checked > 50000 and untextured > 30000  # textured faces, and faces the photo cannot texture
