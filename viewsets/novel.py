@@ -9,12 +9,12 @@ get no keypoints.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from functools import lru_cache
 
 import cv2
 import numpy as np
 
 from quatrack.tracking.camera import PinholeCamera
+from quatrack.tracking.jit import lazily_compiled
 
 from .mesh import Mesh
 from .render import RenderBuffers, footprint, pixel_rays, render
@@ -234,14 +234,4 @@ def _lookup(face, groups, use, Hs, rays, fx, fy, cx, cy, dist, distorted, src_gr
             textured[y, x] = True
 
 
-@lru_cache(maxsize=1)
-def _compiled_lookup():
-    """:func:`_lookup` compiled by numba on first use, cached on disk (as
-    :func:`quatrack.viewsets.render._compiled_zbuffer`); ``nogil``: a keyframe's texture is
-    compared beside the frame's step."""
-    import numba
-
-    try:
-        return numba.njit(cache=True, nogil=True)(_lookup)
-    except RuntimeError:  # no writable cache location: compile per process
-        return numba.njit(nogil=True)(_lookup)
+_compiled_lookup = lazily_compiled(_lookup)  # compiled on first use, cached on disk (tracking/jit.py)

@@ -14,6 +14,7 @@ import cv2
 import numpy as np
 
 from quatrack.tracking.camera import PinholeCamera
+from quatrack.tracking.jit import lazily_compiled
 
 from .mesh import Mesh
 from quatrack.tracking.pose import Pose
@@ -263,18 +264,9 @@ def _zbuffer(ids, boxes, corners, normals, offsets, rays, depth, face, near):  #
                     face[y, x] = i
 
 
-@lru_cache(maxsize=1)
-def _compiled_zbuffer():
-    """:func:`_zbuffer` compiled by numba on first use (imported then: 0.5 s that commands which
-    never render do not pay), cached on disk beside this file (``cache=True``: ~1 s to compile
-    once, ~0.2 s to load afterwards); ``nogil``: a background re-anchoring renders beside the
-    frame's step."""
-    import numba
-
-    try:
-        return numba.njit(cache=True, nogil=True)(_zbuffer)
-    except RuntimeError:  # no writable cache location (a read-only install, no home): compile per process
-        return numba.njit(nogil=True)(_zbuffer)
+# compiled on first use, cached on disk (tracking/jit.py); nogil: a background re-anchoring
+# renders beside the frame's step
+_compiled_zbuffer = lazily_compiled(_zbuffer)
 
 
 def render_reference(mesh: Mesh, camera: PinholeCamera, pose: Pose) -> RenderBuffers:
