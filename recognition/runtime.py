@@ -67,3 +67,42 @@ def limit_blas_threads(threads: int = 1) -> bool:
     os.environ["OPENBLAS_NUM_THREADS"] = str(int(threads))
     threadpool_limits(int(threads), user_api="blas")
     return True
+
+
+def compile_hot_loops() -> float:
+    """Run each loop that numba compiles (:mod:`quatrack.tracking.jit`: the z-buffer, the
+    texture lookup, the point block's linearisation) once on a small box, so that its
+    compilation happens now and not in the first request's frame; returns the seconds taken.
+
+    Why: numba compiles a loop at its first call and keeps the machine code on disk. Where no
+    cache exists yet — a fresh container, a read-only install — the first call costs 0.5–2 s
+    per loop (measured: the linearisation 1.6 s). In the service the first tracked frame of
+    the first session would pay all of it. The service calls this while ``/readyz`` still
+    says "not ready". With a cache it takes a few milliseconds per loop.
+    """
+    import time
+
+    import numpy as np
+
+    from quatrack.tracking.camera import PinholeCamera
+    from quatrack.tracking.measurements import PointMeasurements
+    from quatrack.tracking.pose import Pose
+    from quatrack.viewsets.mesh import make_mesh, planar_groups
+    from quatrack.viewsets.novel import render_textured_view
+    from quatrack.viewsets.render import render, render_window
+
+    t0 = time.perf_counter()
+    corners = np.array([[x, y, z] for x in (0.0, 1.0) for y in (0.0, 1.0) for z in (0.0, 1.0)])
+    faces = [[0, 2, 1], [1, 2, 3], [4, 5, 6], [5, 7, 6], [0, 1, 4], [1, 5, 4],
+             [2, 6, 3], [3, 6, 7], [0, 4, 2], [2, 4, 6], [1, 3, 5], [3, 7, 5]]
+    box = make_mesh(corners, np.array(faces), "warm-up box")
+    camera = PinholeCamera(60.0, 60.0, 32.0, 24.0, width=64, height=48)
+    pose = Pose.from_rvec([0.4, -0.5, 0.1], [-0.5, -0.5, 4.0])
+    buffers = render(box, camera, pose)
+    render_window(box, camera, pose, (8, 8, 40, 32))  # (a window's rays are a writable copy: another signature)
+    photo = np.full((48, 64), 128, np.uint8)
+    render_textured_view(box, planar_groups(box), photo, camera, pose, buffers, camera, pose)
+    X = np.array([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]])
+    block = PointMeasurements.create(camera, X, np.array([[30.0, 20.0], [34.0, 28.0]]), 1.0)
+    block.linearize(pose.t, pose.R)
+    return time.perf_counter() - t0

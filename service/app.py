@@ -28,7 +28,7 @@ import cv2
 from fastapi import FastAPI
 from fastapi.middleware.cors import CORSMiddleware
 
-from quatrack.recognition.runtime import limit_blas_threads, tune_allocator
+from quatrack.recognition.runtime import compile_hot_loops, limit_blas_threads, tune_allocator
 
 from . import docs, errors, pose_all, viewer
 from .errors import ApiError, error_body
@@ -160,10 +160,13 @@ class RequestLog:
 
 
 def _warm(state: ServiceState, freeze: bool = False) -> None:
-    """Load the store's models, then build each worker thread's matcher (a barrier puts one
-    warming job on every thread), so the first real request pays neither cost; then, in a
-    process that serves only this app, freeze the heap (:func:`_freeze_heap`)."""
+    """Load the store's models, compile the numba loops (:func:`~quatrack.recognition.runtime.compile_hot_loops`:
+    up to ~5 s where no on-disk cache exists yet, as in a fresh container) and build each worker
+    thread's matcher (a barrier puts one warming job on every thread), so the first real
+    request pays none of it; then, in a process that serves only this app, freeze the heap
+    (:func:`_freeze_heap`)."""
     state.registry.load_all()
+    log.info("compiled loops ready in %.1f s", compile_hot_loops())
     n = state.settings.threads
     barrier = threading.Barrier(n)
 
