@@ -548,3 +548,65 @@ def test_a_pose_confirmed_after_a_doubt_is_tested_strictly_for_doubt_frames_more
     assert steps[confirmed].status == "tracking"
     after = set(range(confirmed + 1, confirmed + 1 + params.doubt_frames))
     assert confirmed + params.doubt_frames < len(frames) and after <= set(judged), sorted(judged)
+
+
+def _edge_candidates_numpy(gx, gy, uv, normal, radius, min_grad, ambiguity=1.0):
+    """``edge_candidates`` as it was written in numpy (a samples × offsets array per step),
+    before it was compiled: the reference the compiled search must equal bit for bit."""
+    h, w = gx.shape
+    rmax = int(np.ceil(radius.max())) if len(radius) else 0
+    offs = np.arange(-rmax, rmax + 1, dtype=float)
+    P = uv[:, None, :] + offs[None, :, None] * normal[:, None, :]
+    ui = np.clip(np.rint(P[..., 0]).astype(int), 0, w - 1)
+    vi = np.clip(np.rint(P[..., 1]).astype(int), 0, h - 1)
+    ex, ey = gx[vi, ui], gy[vi, ui]
+    gn = np.abs(ex * normal[:, None, 0] + ey * normal[:, None, 1])
+    mag = np.hypot(ex, ey)
+    valid = (np.abs(offs)[None, :] <= radius[:, None]) & (gn >= 0.9 * mag) & (mag >= min_grad)
+    inside = (P[..., 0] >= 0) & (P[..., 1] >= 0) & (P[..., 0] <= w - 1) & (P[..., 1] <= h - 1)
+    score = np.where(valid & inside, gn, -1.0)
+    rows = np.arange(len(uv))
+    j = np.argmax(score, axis=1)
+    best = score[rows, j]
+    found = best > 0
+    gap = np.zeros(len(uv))
+    if ambiguity < 1.0 and len(uv):
+        left, right = np.roll(score, 1, axis=1), np.roll(score, -1, axis=1)
+        left[:, 0], right[:, -1] = -1.0, -1.0
+        peak = (score > 0) & (score >= left) & (score >= right)
+        rivals = np.where(peak & (np.abs(np.arange(len(offs))[None, :] - j[:, None]) > 2), score, 0.0)
+        k = np.argmax(rivals, axis=1)
+        gap = np.where(found & (rivals[rows, k] >= ambiguity * best), np.abs(offs[k] - offs[j]), 0.0)
+    jl, jr = np.clip(j - 1, 0, len(offs) - 1), np.clip(j + 1, 0, len(offs) - 1)
+    a, b, c = (np.maximum(score[rows, k], 0.0) for k in (jl, j, jr))
+    den = a - 2 * b + c
+    frac = np.where((jl != j) & (jr != j) & (den < 0), 0.5 * (a - c) / np.where(den < 0, den, -1.0), 0.0)
+    off = offs[j] + np.clip(frac, -0.5, 0.5)
+    return uv + off[:, None] * normal, found, gap
+
+
+@pytest.mark.parametrize("seed", range(40))
+def test_the_compiled_edge_search_equals_the_numpy_one(seed):
+    """The 1-D edge search runs compiled (numba): measured points, found flags and rival gaps
+    equal the numpy version's bit for bit, over textured gradients with lines reaching out of
+    the image, radii of 2–15 px, strength thresholds that float32 cannot hold exactly (0.1), and
+    with and without the rival test."""
+    from quatrack.recognition.tracker.edges import edge_candidates
+
+    rng = np.random.default_rng(seed)
+    h, w = (int(v) for v in rng.integers(20, 120, 2))
+    img = cv2.GaussianBlur(rng.normal(0, 30, (h, w)).astype(np.float32), (0, 0), rng.uniform(0.5, 3.0))
+    gx = cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)
+    gy = cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)
+    n = int(rng.integers(1, 80))
+    uv = rng.uniform([-5.0, -5.0], [w + 5.0, h + 5.0], (n, 2))
+    a = rng.uniform(0.0, 2 * np.pi, n)
+    normal = np.column_stack([np.cos(a), np.sin(a)])
+    radius = np.clip(rng.uniform(0.0, 16.0, n), 2.0, 15.0)
+    for min_grad in (0.1, 2.0, 6.0):
+        for ambiguity in (1.0, 0.5):
+            got = edge_candidates(gx, gy, uv, normal, radius, min_grad, ambiguity)
+            want = _edge_candidates_numpy(gx, gy, uv, normal, radius, min_grad, ambiguity)
+            for g, e in zip(got, want):
+                np.testing.assert_array_equal(g, e)
+    assert edge_candidates(gx, gy, uv[:0], normal[:0], radius[:0], 6.0, 0.5)[0].shape == (0, 2)
