@@ -144,3 +144,44 @@ def test_the_tracker_refuses_a_pose_found_after_a_loss_that_its_keyframes_contra
     assert why is not None and "correlates" in why and "at least 0.5" in why
     tracker.params = replace(tracker.params, refind_min_texture_ncc=0.0)
     assert tracker._unlike_keyframes(grey, _turned(obj, pose), {}) is None
+
+
+def test_live_streams_withhold_an_unanchored_pose_its_keyframes_contradict(tmp_path):
+    """Tracker._texture_audit (live streams: ``for_live_streams`` turns ``audit_texture`` on):
+    in a frame no trained point anchors, the pose must look as the keyframes show the object.
+    The true pose passes; the same pose put too near the camera (the live wide box's drift, here
+    15 % of the diameter) is withheld with the figures; a frame the trained points anchor, and
+    the offline settings, are not judged so."""
+    from dataclasses import replace
+    from types import SimpleNamespace
+
+    from quatrack.recognition.video import Tracker, TrackerParams
+    from quatrack.tracking.state import initial_state
+    from quatrack.viewsets.spec import load_spec
+    from quatrack.viewsets.train import TrainParams, train_object
+
+    obj = Z.textured("cube-m")
+    model = train_object(load_spec(Z.write_spec("cube-m", tmp_path, 1, backgrounds=Z.real_backgrounds())),
+                         TrainParams(novel=None))
+    assert not TrackerParams().audit_texture and TrackerParams().for_live_streams().audit_texture
+    tracker = Tracker(model, CAM, TrackerParams().for_live_streams())
+    ref_pose = Z.orbit_pose(obj, CAM, 35.0)
+    ref = Z.compose(*obj.render(CAM, ref_pose), Z.real_backgrounds()[0])
+    vs = Viewset("k", -1, False, CAM, ref_pose, np.zeros((0, 2), np.float32), np.zeros((0, 128), np.float32),
+                 np.zeros((0, 3)), (0, 0, 1, 1))
+    tracker.keyframes.items.append(Keyframe(0.0, np.array([1.0, 0.0, 0.0]), vs, ref, CAM))
+    pose = Z.orbit_pose(obj, CAM, 50.0)
+    grey = cv2.cvtColor(Z.compose(*obj.render(CAM, pose), Z.real_backgrounds()[1]), cv2.COLOR_BGR2GRAY)
+    c = pose.apply(obj.mesh.centre[None])[0]
+    near = Pose(pose.q_wxyz, pose.t - 0.15 * obj.mesh.extent * c / np.linalg.norm(c))
+
+    def audit(at, anchored=False):
+        tracker.filter.state = initial_state(0.0, at.t, at.q_wxyz, np.eye(6) * 1e-6)
+        return tracker._texture_audit(SimpleNamespace(anchored=anchored, frame=SimpleNamespace(gray=grey)), {})
+
+    assert audit(pose) is None
+    why = audit(near)
+    assert why is not None and "correlates" in why
+    assert audit(near, anchored=True) is None
+    tracker.params = replace(tracker.params, audit_texture=False)
+    assert audit(near) is None

@@ -484,6 +484,22 @@ class Tracker:
                     f"over {agreement.pixels} px (at least {p.refind_min_texture_ncc:g} needed)")
         return None
 
+    def _texture_audit(self, ctx: FrameContext, timings: dict) -> str | None:
+        """The keyframes' texture as a judge where no trained point anchors the frame (or the
+        track was re-found on keyframes): why the pose does not look as this run's keyframes
+        show the object (:meth:`_unlike_keyframes`, the re-finding's test), or None. Why: such a
+        track's points were lifted at its own poses and drift with it, and the edges' refit,
+        which includes them, passed a pose drifting in depth (the live configuration's wide box
+        walk #1: 5.1–6.0 % off at frames 172–175, keyframe texture 0.31–0.42 at 174–175, where
+        poses within 2.5 %/2.5° of the truth never read below 0.65 on ten live walks of five
+        objects). Checked every such frame, not every third as the edges are: a drift of
+        0.6 % a frame crosses 5 % between two audits. Off with ``audit_texture`` False; no
+        keyframe seeing what the pose shows: no evidence, no doubt. Cost: one texture check
+        (~6–11 ms) in the frames it runs in, 0.2–0.7 ms a frame on average over a walk."""
+        if not self.params.audit_texture or (ctx.anchored and not self._second_hand):
+            return None
+        return self._unlike_keyframes(ctx.frame.gray, self.filter.state.pose, timings)
+
     def _start_on_mesh(self, img: np.ndarray, frame: Frame, prior, tracks: Tracks) -> bool:
         """A pose (the user's, or found again on a keyframe) on a side no trained view shows
         (SIFT anchors nothing there): start on corners born on the mesh at that pose, if at least
@@ -607,6 +623,8 @@ class Tracker:
             shift = self._edge_shift(frame.gray, self.filter.state.pose, agreement=False)
             if shift is not None and shift > p.max_edge_shift:
                 return self._doubt(time_s, f"the model's edges refit the pose by {shift:.2f} of the 5 %/5° criterion", n_inl)
+        if why := self._texture_audit(ctx, timings):  # (every frame no trained point anchors)
+            return self._doubt(time_s, why, n_inl)
         if self._doubted:  # confirmed again: reported from this frame on, each frame tested
             self._doubted = 0  # strictly for doubt_frames more: one confirmation in the blur let
             self._probation = max(self._probation, p.doubt_frames)  # the next frames through unjudged

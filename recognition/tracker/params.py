@@ -175,6 +175,11 @@ class TrackerParams:
     # not catch texture that truly repeats (a zoo walk's cube re-found 90° off reads 0.98: the
     # matched face carries the pixels of the face it is taken for). 0: off
     refind_min_texture_ncc: float = 0.5
+    # ... and every frame that no trained point anchors, or of a track re-found on keyframes, must
+    # pass the same test, else its pose is withheld (Tracker._texture_audit). Live streams only
+    # (for_live_streams): there re-anchoring comes two frames late and such tracks drifted in
+    # depth past 5 % (bench/RESULTS.md, sessions 35 and 37); offline no pose got that far
+    audit_texture: bool = False
     # a track re-found on this run's keyframes keeps no keyframe nor learned view of its own while
     # no trained point anchors its frame (FrameContext.anchored): its points were lifted at a pose
     # that inherits the keyframe's error, and a view taken from it would pass that error on again
@@ -275,8 +280,9 @@ class TrackerParams:
         """These settings as a live stream runs them (the service's sessions; ``bench track-zoo``'s
         live pass): re-anchoring and the lifting of views on the caller's executor beside the
         next frames' steps (``pipelined_refresh``), SIFT on the window shrunk to 320 px with its
-        400 strongest features, so that no frame waits for SIFT (see the fields' comments)."""
-        return replace(self, pipelined_refresh=True, anchor_max_side=320, anchor_max_features=400)
+        400 strongest features, so that no frame waits for SIFT; and every frame no trained point
+        anchors judged by the keyframes' texture (``audit_texture``) (see the fields' comments)."""
+        return replace(self, pipelined_refresh=True, anchor_max_side=320, anchor_max_features=400, audit_texture=True)
 
 
 @dataclass
