@@ -117,20 +117,17 @@ def test_keyframes_answer_with_their_crops(scene):
     assert right.ncc == pytest.approx(_agreement(obj, frame, pose, [TextureReference(kf.items[0].crop, crop_cam, ref.pose)]).ncc)
 
 
-def test_the_tracker_refuses_a_pose_found_after_a_loss_that_its_keyframes_contradict(tmp_path):
-    """Tracker._unlike_keyframes, the test a pose found after a loss must pass: the cube's true
-    pose passes, the same outline turned by 90° is refused with the figures, and the setting at
-    0 turns it off."""
-    from dataclasses import replace
-
-    from quatrack.recognition.video import Tracker, TrackerParams
+def _cube_tracker(tmp_path, params):
+    """A tracker of the zoo cube (trained from one photo) with one keyframe (azimuth 35°), and a
+    grey frame 15° further round with its true pose."""
+    from quatrack.recognition.video import Tracker
     from quatrack.viewsets.spec import load_spec
     from quatrack.viewsets.train import TrainParams, train_object
 
     obj = Z.textured("cube-m")
     model = train_object(load_spec(Z.write_spec("cube-m", tmp_path, 1, backgrounds=Z.real_backgrounds())),
                          TrainParams(novel=None))
-    tracker = Tracker(model, CAM, TrackerParams())
+    tracker = Tracker(model, CAM, params)
     ref_pose = Z.orbit_pose(obj, CAM, 35.0)
     ref = Z.compose(*obj.render(CAM, ref_pose), Z.real_backgrounds()[0])
     vs = Viewset("k", -1, False, CAM, ref_pose, np.zeros((0, 2), np.float32), np.zeros((0, 128), np.float32),
@@ -138,6 +135,18 @@ def test_the_tracker_refuses_a_pose_found_after_a_loss_that_its_keyframes_contra
     tracker.keyframes.items.append(Keyframe(0.0, np.array([1.0, 0.0, 0.0]), vs, ref, CAM))
     pose = Z.orbit_pose(obj, CAM, 50.0)
     grey = cv2.cvtColor(Z.compose(*obj.render(CAM, pose), Z.real_backgrounds()[1]), cv2.COLOR_BGR2GRAY)
+    return obj, tracker, pose, grey
+
+
+def test_the_tracker_refuses_a_pose_found_after_a_loss_that_its_keyframes_contradict(tmp_path):
+    """Tracker._unlike_keyframes, the test a pose found after a loss must pass: the cube's true
+    pose passes, the same outline turned by 90° is refused with the figures, and the setting at
+    0 turns it off."""
+    from dataclasses import replace
+
+    from quatrack.recognition.video import TrackerParams
+
+    obj, tracker, pose, grey = _cube_tracker(tmp_path, TrackerParams())
     timings = {}
     assert tracker._unlike_keyframes(grey, pose, timings) is None and "texture" in timings
     why = tracker._unlike_keyframes(grey, _turned(obj, pose), {})
@@ -155,23 +164,11 @@ def test_live_streams_withhold_an_unanchored_pose_its_keyframes_contradict(tmp_p
     from dataclasses import replace
     from types import SimpleNamespace
 
-    from quatrack.recognition.video import Tracker, TrackerParams
+    from quatrack.recognition.video import TrackerParams
     from quatrack.tracking.state import initial_state
-    from quatrack.viewsets.spec import load_spec
-    from quatrack.viewsets.train import TrainParams, train_object
 
-    obj = Z.textured("cube-m")
-    model = train_object(load_spec(Z.write_spec("cube-m", tmp_path, 1, backgrounds=Z.real_backgrounds())),
-                         TrainParams(novel=None))
     assert not TrackerParams().audit_texture and TrackerParams().for_live_streams().audit_texture
-    tracker = Tracker(model, CAM, TrackerParams().for_live_streams())
-    ref_pose = Z.orbit_pose(obj, CAM, 35.0)
-    ref = Z.compose(*obj.render(CAM, ref_pose), Z.real_backgrounds()[0])
-    vs = Viewset("k", -1, False, CAM, ref_pose, np.zeros((0, 2), np.float32), np.zeros((0, 128), np.float32),
-                 np.zeros((0, 3)), (0, 0, 1, 1))
-    tracker.keyframes.items.append(Keyframe(0.0, np.array([1.0, 0.0, 0.0]), vs, ref, CAM))
-    pose = Z.orbit_pose(obj, CAM, 50.0)
-    grey = cv2.cvtColor(Z.compose(*obj.render(CAM, pose), Z.real_backgrounds()[1]), cv2.COLOR_BGR2GRAY)
+    obj, tracker, pose, grey = _cube_tracker(tmp_path, TrackerParams().for_live_streams())
     c = pose.apply(obj.mesh.centre[None])[0]
     near = Pose(pose.q_wxyz, pose.t - 0.15 * obj.mesh.extent * c / np.linalg.norm(c))
 
