@@ -55,7 +55,7 @@ def _grey(img: np.ndarray) -> np.ndarray:
 
 def _facing(mesh: Mesh, pose: Pose) -> np.ndarray:
     """Per face, the cosine between its normal and the ray from its centroid to the camera."""
-    centroids = pose.apply(mesh.triangles.mean(axis=1))
+    centroids = pose.apply(mesh.face_centroids)
     return -np.einsum("ij,ij->i", mesh.face_normals @ pose.R.T, centroids) / np.linalg.norm(centroids, axis=1)
 
 

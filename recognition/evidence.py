@@ -94,7 +94,7 @@ def _edge_samples(mesh: Mesh, camera: PinholeCamera, pose: Pose, params: EdgePar
     V = pose.apply(mesh.vertices)
     if np.any(V[:, 2] <= 1e-9):
         return np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, int), np.zeros((0, 3))
-    centroid = pose.apply(mesh.triangles.mean(axis=1))
+    centroid = pose.apply(mesh.face_centroids)
     facing = np.einsum("ij,ij->i", N @ pose.R.T, centroid) < 0  # towards the camera
     f0, f1 = faces[:, 0], faces[:, 1]
     open_ = f1 < 0

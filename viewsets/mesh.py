@@ -35,6 +35,20 @@ class Mesh:
         return n
 
     @cached_property
+    def face_centroids(self) -> np.ndarray:
+        """(m, 3) the mean of each triangle's corners, read-only, computed once per mesh (which
+        faces a pose turns towards the camera is asked per reference and per frame:
+        :mod:`quatrack.recognition.appearance`, :mod:`quatrack.recognition.evidence`).
+
+        >>> tri = make_mesh(np.array([[0, 0, 0], [3, 0, 0], [0, 3, 0.0]]), np.array([[0, 1, 2]]))
+        >>> tri.face_centroids.tolist(), tri.face_centroids.flags.writeable
+        ([[1.0, 1.0, 0.0]], False)
+        """
+        c = self.triangles.mean(axis=1)
+        c.setflags(write=False)
+        return c
+
+    @cached_property
     def edge_faces(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The mesh's unique edges (k, 2) (vertex indices, the smaller first), the faces on their
         two sides (k, 2) (−1 where an edge has one face, the mesh's boundary; an edge of more than

@@ -107,33 +107,33 @@ def render_textured_view(
     buf = render(mesh, camera, pose) if buffers is None else buffers
     h, w = buf.face.shape
     normals = mesh.face_normals
-    offsets = np.einsum("ij,ij->i", normals, mesh.triangles[:, 0])
-    src_group = np.where(src_buffers.face >= 0, groups[np.maximum(src_buffers.face, 0)], -1)
+    offsets = np.einsum("ij,ij->i", normals, mesh.vertices[mesh.faces[:, 0]])
     src_centre = -src_pose.R.T @ src_pose.t
     # per plane group: whether the photo sees it well (the cosine between its normal and the ray
     # to its centroid) and the homography from this view's rays to the photo's
     n_groups = int(groups.max()) + 1 if len(groups) else 0
     use = np.zeros(n_groups, bool)
     Hs = np.zeros((n_groups, 3, 3))
-    for g in np.unique(groups[buf.face[buf.face >= 0]]):
+    drawn = np.bincount(buf.face.ravel() + 1, minlength=len(groups) + 1)[1:] > 0  # (faces in view: a count, not a sort)
+    for g in np.unique(groups[drawn]):
         f0 = int(np.nonzero(groups == g)[0][0])
         n, d = normals[f0], offsets[f0]
-        centroid = mesh.triangles[groups == g].reshape(-1, 3).mean(axis=0)
+        centroid = mesh.vertices[mesh.faces[groups == g]].reshape(-1, 3).mean(axis=0)
         ray = centroid - src_centre
         if abs(n @ ray) / np.linalg.norm(ray) >= min_source_cos:
             use[g], Hs[g] = True, plane_homography(n, d, pose, src_pose)
-    map_x = np.full((h, w), -1.0, np.float32)
-    map_y = np.full((h, w), -1.0, np.float32)
+    # a pixel left untextured maps far outside the photo: remap gives it the background colour
+    map_x = np.full((h, w), -1000.0, np.float32)
+    map_y = np.full((h, w), -1000.0, np.float32)
     textured = np.zeros((h, w), bool)
     dist = np.zeros(8)
     dist[: src_camera.dist_coeffs.size] = src_camera.dist_coeffs
     mask = np.zeros((1, 1), np.uint8) if src_mask is None else np.ascontiguousarray(src_mask)
     _compiled_lookup()(buf.face, groups, use, Hs, pixel_rays(camera), src_camera.fx, src_camera.fy, src_camera.cx,
-                       src_camera.cy, dist, bool(src_camera.has_distortion), src_group, mask, src_mask is not None,
+                       src_camera.cy, dist, bool(src_camera.has_distortion), src_buffers.face, mask, src_mask is not None,
                        map_x, map_y, textured)
     img = cv2.remap(src_image, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
                     borderValue=(BACKGROUND,) * 3)
-    img[~textured] = BACKGROUND
     return img, textured.astype(np.uint8) * 255, buf
 
 
@@ -183,16 +183,16 @@ def synthetic_viewset(label: str, mesh: Mesh, groups: np.ndarray, src_image: np.
     return replace(vs.uncropped(camera, x0, y0), learned=True)
 
 
-def _lookup(face, groups, use, Hs, rays, fx, fy, cx, cy, dist, distorted, src_group, src_mask, masked,
+def _lookup(face, groups, use, Hs, rays, fx, fy, cx, cy, dist, distorted, src_face, src_mask, masked,
             map_x, map_y, textured):  # pragma: no cover (compiled)
     """The per-pixel work of :func:`render_textured_view`, compiled: each pixel of a face whose
     plane group ``g`` the photo sees well (``use[g]``) maps its ray through the group's
     homography ``Hs[g]`` into the photo (projected as :meth:`PinholeCamera.project` does, lens
     distortion included, term for term) and takes the photo's pixel there if the photo shows the
-    same plane there (``src_group``) and, when ``masked``, the user's mask marks the object.
+    same plane there (its z-buffer ``src_face`` shows a face of group ``g``) and, when ``masked``, the user's mask marks the object.
     Fills ``map_x``/``map_y`` (the photo's coordinates, for ``cv2.remap``) and ``textured``."""
     k1, k2, p1, p2, k3, k4, k5, k6 = dist[0], dist[1], dist[2], dist[3], dist[4], dist[5], dist[6], dist[7]
-    sh, sw = src_group.shape
+    sh, sw = src_face.shape
     for y in range(face.shape[0]):
         for x in range(face.shape[1]):
             f = face[y, x]
@@ -227,7 +227,8 @@ def _lookup(face, groups, use, Hs, rays, fx, fy, cx, cy, dist, distorted, src_gr
             if not (ui >= 0 and vi >= 0 and ui < sw and vi < sh):
                 continue
             iu, iv = int(ui), int(vi)
-            if src_group[iv, iu] != g or (masked and not src_mask[iv, iu] > 0):
+            sf = src_face[iv, iu]
+            if sf < 0 or groups[sf] != g or (masked and not src_mask[iv, iu] > 0):
                 continue
             map_x[y, x] = u
             map_y[y, x] = v
