@@ -83,11 +83,12 @@ def tile_correlations(a: np.ndarray, b: np.ndarray, mask: np.ndarray, tile: int,
         return x.reshape(H // tile, tile, W // tile, tile).sum(axis=(1, 3)).ravel()
 
     n = sums(m)
+    Am, Bm = A * m, B * m  # (m is 0 or 1: (A·m)·A is A·A·m exactly)
     with np.errstate(invalid="ignore", divide="ignore"):
-        ma, mb = sums(A * m) / n, sums(B * m) / n
-        va = sums(A * A * m) / n - ma * ma
-        vb = sums(B * B * m) / n - mb * mb
-        cov = sums(A * B * m) / n - ma * mb
+        ma, mb = sums(Am) / n, sums(Bm) / n
+        va = sums(Am * A) / n - ma * ma
+        vb = sums(Bm * B) / n - mb * mb
+        cov = sums(Am * B) / n - ma * mb
         ok = (n >= min_fill * tile * tile) & (va >= min_std**2) & (vb >= min_std**2)
         rho = cov[ok] / np.sqrt(va[ok] * vb[ok])
     return np.clip(rho, -1.0, 1.0), n[ok].astype(int)
