@@ -213,3 +213,37 @@ def test_query_features_describe_like_training(trained_store):
     assert close.mean() > 0.8
     desc_err = np.linalg.norm(vs.descriptors[close] - q.descriptors[j[close]], axis=1)
     assert np.median(desc_err) < 0.1 * np.median(np.linalg.norm(vs.descriptors, axis=1))
+
+
+def test_a_dim_query_is_brightened_before_sift_and_a_bright_one_is_left_alone():
+    """``extract_query_features`` brightens a dim image until its 99th percentile reaches
+    ``RUN_TIME_STRETCH`` (SIFT's contrast threshold is absolute): the zoo cube under 0.45 of the
+    light keeps most of its keypoints, which plain SIFT loses, and they describe as under the
+    full light (the same keypoints match their bright selves). A bright image is described
+    exactly as without the stretch (training's photos are never stretched)."""
+    from quatrack.testing import zoo as Z
+    from quatrack.viewsets.features import RUN_TIME_STRETCH, extract_features
+    from quatrack.viewsets.viewset import ViewsetParams, extract_query_features
+
+    obj, cam = Z.textured("cube-m"), Z.zoo_camera()
+    pose = Z.orbit_pose(obj, cam, 35.0)
+    bright = Z.compose(*obj.render(cam, pose), Z.real_backgrounds()[0])
+    bright = cv2.convertScaleAbs(bright, alpha=240.0 / np.percentile(cv2.cvtColor(bright, cv2.COLOR_BGR2GRAY), 99))
+    dim = cv2.convertScaleAbs(bright, alpha=0.45)
+    params = ViewsetParams()
+    plain = dict(max_features=params.max_features, use_root_sift=params.root_sift,
+                 contrast_threshold=params.contrast_threshold)
+    full = extract_query_features(bright, None, params)
+    unchanged = extract_features(bright, None, **plain)
+    assert np.array_equal(full.keypoints, unchanged.keypoints) and np.array_equal(full.descriptors, unchanged.descriptors)
+    raw = extract_features(dim, None, **plain)
+    query = extract_query_features(dim, None, params)
+    assert len(raw) < 0.6 * len(full) and len(query) > 0.8 * len(full), (len(raw), len(query), len(full))
+    # the brightened keypoints are the bright image's: same place, nearly the same descriptor
+    d = np.linalg.norm(query.keypoints[:, None, :] - full.keypoints[None], axis=2)
+    j = np.argmin(d, axis=1)
+    near = d[np.arange(len(j)), j] < 1.0
+    assert near.mean() > 0.7
+    desc = np.linalg.norm(query.descriptors[near] - full.descriptors[j[near]], axis=1)
+    assert np.median(desc) < 0.15 * np.median(np.linalg.norm(full.descriptors, axis=1))
+    assert RUN_TIME_STRETCH > 200

@@ -48,6 +48,7 @@ from quatrack.tracking.camera import PinholeCamera
 from quatrack.tracking.pose import Pose
 
 from .errors import StoreError
+from .features import RUN_TIME_STRETCH
 from .mesh import Mesh
 from .render import RenderBuffers, footprint, render_window
 from .rfch import RFCHModel, cooccurrence, descriptor_planes, label_planes
@@ -109,7 +110,7 @@ def learned_viewset(label: str, image: np.ndarray, feature_mask: np.ndarray, cam
     buf = RenderBuffers(buffers.depth[rows, cols], buffers.face[rows, cols])
     mask = np.where((np.asarray(feature_mask)[y0:y1, x0:x1] > 0) & (buf.face >= 0), 255, 0).astype(np.uint8)
     p = dataclasses.replace(params, min_cos=max(params.min_cos, float(min_cos)))
-    vs = build_viewset(label, -1, False, crop, mask, cam, pose, mesh, buf, p)
+    vs = build_viewset(label, -1, False, crop, mask, cam, pose, mesh, buf, p, RUN_TIME_STRETCH)
     if len(vs) == 0:
         return empty
     co = None

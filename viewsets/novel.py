@@ -16,6 +16,7 @@ import numpy as np
 from quatrack.tracking.camera import PinholeCamera
 from quatrack.tracking.jit import lazily_compiled
 
+from .features import RUN_TIME_STRETCH
 from .mesh import Mesh
 from .render import RenderBuffers, footprint, pixel_rays, render
 from .viewset import Viewset, ViewsetParams, build_viewset
@@ -179,7 +180,7 @@ def synthetic_viewset(label: str, mesh: Mesh, groups: np.ndarray, src_image: np.
                                               min_source_cos)
     if not textured.any():
         return None
-    vs = build_viewset(label, -1, True, img, textured, win, pose, mesh, buf, params)
+    vs = build_viewset(label, -1, True, img, textured, win, pose, mesh, buf, params, RUN_TIME_STRETCH)
     return replace(vs.uncropped(camera, x0, y0), learned=True)
 
 

@@ -9,7 +9,7 @@ import numpy as np
 
 from quatrack.tracking.camera import PinholeCamera
 
-from .features import extract_features
+from .features import RUN_TIME_STRETCH, extract_features
 from .mesh import Mesh
 from .render import RenderBuffers, lift_keypoints
 from quatrack.tracking.pose import Pose
@@ -81,11 +81,13 @@ def build_viewset(
     mesh: Mesh,
     buffers: RenderBuffers,
     params: ViewsetParams,
+    stretch_to: float | None = None,
 ) -> Viewset:
-    """Extract SIFT inside ``feature_mask`` and keep the keypoints whose rays hit the mesh well."""
+    """Extract SIFT inside ``feature_mask`` and keep the keypoints whose rays hit the mesh well.
+    ``stretch_to``: as :func:`~.features.extract_features` (views made at run time)."""
     feats = extract_features(
         image, feature_mask, max_features=params.max_features, erode_px=params.erode_px,
-        use_root_sift=params.root_sift, contrast_threshold=params.contrast_threshold,
+        use_root_sift=params.root_sift, contrast_threshold=params.contrast_threshold, stretch_to=stretch_to,
     )
     X, keep = lift_keypoints(mesh, camera, pose, feats.keypoints, params.min_cos, buffers, params.edge_margin_px)
     return Viewset(
@@ -101,6 +103,8 @@ def params_from_manifest(manifest: dict) -> ViewsetParams:
 
 
 def extract_query_features(image: np.ndarray, mask: np.ndarray | None, params: ViewsetParams):
-    """SIFT on a query image exactly as training did (no erosion: a query window is not a silhouette)."""
+    """SIFT on a query image as training did (no erosion: a query window is not a silhouette),
+    a dim image brightened first (:data:`~.features.RUN_TIME_STRETCH`)."""
     return extract_features(image, mask, max_features=params.max_features, erode_px=0,
-                            use_root_sift=params.root_sift, contrast_threshold=params.contrast_threshold)
+                            use_root_sift=params.root_sift, contrast_threshold=params.contrast_threshold,
+                            stretch_to=RUN_TIME_STRETCH)
