@@ -403,9 +403,11 @@ def test_service_sessions_store_what_they_learn_and_new_sessions_find_it(cube, t
 
 
 def _learned_viewset_whole_frame(label, image, feature_mask, camera, pose, mesh, params, min_cos, rfch):
-    """learned_viewset as it was before session 23: the whole frame rendered, then cropped."""
+    """learned_viewset as it was before session 23: the whole frame rendered, then cropped (a dim
+    view brightened as learned_viewset does since session 38)."""
     from quatrack.viewsets.render import RenderBuffers, render
     from quatrack.viewsets.rfch import cooccurrence, descriptor_planes, label_planes
+    from quatrack.viewsets.features import RUN_TIME_STRETCH
     from quatrack.viewsets.viewset import build_viewset
 
     buffers = render(mesh, camera, pose)
@@ -422,7 +424,7 @@ def _learned_viewset_whole_frame(label, image, feature_mask, camera, pose, mesh,
     buf = RenderBuffers(buffers.depth[y0:y1, x0:x1], buffers.face[y0:y1, x0:x1])
     mask = np.where((np.asarray(feature_mask)[y0:y1, x0:x1] > 0) & (buf.face >= 0), 255, 0).astype(np.uint8)
     p = dataclasses.replace(params, min_cos=max(params.min_cos, float(min_cos)))
-    vs = build_viewset(label, -1, False, crop, mask, cam, pose, mesh, buf, p)
+    vs = build_viewset(label, -1, False, crop, mask, cam, pose, mesh, buf, p, RUN_TIME_STRETCH)
     co = None
     if rfch is not None and len(vs):
         planes = descriptor_planes(image, tuple(rfch.scales))[:, y0:y1, x0:x1]
