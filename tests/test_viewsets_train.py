@@ -8,6 +8,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
 
 from quatrack.cli import main
 from quatrack.tracking.camera import PinholeCamera
@@ -247,3 +250,13 @@ def test_a_dim_query_is_brightened_before_sift_and_a_bright_one_is_left_alone():
     desc = np.linalg.norm(query.descriptors[near] - full.descriptors[j[near]], axis=1)
     assert np.median(desc) < 0.15 * np.median(np.linalg.norm(full.descriptors, axis=1))
     assert RUN_TIME_STRETCH > 200
+
+
+@settings(max_examples=300, deadline=None)
+@given(hnp.arrays(np.uint8, st.integers(1, 3000), elements=st.integers(0, 255)))
+def test_the_percentile_from_the_histogram_is_numpys(values):
+    """``percentile_99`` (a count, not a sort) gives np.percentile's very float: the dim-image
+    rule it feeds was measured with np.percentile."""
+    from quatrack.viewsets.features import percentile_99
+
+    assert percentile_99(values) == float(np.percentile(values, 99))
