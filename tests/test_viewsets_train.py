@@ -210,12 +210,18 @@ def test_query_features_describe_like_training(trained_store):
     q = extract_query_features(img, None, params)
     vs = [v for v in model.viewsets if not v.synthetic][0]
     # every stored keypoint of the photo's viewset is found again, with the same descriptor
-    d = np.linalg.norm(vs.keypoints[:, None, :] - q.keypoints[None], axis=2)
-    j = np.argmin(d, axis=1)
-    close = d[np.arange(len(j)), j] < 0.5
+    close, desc_err = _found_again(vs, q, 0.5)
     assert close.mean() > 0.8
-    desc_err = np.linalg.norm(vs.descriptors[close] - q.descriptors[j[close]], axis=1)
     assert np.median(desc_err) < 0.1 * np.median(np.linalg.norm(vs.descriptors, axis=1))
+
+
+def _found_again(a, b, px: float):
+    """Which keypoints of ``a`` have one of ``b`` within ``px``, and how far those two's
+    descriptors are apart."""
+    d = np.linalg.norm(a.keypoints[:, None, :] - b.keypoints[None], axis=2)
+    j = np.argmin(d, axis=1)
+    close = d[np.arange(len(j)), j] < px
+    return close, np.linalg.norm(a.descriptors[close] - b.descriptors[j[close]], axis=1)
 
 
 def test_a_dim_query_is_brightened_before_sift_and_a_bright_one_is_left_alone():
@@ -243,11 +249,8 @@ def test_a_dim_query_is_brightened_before_sift_and_a_bright_one_is_left_alone():
     query = extract_query_features(dim, None, params)
     assert len(raw) < 0.6 * len(full) and len(query) > 0.8 * len(full), (len(raw), len(query), len(full))
     # the brightened keypoints are the bright image's: same place, nearly the same descriptor
-    d = np.linalg.norm(query.keypoints[:, None, :] - full.keypoints[None], axis=2)
-    j = np.argmin(d, axis=1)
-    near = d[np.arange(len(j)), j] < 1.0
+    near, desc = _found_again(query, full, 1.0)
     assert near.mean() > 0.7
-    desc = np.linalg.norm(query.descriptors[near] - full.descriptors[j[near]], axis=1)
     assert np.median(desc) < 0.15 * np.median(np.linalg.norm(full.descriptors, axis=1))
     assert RUN_TIME_STRETCH > 200
 
