@@ -117,9 +117,10 @@ def render_textured_view(
     Hs = np.zeros((n_groups, 3, 3))
     drawn = np.bincount(buf.face.ravel() + 1, minlength=len(groups) + 1)[1:] > 0  # (faces in view: a count, not a sort)
     for g in np.unique(groups[drawn]):
-        f0 = int(np.nonzero(groups == g)[0][0])
+        members = groups == g
+        f0 = int(np.argmax(members))  # (the group's first face: its plane)
         n, d = normals[f0], offsets[f0]
-        centroid = mesh.vertices[mesh.faces[groups == g]].reshape(-1, 3).mean(axis=0)
+        centroid = mesh.vertices[mesh.faces[members]].reshape(-1, 3).mean(axis=0)
         ray = centroid - src_centre
         if abs(n @ ray) / np.linalg.norm(ray) >= min_source_cos:
             use[g], Hs[g] = True, plane_homography(n, d, pose, src_pose)
