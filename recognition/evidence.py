@@ -10,8 +10,8 @@ that puts half the object out of frame is judged on the half that is in.
   camera enlarged on every side, at reduced resolution) and its area in image pixels.
 - :func:`edge_samples` — points every few pixels along the visible model edges, with their image
   normals: crease edges (adjacent faces turn by more than ``crease_deg``) and the silhouette
-  edges of the pose (one adjacent face towards the camera, the other away), each kept if its
-  depth matches the z-buffer (not hidden) and it lies in the image.
+  edges of the pose (one adjacent face towards the camera, the other away), each kept if the
+  z-buffer shows it (:func:`~.visibility.edge_samples_visible`) and it lies in the image.
 - :func:`edge_agreement` — share of samples with an image gradient within ``radius`` px along
   the normal whose orientation agrees (``|cos| ≥ cos_min``) and whose magnitude exceeds
   ``min_grad``; and the same share with the samples displaced by ± a quarter of the object's
@@ -31,7 +31,7 @@ from quatrack.tracking.pose import Pose
 from quatrack.viewsets.mesh import Mesh
 from quatrack.viewsets.render import render
 
-from .visibility import segment_samples
+from .visibility import edge_samples_visible, model_gap, segment_samples
 
 
 def scaled_camera(camera: PinholeCamera, s: float, pad: int = 0) -> PinholeCamera:
@@ -79,15 +79,17 @@ class EdgeParams:
 
 
 def edge_samples(mesh: Mesh, camera: PinholeCamera, pose: Pose, params: EdgeParams = EdgeParams(),
-                 depth: np.ndarray | None = None, depth_scale: float = 0.5):
+                 zbuffer=None, depth_scale: float = 0.5):
     """Visible model edge samples: pixels (n, 2), unit image normals (n, 2) and the index of the
     edge each lies on (n,).
 
-    ``depth``: a z-buffer of the pose rendered at ``depth_scale`` (rendered here if None)."""
-    return _edge_samples(mesh, camera, pose, params, depth, depth_scale)[:3]
+    ``zbuffer``: the pose rendered at ``depth_scale`` (:func:`~quatrack.viewsets.render.render`'s
+    buffers; rendered here if None); visibility by
+    :func:`~quatrack.recognition.visibility.edge_samples_visible`."""
+    return _edge_samples(mesh, camera, pose, params, zbuffer, depth_scale)[:3]
 
 
-def _edge_samples(mesh: Mesh, camera: PinholeCamera, pose: Pose, params: EdgeParams, depth, depth_scale):
+def _edge_samples(mesh: Mesh, camera: PinholeCamera, pose: Pose, params: EdgeParams, zbuffer, depth_scale):
     """:func:`edge_samples` plus the samples' points in the object frame (n, 3)."""
     pairs, faces, _ = mesh.edge_faces
     N = mesh.face_normals
@@ -108,15 +110,10 @@ def _edge_samples(mesh: Mesh, camera: PinholeCamera, pose: Pose, params: EdgePar
     w, h = camera.width, camera.height
     b = params.border_px
     ok = (uv[:, 0] >= b) & (uv[:, 1] >= b) & (uv[:, 0] <= w - 1 - b) & (uv[:, 1] <= h - 1 - b)
-    if depth is None:
-        small = scaled_camera(camera, depth_scale)
-        depth = render(mesh, small, pose).depth
-    dh, dw = depth.shape
-    sx, sy = dw / w, dh / h
-    ui = np.clip(np.rint((uv[:, 0] + 0.5) * sx - 0.5).astype(int), 0, dw - 1)
-    vi = np.clip(np.rint((uv[:, 1] + 0.5) * sy - 0.5).astype(int), 0, dh - 1)
-    near = cv2.erode(np.where(np.isfinite(depth), depth, np.inf).astype(np.float32), np.ones((3, 3), np.uint8))
-    ok &= P[:, 2] <= near[vi, ui] + params.depth_tol * mesh.extent
+    if zbuffer is None:
+        zbuffer = render(mesh, scaled_camera(camera, depth_scale), pose)
+    planes = np.where(faces[keep] >= 0, mesh.plane_ids[np.maximum(faces[keep], 0)], -1)[seg]
+    ok &= edge_samples_visible(zbuffer, uv, P[:, 2], planes, mesh.plane_ids, (w, h), params.depth_tol * mesh.extent)
     return uv[ok], normal[ok], seg[ok], (P[ok] - pose.t) @ pose.R
 
 
@@ -164,17 +161,17 @@ class EdgeEvidence:
 
 
 def edge_agreement(grey: np.ndarray, mesh: Mesh, camera: PinholeCamera, pose: Pose,
-                   params: EdgeParams = EdgeParams(), depth: np.ndarray | None = None,
-                   depth_scale: float = 0.5) -> EdgeEvidence:
-    """Agreement of the visible model edges at ``pose`` with the image's gradients, and chance."""
-    return measure_edges(grey, mesh, camera, pose, params, depth, depth_scale)[0]
+                   params: EdgeParams = EdgeParams(), zbuffer=None, depth_scale: float = 0.5) -> EdgeEvidence:
+    """Agreement of the visible model edges at ``pose`` with the image's gradients, and chance
+    (``zbuffer``: as :func:`edge_samples`)."""
+    return measure_edges(grey, mesh, camera, pose, params, zbuffer, depth_scale)[0]
 
 
 @dataclass(frozen=True)
 class EdgeImage:
     """What :func:`edge_agreement` measured, kept for :func:`edge_fit`: the visible samples
-    (pixels, normals, object points), the gradients of the crop round them and the object's
-    apparent size (px)."""
+    (pixels, normals, object points), the gradients of the crop round them, the object's
+    apparent size (px) and the model edge each sample lies on."""
 
     uv: np.ndarray
     normal: np.ndarray
@@ -183,12 +180,13 @@ class EdgeImage:
     gy: np.ndarray
     origin: tuple[int, int]
     size: float
+    edge: np.ndarray
 
 
-def measure_edges(grey, mesh, camera, pose, params: EdgeParams = EdgeParams(), depth=None,
+def measure_edges(grey, mesh, camera, pose, params: EdgeParams = EdgeParams(), zbuffer=None,
                   depth_scale: float = 0.5) -> tuple[EdgeEvidence, EdgeImage | None]:
     """:func:`edge_agreement` and what it measured (for :func:`edge_fit`; None without samples)."""
-    uv, normal, seg, X = _edge_samples(mesh, camera, pose, params, depth, depth_scale)
+    uv, normal, seg, X = _edge_samples(mesh, camera, pose, params, zbuffer, depth_scale)
     if len(uv) == 0:
         return EdgeEvidence(0, 0.0, 0.0, 0.0), None
     span = np.ptp(uv, axis=0)
@@ -223,7 +221,7 @@ def measure_edges(grey, mesh, camera, pose, params: EdgeParams = EdgeParams(), d
         hit = _supported(gx, gy, origin, np.concatenate(moved), np.concatenate(normals), radius, params)
         chance = [float(part.mean()) for part in np.split(hit, np.cumsum(counts)[:-1])]
     return (EdgeEvidence(len(uv), agree, float(np.mean(chance)) if chance else 0.0, weakest),
-            EdgeImage(uv, normal, X, gx, gy, origin, size))
+            EdgeImage(uv, normal, X, gx, gy, origin, size, seg))
 
 
 @dataclass(frozen=True)
@@ -251,7 +249,8 @@ def edge_fit(image: EdgeImage | None, mesh: Mesh, camera: PinholeCamera, pose: P
     The edge agreement (:func:`edge_agreement`) accepts an edge within a couple of pixels; a
     wrong pose carried by one face keeps that face's outline and can lean the others by a few
     pixels — a tilt, a depth — and still pass. Here each visible edge sample searches along its
-    normal within ``± (radius + reach × apparent size)`` for the strongest aligned gradient
+    normal within ``± (radius + reach × apparent size)`` (no further than halfway to another,
+    parallel model edge: :func:`~.visibility.model_gap`) for the strongest aligned gradient
     (sub-pixel: :func:`quatrack.recognition.tracker.edges.search_edges`); the found positions
     become distances across the edge, ``nᵀ(π(R Xₑ + t) − yₑ)`` (σ ``edge_sigma_px``), and the pose
     is re-estimated with the inliers (σ ``point_sigma_px``) by Gauss–Newton with Cauchy weights
@@ -268,8 +267,9 @@ def edge_fit(image: EdgeImage | None, mesh: Mesh, camera: PinholeCamera, pose: P
         return EdgeFit()
     origin = np.asarray(image.origin, float)
     radius = params.radius_px + params.radius_share * image.size + reach * image.size
-    meas, found = search_edges(image.gx, image.gy, image.uv - origin, image.normal, np.full(len(image.uv), radius),
-                               params.min_grad)
+    # no further than halfway to another model edge parallel to it (visibility.model_gap)
+    radius = np.minimum(radius, np.maximum(0.5 * model_gap(image.uv, image.normal, image.edge, radius, params.step_px), 1.0))
+    meas, found = search_edges(image.gx, image.gy, image.uv - origin, image.normal, radius, params.min_grad)
     k = int(found.sum())
     if k < 6:
         return EdgeFit(k)

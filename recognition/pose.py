@@ -931,7 +931,7 @@ def verification(
     share, area = silhouette_inside(mesh, camera, est.pose)
     half = scaled_camera(camera, 0.5)
     buf = render(mesh, half, est.pose)  # one z-buffer: hidden edges, and the inliers' faces
-    edges, edge_image = measure_edges(grey, mesh, camera, est.pose, params.edges, buf.depth, 0.5)
+    edges, edge_image = measure_edges(grey, mesh, camera, est.pose, params.edges, buf, 0.5)
     inl_uv = np.asarray(uv, float)[est.inliers]
     spread = inlier_spread(inl_uv, area)
     n = len(est.inliers)

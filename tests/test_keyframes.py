@@ -170,10 +170,11 @@ def test_a_pose_re_found_on_keyframes_is_settled_on_the_edges_alone(walk):
     """A second-hand start on the mesh (re-found on the tracker's own keyframes, no trained view
     of that side) is judged by the edge refit on the edges alone, before any point is born at
     it (points born at the pose under test agree with it whatever it is): the true pose starts
-    where it is; one turned 4° about the centre and 2.5 % off — which the agreement test passes,
-    and a re-finding on a synthetic view can be — starts where the edges put it, near the truth
-    (Tracker._edge_settled: the refit, confirmed by a second refit from there); one 15° and 10 %
-    off is refused."""
+    where it is; one turned 3° about the centre and 2 % off — as a re-finding on a synthetic
+    view can be — starts where the edges put it, near the truth (Tracker._edge_settled: the
+    refit, confirmed by a second refit from there); one 4° and 2.5 % off, whose edges the
+    agreement test passed while the far outline of faces seen at a grazing angle counted as
+    hidden (before session 39), and one 15° and 10 % off are refused."""
     from quatrack.recognition.klt import make_frame
     from quatrack.recognition.tracker.points import Tracks
     from quatrack.tracking import quaternion as quat
@@ -202,12 +203,12 @@ def test_a_pose_re_found_on_keyframes_is_settled_on_the_edges_alone(walk):
     assert start(Pose(truth.q_wxyz, truth.t))
     dp, da = error(tracker.filter.state.pose)
     assert dp < 0.005 * d and da < 0.5
-    off = turned(4.0, 0.025)
-    assert tracker._edges_confirm(frame.gray, off)  # the agreement test alone would take it as it is
+    off = turned(3.0, 0.02)
     assert start(off)
     dp, da = error(tracker.filter.state.pose)
-    assert dp < 0.01 * d and da < 1.0, (dp / d, da)  # (it was 2.5 % and 4° off)
+    assert dp < 0.01 * d and da < 1.0, (dp / d, da)  # (it was 2 % and 3° off)
     assert tracker._birth[0] is not off.R and np.allclose(tracker._birth[0], tracker.filter.state.pose.R)
+    assert not start(turned(4.0, 0.025))  # (its outline no longer agrees with the image's edges)
     assert not start(turned(15.0, 0.10))
 
 

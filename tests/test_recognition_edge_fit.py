@@ -121,8 +121,8 @@ def test_the_edge_refit_runs_only_for_a_pose_the_cheap_checks_pass(cube, monkeyp
     from quatrack.recognition.evidence import scaled_camera
     from quatrack.viewsets.render import render
 
-    depth = render(mesh, scaled_camera(CAM, 0.5), est.pose).depth  # verification's own z-buffer
-    _, image = measure_edges(grey, mesh, CAM, est.pose, PoseParams().edges, depth, 0.5)
+    zbuffer = render(mesh, scaled_camera(CAM, 0.5), est.pose)  # verification's own z-buffer
+    _, image = measure_edges(grey, mesh, CAM, est.pose, PoseParams().edges, zbuffer, 0.5)
     inl = est.inliers
     alone = real(image, mesh, CAM, est.pose, X[inl], np.asarray(uv[on_face], float)[inl], PoseParams().edges,
                  PoseParams().edge_fit_reach)

@@ -49,6 +49,21 @@ class Mesh:
         return c
 
     @cached_property
+    def plane_ids(self) -> np.ndarray:
+        """(m,) the planar group of each triangle (:func:`planar_groups`: triangles on one plane
+        share an id), read-only, computed once per mesh (which faces an edge sample borders is
+        asked per frame: :func:`quatrack.recognition.visibility.edge_samples_visible`).
+
+        >>> square_and_wall = make_mesh(np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 1.0]]),
+        ...                             np.array([[0, 1, 2], [0, 2, 3], [0, 4, 1]]))
+        >>> square_and_wall.plane_ids.tolist()
+        [0, 0, 1]
+        """
+        g = planar_groups(self)
+        g.setflags(write=False)
+        return g
+
+    @cached_property
     def edge_faces(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The mesh's unique edges (k, 2) (vertex indices, the smaller first), the faces on their
         two sides (k, 2) (−1 where an edge has one face, the mesh's boundary; an edge of more than

@@ -1,11 +1,14 @@
 """Model edges measured in the image: the moving-edges idea (Bouthemy 1989; ViSP's ``vpMe``).
 
 The mesh's sharp edges (faces meeting at more than ``edge_crease_deg``; on a box all twelve)
-are sampled every ``edge_step_px`` pixels at the predicted pose; samples hidden in the
-visibility z-buffer are dropped. From each visible sample a 1-D search along the projected
-edge's normal ``n`` finds the strongest image gradient whose direction agrees with ``n``
-(|cos| ≥ 0.9), within ``±r``, ``r = 3·√(nᵀ J P Jᵀ n)`` (the prediction's spread across the
-edge, 2–15 px), refined to sub-pixel by a parabola through the three gradient values. A sample
+are sampled every ``edge_step_px`` pixels at the predicted pose; samples the visibility
+z-buffer does not show are dropped (:func:`~..visibility.edge_samples_visible`: one of the
+edge's own faces seen next to it, or nothing nearer). From each visible sample a 1-D search
+along the projected edge's normal ``n`` finds the strongest image gradient whose direction
+agrees with ``n`` (|cos| ≥ 0.9), within ``±r``, ``r = 3·√(nᵀ J P Jᵀ n)`` (the prediction's
+spread across the edge, 2–15 px) but no further than halfway to another, parallel model edge
+(:func:`~..visibility.model_gap`: a face seen edge-on is a strip a few px wide), refined to
+sub-pixel by a parabola through the three gradient values. A sample
 whose search also meets a *rival* — another aligned maximum more than 2 px away at least
 ``edge_ambiguity`` (0.5) times as strong: a crease beside a parallel line of the print, an
 outline beside the background's edge — is dropped: the search cannot tell which edge is the
@@ -35,7 +38,7 @@ from quatrack.tracking.measurements import project_model_points
 from quatrack.tracking.state import FilterState
 from quatrack.viewsets.mesh import Mesh
 
-from ..visibility import mesh_edges, scaled_camera, segment_samples
+from ..visibility import edge_samples_visible, model_gap, segment_samples, sharp_edges
 from .params import TrackerParams
 from .points import PointBlock, VarianceFactor, mahalanobis2, posterior_m2
 from .sources import FrameContext
@@ -44,29 +47,26 @@ _SIGMA_ALONG_PX = 50.0  # an edge sample says nothing along the edge
 
 
 def edge_points(mesh: Mesh, edges3d: np.ndarray, camera, state: FilterState, params: TrackerParams,
-                zbuffer) -> tuple[np.ndarray, np.ndarray]:
-    """Visible samples on the sharp model edges ``edges3d`` (k, 2, 3) at the pose of ``state``:
-    object points (n, 3) and unit image normals (n, 2) of their projected edges."""
+                zbuffer, edge_faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Visible samples on the sharp model edges ``edges3d`` (k, 2, 3), which border the faces
+    ``edge_faces`` (k, 2) (:func:`~..visibility.sharp_edges`), at the pose of ``state``: object
+    points (n, 3), unit image normals (n, 2) of their projected edges, and their edges (n,)."""
     E = edges3d
     if len(E) == 0:
-        return np.zeros((0, 3)), np.zeros((0, 2))
+        return np.zeros((0, 3)), np.zeros((0, 2)), np.zeros(0, int)
     pose = state.pose
     A, B = pose.apply(E[:, 0]), pose.apply(E[:, 1])
     front = (A[:, 2] > 1e-9) & (B[:, 2] > 1e-9)
-    _, Xc, uv, normal = segment_samples(A[front], B[front], camera, params.edge_step_px)
+    seg, Xc, uv, normal = segment_samples(A[front], B[front], camera, params.edge_step_px)
     X = (Xc - pose.t) @ pose.R
     w, h = camera.width, camera.height
     m = params.visibility.margin_px
     ok = (uv[:, 0] >= m) & (uv[:, 1] >= m) & (uv[:, 0] <= w - 1 - m) & (uv[:, 1] <= h - 1 - m)
-    # visible: not behind the nearest surface around it (an edge lies on its faces' border, so
-    # the nearest depth in a 3×3 neighbourhood of the reduced z-buffer)
-    small = scaled_camera(camera, params.visibility.scale)
-    depth = np.where(zbuffer.face >= 0, zbuffer.depth, np.inf).astype(np.float32)
-    near = cv2.erode(depth, np.ones((3, 3), np.uint8))
-    ui = np.clip(np.rint((uv[:, 0] + 0.5) * small.width / w - 0.5).astype(int), 0, small.width - 1)
-    vi = np.clip(np.rint((uv[:, 1] + 0.5) * small.height / h - 0.5).astype(int), 0, small.height - 1)
-    ok &= Xc[:, 2] <= near[vi, ui] + params.visibility.depth_tol * mesh.extent
-    return X[ok], normal[ok]
+    faces = np.asarray(edge_faces)[front][seg]
+    planes = np.where(faces >= 0, mesh.plane_ids[np.maximum(faces, 0)], -1)
+    ok &= edge_samples_visible(zbuffer, uv, Xc[:, 2], planes, mesh.plane_ids, (w, h),
+                               params.visibility.depth_tol * mesh.extent)
+    return X[ok], normal[ok], np.flatnonzero(front)[seg][ok]
 
 
 def search_edges(gx: np.ndarray, gy: np.ndarray, uv: np.ndarray, normal: np.ndarray, radius: np.ndarray,
@@ -188,7 +188,7 @@ def fit_image(grey: np.ndarray, mesh: Mesh, camera, pose, params, reach: float):
     compares the two). None when no sample is visible (as measure_edges)."""
     from ..evidence import EdgeImage, _edge_samples, image_gradients
 
-    uv, normal, _, X = _edge_samples(mesh, camera, pose, params, None, 0.5)
+    uv, normal, seg, X = _edge_samples(mesh, camera, pose, params, None, 0.5)
     if len(uv) == 0:
         return None
     span = np.ptp(uv, axis=0)
@@ -216,7 +216,7 @@ def fit_image(grey: np.ndarray, mesh: Mesh, camera, pose, params, reach: float):
     gy = np.zeros_like(gx)
     rows, cols = slice(part[1] - full[1], part[3] - full[1]), slice(part[0] - full[0], part[2] - full[0])
     gx[rows, cols], gy[rows, cols] = gx_p, gy_p
-    return EdgeImage(uv, normal, X, gx, gy, (full[0], full[1]), size)
+    return EdgeImage(uv, normal, X, gx, gy, (full[0], full[1]), size, seg)
 
 
 class ModelEdges:
@@ -227,7 +227,7 @@ class ModelEdges:
 
     def __init__(self, mesh: Mesh, params: TrackerParams) -> None:
         self.mesh, self.params = mesh, params
-        self.edges3d = mesh_edges(mesh, params.edge_crease_deg)
+        self.edges3d, self.edge_faces = sharp_edges(mesh, params.edge_crease_deg)
         self.factor = VarianceFactor(1)
 
     def __len__(self) -> int:
@@ -241,7 +241,8 @@ class ModelEdges:
 
         t0 = time.perf_counter()
         p = self.params
-        X, normal = edge_points(self.mesh, self.edges3d, ctx.camera, ctx.prior, p, ctx.zbuffer(self.mesh, p))
+        X, normal, edge = edge_points(self.mesh, self.edges3d, ctx.camera, ctx.prior, p, ctx.zbuffer(self.mesh, p),
+                                      self.edge_faces)
         empty = PointBlock(self.name, np.zeros((0, 3)), np.zeros((0, 2)), np.zeros((0, 2, 2)))
         if len(X) == 0:
             return empty
@@ -249,6 +250,8 @@ class ModelEdges:
         S = J @ ctx.prior.pose_covariance @ np.swapaxes(J, 1, 2)
         spread = np.sqrt(np.maximum(np.einsum("ni,nij,nj->n", normal, S, normal), 0.0))
         radius = np.clip(3.0 * spread, 2.0, 15.0)
+        # no further than halfway to another model edge parallel to it (a thin strip's other side)
+        radius = np.minimum(radius, np.maximum(0.5 * model_gap(uv, normal, edge, 15.0, p.edge_step_px), 1.0))
         gx, gy, origin = gradients(ctx.frame.gray, uv, float(radius.max()) + 4.0)
         ambiguity = 1.0 if p.edge_ambiguity is None else p.edge_ambiguity
         meas, found, gap = edge_candidates(gx, gy, uv - origin, normal, radius, p.edge_min_grad, ambiguity)
