@@ -98,10 +98,10 @@ def test_a_track_its_trained_points_anchor_is_audited_less_often(monkeypatch):
 
     monkeypatch.setattr(Tracker, "_edge_shift", counted)
     base = TrackerParams()
-    assert (base.audit_every, base.audit_every_anchored) == (3, 6)
+    assert (base.audit_every, base.audit_every_anchored) == (1, 6)
     for params in (base, replace(base, audit_every_anchored=None)):
         audits.append(0)
         tracker = Tracker(model, camera, params)
         statuses = [tracker.step(f, k / 30).status for k, f in enumerate(frames)]
         assert statuses[0] == "init" and set(statuses[1:]) == {"tracking"}
-    assert audits == [13 // 6, 13 // 3]  # (13 tracked frames after the first)
+    assert audits == [13 // 6, 13]  # (13 tracked frames after the first)

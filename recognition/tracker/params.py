@@ -212,13 +212,20 @@ class TrackerParams:
     # the textured points' score statistic at the joint pose beyond which a frame is adjusted
     # again without the edges (Tracker._unless_outvoted): χ²₆ at 0.999; 0 turns the test off
     texture_chi2: float = 22.46
-    audit_every: int = 3  # tracked frames between audits (0: none); each costs an edge refit
+    # tracked frames between audits (0: none); each costs an edge refit. 3 until session 39: a
+    # track that no trained point anchors, re-found 2–3 % off, drifted 1.5 → 5.1 % between two
+    # audits (zoo flat box, live; bench/RESULTS.md); such a track is now audited every frame
+    audit_every: int = 1
     # … while the frame's trained points anchor the track (None: audit_every; Tracker._audit_interval)
     audit_every_anchored: int | None = 6
     # a pose the edges doubt (the audit, a strict test on probation) is withheld, not ended: the
     # track goes on for up to doubt_frames frames, each tested strictly, and is reported again
     # from the first the edges confirm (Tracker._doubt); 0: lost at once
     doubt_frames: int = 5
+    # … and reported again only when the edge refit moves it by at most this share of the 5 %/5°
+    # criterion (a hysteresis; None: max_edge_shift): each doubted frame is another draw, and a
+    # wrong track 17 % off passed the 0.5 of a pose never doubted by drawing 0.42 (Tracker._doubt)
+    doubt_confirm_shift: float | None = 0.25
     # The reported covariance is the filter's plus a systematic floor (quatrack.tracking.systematic:
     # the error the measurements share, which the filter's independent-measurement covariance
     # leaves out): the centre's 1-σ error systematic_pct % of the diameter across the line of
