@@ -46,23 +46,21 @@ def _wrong(r, pose, mesh) -> bool:
 
 
 def test_a_pose_of_repeated_texture_without_the_rest_of_its_outline_is_refused(wide_box):
+    """The box seen from below, half out of the frame (scene 254): its matches hold the learned
+    face 60 % of the diameter and ~90° off. Until session 39 that pose passed every check but
+    the one-face rule (``one_face_edge_agreement``: a whole visible edge missing and a marginal
+    outline) and the texture's evidence: the far outline of faces seen at a grazing angle
+    counted as hidden, so the pose's missing edges went unseen. With the whole outline the
+    edges' agreement refuses it on its own (44 % agree), and none of 400 such scenes (seeds
+    0–399) traps ``locate`` without the rule and the texture any more."""
     model, spec = wide_box
-    sc = _unseen_side_scene(spec, 254)  # the box seen from below, the helmet half out of the frame
+    sc = _unseen_side_scene(spec, 254)
     no_rule = replace(PoseParams(), one_face_edge_agreement=None)
     blind = locate(sc.image, CAM, model, LocateParams(pose=no_rule, min_texture_ncc=0.0))
-    # the trap: without the rule (nor the texture's evidence) a pose 60 % of the diameter and
-    # ~90° off passes every other check
-    assert _wrong(blind, sc.pose, model.mesh), "the scene no longer traps locate: pick another"
-    v = blind.verification
-    assert v["inlier_faces"] == 1 and v["edge_agreement"] < 0.6 and v["edge_weakest"] < 0.02
-    assert v["confidence"] >= PoseParams().min_confidence and v["rival_inliers"] == 0
-    assert v["texture_ncc"] is None  # (not measured with the check off)
-    r = locate(sc.image, CAM, model)
-    assert not _wrong(r, sc.pose, model.mesh)
-    # the photo's texture rendered at that pose refuses it on its own (recognition/appearance.py)
-    textured = locate(sc.image, CAM, model, LocateParams(pose=no_rule))
-    assert not _wrong(textured, sc.pose, model.mesh)
-    assert "texture" in textured.reason or textured.found
+    assert not _wrong(blind, sc.pose, model.mesh)
+    assert not blind.found and "edges" in blind.reason and blind.verification["edge_agreement"] < 0.6
+    for params in (LocateParams(), LocateParams(pose=no_rule)):
+        assert not _wrong(locate(sc.image, CAM, model, params), sc.pose, model.mesh)
 
 
 def test_the_rule_leaves_right_poses_of_the_box_alone(wide_box):
