@@ -112,8 +112,8 @@ def _edge_samples(mesh: Mesh, camera: PinholeCamera, pose: Pose, params: EdgePar
     ok = (uv[:, 0] >= b) & (uv[:, 1] >= b) & (uv[:, 0] <= w - 1 - b) & (uv[:, 1] <= h - 1 - b)
     if zbuffer is None:
         zbuffer = render(mesh, scaled_camera(camera, depth_scale), pose)
-    planes = np.where(faces[keep] >= 0, mesh.plane_ids[np.maximum(faces[keep], 0)], -1)[seg]
-    ok &= edge_samples_visible(zbuffer, uv, P[:, 2], planes, mesh.plane_ids, (w, h), params.depth_tol * mesh.extent)
+    ok &= edge_samples_visible(zbuffer, uv, P[:, 2], faces[keep][seg], mesh.plane_ids, (w, h),
+                               params.depth_tol * mesh.extent)
     return uv[ok], normal[ok], seg[ok], (P[ok] - pose.t) @ pose.R
 
 
@@ -268,7 +268,8 @@ def edge_fit(image: EdgeImage | None, mesh: Mesh, camera: PinholeCamera, pose: P
     origin = np.asarray(image.origin, float)
     radius = params.radius_px + params.radius_share * image.size + reach * image.size
     # no further than halfway to another model edge parallel to it (visibility.model_gap)
-    radius = np.minimum(radius, np.maximum(0.5 * model_gap(image.uv, image.normal, image.edge, radius, params.step_px), 1.0))
+    gap = model_gap(image.uv, image.normal, image.edge, radius, params.step_px)
+    radius = np.minimum(radius, np.maximum(0.5 * gap, 1.0))
     meas, found = search_edges(image.gx, image.gy, image.uv - origin, image.normal, radius, params.min_grad)
     k = int(found.sum())
     if k < 6:

@@ -131,14 +131,14 @@ def sharp_edges(mesh: Mesh, angle_deg: float = 1.0) -> tuple[np.ndarray, np.ndar
     return mesh.vertices[edges[keep]], faces[keep]
 
 
-def edge_samples_visible(zbuffer, uv: np.ndarray, z: np.ndarray, planes: np.ndarray, plane_ids: np.ndarray,
+def edge_samples_visible(zbuffer, uv: np.ndarray, z: np.ndarray, faces: np.ndarray, plane_ids: np.ndarray,
                          image_size: tuple[int, int], tol: float) -> np.ndarray:
     """Mask (n,) of the model-edge samples at pixels ``uv`` (n, 2) of a ``image_size`` = (w, h)
     image, at camera depths ``z`` (n,), that a reduced z-buffer ``zbuffer`` (its ``depth``, inf on
-    the background, and ``face``, −1 there) shows: one of the planes the sample's edge borders
-    (``planes`` (n, 2), planar group ids of its two faces, −1: none; ``plane_ids`` (m,) the group
-    of each face) is rendered in its 3×3 neighbourhood, or no surface there lies nearer than
-    ``z − tol``.
+    the background, and ``face``, −1 there) shows: the plane of one of the two faces the
+    sample's edge borders (``faces`` (n, 2), −1: none; ``plane_ids`` (m,) the planar group of
+    each face, :attr:`~quatrack.viewsets.mesh.Mesh.plane_ids`) is rendered in its 3×3
+    neighbourhood, or no surface there lies nearer than ``z − tol``.
 
     Why both: a sample lies on its faces' border, and the z-buffer is reduced, so it is judged
     by its neighbourhood. The depth test alone, against the nearest depth round it, fails on a
@@ -153,9 +153,9 @@ def edge_samples_visible(zbuffer, uv: np.ndarray, z: np.ndarray, planes: np.ndar
     >>> zb = Z()
     >>> zb.face = np.array([[0, 0, 1], [0, 0, 1], [-1, -1, -1]])
     >>> zb.depth = np.array([[10.0, 11.0, 30.0], [10.0, 11.0, 30.0], [np.inf] * 3], np.float32)
-    >>> planes = np.array([[7, -1], [7, -1], [1, -1]])  # the first two border plane 7, not shown
-    >>> edge_samples_visible(zb, np.array([[1.0, 1.0]] * 3), np.array([10.5, 25.0, 25.0]), planes,
-    ...                      np.array([0, 1]), (3, 3), 1.0)
+    >>> faces = np.array([[2, -1], [2, -1], [1, -1]])  # the first two border face 2, of plane 7: not shown
+    >>> edge_samples_visible(zb, np.array([[1.0, 1.0]] * 3), np.array([10.5, 25.0, 25.0]), faces,
+    ...                      np.array([0, 1, 7]), (3, 3), 1.0)
     array([ True, False,  True])
     """
     face, depth = np.asarray(zbuffer.face), np.asarray(zbuffer.depth, np.float32)
@@ -165,9 +165,12 @@ def edge_samples_visible(zbuffer, uv: np.ndarray, z: np.ndarray, planes: np.ndar
     ui = np.clip(np.rint((uv[:, 0] + 0.5) * dw / w - 0.5).astype(int), 0, dw - 1)
     vi = np.clip(np.rint((uv[:, 1] + 0.5) * dh / h - 0.5).astype(int), 0, dh - 1)
     ok = np.asarray(z) <= near[vi, ui] + tol
+    plane_ids = np.asarray(plane_ids)
+    faces = np.asarray(faces)
+    planes = np.where(faces >= 0, plane_ids[np.maximum(faces, 0)], -1)
     dy, dx = np.divmod(np.arange(9), 3)
     f = face[np.clip(vi[:, None] + dy - 1, 0, dh - 1), np.clip(ui[:, None] + dx - 1, 0, dw - 1)]  # (n, 9)
-    seen = np.where(f >= 0, np.asarray(plane_ids)[np.maximum(f, 0)], -2)  # (−2: no face, never an edge's)
+    seen = np.where(f >= 0, plane_ids[np.maximum(f, 0)], -2)  # (−2: no face, never an edge's)
     return ok | ((seen == planes[:, :1]) | (seen == planes[:, 1:])).any(axis=1)
 
 

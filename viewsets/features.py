@@ -108,11 +108,12 @@ def extract_features(
     keypoint sits on the silhouette, where its descriptor would describe the background too.
     ``stretch_to``: brighten a dim image first (:func:`stretched`, judged inside ``mask``)."""
     gray = to_gray(image)
+    allowed = None if mask is None else np.asarray(mask) > 0
     if stretch_to:
-        gray = stretched(gray, stretch_to, mask)
+        gray = stretched(gray, stretch_to, allowed)
     m = None
-    if mask is not None:
-        m = (np.asarray(mask) > 0).astype(np.uint8) * 255
+    if allowed is not None:
+        m = allowed.astype(np.uint8) * 255
         if erode_px > 0:
             k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * erode_px + 1,) * 2)
             m = cv2.erode(m, k)

@@ -62,9 +62,7 @@ def edge_points(mesh: Mesh, edges3d: np.ndarray, camera, state: FilterState, par
     w, h = camera.width, camera.height
     m = params.visibility.margin_px
     ok = (uv[:, 0] >= m) & (uv[:, 1] >= m) & (uv[:, 0] <= w - 1 - m) & (uv[:, 1] <= h - 1 - m)
-    faces = np.asarray(edge_faces)[front][seg]
-    planes = np.where(faces >= 0, mesh.plane_ids[np.maximum(faces, 0)], -1)
-    ok &= edge_samples_visible(zbuffer, uv, Xc[:, 2], planes, mesh.plane_ids, (w, h),
+    ok &= edge_samples_visible(zbuffer, uv, Xc[:, 2], np.asarray(edge_faces)[front][seg], mesh.plane_ids, (w, h),
                                params.visibility.depth_tol * mesh.extent)
     return X[ok], normal[ok], np.flatnonzero(front)[seg][ok]
 
