@@ -44,6 +44,7 @@ from .points import PointBlock, VarianceFactor, mahalanobis2, posterior_m2
 from .sources import FrameContext
 
 _SIGMA_ALONG_PX = 50.0  # an edge sample says nothing along the edge
+_MAX_RADIUS_PX = 15.0  # the 1-D search reaches at most this far from the prediction
 
 
 def edge_points(mesh: Mesh, edges3d: np.ndarray, camera, state: FilterState, params: TrackerParams,
@@ -247,9 +248,12 @@ class ModelEdges:
         uv, J = project_model_points(ctx.camera, X, ctx.prior.p, ctx.prior.R, True)
         S = J @ ctx.prior.pose_covariance @ np.swapaxes(J, 1, 2)
         spread = np.sqrt(np.maximum(np.einsum("ni,nij,nj->n", normal, S, normal), 0.0))
-        radius = np.clip(3.0 * spread, 2.0, 15.0)
-        # no further than halfway to another model edge parallel to it (a thin strip's other side)
-        radius = np.minimum(radius, np.maximum(0.5 * model_gap(uv, normal, edge, 15.0, p.edge_step_px), 1.0))
+        radius = np.clip(3.0 * spread, 2.0, _MAX_RADIUS_PX)
+        # no further than halfway to another model edge parallel to it (a thin strip's other
+        # side); only a gap below twice the longest search can shorten one, so none further is
+        # looked for (fewer pairs: the prediction's spread keeps most searches at 2–5 px)
+        reach = min(_MAX_RADIUS_PX, 2.0 * float(radius.max()))
+        radius = np.minimum(radius, np.maximum(0.5 * model_gap(uv, normal, edge, reach, p.edge_step_px), 1.0))
         gx, gy, origin = gradients(ctx.frame.gray, uv, float(radius.max()) + 4.0)
         ambiguity = 1.0 if p.edge_ambiguity is None else p.edge_ambiguity
         meas, found, gap = edge_candidates(gx, gy, uv - origin, normal, radius, p.edge_min_grad, ambiguity)
