@@ -580,6 +580,33 @@ def test_a_doubted_pose_is_reported_again_only_on_stronger_evidence(box, monkeyp
     assert steps[withheld[-1] + 1].status == "tracking"
 
 
+@pytest.mark.parametrize("confirm", [0.25, None])
+def test_a_pose_settled_on_the_edges_must_be_where_they_converge(box, monkeypatch, confirm):
+    """Tracker._edge_settled on scripted edge refits (shift of the first refit, then of the second
+    from the refitted pose): a first refit within ``max_edge_shift`` (0.5) keeps the pose; one
+    beyond recognition's tolerance (1.0) refuses it; otherwise the refitted pose is taken only if
+    a second refit from it moves it by at most ``doubt_confirm_shift`` (0.25; None: 0.5) and by at
+    most half the first. Why 0.25: the zoo's wide box re-found 10.4 % off was refitted to 6.9 %,
+    and a second refit moving it by 0.34 (half the first, 0.72, is 0.36) passed it: the edges were
+    still converging, and the track reported two poses 7 % off (bench/RESULTS.md, session 40)."""
+    from quatrack.recognition.evidence import EdgeFit
+
+    model, camera, poses, _ = box
+    tracker = Tracker(model, camera, TrackerParams(doubt_confirm_shift=confirm), index=index_for(model))
+    start, refitted = poses[0], poses[1]
+
+    def settle(*shifts):
+        fits = iter([EdgeFit(200, shift=shifts[0], pose=refitted)] + [EdgeFit(200, shift=s, pose=poses[2]) for s in shifts[1:]])
+        monkeypatch.setattr(Tracker, "_edge_refit", lambda self, gray, pose, agreement=True, points=True: next(fits))
+        return tracker._edge_settled(None, start)
+
+    assert settle(0.4) is start
+    assert settle(1.2) is None
+    assert settle(0.72, 0.1) is refitted
+    assert settle(0.72, 0.4) is None  # (more than half the first: not converging)
+    assert (settle(0.72, 0.34) is None) == (confirm is not None)
+
+
 def _edge_candidates_numpy(gx, gy, uv, normal, radius, min_grad, ambiguity=1.0):
     """``edge_candidates`` as it was written in numpy (a samples × offsets array per step),
     before it was compiled: the reference the compiled search must equal bit for bit."""

@@ -801,8 +801,8 @@ class Tracker:
         """A pose re-found on this run's keyframes, settled on the model's edges alone (no point
         may vouch for it: :meth:`_start_on_mesh`): ``pose`` itself when the edge refit moves it by
         at most ``max_edge_shift`` of the 5 %/5° criterion; else the refitted pose, when a second
-        refit from there moves it by at most that and by at most half as far as the first (the
-        edges converge on it); else None.
+        refit from there moves it by at most ``doubt_confirm_shift`` (0.25; ``max_edge_shift``
+        when None) and by at most half as far as the first (the edges converge on it); else None.
 
         Why: the keyframes' points were lifted at the tracker's own poses, and a synthetic view
         turned 40° from its keyframe adds its own error, so a right re-finding can be a few per
@@ -812,7 +812,12 @@ class Tracker:
         0.1°, and the next refit moved it 0.04 of the criterion. A refit that is not converging
         slides along what the edges alone cannot tell apart: the zoo cube (rendering 1) re-found
         1.75 %/1.3° off was refitted by 0.57 to 4.6 %/3.4°, the next refit moved it 0.41 further
-        (6.6 %/5.1°), and the track started there reported 17 poses beyond 5 %/5°."""
+        (6.6 %/5.1°), and the track started there reported 17 poses beyond 5 %/5°. A refitted
+        pose is one the edges doubted, so it needs the evidence a doubted pose needs to be
+        reported again (:meth:`_doubt`): the zoo wide box #2, re-found on a synthetic view
+        10.4 %/4.9° off, was refitted to 6.9 %/3.4°, and the second refit moved it by 0.34 —
+        within 0.5 and half the first (0.72) — towards the truth (5.6 % after it): the edges were
+        still converging, and the track reported two poses 7 % off (bench/RESULTS.md, session 40)."""
         limit = self.params.max_edge_shift
         fit = self._edge_refit(gray, pose, points=False)
         if fit is None or not np.isfinite(fit.shift):
@@ -822,7 +827,8 @@ class Tracker:
         if fit.pose is None or fit.shift > PoseParams().max_edge_shift:  # (beyond recognition's own tolerance)
             return None
         again = self._edge_refit(gray, fit.pose, points=False)
-        if again is None or not again.shift <= min(limit, 0.5 * fit.shift):
+        confirm = limit if self.params.doubt_confirm_shift is None else self.params.doubt_confirm_shift
+        if again is None or not again.shift <= min(confirm, 0.5 * fit.shift):
             return None  # (not converging: sliding along what the edges cannot tell apart)
         return fit.pose
 

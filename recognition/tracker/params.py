@@ -225,6 +225,7 @@ class TrackerParams:
     # … and reported again only when the edge refit moves it by at most this share of the 5 %/5°
     # criterion (a hysteresis; None: max_edge_shift): each doubted frame is another draw, and a
     # wrong track 17 % off passed the 0.5 of a pose never doubted by drawing 0.42 (Tracker._doubt)
+    # — and the bound on the second refit that confirms a pose settled on the edges (Tracker._edge_settled)
     doubt_confirm_shift: float | None = 0.25
     # The reported covariance is the filter's plus a systematic floor (quatrack.tracking.systematic:
     # the error the measurements share, which the filter's independent-measurement covariance
