@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 
 from quatrack.tracking.camera import PinholeCamera
-from quatrack.viewsets.mesh import load_mesh, planar_groups
+from quatrack.viewsets.mesh import load_mesh
 from quatrack.viewsets.novel import render_textured_view, rotate_about_centre, scale_pose
 from quatrack.viewsets.render import render
 from quatrack.viewsets.rfch import RFCHParams, chi2, cooccurrence, label_image, train_rfch
@@ -57,7 +57,7 @@ def scenes(seed: int = 0, count: int = 8):
     palette = photo[buf.mask > 0][:: 997]
     rng = np.random.default_rng(seed)
     cam = PinholeCamera(v.camera.fx, v.camera.fy, 320.0, 240.0, width=640, height=480)
-    groups = planar_groups(mesh)
+    groups = mesh.plane_ids
     out = []
     for _ in range(count):
         pose = rotate_about_centre(v.pose, mesh.centre, rng.normal(0, 0.35, 3))

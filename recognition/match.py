@@ -19,7 +19,7 @@ import numpy as np
 from scipy.spatial.distance import cdist
 
 from quatrack.viewsets.features import Features
-from quatrack.viewsets.mesh import planar_groups, surface_normals
+from quatrack.viewsets.mesh import surface_normals
 from quatrack.viewsets.store import ObjectModel
 from quatrack.viewsets.viewset import extract_query_features, params_from_manifest
 
@@ -83,7 +83,7 @@ class ModelIndex:
         # the model's photos with their z-buffers and the mesh's planes (recognition/appearance.py),
         # rendered once per model, not per pose judged
         self.appearance = [r.rendered(model.mesh) for r in model.appearance]
-        self.planes = planar_groups(model.mesh) if self.appearance else None
+        self.planes = model.mesh.plane_ids if self.appearance else None
 
     def _matcher(self) -> cv2.flann_Index:
         """This thread's FLANN k-d forest over all descriptors (built on first use)."""

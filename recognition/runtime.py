@@ -88,7 +88,7 @@ def compile_hot_loops() -> float:
     from quatrack.tracking.camera import PinholeCamera
     from quatrack.tracking.measurements import PointMeasurements
     from quatrack.tracking.pose import Pose
-    from quatrack.viewsets.mesh import make_mesh, planar_groups
+    from quatrack.viewsets.mesh import make_mesh
     from quatrack.viewsets.novel import render_textured_view
     from quatrack.viewsets.render import render, render_window
 
@@ -102,7 +102,7 @@ def compile_hot_loops() -> float:
     buffers = render(box, camera, pose)
     render_window(box, camera, pose, (8, 8, 40, 32))  # (a window's rays are a writable copy: another signature)
     photo = np.full((48, 64), 128, np.uint8)
-    render_textured_view(box, planar_groups(box), photo, camera, pose, buffers, camera, pose)
+    render_textured_view(box, box.plane_ids, photo, camera, pose, buffers, camera, pose)
     X = np.array([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]])
     block = PointMeasurements.create(camera, X, np.array([[30.0, 20.0], [34.0, 28.0]]), 1.0)
     block.linearize(pose.t, pose.R)

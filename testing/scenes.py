@@ -20,7 +20,7 @@ import numpy as np
 from quatrack.examples import example_dir
 from quatrack.tracking import quaternion as quat
 from quatrack.tracking.camera import PinholeCamera
-from quatrack.viewsets.mesh import Mesh, load_mesh, planar_groups
+from quatrack.viewsets.mesh import Mesh, load_mesh
 from quatrack.viewsets.novel import render_textured_view, rotate_about_centre
 from quatrack.viewsets.render import render
 from quatrack.tracking.pose import Pose
@@ -60,7 +60,7 @@ class Renderer:
         photo = cv2.imread(str(view.image_path), cv2.IMREAD_COLOR)
         buffers = render(mesh, view.camera, view.pose)
         fill = np.median(photo[buffers.face >= 0], axis=0)
-        return cls(spec, mesh, planar_groups(mesh), photo, buffers, fill)
+        return cls(spec, mesh, mesh.plane_ids, photo, buffers, fill)
 
     def render(self, camera: PinholeCamera, pose: Pose) -> tuple[np.ndarray, np.ndarray]:
         """The object alone (BGR) and its silhouette mask (bool)."""

@@ -18,7 +18,7 @@ import cv2
 import numpy as np
 
 from .errors import SpecError
-from .mesh import Mesh, load_mesh, planar_groups
+from .mesh import Mesh, load_mesh
 from .novel import NovelViewParams, novel_poses, render_textured_view
 from .render import RenderBuffers, render
 from .rfch import RFCHParams, train_rfch
@@ -177,7 +177,7 @@ def train_object(
 def _build_viewsets(mesh: Mesh, views: list[_View], params: TrainParams, progress, warn, on_total) -> list[Viewset]:
     """One viewset per registered view and per synthetic view (``params.novel``), built on
     ``params.jobs`` threads (OpenCV releases the GIL); empty ones are dropped, thin ones warned of."""
-    groups = planar_groups(mesh)
+    groups = mesh.plane_ids
     tasks = _tasks(mesh, views, params.novel)
     if on_total:
         on_total(len(tasks) + 1)  # + the RFCH model

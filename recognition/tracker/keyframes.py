@@ -52,7 +52,7 @@ import numpy as np
 
 from quatrack.tracking.camera import PinholeCamera
 from quatrack.tracking.pose import Pose
-from quatrack.viewsets.mesh import Mesh, planar_groups
+from quatrack.viewsets.mesh import Mesh
 from quatrack.viewsets.novel import synthetic_viewset, turned_about_view
 from quatrack.viewsets.render import footprint
 from quatrack.viewsets.store import ObjectModel
@@ -117,7 +117,6 @@ class Keyframes:
         self.items: list[Keyframe] = []
         self._search: tuple[ObjectModel, ModelIndex, ObjectModel] | None = None  # (base, index, model)
         self._refind: tuple | None = None  # the same with synthetic views, + the latest keyframes' views
-        self._groups: tuple[Mesh, np.ndarray] | None = None  # the mesh's planar groups (texturing)
         self._job: tuple[Future, list[Keyframe]] | None = None  # synthetic views being made on an executor
         self._references: dict[int, tuple[Keyframe, TextureReference]] = {}  # each crop with its z-buffer
 
@@ -209,12 +208,7 @@ class Keyframes:
             kept[id(k)] = cached
             refs.append(cached[1])
         self._references = kept
-        return texture_agreement(image, camera, pose, mesh, self._planar_groups(mesh), refs)
-
-    def _planar_groups(self, mesh: Mesh) -> np.ndarray:
-        if self._groups is None or self._groups[0] is not mesh:
-            self._groups = (mesh, planar_groups(mesh))
-        return self._groups[1]
+        return texture_agreement(image, camera, pose, mesh, mesh.plane_ids, refs)
 
     def synthesise(self, mesh: Mesh, params: ViewsetParams, angles_deg: tuple[float, ...], budget: int,
                    min_cos: float = 0.3, executor: Executor | None = None) -> int:
@@ -235,7 +229,7 @@ class Keyframes:
         if not todo:
             return done
         keys = [self.items[i] for i in todo]
-        work = (synthetic_views, keys, mesh, self._planar_groups(mesh), self.centre, params, tuple(angles_deg), min_cos)
+        work = (synthetic_views, keys, mesh, mesh.plane_ids, self.centre, params, tuple(angles_deg), min_cos)
         if executor is not None:
             self._job = (executor.submit(*work), keys)
             return done

@@ -619,7 +619,7 @@ class Tracker:
             # a track started without trained points (probation), or one the edges doubted in an
             # earlier frame: the edges must confirm every pose
             self._probation = max(self._probation - 1, 0)
-            limit = p.doubt_confirm_shift if self._doubted else None  # (a doubted pose: stronger evidence)
+            limit = p.doubted_shift if self._doubted else None  # (a doubted pose: stronger evidence)
             if not self._edges_confirm(frame.gray, self.filter.state.pose, strict=True, limit=limit):
                 return self._doubt(time_s, "the model's edges do not confirm the pose", n_inl)
         elif (every := self._audit_interval(ctx)) and self._tracked % every == 0:
@@ -827,8 +827,7 @@ class Tracker:
         if fit.pose is None or fit.shift > PoseParams().max_edge_shift:  # (beyond recognition's own tolerance)
             return None
         again = self._edge_refit(gray, fit.pose, points=False)
-        confirm = limit if self.params.doubt_confirm_shift is None else self.params.doubt_confirm_shift
-        if again is None or not again.shift <= min(confirm, 0.5 * fit.shift):
+        if again is None or not again.shift <= min(self.params.doubted_shift, 0.5 * fit.shift):
             return None  # (not converging: sliding along what the edges cannot tell apart)
         return fit.pose
 

@@ -284,6 +284,12 @@ class TrackerParams:
         """The motion model's noise parameters (mesh units) for an object of this diameter."""
         return motion_noise(self.motion_model, diameter, self.motion_noise)
 
+    @property
+    def doubted_shift(self) -> float:
+        """The edge refit's bound for a doubted pose: ``doubt_confirm_shift``, or ``max_edge_shift``
+        when that is None (Tracker._track's doubted frames, Tracker._edge_settled)."""
+        return self.max_edge_shift if self.doubt_confirm_shift is None else self.doubt_confirm_shift
+
     def for_live_streams(self) -> "TrackerParams":
         """These settings as a live stream runs them (the service's sessions; ``bench track-zoo``'s
         live pass): re-anchoring and the lifting of views on the caller's executor beside the
