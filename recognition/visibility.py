@@ -161,15 +161,18 @@ def edge_samples_visible(zbuffer, uv: np.ndarray, z: np.ndarray, faces: np.ndarr
     face, depth = np.asarray(zbuffer.face), np.asarray(zbuffer.depth, np.float32)
     dh, dw = depth.shape
     w, h = image_size
-    near = cv2.erode(np.where(np.isfinite(depth), depth, np.inf).astype(np.float32), np.ones((3, 3), np.uint8))
     ui = np.clip(np.rint((uv[:, 0] + 0.5) * dw / w - 0.5).astype(int), 0, dw - 1)
     vi = np.clip(np.rint((uv[:, 1] + 0.5) * dh / h - 0.5).astype(int), 0, dh - 1)
-    ok = np.asarray(z) <= near[vi, ui] + tol
+    # each sample's 3×3 neighbourhood (clipped at the border: the repeated pixels are inside it)
+    dy, dx = np.divmod(np.arange(9), 3)
+    rows, cols = np.clip(vi[:, None] + dy - 1, 0, dh - 1), np.clip(ui[:, None] + dx - 1, 0, dw - 1)  # (n, 9)
+    d = depth[rows, cols]
+    near = np.where(np.isfinite(d), d, np.inf).min(axis=1)  # the nearest surface round it (NaN: none)
+    ok = np.asarray(z) <= near + tol
     plane_ids = np.asarray(plane_ids)
     faces = np.asarray(faces)
     planes = np.where(faces >= 0, plane_ids[np.maximum(faces, 0)], -1)
-    dy, dx = np.divmod(np.arange(9), 3)
-    f = face[np.clip(vi[:, None] + dy - 1, 0, dh - 1), np.clip(ui[:, None] + dx - 1, 0, dw - 1)]  # (n, 9)
+    f = face[rows, cols]
     seen = np.where(f >= 0, plane_ids[np.maximum(f, 0)], -2)  # (−2: no face, never an edge's)
     return ok | ((seen == planes[:, :1]) | (seen == planes[:, 1:])).any(axis=1)
 

@@ -99,3 +99,37 @@ def test_edges_are_sampled_where_the_camera_sees_them(shape, elevation, azimuth)
         long_ = seen & (length >= 4 * step)
         expected = np.ceil(length / step)
         assert np.all(counts[long_] >= 0.7 * expected[long_] - 1), (counts[long_], expected[long_])
+
+
+def test_the_nearest_depth_round_a_sample_is_the_3x3_minimum_of_the_buffer():
+    """``edge_samples_visible`` reads the nearest surface round each sample from its 3×3
+    neighbourhood of the reduced z-buffer (session 41); it must equal the buffer eroded by a 3×3
+    minimum, borders included, inf and NaN meaning no surface — what it computed before."""
+    import cv2
+
+    from quatrack.recognition.visibility import edge_samples_visible
+
+    rng = np.random.default_rng(41)
+
+    class Buffer:
+        pass
+
+    for trial in range(20):
+        dh, dw = rng.integers(3, 30, size=2)
+        depth = rng.uniform(1.0, 2.0, size=(dh, dw)).astype(np.float32)
+        depth[rng.random((dh, dw)) < 0.3] = np.inf
+        depth[rng.random((dh, dw)) < 0.05] = np.nan
+        zb = Buffer()
+        zb.depth, zb.face = depth, np.full((dh, dw), -1)  # no face shown: the depth test alone decides
+        w, h = int(dw) * 4, int(dh) * 4
+        n = 200
+        uv = np.column_stack([rng.uniform(-1, w, n), rng.uniform(-1, h, n)])  # borders and beyond
+        z = rng.uniform(0.9, 2.1, n)
+        tol = 0.05
+        got = edge_samples_visible(zb, uv, z, np.zeros((n, 2), int), np.zeros(1, int), (w, h), tol)
+        near = cv2.erode(np.where(np.isfinite(depth), depth, np.inf).astype(np.float32), np.ones((3, 3), np.uint8))
+        ui = np.clip(np.rint((uv[:, 0] + 0.5) * dw / w - 0.5).astype(int), 0, dw - 1)
+        vi = np.clip(np.rint((uv[:, 1] + 0.5) * dh / h - 0.5).astype(int), 0, dh - 1)
+        want = z <= near[vi, ui] + tol
+        assert np.array_equal(got, want), trial
+        assert 0 < want.sum() < n  # both outcomes occur
