@@ -238,6 +238,9 @@ class EdgeFit:
     shift: float = 0.0
     points_rms_px: float = 0.0  # the inliers' reprojection RMS at the refitted pose
     pose: Pose | None = field(default=None, compare=False)  # the refitted pose (None: no refit; its shift compares)
+    # the refitted pose's covariance over [p, δθ]: the weighted residual variance times the
+    # inverse of the weighted normal matrix at the refitted pose, not inflated; None: no refit
+    covariance: np.ndarray | None = field(default=None, compare=False)
 
 
 def edge_fit(image: EdgeImage | None, mesh: Mesh, camera: PinholeCamera, pose: Pose, points3d: np.ndarray,
@@ -302,14 +305,27 @@ def edge_fit(image: EdgeImage | None, mesh: Mesh, camera: PinholeCamera, pose: P
         q = quat.multiply(quat.exp(0.5 * delta[3:]), q)
         if max(np.linalg.norm(delta[:3]) / (0.05 * mesh.extent), np.degrees(np.linalg.norm(delta[3:])) / 5.0) < 0.01:
             break  # the step is 1 % of the criterion
-    rms = 0.0
-    if m:
-        up, _ = project_model_points(camera, X, p, quat.to_matrix(q), jacobian=False)
-        rms = float(np.sqrt(np.mean(np.sum((up - uv) ** 2, axis=1))))
-    if not (np.isfinite(rms) and np.all(np.isfinite(p)) and np.all(np.isfinite(q))):
+    if not (np.all(np.isfinite(p)) and np.all(np.isfinite(q))):
+        return EdgeFit(k, offset, np.inf, np.inf)
+    # at the refitted pose: the inliers' RMS, and the covariance (IRLS weights held fixed):
+    # Σ = s² (Jᵀ W J)⁻¹, s² = Σ w r² / (Σ w − 6) the weighted residual variance (r in σ units)
+    u_all, J_all = project_model_points(camera, XX, p, quat.to_matrix(q))
+    up, Jp, ue, Je = u_all[:m], J_all[:m], u_all[m:], J_all[m:]
+    rms = float(np.sqrt(np.mean(np.sum((up - uv) ** 2, axis=1)))) if m else 0.0
+    r = np.concatenate([(up - uv).reshape(-1) / point_sigma_px, np.einsum("ij,ij->i", ue - y, n) / edge_sigma_px])
+    J = np.concatenate([Jp.reshape(-1, 6) / point_sigma_px, np.einsum("ijk,ij->ik", Je, n) / edge_sigma_px])
+    w = 1.0 / (1.0 + r * r / c2)
+    cov = None
+    if np.isfinite(rms) and w.sum() > 6.0:
+        s2 = max(float(np.sum(w * r * r)) / (float(w.sum()) - 6.0), 1e-4)
+        try:
+            cov = s2 * np.linalg.inv(J.T @ (w[:, None] * J))
+        except np.linalg.LinAlgError:
+            cov = None
+    if not np.isfinite(rms):
         return EdgeFit(k, offset, np.inf, np.inf)
     refit = Pose(q, p)
-    return EdgeFit(k, offset, pose_shift(refit, pose, mesh), rms, refit)
+    return EdgeFit(k, offset, pose_shift(refit, pose, mesh), rms, refit, cov)
 
 
 def pose_sd_ratio(centre_sd: float, rotation_sd_deg: float, extent: float) -> float:

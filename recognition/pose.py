@@ -44,7 +44,8 @@ class PoseParams:
     # of objects half out of the frame, "too few inliers (6–11 < 12)". 6 (twice the minimum of
     # a 6-DoF fit): zoo seeds 0–2 correct 631 → 654 of 1 152, no pose wrong that was not before;
     # cookie-box scenes 52 → 54 of 60; a consensus of 6 takes RANSAC more draws to rule out, so
-    # hopeless searches run longer (session 41, bench/RESULTS.md)
+    # hopeless searches run longer (session 41, bench/RESULTS.md). The whole image's search still
+    # asks for 12 (LocateParams.fallback_min_inliers)
     min_inliers: int = 6
     min_inlier_ratio: float = 0.15
     max_rms_px: float = 2.5
@@ -97,6 +98,14 @@ class PoseParams:
     # 1.0/0.5 224/5, 1.0/0.3 213/2, 0.4/0.2 187/0 (bench/RESULTS.md). With the edge refit
     # (max_edge_shift 1.0, session 18) 0.5 keeps 115/0 and 109/0 on seeds 1 and 2 (0.3: 103/0, 104/0)
     max_sd_ratio_one_face: float = 0.5
+    # A pose the points alone leave too uncertain (one face, the rest out of the frame) passes
+    # when the points *and the model's edges* fix it: refitted to both (:func:`~.evidence.edge_fit`),
+    # the refit's covariance times this inflation must be within the same bounds, and the refitted
+    # pose is reported with the sum of the points' covariance and this one. The edge samples along
+    # one edge err together, which the refit's covariance ignores: uninflated its NEES was median
+    # 10, p90 43 on zoo seed 0's found poses (χ²₆: 5.3, 10.6), so ×4; the sum held the truth of
+    # 95 % of such poses in its 95 % ellipsoid (session 41, bench/RESULTS.md). None: off
+    edge_covariance_inflation: float | None = 4.0
     face_crease_deg: float = 30.0  # inlier surfaces turning by more than this are other faces
     min_face_share: float = 0.1  # … and count when they hold this share (and ≥ 3) of the inliers
     min_confidence: float = 0.7  # refuse a pose with less than this (fitted) probability of being right
@@ -782,6 +791,9 @@ class Verification:
     # NCC (None: not measured, no photo shows what the pose shows) and the pixels compared
     texture_ncc: float | None = None
     texture_pixels: int = 0
+    # the points alone left the pose too uncertain and the edges fixed it: the pose to report is
+    # the edge refit's (``edge_fit.pose``; :attr:`PoseParams.edge_covariance_inflation`)
+    fixed_by_edges: bool = False
 
     def to_json(self) -> dict:
         return {
@@ -806,6 +818,7 @@ class Verification:
             "edge_fit_rms_px": round(self.edge_fit.points_rms_px, 3),
             "texture_ncc": None if self.texture_ncc is None else round(self.texture_ncc, 4),
             "texture_pixels": int(self.texture_pixels),
+            "fixed_by_edges": bool(self.fixed_by_edges),
             "reason": self.reason,
         }
 
@@ -963,9 +976,22 @@ def verification(
         rival = int(rival()) if reason is None else 0
     if reason is None and rival >= params.max_rival_ratio * n:
         reason = f"another pose fits almost as many matches ({rival} vs {n} inliers)"
-    elif reason is None and (ratio > params.max_sd_ratio or (faces < 2 and ratio > params.max_sd_ratio_one_face)):
+    bound = params.max_sd_ratio if faces >= 2 else min(params.max_sd_ratio, params.max_sd_ratio_one_face)
+    fit, fixed_by_edges = None, False
+    if reason is None and ratio > bound:
         reason = (f"the pose is too uncertain (σ {100 * c_sd / mesh.extent:.1f} % of the diameter, "
                   f"{r_sd:.1f}°; inliers on {faces} face{'s' if faces != 1 else ''})")
+        if params.edge_covariance_inflation is not None and points3d is not None:
+            fit = edge_fit(edge_image, mesh, camera, est.pose, np.asarray(points3d, float)[est.inliers], inl_uv,
+                           params.edges, params.edge_fit_reach)
+            if fit.covariance is not None and fit.shift <= params.max_edge_shift:
+                joint = PnPSolution(fit.pose, params.edge_covariance_inflation * fit.covariance, est.inliers, 0.0)
+                jc, jr = pose_sd(joint, mesh.centre)
+                if pose_sd_ratio(jc, jr, mesh.extent) <= bound:
+                    reason, fixed_by_edges = None, True
+                    c_sd, r_sd, ratio = jc, jr, pose_sd_ratio(jc, jr, mesh.extent)
+                else:
+                    reason += (f"; with the edges σ {100 * jc / mesh.extent:.1f} % of the diameter, {jr:.1f}°")
     influence = match_influence(est, camera, mesh, points3d, uv) if points3d is not None else 0.0
     if reason is None and influence > params.max_match_influence:
         reason = (f"the pose rests on one match (without it the pose moves {influence:.2f} × the 5 %/5° "
@@ -973,8 +999,9 @@ def verification(
     # The edge refit is the costliest check (a Gauss–Newton over inliers and edge samples): it
     # runs only for a pose every cheaper check passes; a refused pose keeps an empty refit
     # (EdgeFit(): no samples, no shift) in its evidence, and its confidence is capped below.
-    fit = EdgeFit()
-    if reason is None and points3d is not None:
+    if fit is None:
+        fit = EdgeFit()
+    if reason is None and points3d is not None and not fixed_by_edges:
         fit = edge_fit(edge_image, mesh, camera, est.pose, np.asarray(points3d, float)[est.inliers], inl_uv,
                        params.edges, params.edge_fit_reach)
         if fit.shift > params.max_edge_shift:
@@ -985,4 +1012,5 @@ def verification(
     if reason is None and conf < params.min_confidence:
         reason = f"the evidence is too weak (confidence {conf:.2f} < {params.min_confidence})"
     return Verification(reason is None, reason, conf if reason is None else min(conf, 0.5), share, edges, spread, n,
-                        rival, faces, c_sd, r_sd, ratio, influence, tuple(feats.items()), fit)
+                        rival, faces, c_sd, r_sd, ratio, influence, tuple(feats.items()), fit,
+                        fixed_by_edges=fixed_by_edges and reason is None)

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from quatrack.cli import main
-from quatrack.recognition.locate import locate, locate_all
+from quatrack.recognition.locate import LocateParams, locate, locate_all
 from quatrack.recognition.match import ModelIndex, index_for
 from quatrack.recognition.pose import PnPSolution, PoseParams, plausible, refine, solve_pnp, verification, verify
 from quatrack.testing import scenes as S
@@ -121,6 +121,29 @@ def test_object_half_out_of_frame_is_found_with_the_right_pose(cube, bgs):
             assert v["passed"] and 0.5 < v["confidence"] <= 1.0 and v["inside_fraction"] < 0.75
     assert hits >= 2
 
+
+def test_a_pose_the_points_leave_uncertain_is_fixed_by_the_edges(cube, bgs):
+    """Half out of the frame, the inliers lie on one face and leave the pose too uncertain for
+    the points alone (σ beyond the one-face bound); refitted to the points *and* the model's
+    edges (``PoseParams.edge_covariance_inflation``) it is determined and reported at the
+    refit, right. Off, such a pose is refused as too uncertain (session 41)."""
+    model, spec = cube
+    # (the window's own answer: the whole image's search would give its own reason)
+    off = LocateParams(pose=PoseParams(edge_covariance_inflation=None), whole_image_fallback=False)
+    fixed = refused_without = 0
+    for seed in range(6):
+        for outside in (0.5, 0.6):
+            sc = _scene("cube-m", spec, bgs, seed, angle=10.0, outside=outside)
+            r = locate(sc.image, CAM, model)
+            assert not r.found or _correct(r, sc.pose, model.mesh), r.to_json()  # never a wrong pose
+            if r.found and r.verification["fixed_by_edges"]:
+                fixed += 1
+                assert r.verification["sd_ratio"] <= PoseParams().max_sd_ratio  # the refit's, inflated
+                r0 = locate(sc.image, CAM, model, off)
+                if not r0.found:
+                    refused_without += 1
+                    assert "too uncertain" in r0.reason, r0.reason
+    assert fixed >= 1 and refused_without >= 1, (fixed, refused_without)
 
 def test_plausible_judges_the_part_inside_the_image(cube):
     model, spec = cube

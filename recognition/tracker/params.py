@@ -16,6 +16,7 @@ from quatrack.tracking.adjust import AdjustOptions
 
 from ..klt import KLTParams
 from ..locate import LocateParams
+from ..pose import PoseParams
 from ..visibility import VisibilityParams
 
 # Plant noise per motion model, free of units: translation terms are per diameter² of the object,
@@ -253,8 +254,12 @@ class TrackerParams:
     klt: KLTParams = field(default_factory=KLTParams)
     visibility: VisibilityParams = field(default_factory=VisibilityParams)
     # recognition after a loss re-matches each tried view alone (LocateParams.rematch_views): the
-    # keyframes and their synthetic views repeat the same points and split the shared index's votes
-    locate: LocateParams = field(default_factory=lambda: LocateParams(rematch_views=True))
+    # keyframes and their synthetic views repeat the same points and split the shared index's votes.
+    # A pose the points leave too uncertain is not fixed by the edges here
+    # (PoseParams.edge_covariance_inflation None): on the 24 walks, tracks re-found so went on to
+    # report poses 18 % / 11° off (flat box #11) where waiting for the points did not (session 41)
+    locate: LocateParams = field(default_factory=lambda: LocateParams(
+        rematch_views=True, pose=PoseParams(edge_covariance_inflation=None)))
     adjust: AdjustOptions = field(
         # Gauss–Newton from the prediction converges in 2–3 steps here; 4 is a measured margin.
         # The stop rule ‖∇F‖ < ε mixes 1/length (position) and 1/rad terms, so ε is tiny: the
