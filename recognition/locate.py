@@ -61,6 +61,12 @@ class LocateParams:
     prefer_tried: int = 8  # locate(prefer=…): that many of the preferred views are tried, the most matched first
     pool_all: bool = True  # then all matches of every viewset together
     whole_image_fallback: bool = True
+    # the whole image's search asks for a consensus of at least this many inliers (None:
+    # ``pose.min_inliers``): the whole frame's clutter matches by the hundred, and chance
+    # consensuses of a few of them cost a verification each. At 6 the PnP stage of an image
+    # without the object took ~16× longer (8 models: 14 → 230 ms) for ~8 more right poses in 384
+    # zoo scenes (session 41, bench/RESULTS.md)
+    fallback_min_inliers: int | None = 12
     # RANSAC on few matches stops after the draws that would have found a consensus of
     # ``pose.min_inliers`` with this probability (:func:`ransac_iterations_bound`)
     ransac_bound_confidence: float = 0.9999
@@ -421,7 +427,10 @@ def locate(
         if window_failed and params.fallback_object_px is not None:
             scale = min(scale, sift_scale((0, 0, typical_object_px(model, w), 0), params.fallback_object_px))
         first = res
-        res = _describe_and_pose(img, None, scale, index, model, cam, None, params, timer, grey, shared, prefer)
+        whole = params
+        if params.fallback_min_inliers is not None and params.fallback_min_inliers > params.pose.min_inliers:
+            whole = replace(params, pose=replace(params.pose, min_inliers=params.fallback_min_inliers))
+        res = _describe_and_pose(img, None, scale, index, model, cam, None, whole, timer, grey, shared, prefer)
         if res.verification is None:
             res.verification = first.verification
     est = res.est
