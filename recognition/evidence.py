@@ -245,7 +245,7 @@ class EdgeFit:
 
 def edge_fit(image: EdgeImage | None, mesh: Mesh, camera: PinholeCamera, pose: Pose, points3d: np.ndarray,
              uv: np.ndarray, params: EdgeParams = EdgeParams(), reach: float = 0.05, edge_sigma_px: float = 1.0,
-             point_sigma_px: float = 1.0, iterations: int = 6) -> EdgeFit:
+             point_sigma_px: float = 1.0, iterations: int = 6, covariance: bool = False) -> EdgeFit:
     """Refit the pose to the inliers (``points3d`` ↔ ``uv``) *and* the model's edges, and say how
     far it moves.
 
@@ -260,7 +260,9 @@ def edge_fit(image: EdgeImage | None, mesh: Mesh, camera: PinholeCamera, pose: P
     ``1 / (1 + r²/2²)`` (r in σ), from the pose, updating ``p ← p + δp``, ``q ← exp(δθ/2) q``. A right
     pose is where its edges are: it barely moves. A pose the points hold a few pixels off the
     image's edges moves towards them, by a share of the criterion :class:`EdgeFit` reports.
-    Without points (none given) the edges alone are refitted: a pose no point may vouch for."""
+    Without points (none given) the edges alone are refitted: a pose no point may vouch for.
+    ``covariance``: also return the refitted pose's covariance (:class:`EdgeFit`; recognition's
+    verification asks for it, the tracker's audits need not pay for it)."""
     from quatrack.tracking import quaternion as quat
     from quatrack.tracking.measurements import project_model_points
 
@@ -309,15 +311,18 @@ def edge_fit(image: EdgeImage | None, mesh: Mesh, camera: PinholeCamera, pose: P
         return EdgeFit(k, offset, np.inf, np.inf)
     # at the refitted pose: the inliers' RMS, and the covariance (IRLS weights held fixed):
     # Σ = s² (Jᵀ W J)⁻¹, s² = Σ w r² / (Σ w − 6) the weighted residual variance (r in σ units)
-    u_all, J_all = project_model_points(camera, XX, p, quat.to_matrix(q))
-    up, Jp, ue, Je = u_all[:m], J_all[:m], u_all[m:], J_all[m:]
-    rms = float(np.sqrt(np.mean(np.sum((up - uv) ** 2, axis=1)))) if m else 0.0
-    r = np.concatenate([(up - uv).reshape(-1) / point_sigma_px, np.einsum("ij,ij->i", ue - y, n) / edge_sigma_px])
-    J = np.concatenate([Jp.reshape(-1, 6) / point_sigma_px, np.einsum("ijk,ij->ik", Je, n) / edge_sigma_px])
-    w = 1.0 / (1.0 + r * r / c2)
-    cov = None
-    if np.isfinite(rms) and w.sum() > 6.0:
-        s2 = max(float(np.sum(w * r * r)) / (float(w.sum()) - 6.0), 1e-4)
+    rms, cov, u_all, J_all = 0.0, None, None, None
+    if covariance or m:
+        u_all, J_all = project_model_points(camera, XX if covariance else X, p, quat.to_matrix(q), jacobian=covariance)
+    up = u_all[:m] if u_all is not None else None
+    if m:
+        rms = float(np.sqrt(np.mean(np.sum((up - uv) ** 2, axis=1))))
+    if covariance and np.isfinite(rms):
+        Jp, ue, Je = J_all[:m], u_all[m:], J_all[m:]
+        r = np.concatenate([(up - uv).reshape(-1) / point_sigma_px, np.einsum("ij,ij->i", ue - y, n) / edge_sigma_px])
+        J = np.concatenate([Jp.reshape(-1, 6) / point_sigma_px, np.einsum("ijk,ij->ik", Je, n) / edge_sigma_px])
+        w = 1.0 / (1.0 + r * r / c2)
+        s2 = max(float(np.sum(w * r * r)) / max(float(w.sum()) - 6.0, 1.0), 1e-4)
         try:
             cov = s2 * np.linalg.inv(J.T @ (w[:, None] * J))
         except np.linalg.LinAlgError:

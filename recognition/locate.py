@@ -64,7 +64,7 @@ class LocateParams:
     # the whole image's search asks for a consensus of at least this many inliers (None:
     # ``pose.min_inliers``): the whole frame's clutter matches by the hundred, and chance
     # consensuses of a few of them cost a verification each. At 6 the PnP stage of an image
-    # without the object took ~16× longer (8 models: 14 → 230 ms) for ~8 more right poses in 384
+    # without the object took ~16× longer (8 models: 14 → 230 ms) for ~6 more right poses in 384
     # zoo scenes (session 41, bench/RESULTS.md)
     fallback_min_inliers: int | None = 12
     # RANSAC on few matches stops after the draws that would have found a consensus of

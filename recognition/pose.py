@@ -983,7 +983,7 @@ def verification(
                   f"{r_sd:.1f}°; inliers on {faces} face{'s' if faces != 1 else ''})")
         if params.edge_covariance_inflation is not None and points3d is not None:
             fit = edge_fit(edge_image, mesh, camera, est.pose, np.asarray(points3d, float)[est.inliers], inl_uv,
-                           params.edges, params.edge_fit_reach)
+                           params.edges, params.edge_fit_reach, covariance=True)
             if fit.covariance is not None and fit.shift <= params.max_edge_shift:
                 joint = PnPSolution(fit.pose, params.edge_covariance_inflation * fit.covariance, est.inliers, 0.0)
                 jc, jr = pose_sd(joint, mesh.centre)
