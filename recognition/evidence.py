@@ -287,16 +287,18 @@ def edge_fit(image: EdgeImage | None, mesh: Mesh, camera: PinholeCamera, pose: P
     c2 = 2.0**2  # Cauchy scale (σ units)
     XX = np.concatenate([X, Xe])  # inliers and edge samples projected in one call per step
     m = len(X)
-    for _ in range(iterations):
-        R = quat.to_matrix(q)
-        u_all, J_all = project_model_points(camera, XX, p, R)
+
+    def system(p: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The inliers' projections and the stacked residuals (σ units) and Jacobian at (p, q):
+        inliers ``(π(R X + t) − u) / σₚ``, edges ``nᵀ(π(R Xₑ + t) − yₑ) / σₑ``."""
+        u_all, J_all = project_model_points(camera, XX, p, quat.to_matrix(q))
         up, Jp, ue, Je = u_all[:m], J_all[:m], u_all[m:], J_all[m:]
-        rp = (up - uv).reshape(-1) / point_sigma_px
-        Jp = Jp.reshape(-1, 6) / point_sigma_px
-        re = np.einsum("ij,ij->i", ue - y, n) / edge_sigma_px  # distance across the edge
-        Je = np.einsum("ijk,ij->ik", Je, n) / edge_sigma_px
-        r = np.concatenate([rp, re])
-        J = np.concatenate([Jp, Je])
+        r = np.concatenate([(up - uv).reshape(-1) / point_sigma_px, np.einsum("ij,ij->i", ue - y, n) / edge_sigma_px])
+        J = np.concatenate([Jp.reshape(-1, 6) / point_sigma_px, np.einsum("ijk,ij->ik", Je, n) / edge_sigma_px])
+        return up, r, J
+
+    for _ in range(iterations):
+        _, r, J = system(p, q)
         w = 1.0 / (1.0 + r * r / c2)  # IRLS weights of the Cauchy loss
         A = J.T @ (w[:, None] * J) + 1e-9 * np.eye(6)
         try:
@@ -311,24 +313,22 @@ def edge_fit(image: EdgeImage | None, mesh: Mesh, camera: PinholeCamera, pose: P
         return EdgeFit(k, offset, np.inf, np.inf)
     # at the refitted pose: the inliers' RMS, and the covariance (IRLS weights held fixed):
     # Σ = s² (Jᵀ W J)⁻¹, s² = Σ w r² / (Σ w − 6) the weighted residual variance (r in σ units)
-    rms, cov, u_all, J_all = 0.0, None, None, None
-    if covariance or m:
-        u_all, J_all = project_model_points(camera, XX if covariance else X, p, quat.to_matrix(q), jacobian=covariance)
-    up = u_all[:m] if u_all is not None else None
+    rms, cov = 0.0, None
+    if covariance:
+        up, r, J = system(p, q)
+    elif m:
+        up, _ = project_model_points(camera, X, p, quat.to_matrix(q), jacobian=False)
     if m:
         rms = float(np.sqrt(np.mean(np.sum((up - uv) ** 2, axis=1))))
-    if covariance and np.isfinite(rms):
-        Jp, ue, Je = J_all[:m], u_all[m:], J_all[m:]
-        r = np.concatenate([(up - uv).reshape(-1) / point_sigma_px, np.einsum("ij,ij->i", ue - y, n) / edge_sigma_px])
-        J = np.concatenate([Jp.reshape(-1, 6) / point_sigma_px, np.einsum("ijk,ij->ik", Je, n) / edge_sigma_px])
+    if not np.isfinite(rms):
+        return EdgeFit(k, offset, np.inf, np.inf)
+    if covariance:
         w = 1.0 / (1.0 + r * r / c2)
         s2 = max(float(np.sum(w * r * r)) / max(float(w.sum()) - 6.0, 1.0), 1e-4)
         try:
             cov = s2 * np.linalg.inv(J.T @ (w[:, None] * J))
         except np.linalg.LinAlgError:
             cov = None
-    if not np.isfinite(rms):
-        return EdgeFit(k, offset, np.inf, np.inf)
     refit = Pose(q, p)
     return EdgeFit(k, offset, pose_shift(refit, pose, mesh), rms, refit, cov)
 

@@ -210,13 +210,9 @@ def _pose_from(
                 model.mesh, params.pose, grey)) if len(rest) >= params.pose.min_inliers else 0
             ver = verification(est, grey, camera, model.mesh, uv, params.pose, rival, m.points3d)
             out.verification = ver
-            if ver.passed and ver.fixed_by_edges:
-                # reported where the points and the edges agree, with both covariances summed: the
-                # refit moved the pose off the points' fit, and its own covariance (inflated) is
-                # too confident for one in ten poses (bench/RESULTS.md, session 41)
+            if ver.passed and ver.fixed_by_edges:  # reported where the points and the edges agree
                 fit = ver.edge_fit
-                cov = est.covariance + params.pose.edge_covariance_inflation * fit.covariance
-                est = PnPSolution(fit.pose, cov, est.inliers, fit.points_rms_px, est.ties)
+                est = PnPSolution(fit.pose, ver.fixed_covariance, est.inliers, fit.points_rms_px, est.ties)
             elif ver.passed:
                 est = polish(est, camera, m.points3d, uv, params.pose)
             if ver.passed:

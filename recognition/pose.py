@@ -794,6 +794,10 @@ class Verification:
     # the points alone left the pose too uncertain and the edges fixed it: the pose to report is
     # the edge refit's (``edge_fit.pose``; :attr:`PoseParams.edge_covariance_inflation`)
     fixed_by_edges: bool = False
+    # a fixed pose's covariance to report: the points' plus the inflated refit's, ``Σ_PnP + k Σ_refit``
+    # — the refit moved the pose off the points' fit, and its own covariance (inflated) is too
+    # confident for one pose in ten (bench/RESULTS.md, session 41); None unless fixed_by_edges
+    fixed_covariance: np.ndarray | None = field(default=None, compare=False)
 
     def to_json(self) -> dict:
         return {
@@ -1013,4 +1017,6 @@ def verification(
         reason = f"the evidence is too weak (confidence {conf:.2f} < {params.min_confidence})"
     return Verification(reason is None, reason, conf if reason is None else min(conf, 0.5), share, edges, spread, n,
                         rival, faces, c_sd, r_sd, ratio, influence, tuple(feats.items()), fit,
-                        fixed_by_edges=fixed_by_edges and reason is None)
+                        fixed_by_edges=fixed_by_edges and reason is None,
+                        fixed_covariance=np.asarray(est.covariance, float) + joint.covariance
+                        if fixed_by_edges and reason is None else None)
