@@ -6,7 +6,10 @@ line as it goes), :func:`_summary` reports. Frame sources, rows, the overlay and
 come from :mod:`recognition.trackio` and :mod:`recognition.overlay`, shared with ``demo`` and
 the client. Every output (poses, overlay video, plot) is written to a temporary file next to its
 target and renamed into place only when the run ends — normally, at ``--max-frames`` or on Ctrl-C
-(which stops a live source cleanly) — so an error never leaves a half-written file behind.
+(which stops a live source cleanly) — so an error never leaves a half-written file behind. An
+image of a sequence that cannot be read does not end the run: its row says ``lost``
+(:meth:`Tracker.skip <quatrack.recognition.tracker.machine.Tracker.skip>`), stderr names it,
+and the track goes on with the next frame (one bad file in ten thousand costs one row, not the run).
 
 ``--learn`` (issue 12): the tracker keeps views of the sides the training photos never showed
 (:mod:`quatrack.viewsets.learn`); when the run ends normally or by Ctrl-C they are merged into the
@@ -33,7 +36,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     src.add_argument("--video", metavar="SOURCE",
                      help="a video file (anything OpenCV/FFmpeg reads), a camera index such as 0, "
                           "or a stream URL (rtsp://, http://, ...)")
-    src.add_argument("--images", metavar="GLOB", help="an image sequence, e.g. 'frames/*.png' (quote it; sorted by name)")
+    src.add_argument("--images", metavar="GLOB", nargs="+",
+                     help="an image sequence, e.g. 'frames/*.png' (sorted by name), or several globs or files "
+                          "(an unquoted glob: each expanded and sorted, in the order given); an image that "
+                          "cannot be read is skipped: its row says lost")
     parser.add_argument("--object", required=True, metavar="NAME", help="a trained object (see `quatrack models list`)")
     parser.add_argument("--camera", required=True, metavar="CAMERA", help="camera file of the frames (JSON, or OpenCV YAML)")
     parser.add_argument("--out", required=True, metavar="POSES", help="output file, one row per frame (see --format)")
@@ -139,17 +145,36 @@ def _track_frames(s: _Setup, rows, video, progress) -> tuple[list, bool]:
 
     edges = mesh_edges(s.model.mesh)
     steps = []
+    last = None  # the latest frame read: an unreadable one's overlay shows it again, marked lost
+
+    def emit(step, image) -> None:
+        rows.write(step)
+        steps.append(step)
+        progress.update(step.status)
+        if video is not None and image is not None:
+            video.write(draw_overlay(image, s.camera, s.model.mesh, step, edges))
+
+    done = 0  # the skipped frames written so far
+
+    def skipped_until(index: int | None) -> None:
+        """Rows for the frames the source skipped (unreadable) before frame ``index`` (None: all)."""
+        nonlocal done
+        bad = s.source.skipped
+        while done < len(bad) and (index is None or bad[done][0] < index):
+            _, t, why = bad[done]
+            done += 1
+            emit(s.tracker.skip(t, f"the frame cannot be read: {why}"), last)
+
     try:
         for i, t, image in s.source:
+            skipped_until(i)
             try:
                 step = s.tracker.step(image, t)
             except ValueError as exc:
                 raise UserError(f"{s.source.where(i)}: {exc}") from None
-            rows.write(step)
-            steps.append(step)
-            progress.update(step.status)
-            if video is not None:
-                video.write(draw_overlay(to_bgr8(image), s.camera, s.model.mesh, step, edges))
+            last = to_bgr8(image)
+            emit(step, last)
+        skipped_until(None)
     except KeyboardInterrupt:
         return steps, True
     finally:
@@ -179,12 +204,19 @@ def run(args: argparse.Namespace) -> int:
                 progress.close()
                 if video is not None:
                     video.close()
+            bad = s.source.skipped
+            if bad and len(bad) == len(steps):  # (nothing written: the outputs are discarded)
+                raise UserError(f"{s.source.label}: no frame can be read ({bad[0][2]})")
         if args.plot:
             with atomic_path(args.plot, "--plot") as tmp_png:
                 if not cv2.imwrite(tmp_png, plot_track(steps)):
                     raise UserError(f"--plot {args.plot}: cannot write the PNG")
     if interrupted:
         print(f"quatrack track: stopped (Ctrl-C) after {len(steps)} frames; outputs complete", file=sys.stderr)
+    for k, _, why in s.source.skipped[:5]:
+        print(f"quatrack track: frame {k} cannot be read, written as lost: {why}", file=sys.stderr)
+    if len(s.source.skipped) > 5:
+        print(f"quatrack track: ... {len(s.source.skipped)} frames in all cannot be read", file=sys.stderr)
     if s.tracker.params.learn:
         _store_learned(s, args.object)
     if not args.quiet:

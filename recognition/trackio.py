@@ -4,8 +4,10 @@ Every consumer of a track — ``quatrack track``, ``quatrack demo``, the Python 
 benchmarks and the tests — reads frames and writes poses through this module, so the rules below
 hold everywhere:
 
-- **Frame sources** (:func:`open_frames`): a video file, a glob of images (sorted by name), a
-  camera index (``"0"``) or any URL ``cv2.VideoCapture`` opens (``rtsp://``, ``http://``, ...).
+- **Frame sources** (:func:`open_frames`): a video file, a glob of images (sorted by name; or
+  several globs or files, as a shell expands an unquoted glob), a camera index (``"0"``) or any
+  URL ``cv2.VideoCapture`` opens (``rtsp://``, ``http://``, ...). An image of a sequence that
+  cannot be read is skipped, listed with its index and time (:attr:`FrameSource.skipped`).
 - **Frame rate and time** (one rule): ``time_s = index / rate`` where ``rate`` is the user's
   ``--fps`` if given, else the rate the container reports if it is finite and in (0, 1000], else
   30. Per-frame container timestamps are not used (with B-frames they come out of order). A live
@@ -33,7 +35,7 @@ import sys
 import tempfile
 import time
 from dataclasses import dataclass, field
-from typing import Any, Callable, Iterator
+from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
 
@@ -114,10 +116,13 @@ class FrameSource:
     live: bool = False
     names: list[str] | None = None
     max_frames: int | None = None
-    _frames: Iterator[np.ndarray] | None = None
+    _frames: Iterator[np.ndarray | Exception] | None = None
     _close: Callable[[], None] = lambda: None
     _clock: Callable[[], float] = time.monotonic
     count: int = field(default=0, init=False)
+    # frames that could not be read (an image sequence's unreadable file), skipped with their
+    # index and time: ``(index, time_s, why)``; the frames after them keep their own index and time
+    skipped: list[tuple[int, float, str]] = field(default_factory=list, init=False)
 
     def __iter__(self) -> Iterator[tuple[int, float, np.ndarray]]:
         t0 = None
@@ -133,6 +138,9 @@ class FrameSource:
                 else:
                     t = i / self.rate
                 self.count += 1
+                if isinstance(image, Exception):  # (the frame's source said why it cannot be read)
+                    self.skipped.append((i, t, str(image)))
+                    continue
                 yield i, t, image
         finally:
             self.close()
@@ -151,11 +159,25 @@ class FrameSource:
         self.close()
 
 
-def open_frames(video: str | None = None, images: str | None = None, fps: float | None = None,
+def open_frames(video: str | None = None, images: str | Sequence[str] | None = None, fps: float | None = None,
                 max_frames: int | None = None) -> FrameSource:
-    """A :class:`FrameSource` for ``--video`` (file, camera index, URL) or ``--images`` (a glob).
-    Raises :class:`SourceError` when nothing can be read from it (the first frame is decoded
-    here, so a bad file fails before any output is opened)."""
+    """A :class:`FrameSource` for ``--video`` (file, camera index, URL) or ``--images`` (a glob, or
+    several globs or files — what a shell makes of an unquoted glob: each expanded and sorted by
+    name, in the order given, each file once). Raises :class:`SourceError` when nothing can be
+    read from it (a video's first frame is decoded here, so a bad file fails before any output
+    is opened). An image of a sequence that cannot be decoded is skipped and listed in
+    :attr:`FrameSource.skipped`: one bad file does not end a long sequence.
+
+    >>> import tempfile, cv2
+    >>> d = tempfile.mkdtemp()
+    >>> for name in ("b.png", "a.png"):
+    ...     _ = cv2.imwrite(os.path.join(d, name), np.zeros((40, 40, 3), np.uint8))
+    >>> _ = open(os.path.join(d, "c.png"), "w").write("not an image")
+    >>> src = open_frames(images=[os.path.join(d, n) for n in ("b.png", "c.png", "a.png")])
+    >>> [os.path.basename(src.names[i]) for i, _, _ in src], [(i, t) for i, t, _ in src.skipped]
+    (['b.png', 'a.png'], [(1, 0.03333333333333333)])
+    >>> import shutil; shutil.rmtree(d)
+    """
     if fps is not None and not (math.isfinite(fps) and 0 < fps <= MAX_RATE):
         raise SourceError(f"--fps must be a positive number (at most {MAX_RATE:g})")
     if max_frames is not None and max_frames < 1:
@@ -163,13 +185,26 @@ def open_frames(video: str | None = None, images: str | None = None, fps: float 
     if (video is None) == (images is None):
         raise SourceError("give one of --video or --images")
     if images is not None:
-        from .images import read_image
+        from .images import ImageError, read_image
 
-        paths = sorted(p for p in globlib.glob(os.path.expanduser(images)) if os.path.isfile(p))
+        patterns = [images] if isinstance(images, str) else list(images)
+        paths: list[str] = []
+        for pattern in patterns:
+            paths += sorted(p for p in globlib.glob(os.path.expanduser(pattern)) if os.path.isfile(p))
+        paths = list(dict.fromkeys(paths))  # each file once, first place kept
+        label = " ".join(repr(p) for p in patterns[:2]) + (f" … ({len(patterns)} in all)" if len(patterns) > 2 else "")
         if not paths:
-            raise SourceError(f"--images {images!r}: no file matches")
-        return FrameSource(f"--images {images}", frame_rate(fps), names=paths, max_frames=max_frames,
-                           _frames=(read_image(p) for p in paths))
+            raise SourceError(f"--images {label}: no file matches")
+
+        def frames() -> Iterator[np.ndarray | ImageError]:
+            for p in paths:
+                try:
+                    yield read_image(p)
+                except ImageError as exc:  # (the message names the file)
+                    yield exc
+
+        return FrameSource(f"--images {label}", frame_rate(fps), names=paths, max_frames=max_frames,
+                           _frames=frames())
     target = capture_target(video)
     live = not isinstance(target, str) or "://" in target
     cap = open_capture(target)

@@ -253,3 +253,21 @@ def test_overlay_draws_the_wireframe_where_the_pose_projects():
     assert green[int(round(v[0])) - 2:int(round(v[0])) + 3, int(round(u[0]))].any()  # middle of the first edge
     lost = draw_overlay(np.zeros((240, 320, 3), np.uint8), cam, None, TrackStep(frame=1, time_s=0.0, status="lost"), edges)
     assert not lost[40:].any()  # nothing but the label
+
+
+def test_images_given_as_files_and_globs_keep_their_order_and_skip_what_cannot_be_read(tmp_path):
+    """What a shell makes of an unquoted glob (a list of files), or several globs: each expanded
+    and sorted, in the order given, each file once; an unreadable file is skipped with its index
+    and time, and the frames after it keep theirs."""
+    for k in (1, 2, 3):
+        cv2.imwrite(str(tmp_path / f"a{k}.png"), np.full((40, 40, 3), k, np.uint8))
+    (tmp_path / "b1.png").write_text("not an image")
+    cv2.imwrite(str(tmp_path / "b2.png"), np.full((40, 40, 3), 9, np.uint8))
+    src = trackio.open_frames(images=[str(tmp_path / "b*.png"), str(tmp_path / "a2.png"), str(tmp_path / "a*.png")],
+                              fps=10)
+    got = list(src)
+    assert [i for i, _, _ in got] == [1, 2, 3, 4] and [t for _, t, _ in got] == [0.1, 0.2, 0.3, 0.4]
+    assert [int(img[0, 0, 0]) for _, _, img in got] == [9, 2, 1, 3]  # b1 (skipped), b2, a2, then a1, a3
+    assert [(i, t) for i, t, _ in src.skipped] == [(0, 0.0)] and "b1.png" in src.skipped[0][2]
+    with pytest.raises(trackio.SourceError, match="no file matches"):
+        trackio.open_frames(images=[str(tmp_path / "none*.png"), str(tmp_path / "nothing.png")])

@@ -118,3 +118,53 @@ def test_a_stream_url_on_loopback(tmp_path):
     assert all(r[2] == "tracking" for r in rows[1:])
     times = [float(r[1]) for r in rows]
     assert times[0] == 0.0 and all(b > a for a, b in zip(times, times[1:]))
+
+
+def _box_frames(n: int) -> list:
+    import cv2
+
+    cap = cv2.VideoCapture(str(EXAMPLE / "box.mp4"))
+    frames = [cap.read()[1] for _ in range(n)]
+    cap.release()
+    return frames
+
+
+def test_an_unreadable_image_in_a_sequence_is_a_lost_row_and_the_track_goes_on(tmp_path, capsys):
+    """An image sequence given unquoted (the shell's list of files) with two unreadable files in
+    the middle and an empty one at the end: every frame has its row, in order, at its own time;
+    the unreadable ones say lost and are named on stderr; the track goes on after the gap."""
+    import cv2
+
+    seq = tmp_path / "seq"
+    seq.mkdir()
+    for k, frame in enumerate(_box_frames(8)):
+        path = seq / f"{k:04d}.png"
+        if k in (3, 4):
+            path.write_text("not an image")
+        elif k == 7:
+            path.write_bytes(b"")
+        else:
+            assert cv2.imwrite(str(path), frame)
+    files = [str(p) for p in sorted(seq.iterdir())]
+    out, overlay = tmp_path / "poses.csv", tmp_path / "overlay.mp4"
+    assert _track(tmp_path, "--images", *files, "--out", str(out), "--overlay", str(overlay)) == 0
+    err = capsys.readouterr().err
+    rows = list(csv.reader(out.open()))[1:]
+    assert [int(r[0]) for r in rows] == list(range(8))
+    assert np.allclose([float(r[1]) for r in rows], np.arange(8) / 30.0)
+    assert [r[2] for r in rows] == ["init", "tracking", "tracking", "lost", "lost", "tracking", "tracking", "lost"]
+    for k in (3, 4, 7):
+        assert f"frame {k} cannot be read" in err and f"{k:04d}.png" in err
+    cap = cv2.VideoCapture(str(overlay))
+    assert int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) == 8  # one overlay frame per row
+    cap.release()
+
+
+def test_a_sequence_with_no_readable_image_is_a_one_line_error(tmp_path, capsys):
+    for name in ("a.png", "b.png"):
+        (tmp_path / name).write_text("not an image")
+    out = tmp_path / "poses.csv"
+    rc = _track(tmp_path, "--images", str(tmp_path / "*.png"), "--out", str(out))
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and "no frame can be read" in err and "\n" not in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.png", "b.png"]  # no output, no temporary

@@ -180,6 +180,17 @@ class Tracker:
         self.reset()
         self._pending = (pose, None if time_s is None else float(time_s))
 
+    def skip(self, time_s: float, reason: str) -> TrackStep:
+        """A frame taken at ``time_s`` that could not be read (an image sequence's unreadable
+        file): counted, so the next frame keeps its own number, and answered ``lost`` with
+        ``reason``. The track is kept: the next frame predicts across the gap, as after a
+        dropped frame."""
+        time_s = float(time_s)
+        if not np.isfinite(time_s):
+            raise ValueError("time_s must be finite")
+        self._frame += 1
+        return TrackStep(self._frame, time_s, "lost", reason=reason)
+
     @property
     def tracking(self) -> bool:
         return self.filter.state is not None
