@@ -68,6 +68,22 @@ def test_skip_existing_trains_only_what_is_missing_or_changed(tmp_path, capsys):
     assert main(args) == 0 and "trained" in capsys.readouterr().out
 
 
+def test_a_missing_mask_is_one_line_naming_it_and_nothing_else(tmp_path, capfd):
+    """The user's spec names a mask that is not there: one line says which, exit status 2, the
+    store untouched — and no OpenCV warning on the same stderr (capfd: OpenCV writes to fd 2)."""
+    data = json.loads((EXAMPLE / "object.json").read_text())
+    data["mesh"] = str(EXAMPLE / data["mesh"])
+    data["views"][0]["image"] = str(EXAMPLE / data["views"][0]["image"])
+    data["views"][0]["mask"] = "no_such_mask.png"
+    spec = tmp_path / "object.json"
+    spec.write_text(json.dumps(data))
+    store = tmp_path / "store"
+    assert main(["train", str(spec), "--store", str(store)]) == 2
+    err = capfd.readouterr().err.strip()
+    assert "no_such_mask.png: file not found" in err and "\n" not in err and "WARN" not in err
+    assert not store.exists() or list_models(store) == []
+
+
 def test_every_stored_point_reprojects_onto_its_keypoint(trained_store):
     model = load_model(trained_store, "cookie-box")
     for vs in model.viewsets:

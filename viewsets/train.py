@@ -91,6 +91,8 @@ def _prepare_view(mesh: Mesh, view: ViewSpec) -> _View:
     buffers = check_pose(mesh, view)
     mask = buffers.mask
     if view.mask_path is not None:
+        if not view.mask_path.is_file():  # (before OpenCV, which would warn on stderr too)
+            raise SpecError(f"view {view.index}: mask {view.mask_path}: file not found")
         m = cv2.imread(str(view.mask_path), cv2.IMREAD_GRAYSCALE)
         if m is None:
             raise SpecError(f"view {view.index}: mask {view.mask_path}: missing or unreadable image")
