@@ -190,7 +190,11 @@ def open_frames(video: str | None = None, images: str | Sequence[str] | None = N
         patterns = [images] if isinstance(images, str) else list(images)
         paths: list[str] = []
         for pattern in patterns:
-            paths += sorted(p for p in globlib.glob(os.path.expanduser(pattern)) if os.path.isfile(p))
+            path = os.path.expanduser(pattern)
+            if os.path.isfile(path):  # a file as the shell gave it (``[1].png`` is no pattern then)
+                paths.append(path)
+            else:
+                paths += sorted(p for p in globlib.glob(path) if os.path.isfile(p))
         paths = list(dict.fromkeys(paths))  # each file once, first place kept
         label = " ".join(repr(p) for p in patterns[:2]) + (f" … ({len(patterns)} in all)" if len(patterns) > 2 else "")
         if not paths:

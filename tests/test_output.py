@@ -271,3 +271,6 @@ def test_images_given_as_files_and_globs_keep_their_order_and_skip_what_cannot_b
     assert [(i, t) for i, t, _ in src.skipped] == [(0, 0.0)] and "b1.png" in src.skipped[0][2]
     with pytest.raises(trackio.SourceError, match="no file matches"):
         trackio.open_frames(images=[str(tmp_path / "none*.png"), str(tmp_path / "nothing.png")])
+    odd = tmp_path / "frame[1].png"  # a file the shell listed, whose name is also a glob pattern
+    cv2.imwrite(str(odd), np.full((40, 40, 3), 7, np.uint8))
+    assert [int(img[0, 0, 0]) for _, _, img in trackio.open_frames(images=[str(odd)])] == [7]
