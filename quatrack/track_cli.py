@@ -145,7 +145,7 @@ def _track_frames(s: _Setup, rows, video, progress) -> tuple[list, bool]:
 
     edges = mesh_edges(s.model.mesh)
     steps = []
-    last = None  # the latest frame read: an unreadable one's overlay shows it again, marked lost
+    last = None  # the overlay's latest frame read: an unreadable one's shows it again, marked lost
 
     def emit(step, image) -> None:
         rows.write(step)
@@ -172,7 +172,7 @@ def _track_frames(s: _Setup, rows, video, progress) -> tuple[list, bool]:
                 step = s.tracker.step(image, t)
             except ValueError as exc:
                 raise UserError(f"{s.source.where(i)}: {exc}") from None
-            last = to_bgr8(image)
+            last = to_bgr8(image) if video is not None else None
             emit(step, last)
         skipped_until(None)
     except KeyboardInterrupt:

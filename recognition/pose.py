@@ -981,7 +981,10 @@ def verification(
     if reason is None and rival >= params.max_rival_ratio * n:
         reason = f"another pose fits almost as many matches ({rival} vs {n} inliers)"
     bound = params.max_sd_ratio if faces >= 2 else min(params.max_sd_ratio, params.max_sd_ratio_one_face)
-    fit, fixed_by_edges = None, False
+    # The edge refit is the costliest check (a Gauss–Newton over inliers and edge samples): it
+    # runs only for a pose every cheaper check passes, or one it may fix; a refused pose keeps an
+    # empty refit (EdgeFit(): no samples, no shift) in its evidence, and its confidence is capped below.
+    fit, fixed_cov = EdgeFit(), None  # (fixed_cov: the covariance of a pose the edges fixed)
     if reason is None and ratio > bound:
         reason = (f"the pose is too uncertain (σ {100 * c_sd / mesh.extent:.1f} % of the diameter, "
                   f"{r_sd:.1f}°; inliers on {faces} face{'s' if faces != 1 else ''})")
@@ -991,21 +994,17 @@ def verification(
             if fit.covariance is not None and fit.shift <= params.max_edge_shift:
                 joint = PnPSolution(fit.pose, params.edge_covariance_inflation * fit.covariance, est.inliers, 0.0)
                 jc, jr = pose_sd(joint, mesh.centre)
-                if pose_sd_ratio(jc, jr, mesh.extent) <= bound:
-                    reason, fixed_by_edges = None, True
-                    c_sd, r_sd, ratio = jc, jr, pose_sd_ratio(jc, jr, mesh.extent)
+                jratio = pose_sd_ratio(jc, jr, mesh.extent)
+                if jratio <= bound:
+                    reason, c_sd, r_sd, ratio = None, jc, jr, jratio
+                    fixed_cov = np.asarray(est.covariance, float) + joint.covariance
                 else:
                     reason += (f"; with the edges σ {100 * jc / mesh.extent:.1f} % of the diameter, {jr:.1f}°")
     influence = match_influence(est, camera, mesh, points3d, uv) if points3d is not None else 0.0
     if reason is None and influence > params.max_match_influence:
         reason = (f"the pose rests on one match (without it the pose moves {influence:.2f} × the 5 %/5° "
                   f"criterion)")
-    # The edge refit is the costliest check (a Gauss–Newton over inliers and edge samples): it
-    # runs only for a pose every cheaper check passes; a refused pose keeps an empty refit
-    # (EdgeFit(): no samples, no shift) in its evidence, and its confidence is capped below.
-    if fit is None:
-        fit = EdgeFit()
-    if reason is None and points3d is not None and not fixed_by_edges:
+    if reason is None and points3d is not None and fixed_cov is None:
         fit = edge_fit(edge_image, mesh, camera, est.pose, np.asarray(points3d, float)[est.inliers], inl_uv,
                        params.edges, params.edge_fit_reach)
         if fit.shift > params.max_edge_shift:
@@ -1017,6 +1016,5 @@ def verification(
         reason = f"the evidence is too weak (confidence {conf:.2f} < {params.min_confidence})"
     return Verification(reason is None, reason, conf if reason is None else min(conf, 0.5), share, edges, spread, n,
                         rival, faces, c_sd, r_sd, ratio, influence, tuple(feats.items()), fit,
-                        fixed_by_edges=fixed_by_edges and reason is None,
-                        fixed_covariance=np.asarray(est.covariance, float) + joint.covariance
-                        if fixed_by_edges and reason is None else None)
+                        fixed_by_edges=fixed_cov is not None and reason is None,
+                        fixed_covariance=fixed_cov if reason is None else None)
