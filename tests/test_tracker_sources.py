@@ -115,20 +115,29 @@ def test_mesh_points_are_kept_when_a_jolt_puts_the_prediction_off(box):
     assert np.allclose(np.median(moved, axis=0), [11.0, 5.0], atol=0.5)  # where they went, not where predicted
 
 
+@pytest.mark.parametrize("source", ["mesh", "trained"])
 @pytest.mark.parametrize("share, kept_all", [(0.3, True), (0.7, False)])
-def test_mesh_points_are_gated_only_when_most_of_them_pass(box, monkeypatch, share, kept_all):
+def test_points_are_gated_only_when_most_of_them_pass(box, monkeypatch, source, share, kept_all):
     """Gated to the third the prediction still expected, the cubes' born points dwindled over a
-    shake's frames until the track was lost again: the gate applies only when at least half pass."""
+    shake's frames until the track was lost again: the gate applies only when at least half pass
+    — for the trained points as for the born ones (one rule, points.unless_off)."""
     import quatrack.recognition.tracker.mesh_points as mp
+    import quatrack.recognition.tracker.sources as sources
 
     model, camera, poses, frames = box
-    src = MeshPoints(model.mesh, TrackerParams())
+    born = MeshPoints(model.mesh, TrackerParams())
     state = initial_state(0.0, poses[0].t, poses[0].q_wxyz, np.diag([0.05**2] * 3 + [np.radians(0.3) ** 2] * 3))
     frame = make_frame(cv2.cvtColor(frames[0], cv2.COLOR_BGR2GRAY))
     ctx = FrameContext(frames[0], frame, frame, camera, state)
-    n = src.spawn(ctx, state)
+    n = born.spawn(ctx, state)
     ctx.anchored = False
-    monkeypatch.setattr(mp, "gate", lambda camera, block, prior, chi2: np.arange(len(block)) < share * len(block))
+    src = born
+    if source == "trained":  # the same corners, as trained model points
+        src = sources.TrainedPoints(model.mesh, TrackerParams())
+        src.tracks = born.tracks
+    fake_gate = lambda camera, block, prior, chi2: np.arange(len(block)) < share * len(block)  # noqa: E731
+    monkeypatch.setattr(mp, "gate", fake_gate)
+    monkeypatch.setattr(sources, "gate", fake_gate)
     block = src.measure(ctx, {})
     assert n > 30
     assert (len(block) > 0.9 * n) if kept_all else (len(block) < 0.75 * n)

@@ -38,12 +38,9 @@ lines beside the creases, turned a pose started at the truth 5° away in one fra
 cube, bench/RESULTS.md, session 25). So a frame whose trained points are fewer than
 ``min_inliers`` (:attr:`FrameContext.anchored` false) measures the mesh points at ``σ² I`` alone.
 
-The innovation gate (at the prediction) keeps a point only where the prediction expects it. A
-camera's jolt puts the whole prediction off by more than the gate: then all are kept when fewer
-than ``min_inliers`` or fewer than half of them pass, and the adjustment's two passes judge
-them. Gated to a handful, the zoo's cubes and prisms were lost at the peak of their walks' shake
-with every point followed by KLT; gated to the third that the prediction still expected, they
-dwindled over the next frames until the track was lost again (bench/RESULTS.md, session 42).
+The innovation gate (at the prediction) keeps a point only where the prediction expects it,
+unless a camera's jolt put the whole prediction off (:func:`~.points.unless_off`, the rule the
+trained points follow too).
 """
 
 from __future__ import annotations
@@ -59,7 +56,7 @@ from quatrack.viewsets.render import (cast_rays, depth_edges, face_normals, foot
 
 from ..visibility import scaled_camera
 from .params import TrackerParams
-from .points import PointBlock, Tracks, gate
+from .points import PointBlock, Tracks, gate, unless_off
 from .sources import FrameContext, klt_block
 
 
@@ -199,9 +196,8 @@ class MeshPoints:
         if len(block):
             if ctx.anchored:  # (unanchored, the birth error is the state's own: see the module)
                 block.C = block.C + inherited_spread(ctx.camera, block.X, self.cov_X[idx], self.cohort[idx], ctx.prior)
-            g = gate(ctx.camera, block, ctx.prior, self.params.gate_chi2)
-            if g.sum() >= max(self.params.min_inliers, 0.5 * len(g)):  # (else the prediction is off: all kept)
-                block, idx = block.keep(g), idx[g]
+            g = unless_off(gate(ctx.camera, block, ctx.prior, self.params.gate_chi2), self.params.min_inliers)
+            block, idx = block.keep(g), idx[g]
         self._idx = idx
         return block
 

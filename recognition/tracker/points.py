@@ -89,6 +89,25 @@ def gate(camera: PinholeCamera, block: PointBlock, prior: FilterState, chi2: flo
     return mahalanobis2(block.uv - uv, S) < chi2
 
 
+def unless_off(passed: np.ndarray, min_inliers: int) -> np.ndarray:
+    """The gate's verdicts (:func:`gate`) as a source applies them: when fewer than
+    ``min_inliers`` or fewer than half of its points pass, the prediction is what is off (a
+    camera's jolt moves the whole image), not the points, and every point is kept for the
+    adjustment's two passes to judge. Gated to a handful, the zoo's cubes and prisms were lost at
+    the peak of their walks' shake with every point followed by KLT; gated to the third that the
+    prediction still expected, they dwindled until the track was lost again (bench/RESULTS.md,
+    session 42).
+
+    >>> unless_off(np.array([True] * 12 + [False] * 4), 12).sum()  # 12 of 16 pass: gated
+    np.int64(12)
+    >>> unless_off(np.array([True] * 12 + [False] * 20), 12).sum()  # 12 of 32: all kept
+    np.int64(32)
+    """
+    if passed.sum() >= max(min_inliers, 0.5 * len(passed)):
+        return passed
+    return np.ones_like(passed)
+
+
 def pose_spread(camera: PinholeCamera, X: np.ndarray, state: FilterState) -> np.ndarray:
     """``J P Jᵀ`` (n, 2, 2): how the pose's uncertainty spreads the projections of ``X``."""
     _, J = project_model_points(camera, X, state.p, state.R, True)

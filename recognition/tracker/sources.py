@@ -27,7 +27,7 @@ from quatrack.viewsets.mesh import Mesh
 from ..klt import Frame, track_points
 from ..visibility import visibility_buffers, visible_points
 from .params import TrackerParams
-from .points import PointBlock, Tracks, VarianceFactor, gate, posterior_m2
+from .points import PointBlock, Tracks, VarianceFactor, gate, posterior_m2, unless_off
 
 
 @dataclass
@@ -180,10 +180,7 @@ class TrainedPoints:
         p = self.params
         block, _ = klt_block(self.name, self.mesh, ctx, self.tracks, p, timings)
         block.C = block.C * self.factor.value
-        g = gate(ctx.camera, block, ctx.prior, p.gate_chi2)
-        if g.sum() >= p.min_inliers:  # (too few pass: the prediction is off, let the adjustment judge)
-            block = block.keep(g)
-        return block
+        return block.keep(unless_off(gate(ctx.camera, block, ctx.prior, p.gate_chi2), p.min_inliers))
 
     def settle(self, ctx: FrameContext, block: PointBlock, inliers: np.ndarray, state: FilterState) -> None:
         self.factor.update(posterior_m2(ctx.camera, block.keep(inliers), state))
