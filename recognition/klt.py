@@ -17,13 +17,12 @@ import numpy as np
 
 @dataclass(frozen=True)
 class KLTParams:
-    # window side, pixels. LK's time per point is not monotonic in it (OpenCV 5, 285 points of
-    # box.mp4 a call, one thread: 21 px 5.5–7.8 ms, 17 px 3.0–4.4, 15 px 6.1, 13 px 4.6; rows
-    # seem to be done in vectors of 8 px plus a scalar tail). 21 until session 43: 17 px costs
-    # ~55 % of it and, on the 24 zoo walks, lost as many frames with no pose beyond 5 %/5° (the
-    # 21 px window had 2) and lower mean errors on the cubes, cylinders and wide boxes
-    # (bench/RESULTS.md, session 43; tried in session 33 it had let a doubted drift through,
-    # which the audits added since catch)
+    # window side, pixels. LK's time is not monotonic in it (OpenCV 5, one thread, a call with
+    # 285 points of box.mp4 forward and back: 21 px 8.0 ms, 17 px 4.4, 16 px 3.6, 15 px 6.0,
+    # 13 px 4.5; rows seem to be done in vectors of 8 px plus a scalar tail). 21 until session
+    # 43: on the 24 zoo walks 17 px lost as many frames, with no pose beyond 5 %/5° (21 px: 2)
+    # and lower mean errors on most shapes (bench/RESULTS.md, session 43; tried in session 33,
+    # it had let a doubted drift through, which the audits added since catch)
     win: int = 17
     levels: int = 3  # pyramid levels above the image
     fb_max_px: float = 1.0  # forward–backward error tolerated
