@@ -248,7 +248,9 @@ class Contour:
         h, w = ctx.image.shape[:2]
         ui, vi = np.rint(P[..., 0]).astype(int), np.rint(P[..., 1]).astype(int)
         inside = (ui >= 0) & (vi >= 0) & (ui < w) & (vi < h)
-        pix = ctx.image[np.clip(vi, 0, h - 1), np.clip(ui, 0, w - 1)]
+        # (np.take of flat indices: the same pixels as image[v, u], at ~¼ of fancy indexing's time)
+        flat = np.clip(vi, 0, h - 1) * w + np.clip(ui, 0, w - 1)
+        pix = np.take(ctx.image.reshape(h * w, -1), flat, axis=0).reshape(flat.shape + ctx.image.shape[2:])
         if p.contour_normalise:  # (relative to the frame's mean colour: see the module, step 2)
             pix = np.clip(pix.astype(np.float32) * frame_gains(ctx.image), 0, 255).astype(np.uint8)
         bins = bin_index(pix)
@@ -257,7 +259,7 @@ class Contour:
         sh, sw = zb.face.shape
         zi = np.clip(np.rint((P[..., 0] + 0.5) * s - 0.5).astype(int), 0, sw - 1)
         zj = np.clip(np.rint((P[..., 1] + 0.5) * s - 0.5).astype(int), 0, sh - 1)
-        on = zb.face[zj, zi] >= 0
+        on = np.take(zb.face, zj * sw + zi) >= 0
         return bins, inside & side_runs(on, x, 2.0 / s + reach), x
 
     def measure(self, ctx: FrameContext, timings: dict) -> PointBlock:
