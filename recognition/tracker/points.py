@@ -98,10 +98,10 @@ def unless_off(passed: np.ndarray, min_inliers: int) -> np.ndarray:
     prediction still expected, they dwindled until the track was lost again (bench/RESULTS.md,
     session 42).
 
-    >>> unless_off(np.array([True] * 12 + [False] * 4), 12).sum()  # 12 of 16 pass: gated
-    np.int64(12)
-    >>> unless_off(np.array([True] * 12 + [False] * 20), 12).sum()  # 12 of 32: all kept
-    np.int64(32)
+    >>> int(unless_off(np.array([True] * 12 + [False] * 4), 12).sum())  # 12 of 16 pass: gated
+    12
+    >>> int(unless_off(np.array([True] * 12 + [False] * 20), 12).sum())  # 12 of 32: all kept
+    32
     """
     if passed.sum() >= max(min_inliers, 0.5 * len(passed)):
         return passed
