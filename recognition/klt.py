@@ -20,9 +20,10 @@ class KLTParams:
     # window side, pixels. LK's time is not monotonic in it (OpenCV 5, one thread, a call with
     # 285 points of box.mp4 forward and back: 21 px 8.0 ms, 17 px 4.4, 16 px 3.6, 15 px 6.0,
     # 13 px 4.5; rows seem to be done in vectors of 8 px plus a scalar tail). 21 until session
-    # 43: on the 24 zoo walks 17 px lost as many frames, with no pose beyond 5 %/5° (21 px: 2)
-    # and lower mean errors on most shapes (bench/RESULTS.md, session 43; tried in session 33,
-    # it had let a doubted drift through, which the audits added since catch)
+    # 43: on the 24 zoo walks 17 px lost as many frames (live: 10 % fewer), with 0 poses beyond
+    # 5 %/5° (21 px: 2; live 2 against 3) and lower mean errors on most shapes (bench/RESULTS.md,
+    # session 43; tried in session 33, it had let a doubted drift through, which the audits
+    # added since catch)
     win: int = 17
     levels: int = 3  # pyramid levels above the image
     fb_max_px: float = 1.0  # forward–backward error tolerated
