@@ -38,6 +38,11 @@ class LastSeen:
     trained: Tracks
     mesh: MeshPoints
     followed: bool = False  # a frame after the loss whose pose the measurements supported (not reported)
+    # the track was re-found on the tracker's own keyframes (Tracker._second_hand) and its birth
+    # (R, covariance): picked up again, it stays second-hand, judged and reported as such
+    second_hand: bool = False
+    birth: tuple | None = None
+    doubted: bool = False  # the pose was withheld in doubt (Tracker._doubt), not reported
 
 
 def hull_mask(camera: PinholeCamera, vertices: np.ndarray, pose: Pose) -> np.ndarray:
