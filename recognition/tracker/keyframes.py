@@ -36,8 +36,9 @@ mostly comes back near where it went, and texture repeated on other faces can ou
 
 A track re-found on keyframes is *second-hand* (``Tracker._second_hand``): its points were lifted at
 a pose that carries the keyframe's error, so it keeps no keyframe or learned view of its own while
-no trained point anchors its frame, and it is not re-acquired near its own last pose after a loss
-(``TrackerParams.capture_second_hand``): either passed the error on, and it grew.
+no trained point anchors its frame (``TrackerParams.capture_second_hand``): that passed the error
+on, and it grew. After a loss it is re-acquired near its own last pose only as it started: judged
+on the model's edges alone (session 44; ``Tracker._reacquire``).
 
 Keyframes live in memory for the run only; the stored model changes only through learned views
 (``TrackerParams.learn``), whose rules are stricter because they outlive the run.
