@@ -410,8 +410,9 @@ class Tracker:
                         if self.mesh_points in self.sources:  # corners on what came into view
                             self.mesh_points.spawn(FrameContext(img, frame, None, self.camera, self.filter.state),
                                                    self.filter.state, vouched=False)
-                        followed = LastSeen(self.filter.state, frame, self.trained.tracks, copy.copy(self.mesh_points), True,
-                                            seen.second_hand, seen.birth, seen.doubted)
+                        # (the same track: second-hand, birth and doubt as it was lost)
+                        followed = replace(seen, state=self.filter.state, frame=frame, trained=self.trained.tracks,
+                                           mesh=copy.copy(self.mesh_points), followed=True)
                 self._lost(time_s, "")
                 step = None
         finally:
