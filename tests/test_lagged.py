@@ -74,3 +74,46 @@ def test_a_pipelined_tracker_on_the_lagged_executor_gives_the_same_track_every_r
         assert (a is None) == (b is None) and (a is None or np.array_equal(a, b))
     assert sum(s == "tracking" for s, _ in first) >= 20
     assert sum(ms > 0.0 for ms in bg) >= 2  # jobs ran between the steps
+
+
+def test_a_shrunk_re_anchoring_that_finds_too_little_is_redone_at_full_resolution(walk, monkeypatch):
+    """A live stream re-anchors on the window shrunk to 320 px with its 400 strongest features; a
+    face seen at a grazing angle can lose every match there (the zoo flat box #31 went 10 frames
+    without anchors and drifted to 6°). A background look that finds too little is redone at
+    once at full resolution, and the attempt counts by that look. Here every shrunk look finds
+    nothing: each is followed by a full one (unless the run's keyframes matched instead), and
+    only full looks that found too little (the sides the photo does not show) count as failed."""
+    from quatrack.recognition.tracker.anchor import Anchor
+
+    real_features, real_submit, real_count = Anchor.features, Anchor.submit, Tracker._count_refresh
+    submitted, counted = [], []
+
+    def features(self, img, box, full=False):
+        feats, m = real_features(self, img, box, full)
+        return (feats, m) if full else (feats, m.subset(np.zeros(0, int)))  # shrunk: nothing found
+
+    def submit(self, executor, img, camera, pose, frame, full=False):
+        submitted.append(full)
+        return real_submit(self, executor, img, camera, pose, frame, full=full)
+
+    def count(self, n):
+        counted.append((n, submitted[-1]))
+        return real_count(self, n)
+
+    ex = LaggedExecutor(lag=2)
+    params = TrackerParams().for_live_streams()
+    tracker = Tracker(walk.model, walk.cam, params, index=index_for(walk.model), executor=ex)
+    tracker.init_pose(walk.poses[0].t, walk.poses[0].q_wxyz)
+    statuses = [tracker.step(walk.frames[0], 0.0).status]  # (the start's own anchoring, in the step, as it is)
+    ex.tick()
+    monkeypatch.setattr(Anchor, "features", features)
+    monkeypatch.setattr(Anchor, "submit", submit)
+    monkeypatch.setattr(Tracker, "_count_refresh", count)
+    for k, f in enumerate(walk.frames[1:], 1):
+        statuses.append(tracker.step(f, k / 30.0).status)
+        ex.tick()
+    assert submitted.count(True) >= 2
+    # a shrunk look that counted was one whose features the run's keyframes matched well enough
+    assert all(n >= params.min_anchor_matches for n, full in counted if not full)
+    assert any(full and n < params.min_anchor_matches for n, full in counted)  # (the unseen sides)
+    assert statuses.count("tracking") >= 20

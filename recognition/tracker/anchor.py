@@ -50,6 +50,7 @@ class AnchorJob:
     future: Future
     pose: Pose  # the pose of the frame the features come from
     frame: Frame
+    full: bool = False  # SIFT on the window at full resolution, all features (Anchor.features)
 
 
 class Anchor:
@@ -58,14 +59,24 @@ class Anchor:
     def __init__(self, mesh: Mesh, index: ModelIndex, params: TrackerParams) -> None:
         self.mesh, self.index, self.params = mesh, index, params
 
-    def features(self, img: np.ndarray, box) -> tuple:
-        """SIFT in ``box`` and its matches to the model: the costly half of re-anchoring."""
+    def features(self, img: np.ndarray, box, full: bool = False) -> tuple:
+        """SIFT in ``box`` and its matches to the model: the costly half of re-anchoring. The
+        window is shrunk to ``anchor_max_side`` with its ``anchor_max_features`` strongest
+        features (live streams), unless ``full``: full resolution, every feature (offline)."""
         p = self.params
-        feats = self.index.describe(img, box, max_side=p.anchor_max_side, max_features=p.anchor_max_features)
+        side, most = (None, None) if full else (p.anchor_max_side, p.anchor_max_features)
+        feats = self.index.describe(img, box, max_side=side, max_features=most)
         return feats, self.index.match(feats)
 
-    def submit(self, executor: Executor, img: np.ndarray, camera: PinholeCamera, pose: Pose, frame: Frame) -> AnchorJob | None:
-        """Start the costly half on ``executor`` for the frame ``img`` at ``pose``."""
+    @property
+    def reduced(self) -> bool:
+        """Whether :meth:`features` shrinks the window or keeps only the strongest features."""
+        return self.params.anchor_max_side is not None or self.params.anchor_max_features is not None
+
+    def submit(self, executor: Executor, img: np.ndarray, camera: PinholeCamera, pose: Pose, frame: Frame,
+               full: bool = False) -> AnchorJob | None:
+        """Start the costly half on ``executor`` for the frame ``img`` at ``pose`` (``full``:
+        see :meth:`features`)."""
         box = object_window(self.mesh, camera, pose, 0.15)
         if box is None:
             return None
@@ -73,11 +84,11 @@ class Anchor:
         shifted = (0, 0, box[2] - box[0], box[3] - box[1])
 
         def work():
-            feats, m = self.features(crop, shifted)
+            feats, m = self.features(crop, shifted, full)
             kp = feats.keypoints + np.array([box[0], box[1]], np.float32)
             return type(feats)(kp, feats.descriptors, feats.sizes, feats.angles), m
 
-        return AnchorJob(executor.submit(work), pose, frame)
+        return AnchorJob(executor.submit(work), pose, frame, full)
 
     def carry(self, feats, m, camera: PinholeCamera, frame_then: Frame, frame_prev: Frame, pose_prev: Pose):
         """Keypoints found on an older frame, tracked by KLT into the previous frame (which the

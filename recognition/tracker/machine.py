@@ -158,6 +158,7 @@ class Tracker:
         self._anchored = False  # the latest frame's trained points were enough to anchor it
         self._pending = None
         self._anchor_job: AnchorJob | None = None
+        self._full_retry = False  # the latest background re-anchoring found too little shrunk: look at full size
         self._tracked = 0  # frames tracked since the last (re-)initialisation
         self._probation = 0  # frames left in which the edges must confirm every pose
         self._doubted = 0  # consecutive frames whose pose the edges doubted (withheld; _doubt)
@@ -590,7 +591,18 @@ class Tracker:
             if job.frame is not self._prev:  # found on an older frame: carry the keypoints over
                 feats, m, pose_then = self._anchors().carry(feats, m, self.camera, job.frame, self._prev, posterior_before)
             self.trained.tracks, n, _ = self._anchors().merge(feats, m, self.camera, pose_then, self.trained.tracks, wide=False)
-            self._count_refresh(n)
+            if n < p.min_anchor_matches and not job.full and self._anchors().reduced:
+                # The shrunk window found too little: look again at full resolution with every
+                # feature, as the offline tracker does, at once (below), and count the attempt
+                # by that look. Why: a face seen at a grazing angle loses its features first when
+                # shrunk; the zoo flat box #31 (live) failed two background refreshes in a row at
+                # 320 px, went 10 frames without anchors and drifted to 6°; looked at again in
+                # full it held within 3.5°. 24 live walks: frames lost 2293 → 2260, beyond 2 %/2°
+                # 261 → 250; box.mp4 unchanged (no shrunk look fails there); bench/RESULTS.md,
+                # session 46.
+                self._full_retry = True
+            else:
+                self._count_refresh(n)
             timings["replenish"] = _ms(t0)
             if self._failed_refreshes >= p.max_failed_refreshes and not self._carried(None, None, None):
                 return self._lost(time_s, "the object's texture is no longer found where it is tracked")
@@ -669,9 +681,11 @@ class Tracker:
         # retry only when due: SIFT in every frame would find nothing at great cost
         thin = len(self.trained) < p.min_points and (self._failed_refreshes == 0 or due)
         scarce = len(self.trained) < 2 * p.min_inliers  # too few to wait for the background
-        if (due or thin) and not scarce and p.pipelined_refresh and self.executor is not None:
+        retry = self._full_retry
+        if (due or thin or retry) and not scarce and p.pipelined_refresh and self.executor is not None:
             if self._anchor_job is None:  # (one at a time: a busy executor is not queued up)
-                job = self._anchors().submit(self.executor, img, self.camera, self.filter.state.pose, frame)
+                job = self._anchors().submit(self.executor, img, self.camera, self.filter.state.pose, frame, full=retry)
+                self._full_retry = False
                 if job is not None:
                     self._anchor_job = job
                     self._since_refresh = 0
