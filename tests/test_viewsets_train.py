@@ -279,3 +279,31 @@ def test_the_percentile_from_the_histogram_is_numpys(values):
     from quatrack.viewsets.features import percentile_99
 
     assert percentile_99(values) == float(np.percentile(values, 99))
+
+
+def test_a_weakly_textured_object_is_trained_with_a_lower_contrast_threshold(tmp_path):
+    """SIFT's contrast threshold is absolute: on a dark, weakly textured object (the zoo's tall
+    box, a night sky: ~3 keypoints per 10 000 px of its box at 0.04) it keeps a handful of
+    keypoints a view, too few for recognition. Training lowers it until the registered views give
+    ``min_keypoint_density`` (down to ``min_contrast_threshold``), says so, and stores it with the
+    model, so that queries are described alike; a well textured object keeps the default."""
+    from quatrack.testing import zoo as Z
+    from quatrack.viewsets.train import keypoint_density
+    from quatrack.viewsets.viewset import params_from_manifest
+
+    bgs = Z.real_backgrounds()[:1]
+    fixed = TrainParams(novel=None, min_keypoint_density=None)
+    adaptive = TrainParams(novel=None)
+    weak = load_spec(Z.write_spec("tall-box-cm", tmp_path / "weak", 1, backgrounds=bgs))
+    warnings: list[str] = []
+    before, after = train_object(weak, fixed), train_object(weak, adaptive, warn=warnings.append)
+    assert keypoint_density(before.viewsets) < adaptive.min_keypoint_density
+    ct = params_from_manifest(after.manifest).contrast_threshold
+    assert adaptive.min_contrast_threshold <= ct < params_from_manifest(before.manifest).contrast_threshold
+    assert keypoint_density(after.viewsets) > 2 * keypoint_density(before.viewsets)
+    assert sum(len(v) for v in after.viewsets) > 2 * sum(len(v) for v in before.viewsets)
+    assert any("weak texture" in w and f"{ct:g}" in w for w in warnings)
+    rich = load_spec(Z.write_spec("cube-m", tmp_path / "rich", 1, backgrounds=bgs))
+    model = train_object(rich, adaptive, warn=warnings.append)
+    assert keypoint_density(model.viewsets) >= adaptive.min_keypoint_density
+    assert params_from_manifest(model.manifest).contrast_threshold == fixed.viewsets.contrast_threshold

@@ -37,6 +37,13 @@ class TrainParams:
     novel: NovelViewParams | None = field(default_factory=NovelViewParams)
     jobs: int = 1
     min_keypoints: int = 20
+    # Weak texture: while the registered views give fewer SIFT keypoints than this per 10 000 px
+    # of the object's box (the median over the views: :func:`keypoint_density`), SIFT's contrast
+    # threshold is halved, down to ``min_contrast_threshold``, and the viewsets are built again
+    # (the threshold is stored with the model, so its queries and the tracker use it too).
+    # None: never lowered. See :func:`train_object`.
+    min_keypoint_density: float | None = 10.0
+    min_contrast_threshold: float = 0.01
 
 
 @dataclass(frozen=True)
@@ -166,7 +173,25 @@ def train_object(
     t0 = time.perf_counter()
     mesh = load_mesh(spec.mesh_path)
     views = [_prepare_view(mesh, v) for v in spec.views]
-    viewsets = _build_viewsets(mesh, views, params, progress, warn, on_total)
+    tasks = _tasks(mesh, views, params.novel)
+    total = len(tasks) + 1  # (+ the RFCH model)
+    if on_total:
+        on_total(total)
+    viewsets = _build_viewsets(mesh, tasks, params, progress)
+    while params.min_keypoint_density is not None and (
+            (density := keypoint_density(viewsets)) < params.min_keypoint_density
+            and params.viewsets.contrast_threshold / 2 >= params.min_contrast_threshold * (1 - 1e-9)):
+        params = dataclasses.replace(params, viewsets=dataclasses.replace(
+            params.viewsets, contrast_threshold=params.viewsets.contrast_threshold / 2))
+        if warn:
+            warn(f"weak texture: {density:.1f} keypoints per 10 000 px of the object in its registered views "
+                 f"(fewer than {params.min_keypoint_density:g}); SIFT's contrast threshold lowered to "
+                 f"{params.viewsets.contrast_threshold:g}")
+        total += len(tasks)
+        if on_total:
+            on_total(total)
+        viewsets = _build_viewsets(mesh, tasks, params, progress)
+    viewsets = _checked(viewsets, params, warn)
     rfch = _train_rfch(views, viewsets, params)
     if progress:
         progress(1)
@@ -176,13 +201,26 @@ def train_object(
     return ObjectModel(spec.name, rfch, viewsets, mesh, manifest, [r for r in appearance if r is not None])
 
 
-def _build_viewsets(mesh: Mesh, views: list[_View], params: TrainParams, progress, warn, on_total) -> list[Viewset]:
-    """One viewset per registered view and per synthetic view (``params.novel``), built on
-    ``params.jobs`` threads (OpenCV releases the GIL); empty ones are dropped, thin ones warned of."""
+def keypoint_density(viewsets: list[Viewset]) -> float:
+    """SIFT keypoints (with 3-D points) per 10 000 px of the object's box, the median over the
+    registered (not synthetic) viewsets: ``median(10⁴ · n_v / (w_v · h_v))``. It says how
+    textured the object looks, whatever its size in the photos; the zoo's objects read 31–62 and
+    the bundled cookie box 65, the weakly textured tall box (a night sky) 3 (bench/RESULTS.md,
+    session 46). 0 when no registered view kept any.
+
+    >>> from types import SimpleNamespace as V
+    >>> keypoint_density([V(synthetic=False, keypoints=range(50), bbox=(0, 0, 100, 100)),
+    ...                   V(synthetic=True, keypoints=range(5), bbox=(0, 0, 100, 100))])
+    50.0
+    """
+    d = [1e4 * len(vs.keypoints) / max(vs.bbox[2] * vs.bbox[3], 1) for vs in viewsets if not vs.synthetic]
+    return float(np.median(d)) if d else 0.0
+
+
+def _build_viewsets(mesh: Mesh, tasks: list, params: TrainParams, progress) -> list[Viewset]:
+    """One viewset per task (``_tasks``: each registered view and each synthetic view), built
+    on ``params.jobs`` threads (OpenCV releases the GIL)."""
     groups = mesh.plane_ids
-    tasks = _tasks(mesh, views, params.novel)
-    if on_total:
-        on_total(len(tasks) + 1)  # + the RFCH model
 
     def run(task):
         vs = _run_task(mesh, groups, params, task)
@@ -196,6 +234,11 @@ def _build_viewsets(mesh: Mesh, views: list[_View], params: TrainParams, progres
     else:
         with ThreadPoolExecutor(max_workers=jobs) as pool:
             viewsets = list(pool.map(run, tasks))
+    return viewsets
+
+
+def _checked(viewsets: list[Viewset], params: TrainParams, warn) -> list[Viewset]:
+    """The viewsets with keypoints; raises when no registered view has any, warns of thin ones."""
     if not any(len(vs) for vs in viewsets if not vs.synthetic):
         raise SpecError("no keypoints in any registered view: is the object textured, and the pose right?")
     for vs in viewsets:
