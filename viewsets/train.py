@@ -168,7 +168,10 @@ def train_object(
     ``on_total(n)`` is told the number of viewsets to build and ``progress(1)`` is called after
     each one (for a progress bar); ``warn`` receives non-fatal problems (a view with few keypoints).
     Three steps: the views are read and checked against the mesh, the viewsets (registered and
-    synthetic) are built, then the RFCH model, sized by the viewsets' boxes.
+    synthetic) are built — again, with SIFT's contrast threshold halved, while the registered
+    views show too little texture (:func:`keypoint_density` under ``params.min_keypoint_density``,
+    down to ``params.min_contrast_threshold``; one warning says so) — then the RFCH model, sized
+    by the viewsets' boxes.
     """
     t0 = time.perf_counter()
     mesh = load_mesh(spec.mesh_path)
@@ -178,20 +181,21 @@ def train_object(
     if on_total:
         on_total(total)
     viewsets = _build_viewsets(mesh, tasks, params, progress)
+    asked, weak = params.viewsets.contrast_threshold, keypoint_density(viewsets)
     while params.min_keypoint_density is not None and (
-            (density := keypoint_density(viewsets)) < params.min_keypoint_density
+            keypoint_density(viewsets) < params.min_keypoint_density
             and params.viewsets.contrast_threshold / 2 >= params.min_contrast_threshold * (1 - 1e-9)):
         params = dataclasses.replace(params, viewsets=dataclasses.replace(
             params.viewsets, contrast_threshold=params.viewsets.contrast_threshold / 2))
-        if warn:
-            warn(f"weak texture: {density:.1f} keypoints per 10 000 px of the object in its registered views "
-                 f"(fewer than {params.min_keypoint_density:g}); SIFT's contrast threshold lowered to "
-                 f"{params.viewsets.contrast_threshold:g}")
         total += len(tasks)
         if on_total:
             on_total(total)
         viewsets = _build_viewsets(mesh, tasks, params, progress)
-    viewsets = _checked(viewsets, params, warn)
+    viewsets = _checked(viewsets, params, warn)  # (raises: nothing to learn even at the lowest threshold)
+    if warn and params.viewsets.contrast_threshold != asked:  # (one warning, once the model is sure)
+        warn(f"weak texture: {weak:.1f} keypoints per 10 000 px of the object in its registered views "
+             f"(fewer than {params.min_keypoint_density:g}); trained with SIFT's contrast threshold lowered to "
+             f"{params.viewsets.contrast_threshold:g} ({keypoint_density(viewsets):.1f} keypoints per 10 000 px)")
     rfch = _train_rfch(views, viewsets, params)
     if progress:
         progress(1)
@@ -240,7 +244,8 @@ def _build_viewsets(mesh: Mesh, tasks: list, params: TrainParams, progress) -> l
 def _checked(viewsets: list[Viewset], params: TrainParams, warn) -> list[Viewset]:
     """The viewsets with keypoints; raises when no registered view has any, warns of thin ones."""
     if not any(len(vs) for vs in viewsets if not vs.synthetic):
-        raise SpecError("no keypoints in any registered view: is the object textured, and the pose right?")
+        raise SpecError("no keypoints in any registered view (SIFT's contrast threshold down to "
+                        f"{params.viewsets.contrast_threshold:g}): is the object textured, and the pose right?")
     for vs in viewsets:
         if len(vs) < params.min_keypoints and warn:
             warn(f"viewset {vs.label}: only {len(vs)} keypoints with 3-D points (fewer than {params.min_keypoints})")
