@@ -176,21 +176,8 @@ def train_object(
     t0 = time.perf_counter()
     mesh = load_mesh(spec.mesh_path)
     views = [_prepare_view(mesh, v) for v in spec.views]
-    tasks = _tasks(mesh, views, params.novel)
-    total = len(tasks) + 1  # (+ the RFCH model)
-    if on_total:
-        on_total(total)
-    viewsets = _build_viewsets(mesh, tasks, params, progress)
-    asked, weak = params.viewsets.contrast_threshold, keypoint_density(viewsets)
-    while params.min_keypoint_density is not None and (
-            keypoint_density(viewsets) < params.min_keypoint_density
-            and params.viewsets.contrast_threshold / 2 >= params.min_contrast_threshold * (1 - 1e-9)):
-        params = dataclasses.replace(params, viewsets=dataclasses.replace(
-            params.viewsets, contrast_threshold=params.viewsets.contrast_threshold / 2))
-        total += len(tasks)
-        if on_total:
-            on_total(total)
-        viewsets = _build_viewsets(mesh, tasks, params, progress)
+    asked = params.viewsets.contrast_threshold
+    viewsets, params, weak = _viewsets_for_texture(mesh, _tasks(mesh, views, params.novel), params, progress, on_total)
     viewsets = _checked(viewsets, params, warn)  # (raises: nothing to learn even at the lowest threshold)
     if warn and params.viewsets.contrast_threshold != asked:  # (one warning, once the model is sure)
         warn(f"weak texture: {weak:.1f} keypoints per 10 000 px of the object in its registered views "
@@ -219,6 +206,32 @@ def keypoint_density(viewsets: list[Viewset]) -> float:
     """
     d = [1e4 * len(vs.keypoints) / max(vs.bbox[2] * vs.bbox[3], 1) for vs in viewsets if not vs.synthetic]
     return float(np.median(d)) if d else 0.0
+
+
+def _viewsets_for_texture(mesh: Mesh, tasks: list, params: TrainParams, progress,
+                          on_total) -> tuple[list[Viewset], TrainParams, float]:
+    """The viewsets of ``tasks``, built again with SIFT's contrast threshold halved while the
+    registered views give fewer than ``params.min_keypoint_density`` keypoints per 10 000 px
+    (:func:`keypoint_density`), down to ``params.min_contrast_threshold``. Returns them, the
+    parameters they were built with (the threshold the model keeps) and the density at the
+    threshold first asked for. Why: SIFT's threshold is a share of the full grey scale, so a
+    dark or weakly textured object keeps a handful of keypoints a view at the default (the zoo's
+    tall box: 11–22, found in 10 % of its scenes; at 0.01: 49–107, 27 %; bench/RESULTS.md, session 46)."""
+    total = len(tasks) + 1  # (+ the RFCH model)
+    if on_total:
+        on_total(total)
+    viewsets = _build_viewsets(mesh, tasks, params, progress)
+    first = density = keypoint_density(viewsets)
+    while (params.min_keypoint_density is not None and density < params.min_keypoint_density
+           and params.viewsets.contrast_threshold / 2 >= params.min_contrast_threshold * (1 - 1e-9)):
+        params = dataclasses.replace(params, viewsets=dataclasses.replace(
+            params.viewsets, contrast_threshold=params.viewsets.contrast_threshold / 2))
+        total += len(tasks)
+        if on_total:
+            on_total(total)
+        viewsets = _build_viewsets(mesh, tasks, params, progress)
+        density = keypoint_density(viewsets)
+    return viewsets, params, first
 
 
 def _build_viewsets(mesh: Mesh, tasks: list, params: TrainParams, progress) -> list[Viewset]:
