@@ -217,21 +217,27 @@ def _viewsets_for_texture(mesh: Mesh, tasks: list, params: TrainParams, progress
     threshold first asked for. Why: SIFT's threshold is a share of the full grey scale, so a
     dark or weakly textured object keeps a handful of keypoints a view at the default (the zoo's
     tall box: 11–22, found in 10 % of its scenes; at 0.01: 49–107, 27 %; bench/RESULTS.md, session 46)."""
+    # the threshold is decided on the registered views alone; the synthetic ones (the bulk) are
+    # built once, at the threshold kept
+    registered = [i for i, t in enumerate(tasks) if t[2] is None]
     total = len(tasks) + 1  # (+ the RFCH model)
     if on_total:
         on_total(total)
-    viewsets = _build_viewsets(mesh, tasks, params, progress)
-    first = density = keypoint_density(viewsets)
+    built = _build_viewsets(mesh, [tasks[i] for i in registered], params, progress)
+    first = density = keypoint_density(built)
     while (params.min_keypoint_density is not None and density < params.min_keypoint_density
            and params.viewsets.contrast_threshold / 2 >= params.min_contrast_threshold * (1 - 1e-9)):
         params = dataclasses.replace(params, viewsets=dataclasses.replace(
             params.viewsets, contrast_threshold=params.viewsets.contrast_threshold / 2))
-        total += len(tasks)
+        total += len(registered)
         if on_total:
             on_total(total)
-        viewsets = _build_viewsets(mesh, tasks, params, progress)
-        density = keypoint_density(viewsets)
-    return viewsets, params, first
+        built = _build_viewsets(mesh, [tasks[i] for i in registered], params, progress)
+        density = keypoint_density(built)
+    synthetic = [i for i, t in enumerate(tasks) if t[2] is not None]
+    built += _build_viewsets(mesh, [tasks[i] for i in synthetic], params, progress)
+    order = np.argsort(registered + synthetic, kind="stable")  # (back in the tasks' order)
+    return [built[k] for k in order], params, first
 
 
 def _build_viewsets(mesh: Mesh, tasks: list, params: TrainParams, progress) -> list[Viewset]:
