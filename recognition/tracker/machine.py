@@ -490,13 +490,14 @@ class Tracker:
                 reason = f"{how}: no trained view shows this side; points born on the mesh, confirmed by its edges"
                 if how == "given pose":
                     return self._pose_step(time_s, "init", len(self.mesh_points), reason=reason)
-                # Found, not given: only the edges vouch for it (the points were just born at it,
-                # they agree with it whatever it is), and edges alone leave open a turn about an
-                # axis of symmetry. It is withheld in this frame and reported from the next one
-                # that tracks, with that frame's measurements in it (step()). The zoo's tall
-                # boxes re-found on their keyframes 5.3° and 5.7° off about their long axis, both
-                # confirmed by the edges; one frame later 2.8° off, or lost (bench/RESULTS.md,
-                # session 47).
+                # Found (recognition, keyframes), not given: only the edges vouch for it (the
+                # points were just born at it, they agree with it whatever it is), and edges alone
+                # leave open a turn about an axis of symmetry. It is withheld in this frame and
+                # reported from the next one that tracks, with that frame's measurements in it
+                # (step()). The zoo's tall boxes re-found on their keyframes 5.3° and 5.7° off
+                # about their long axis, both confirmed by the edges; one frame later 2.8° off,
+                # or lost; a tall box found by recognition at frame 0 2.8 % off was 0.5 % off in
+                # the next frame (bench/RESULTS.md, session 47).
                 self._unconfirmed = reason
                 return TrackStep(self._frame, time_s, "lost", inliers=len(self.mesh_points),
                                  reason=f"{reason}: the pose is withheld until the next frame confirms it")
