@@ -21,7 +21,7 @@ that puts half the object out of frame is judged on the half that is in.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -34,14 +34,6 @@ from quatrack.viewsets.render import render
 from .visibility import edge_samples_visible, model_gap, segment_samples
 
 
-def scaled_camera(camera: PinholeCamera, s: float, pad: int = 0) -> PinholeCamera:
-    """The camera of the image resized by ``s`` (pixel centres preserved), then enlarged by
-    ``pad`` pixels (of the resized image) on every side."""
-    w, h = max(1, int(round(camera.width * s))), max(1, int(round(camera.height * s)))
-    return replace(camera, fx=camera.fx * s, fy=camera.fy * s, cx=s * (camera.cx + 0.5) - 0.5 + pad,
-                   cy=s * (camera.cy + 0.5) - 0.5 + pad, width=w + 2 * pad, height=h + 2 * pad)
-
-
 def silhouette_inside(mesh: Mesh, camera: PinholeCamera, pose: Pose, scale: float = 0.25) -> tuple[float, float]:
     """(share of the silhouette inside the image, silhouette area inside in image pixels).
 
@@ -51,7 +43,7 @@ def silhouette_inside(mesh: Mesh, camera: PinholeCamera, pose: Pose, scale: floa
     V = pose.apply(mesh.vertices)
     if np.any(V[:, 2] <= 1e-9):
         return 0.0, 0.0
-    small = scaled_camera(camera, scale)
+    small = camera.scaled(scale)
     pw, ph = small.width, small.height
     uv = np.clip(small.project(V) + [pw + 0.5, ph + 0.5], -4 * pw, 7 * pw)  # pixel corners, bounded
     canvas = np.zeros((3 * ph, 3 * pw), np.uint8)
@@ -111,7 +103,7 @@ def _edge_samples(mesh: Mesh, camera: PinholeCamera, pose: Pose, params: EdgePar
     b = params.border_px
     ok = (uv[:, 0] >= b) & (uv[:, 1] >= b) & (uv[:, 0] <= w - 1 - b) & (uv[:, 1] <= h - 1 - b)
     if zbuffer is None:
-        zbuffer = render(mesh, scaled_camera(camera, depth_scale), pose)
+        zbuffer = render(mesh, camera.scaled(depth_scale), pose)
     ok &= edge_samples_visible(zbuffer, uv, P[:, 2], faces[keep][seg], mesh.plane_ids, (w, h),
                                params.depth_tol * mesh.extent)
     return uv[ok], normal[ok], seg[ok], (P[ok] - pose.t) @ pose.R

@@ -80,19 +80,6 @@ def to_bgr8(image: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(img)
 
 
-def scale_camera(camera: PinholeCamera, s: float, width: int, height: int) -> PinholeCamera:
-    """The camera of an image resized by ``s`` (pixel centres: ``u' = s(u + ½) − ½``)."""
-    return replace(
-        camera,
-        fx=camera.fx * s,
-        fy=camera.fy * s,
-        cx=s * (camera.cx + 0.5) - 0.5,
-        cy=s * (camera.cy + 0.5) - 0.5,
-        width=width,
-        height=height,
-    )
-
-
 def prepare_image(image: np.ndarray, camera: PinholeCamera, max_pixels: int = DEFAULT_MAX_PIXELS) -> PreparedImage:
     """Check ``image`` against ``camera`` and bring it to 8-bit BGR within ``max_pixels``.
 
@@ -114,4 +101,4 @@ def prepare_image(image: np.ndarray, camera: PinholeCamera, max_pixels: int = DE
     s = float(np.sqrt(max_pixels / (w * h)))
     nw, nh = max(MIN_SIDE, int(w * s)), max(MIN_SIDE, int(h * s))
     small = cv2.resize(img, (nw, nh), interpolation=cv2.INTER_AREA)
-    return PreparedImage(small, scale_camera(cam, nw / w, nw, nh), nw / w)
+    return PreparedImage(small, cam.scaled(nw / w, nw, nh), nw / w)

@@ -27,7 +27,7 @@ from quatrack.viewsets.mesh import Mesh
 from quatrack.viewsets.render import render
 
 from .evidence import (EdgeEvidence, EdgeFit, EdgeParams, edge_fit, inlier_spread, measure_edges, pose_sd_ratio,
-                       pose_shift, scaled_camera, silhouette_inside)
+                       pose_shift, silhouette_inside)
 
 
 @dataclass(frozen=True)
@@ -953,7 +953,7 @@ def verification(
     or not. A pose refused before it reports 0 rival inliers (not measured), as it reports an
     empty edge refit."""
     share, area = silhouette_inside(mesh, camera, est.pose)
-    half = scaled_camera(camera, 0.5)
+    half = camera.scaled(0.5)
     buf = render(mesh, half, est.pose)  # one z-buffer: hidden edges, and the inliers' faces
     edges, edge_image = measure_edges(grey, mesh, camera, est.pose, params.edges, buf, 0.5)
     inl_uv = np.asarray(uv, float)[est.inliers]

@@ -10,7 +10,7 @@ at a grazing angle, where KLT windows straddle two faces.
 from __future__ import annotations
 
 import weakref
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -49,9 +49,7 @@ def scaled_camera(camera: PinholeCamera, s: float) -> PinholeCamera:
 
 
 def _scaled_camera(camera: PinholeCamera, s: float) -> PinholeCamera:
-    w, h = max(1, int(round(camera.width * s))), max(1, int(round(camera.height * s)))
-    return replace(camera, fx=camera.fx * s, fy=camera.fy * s, cx=s * (camera.cx + 0.5) - 0.5,
-                   cy=s * (camera.cy + 0.5) - 0.5, width=w, height=h)
+    return camera.scaled(s)
 
 
 @dataclass(frozen=True)

@@ -64,6 +64,20 @@ def test_projection_jacobian(kind):
     np.testing.assert_allclose(J, num, rtol=1e-6, atol=1e-7)
 
 
+@pytest.mark.parametrize("kind", list(DIST))
+@given(s=st.floats(0.1, 3.0), pad=st.integers(0, 5))
+@settings(max_examples=25)
+def test_a_scaled_camera_sees_each_point_where_the_resized_image_shows_it(kind, s, pad):
+    """PinholeCamera.scaled: the pixel u of the image is s(u + ½) − ½ (+ pad) of the image resized
+    by s (pixel centres preserved, as cv2.resize maps them), lens distortion included."""
+    cam = PinholeCamera(712.0, 705.0, 318.0, 241.0, DIST[kind], width=640, height=480)
+    X = np.random.default_rng(5).uniform(-100, 100, size=(30, 3)) + np.array([0, 0, 900.0])
+    small = cam.scaled(s, pad=pad)
+    np.testing.assert_allclose(small.project(X), s * (cam.project(X) + 0.5) - 0.5 + pad, atol=1e-9)
+    assert (small.width, small.height) == (round(640 * s) + 2 * pad, round(480 * s) + 2 * pad)
+    assert cam.scaled(s, 100, 70).width == 100 and cam.scaled(s, 100, 70).height == 70
+
+
 def test_camera_rejects_bad_intrinsics():
     with pytest.raises(ValueError, match="focal"):
         PinholeCamera(0.0, 500.0, 320, 240)

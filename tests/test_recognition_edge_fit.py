@@ -118,10 +118,9 @@ def test_the_edge_refit_runs_only_for_a_pose_the_cheap_checks_pass(cube, monkeyp
     assert calls == [] and refused.edge_fit.samples == 0 and refused.confidence <= 0.5
     passed = verification(est, grey, CAM, mesh, uv[on_face], PoseParams(), 0, X)
     assert passed.passed and calls == [1]
-    from quatrack.recognition.evidence import scaled_camera
     from quatrack.viewsets.render import render
 
-    zbuffer = render(mesh, scaled_camera(CAM, 0.5), est.pose)  # verification's own z-buffer
+    zbuffer = render(mesh, CAM.scaled(0.5), est.pose)  # verification's own z-buffer
     _, image = measure_edges(grey, mesh, CAM, est.pose, PoseParams().edges, zbuffer, 0.5)
     inl = est.inliers
     alone = real(image, mesh, CAM, est.pose, X[inl], np.asarray(uv[on_face], float)[inl], PoseParams().edges,

@@ -72,6 +72,23 @@ class PinholeCamera:
         """
         return replace(self, cx=self.cx - x0, cy=self.cy - y0, width=int(x1 - x0), height=int(y1 - y0))
 
+    def scaled(self, s: float, width: int | None = None, height: int | None = None, pad: int = 0) -> "PinholeCamera":
+        """The camera of its image resized by ``s`` (pixel centres preserved: ``u' = s(u + ½) − ½``),
+        then enlarged by ``pad`` pixels (of the resized image) on every side. The new size is
+        ``width`` × ``height`` when given (the resized image's own), else the old one × ``s``,
+        rounded. Distortion acts on normalised coordinates, so it is unchanged.
+
+        >>> cam = PinholeCamera(800.0, 800.0, 319.5, 239.5, width=640, height=480).scaled(0.5)
+        >>> (cam.fx, cam.cx, cam.cy, cam.width, cam.height)
+        (400.0, 159.5, 119.5, 320, 240)
+        """
+        if width is None or height is None:
+            if self.width is None or self.height is None:
+                raise ValueError("the camera needs an image size to be scaled")
+            width, height = max(1, int(round(self.width * s))), max(1, int(round(self.height * s)))
+        return replace(self, fx=self.fx * s, fy=self.fy * s, cx=s * (self.cx + 0.5) - 0.5 + pad,
+                       cy=s * (self.cy + 0.5) - 0.5 + pad, width=int(width) + 2 * pad, height=int(height) + 2 * pad)
+
     def project(self, X_cam: np.ndarray) -> np.ndarray:
         """Pixel coordinates (n, 2) of points (n, 3) given in *this* camera's frame."""
         return self.project_with_jacobian(X_cam, jacobian=False)[0]
