@@ -512,6 +512,8 @@ def test_outline_and_mesh_points_follow_a_known_motion(box):
     d = model.mesh.extent
     assert err[:, 0].mean() < 0.01 * d and err[:, 1].mean() < 1.0
     assert any(s.timings_ms.get("contour") is not None for s in steps[1:])
+    # no trained point: on probation at first, the edges judge the poses (the "judge" stage)
+    assert any(s.timings_ms.get("judge") is not None for s in steps[1:])
 
 
 def test_the_outline_posterior_is_the_whole_product():

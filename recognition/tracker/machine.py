@@ -668,18 +668,22 @@ class Tracker:
             s.settle(shape_ctx if s in self._shape_sources else ctx, b, inl[start : start + len(b)], self.filter.state)
             start += len(b)
         self._tracked += 1
+        t0 = time.perf_counter()  # (the edges' judgement: the "judge" stage)
         if self._probation > 0 or self._doubted:
             # a track started without trained points (probation), or one the edges doubted in an
             # earlier frame: the edges must confirm every pose
             self._probation = max(self._probation - 1, 0)
             limit = p.doubted_shift if self._doubted else None  # (a doubted pose: stronger evidence)
-            if not self._edges_confirm(frame.gray, self.filter.state.pose, strict=True, limit=limit):
+            confirmed = self._edges_confirm(frame.gray, self.filter.state.pose, strict=True, limit=limit)
+            timings["judge"] = _ms(t0)
+            if not confirmed:
                 return self._doubt(time_s, "the model's edges do not confirm the pose", n_inl)
         elif (every := self._audit_interval(ctx)) and self._tracked % every == 0:
             # The audit: points lifted at a pose that was off, or edges locked on the wrong
             # gradient, agree among themselves with a pose that is off; the edge refit is
             # evidence from the model's shape that they cannot fake.
             shift = self._edge_shift(frame.gray, self.filter.state.pose, agreement=False)
+            timings["judge"] = _ms(t0)
             if shift is not None and shift > p.max_edge_shift:
                 return self._doubt(time_s, f"the model's edges refit the pose by {shift:.2f} of the 5 %/5° criterion", n_inl)
         if why := self._texture_audit(ctx, timings):  # (every frame no trained point anchors)
