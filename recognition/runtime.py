@@ -71,7 +71,8 @@ def limit_blas_threads(threads: int = 1) -> bool:
 
 def compile_hot_loops() -> float:
     """Run each loop that numba compiles (:mod:`quatrack.tracking.jit`: the z-buffer, the
-    texture lookup, the point block's linearisation, the 1-D edge search) once on a small box, so that its
+    texture lookup, the point block's linearisation, the 1-D edge search, the texture evidence's
+    block sums) once on a small box, so that its
     compilation happens now and not in the first request's frame; returns the seconds taken.
 
     Why: numba compiles a loop at its first call and keeps the machine code on disk. Where no
@@ -84,6 +85,7 @@ def compile_hot_loops() -> float:
 
     import numpy as np
 
+    from quatrack.recognition.appearance import tile_correlations
     from quatrack.recognition.tracker.edges import edge_candidates
     from quatrack.tracking.camera import PinholeCamera
     from quatrack.tracking.measurements import PointMeasurements
@@ -108,4 +110,5 @@ def compile_hot_loops() -> float:
     block.linearize(pose.t, pose.R)
     g = np.zeros((48, 64), np.float32)
     edge_candidates(g, g, np.array([[30.0, 20.0]]), np.array([[1.0, 0.0]]), np.array([4.0]), 6.0, 0.5)
+    tile_correlations(g, g, g > 0, 8)
     return time.perf_counter() - t0

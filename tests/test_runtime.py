@@ -30,6 +30,7 @@ def test_the_warm_up_compiles_every_loop_for_the_types_real_work_uses():
     import cv2
     import numpy as np
 
+    from quatrack.recognition.appearance import _compiled_tile_sums
     from quatrack.recognition.runtime import compile_hot_loops
     from quatrack.recognition.tracker.edges import _compiled_candidates
     from quatrack.recognition.video import Tracker, TrackerParams
@@ -39,7 +40,7 @@ def test_the_warm_up_compiles_every_loop_for_the_types_real_work_uses():
     from quatrack.viewsets.novel import _compiled_lookup
     from quatrack.viewsets.render import _compiled_zbuffer
 
-    loops = (_compiled_zbuffer, _compiled_lookup, _compiled_linearize, _compiled_candidates)
+    loops = (_compiled_zbuffer, _compiled_lookup, _compiled_linearize, _compiled_candidates, _compiled_tile_sums)
     assert compile_hot_loops() >= 0.0
     before = [set(f().signatures) for f in loops]
     assert all(len(s) >= 1 for s in before)
