@@ -41,15 +41,11 @@ def scaled_camera(camera: PinholeCamera, s: float) -> PinholeCamera:
     hit = _SCALED.get(key)
     if hit is not None and hit[0]() is camera:
         return hit[1]
-    small = _scaled_camera(camera, s)
+    small = camera.scaled(s)
     if len(_SCALED) >= 64:
         _SCALED.clear()
     _SCALED[key] = (weakref.ref(camera), small)
     return small
-
-
-def _scaled_camera(camera: PinholeCamera, s: float) -> PinholeCamera:
-    return camera.scaled(s)
 
 
 @dataclass(frozen=True)

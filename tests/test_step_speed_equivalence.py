@@ -74,11 +74,10 @@ def test_unit_pixel_rays_are_the_normalised_pixel_rays():
 def test_cached_scaled_cameras_and_face_normals_are_the_computed_ones():
     """``scaled_camera`` and ``face_normals`` remember their results per object: the same values
     as computed afresh, and a new object (even at a reused address) gets its own."""
-    from quatrack.recognition.visibility import _scaled_camera
     from quatrack.viewsets.render import face_normals
 
     for s in (0.25, 0.5, 1.0):
-        a, b = scaled_camera(CAM_DIST, s), _scaled_camera(CAM_DIST, s)
+        a, b = scaled_camera(CAM_DIST, s), CAM_DIST.scaled(s)
         assert (a.fx, a.fy, a.cx, a.cy, a.width, a.height) == (b.fx, b.fy, b.cx, b.cy, b.width, b.height)
         np.testing.assert_array_equal(a.dist_coeffs, b.dist_coeffs)
         assert scaled_camera(CAM_DIST, s) is a
