@@ -61,7 +61,7 @@ from quatrack.viewsets.viewset import Viewset, ViewsetParams
 
 from quatrack.viewsets.texture import TextureReference
 
-from ..appearance import TextureAgreement, texture_agreement
+from ..appearance import TextureAgreement, TextureRefit, texture_agreement, texture_refit
 from ..match import ModelIndex
 
 
@@ -199,6 +199,15 @@ class Keyframes:
     def texture_agreement(self, image: np.ndarray, camera: PinholeCamera, pose: Pose, mesh: Mesh) -> TextureAgreement:
         """How well ``image`` agrees at ``pose`` with the object as the keyframes' crops show it
         (:func:`..appearance.texture_agreement`); each crop's z-buffer is rendered once."""
+        return texture_agreement(image, camera, pose, mesh, mesh.plane_ids, self._texture_references(mesh))
+
+    def texture_refit(self, image: np.ndarray, camera: PinholeCamera, pose: Pose, mesh: Mesh) -> TextureRefit:
+        """Where the keyframes' crops, rendered at ``pose`` and followed into ``image``, put the
+        object (:func:`..appearance.texture_refit`)."""
+        return texture_refit(image, camera, pose, mesh, mesh.plane_ids, self._texture_references(mesh))
+
+    def _texture_references(self, mesh: Mesh) -> list[TextureReference]:
+        """The keyframes' crops as texture references, each z-buffer rendered once and kept."""
         refs, kept = [], {}
         for k in self.items:
             if k.crop is None:
@@ -209,7 +218,7 @@ class Keyframes:
             kept[id(k)] = cached
             refs.append(cached[1])
         self._references = kept
-        return texture_agreement(image, camera, pose, mesh, mesh.plane_ids, refs)
+        return refs
 
     def synthesise(self, mesh: Mesh, params: ViewsetParams, angles_deg: tuple[float, ...], budget: int,
                    min_cos: float = 0.3, executor: Executor | None = None) -> int:

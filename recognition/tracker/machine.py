@@ -67,7 +67,7 @@ from ..images import ImageError, to_bgr8
 from ..klt import Frame, make_frame
 from ..locate import locate
 from ..match import ModelIndex, index_for
-from ..evidence import EdgeFit, edge_fit, measure_edges, silhouette_inside
+from ..evidence import EdgeFit, edge_fit, measure_edges, pose_shift, silhouette_inside
 from ..pose import PoseParams, edges_agree, plausible
 from ..visibility import merge_points
 from .anchor import Anchor, AnchorJob
@@ -520,16 +520,20 @@ class Tracker:
         ``refind_min_texture_ncc``: :mod:`..appearance`), or None (it does, or no keyframe saw
         what the pose shows). SIFT consensus and the edges cannot tell apart faces that share
         texture and outline; the rest of the texture can."""
+        return self._keyframe_texture(grey, pose, timings)[0]
+
+    def _keyframe_texture(self, grey: np.ndarray, pose: Pose, timings: dict):
+        """:meth:`_unlike_keyframes`' answer and the agreement it read (None: not checked)."""
         p = self.params
         if not p.refind_min_texture_ncc or not len(self.keyframes):
-            return None
+            return None, None
         t0 = time.perf_counter()
         agreement = self.keyframes.texture_agreement(grey, self.camera, pose, self.model.mesh)
-        timings["texture"] = _ms(t0)
+        timings["texture"] = timings.get("texture", 0.0) + _ms(t0)
         if agreement.pixels and agreement.ncc < p.refind_min_texture_ncc:
             return (f"the keyframes' texture rendered at the pose correlates {agreement.ncc:.2f} with the frame "
-                    f"over {agreement.pixels} px (at least {p.refind_min_texture_ncc:g} needed)")
-        return None
+                    f"over {agreement.pixels} px (at least {p.refind_min_texture_ncc:g} needed)"), agreement
+        return None, agreement
 
     def _texture_audit(self, ctx: FrameContext, timings: dict) -> str | None:
         """The keyframes' texture as a judge where no trained point anchors the frame (or the
@@ -543,9 +547,32 @@ class Tracker:
         0.6 % a frame crosses 5 % between two audits. Off with ``audit_texture`` False; no
         keyframe seeing what the pose shows: no evidence, no doubt. Cost: one texture check
         (~6–11 ms) in the frames it runs in, 0.2–0.7 ms a frame on average over a walk."""
-        if not self.params.audit_texture or (ctx.anchored and not self._second_hand):
+        p = self.params
+        if not p.audit_texture or (ctx.anchored and not self._second_hand):
             return None
-        return self._unlike_keyframes(ctx.frame.gray, self.filter.state.pose, timings)
+        pose = self.filter.state.pose
+        why, agreement = self._keyframe_texture(ctx.frame.gray, pose, timings)
+        if (why or agreement is None or not agreement.pixels or not p.texture_refit_shift
+                or agreement.ncc > 1.0 - p.texture_refit_gain  # (no pose could correlate better by the gain)
+                or (self._tracked % max(p.texture_refit_every, 1) and not (self._doubted or self._probation))):
+            return why
+        # the texture followed from the pose to where the frame shows it (see params)
+        t0 = time.perf_counter()
+        mesh = self.model.mesh
+        fit = self.keyframes.texture_refit(ctx.frame.gray, self.camera, pose, mesh)
+        timings["texture"] += _ms(t0)
+        if fit.pose is None or fit.inliers < p.texture_refit_min_inliers:
+            return None
+        shift = pose_shift(fit.pose, pose, mesh)
+        if shift <= p.texture_refit_shift:
+            return None
+        t0 = time.perf_counter()
+        there = self.keyframes.texture_agreement(ctx.frame.gray, self.camera, fit.pose, mesh)
+        timings["texture"] += _ms(t0)
+        if there.pixels and there.ncc >= agreement.ncc + p.texture_refit_gain:
+            return (f"the keyframes' texture puts the object {shift:.2f} of the 5 %/5° criterion away "
+                    f"({fit.inliers} points; it correlates {agreement.ncc:.2f} at the pose, {there.ncc:.2f} there)")
+        return None
 
     def _start_on_mesh(self, img: np.ndarray, frame: Frame, prior, tracks: Tracks) -> bool:
         """A pose (the user's, or found again on a keyframe) on a side no trained view shows

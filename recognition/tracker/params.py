@@ -181,6 +181,21 @@ class TrackerParams:
     # (for_live_streams): there re-anchoring comes two frames late and such tracks drifted in
     # depth past 5 % (bench/RESULTS.md, sessions 35 and 37); offline no pose got that far
     audit_texture: bool = False
+    # ... and, in those frames, the keyframes' texture rendered at the pose is followed into the
+    # frame and the pose solved there (recognition/appearance.py: texture_refit); where that pose
+    # lies more than texture_refit_shift of the 5 %/5° criterion away, on at least
+    # texture_refit_min_inliers points, and the texture correlates better there by at least
+    # texture_refit_gain, the pose is withheld: points born on the mesh at a drifting pose, and
+    # the edge refit that includes them, agreed with a flat box drifting to 5.4 % in depth
+    # (bench/RESULTS.md, session 49). Only a pose whose texture correlates below 1 − gain is
+    # refitted (no other could gain that much), every texture_refit_every-th tracked frame (it
+    # costs ~5–9 ms; 2 let a pose 9 % off through under a passing hand, in the frame it
+    # skipped), and every frame of a track on probation or in doubt. 15 points, not 40: that
+    # hand left 19 (the refit put the object 1.3 % from the truth there). 0: off
+    texture_refit_shift: float = 0.6
+    texture_refit_min_inliers: int = 15
+    texture_refit_gain: float = 0.03
+    texture_refit_every: int = 1
     # a track re-found on this run's keyframes keeps no keyframe nor learned view of its own while
     # no trained point anchors its frame (FrameContext.anchored): its points were lifted at a pose
     # that inherits the keyframe's error, and a view taken from it would pass that error on again
