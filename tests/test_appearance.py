@@ -243,7 +243,8 @@ def test_live_streams_withhold_a_pose_the_keyframes_texture_moves_away(tmp_path)
     diameter in depth and 2° — whose texture still correlates well enough to pass the NCC bar —
     is withheld, because the keyframe's texture, followed into the frame, puts the object back
     where it is and correlates better there; the true pose passes; the setting at 0 turns the
-    refit off (the drifted pose then passes, as it did before session 49)."""
+    refit off (the drifted pose then passes, as it did before session 49). Withheld, the track
+    goes on from the refit's pose, unless ``texture_refit_restart`` is off."""
     from dataclasses import replace
     from types import SimpleNamespace
 
@@ -263,5 +264,10 @@ def test_live_streams_withhold_a_pose_the_keyframes_texture_moves_away(tmp_path)
     assert tracker.keyframes.texture_agreement(grey, CAM, off, obj.mesh).ncc > 0.5  # (the NCC bar passes it)
     why, _ = audit(off)
     assert why is not None and "puts the object" in why and "criterion away" in why, why
+    # the track goes on from where the texture put the object (texture_refit_restart) ...
+    assert pose_shift(tracker.filter.state.pose, pose, obj.mesh) < 0.25
+    tracker.params = replace(tracker.params, texture_refit_restart=False)
+    assert audit(off)[0] is not None and tracker.filter.state.pose is not None
+    assert pose_shift(tracker.filter.state.pose, off, obj.mesh) == 0.0  # ... or only withheld
     tracker.params = replace(tracker.params, texture_refit_shift=0.0)
     assert audit(off)[0] is None

@@ -73,6 +73,35 @@ def test_a_born_point_carries_its_birth_pose_uncertainty(box):
     assert np.median(np.trace(block.C, axis1=1, axis2=2)) > 5 * 2 * params.sigma_px**2
 
 
+def test_mesh_points_relifted_at_a_corrected_pose_lie_where_their_corners_are_seen_from_it(box):
+    """MeshPoints.relift (Tracker._texture_audit moves a drifted track to where the keyframes'
+    texture puts it): points lifted at a pose 2 % of the box deeper than the truth are lifted
+    again at the true pose from the same pixels; they then project onto those pixels at the true
+    pose, match the points lifted there afresh, and form one new cohort, not vouched for."""
+    model, camera, poses, frames = box
+    params = TrackerParams()
+    truth = poses[0]
+    c = truth.apply(model.mesh.centre[None])[0]
+    off = Pose(truth.q_wxyz, truth.t + 0.02 * model.mesh.extent * c / np.linalg.norm(c))
+    frame = make_frame(cv2.cvtColor(frames[0], cv2.COLOR_BGR2GRAY))
+    P = np.diag([0.05**2] * 3 + [np.radians(0.5) ** 2] * 3)
+    drifted, fresh = MeshPoints(model.mesh, params), MeshPoints(model.mesh, params)
+    at_off, at_truth = initial_state(0.0, off.t, off.q_wxyz, P), initial_state(0.0, truth.t, truth.q_wxyz, P)
+    n = drifted.spawn(FrameContext(frames[0], frame, frame, camera, at_off), at_off)
+    fresh.spawn(FrameContext(frames[0], frame, frame, camera, at_truth), at_truth)
+    assert n > 30 and len(fresh) > 30
+    assert np.abs(camera.project(truth.apply(drifted.tracks.X)) - drifted.tracks.uv).max() > 0.5  # (off: they disagree)
+    before = drifted._births
+    m = drifted.relift(camera, at_truth)
+    assert 0.9 * n <= m == len(drifted) == len(drifted.cov_X) == len(drifted.ema)
+    assert np.abs(camera.project(truth.apply(drifted.tracks.X)) - drifted.tracks.uv).max() < 1e-6
+    common = {tuple(np.round(u, 3)): X for u, X in zip(fresh.tracks.uv, fresh.tracks.X)}
+    same = [np.linalg.norm(X - common[tuple(np.round(u, 3))]) for u, X in zip(drifted.tracks.uv, drifted.tracks.X)
+            if tuple(np.round(u, 3)) in common]
+    assert len(same) > 0.5 * m and max(same) < 1e-6 * model.mesh.extent
+    assert np.all(drifted.cohort == before) and drifted._births == before + 1 and not drifted.vouched.any()
+
+
 def test_mesh_points_alone_follow_a_known_motion(box):
     model, camera, poses, frames = box
     tracker = Tracker(model, camera, TrackerParams(sources=("mesh",)), index=index_for(model))

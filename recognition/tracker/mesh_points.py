@@ -222,6 +222,23 @@ class MeshPoints:
                 and confident(state, self.diameter, p.mesh_spawn_sigma_p, p.mesh_spawn_sigma_deg)):
             self.spawn(ctx, state)
 
+    def relift(self, camera, state: FilterState) -> int:
+        """Every point lifted again, from where it is seen now, onto the mesh at ``state``'s pose
+        (a pose the tracker moved to because its points had drifted with it: Tracker._texture_audit);
+        they form one new cohort, not vouched for (the pose is not reported). Returns how many hit
+        the mesh (the others are dropped)."""
+        if not len(self.tracks):
+            return 0
+        pose = state.pose
+        X, face, cos = cast_rays(self.mesh, pose, undistort_pixels(camera, self.tracks.uv))
+        ok = (face >= 0) & (cos >= self.params.visibility.min_cos)
+        n = int(ok.sum())
+        self.tracks = Tracks(X[ok], self.tracks.uv[ok])
+        self.cov_X = lifted_covariance(pose, X[ok], face_normals(self.mesh)[face[ok]], state.pose_covariance)
+        self.cohort, self._births = np.full(n, self._births), self._births + 1
+        self.vouched, self.ema = np.zeros(n, bool), np.zeros(n)
+        return n
+
     def spawn(self, ctx: FrameContext, state: FilterState, vouched: bool = True) -> int:
         """Detect corners on the visible mesh in this frame and lift them at ``state``'s pose
         (``vouched``: a pose the tracker reports; see :attr:`vouched`)."""

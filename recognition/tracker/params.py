@@ -196,6 +196,11 @@ class TrackerParams:
     texture_refit_min_inliers: int = 15
     texture_refit_gain: float = 0.03
     texture_refit_every: int = 1
+    # ... and the track goes on from the refit's pose, its mesh points lifted again there
+    # (MeshPoints.relift), in doubt (the edges must confirm it, strictly, before it is reported):
+    # withheld only, the drift went on and the track was lost a few frames later; 24 live walks,
+    # lost while ≥ 30 % visible 2239 → 2224, none beyond 5 %/5° (bench/RESULTS.md, session 49)
+    texture_refit_restart: bool = True
     # a track re-found on this run's keyframes keeps no keyframe nor learned view of its own while
     # no trained point anchors its frame (FrameContext.anchored): its points were lifted at a pose
     # that inherits the keyframe's error, and a view taken from it would pass that error on again
