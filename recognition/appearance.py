@@ -39,7 +39,7 @@ from quatrack.tracking.jit import lazily_compiled
 from quatrack.tracking.pose import Pose
 from quatrack.viewsets.mesh import Mesh
 from quatrack.viewsets.novel import render_textured_view
-from quatrack.viewsets.render import footprint
+from quatrack.viewsets.render import footprint, lift_keypoints
 from quatrack.viewsets.texture import TextureReference
 
 
@@ -217,7 +217,7 @@ def texture_refit(image: np.ndarray, camera: PinholeCamera, pose: Pose, mesh: Me
     loss, drifted 1.5 → 5.4 % of its diameter in depth over nine frames, every test passed). The
     keyframes' texture rendered at such a pose is the object seen from slightly elsewhere, a
     pattern KLT follows to where the image shows it; the pose solved there moved those drifted
-    poses back to within 0.3–2 % (bench/RESULTS.md, session 49). A right pose stays where it is.
+    poses back to within 0.1–1.1 % (bench/RESULTS.md, session 49). A right pose stays where it is.
 
     >>> from quatrack.viewsets.mesh import make_mesh
     >>> from quatrack.viewsets.render import render
@@ -236,8 +236,6 @@ def texture_refit(image: np.ndarray, camera: PinholeCamera, pose: Pose, mesh: Me
     >>> bool(np.linalg.norm(fit.pose.t - truth.t) < 0.03), fit.inliers >= 12
     (True, True)
     """
-    from quatrack.viewsets.render import lift_keypoints
-
     box = footprint(mesh, camera, pose, margin_px)
     if box is None:
         return TextureRefit(None, 0, 0)
@@ -279,8 +277,9 @@ def texture_refit(image: np.ndarray, camera: PinholeCamera, pose: Pose, mesh: Me
         ok = (st.ravel() == 1) & (st2.ravel() == 1) & (np.linalg.norm(back - corners, axis=1) <= fb_px)
         from_all.append(corners[ok])
         to_all.append(fwd[ok])
-    if not from_all or sum(len(c) for c in from_all) < min_points:
-        return TextureRefit(None, sum(len(c) for c in from_all), 0)
+    followed = sum(len(f) for f in from_all)
+    if followed < min_points:
+        return TextureRefit(None, followed, 0)
     # every reference was rendered at the same pose in the same window: one lifting for all
     X, keep = lift_keypoints(mesh, win, pose, np.concatenate(from_all), buffers=buf)
     X, uv = X[keep], np.concatenate(to_all)[keep]

@@ -48,6 +48,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from quatrack.tracking.camera import PinholeCamera
 from quatrack.tracking.measurements import project_model_points
 from quatrack.tracking.state import FilterState
 from quatrack.viewsets.mesh import Mesh
@@ -222,7 +223,7 @@ class MeshPoints:
                 and confident(state, self.diameter, p.mesh_spawn_sigma_p, p.mesh_spawn_sigma_deg)):
             self.spawn(ctx, state)
 
-    def relift(self, camera, state: FilterState) -> int:
+    def relift(self, camera: PinholeCamera, state: FilterState) -> int:
         """Every point lifted again, from where it is seen now, onto the mesh at ``state``'s pose
         (a pose the tracker moved to because its points had drifted with it: Tracker._texture_audit);
         they form one new cohort, not vouched for (the pose is not reported). Returns how many hit
