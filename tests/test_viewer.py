@@ -214,11 +214,16 @@ def test_viewer_tracks_a_chosen_video_file(server, tmp_path):
             "for (let i = 0; i < d.length; i += 4) {"  # coloured pixels: the series, not the grey frames and labels
             "  const m = Math.max(d[i], d[i+1], d[i+2]), l = Math.min(d[i], d[i+1], d[i+2]); n += d[i+3] > 0 && m - l > 60; }"
             "return n")
+        rows = driver.execute_script("return state.history")  # (one row per answer; null: no pose)
     finally:
         driver.quit()
-    # the video plays in real time while frames go lock-step: how many are tracked before it ends
-    # depends on the machine, so only the bounds are checked
-    assert 1 <= count <= 3 and last["status"] in ("init", "tracking") and (last["width"], last["height"]) == (640, 480)
-    assert 20 < last["pose"]["t"][2] < 200
-    assert count < 2 or plotted > 20 * count  # the series are drawn (colour, not the grey frames); a line needs 2 points
+    # the video plays in real time while frames go lock-step: how many frames are sent before it
+    # ends, and how far apart in the video they are, depends on the machine (frames sampled far
+    # apart may lose the track: one CI run's last answer was "lost"), so the answers are checked
+    # as a whole: some carry a pose, every one the frame's size
+    posed = [r for r in rows if r]
+    assert 1 <= count <= 3 and len(rows) == count and posed, (count, rows, last.get("reason"))
+    assert (last["width"], last["height"]) == (640, 480)
+    assert 20 < posed[-1]["p"][2] < 200
+    assert len(posed) < 2 or plotted > 20 * len(posed)  # the series are drawn (colour, not the grey frames); a line needs 2 points
     print(f"file source: {count} poses, {plotted} plotted pixels")
