@@ -244,14 +244,9 @@ def texture_refit(image: np.ndarray, camera: PinholeCamera, pose: Pose, mesh: Me
     a_img = np.ascontiguousarray(_grey(image)[y0:y1, x0:x1])
     kernel = np.ones((2 * erode_px + 1, 2 * erode_px + 1), np.uint8) if erode_px > 0 else None
     from_all, to_all, buf = [], [], None
-    c = np.asarray(mesh.centre, float)
-
-    def direction(p: Pose) -> np.ndarray:  # (from the object's centre to the camera, object frame)
-        v = -p.R.T @ p.t - c
-        return v / np.linalg.norm(v)
-
-    here = direction(pose)
-    references = sorted(references, key=lambda r: -float(direction(r.pose) @ here))[:max(int(max_references), 1)]
+    here = pose.viewing_direction(mesh.centre)
+    references = sorted(references, key=lambda r: -float(r.pose.viewing_direction(mesh.centre) @ here))
+    references = references[:max(int(max_references), 1)]
     per_ref = max(int(max_corners) // len(references), min_points) if references else 0
     lk = dict(winSize=(21, 21), maxLevel=3, criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))
     for ref in references:
