@@ -448,13 +448,22 @@ def _run_locate(args: argparse.Namespace) -> int:
         if args.json:
             print(json.dumps({"image": path, **result.to_json()}), flush=True)
         elif result.found:
-            t = ", ".join(f"{v:.2f}" for v in result.t)
+            t = _position_text(result.t, model.mesh.extent)
             q = ", ".join(f"{v:.4f}" for v in result.q_wxyz)
             print(f"{path}: found  t = [{t}]  q_wxyz = [{q}]  inliers {result.inliers}/{result.matches}  "
                   f"rms {result.reprojection_rms_px:.2f} px  viewset {result.viewset}  {result.time_ms['total']:.0f} ms")
         else:
             print(f"{path}: not found ({result.reason})  {result.time_ms['total']:.0f} ms")
     return 1 if failed else 0
+
+
+def _position_text(t, extent: float) -> str:
+    """A position in the mesh's units, to a thousandth of the object's diameter: a mesh in metres
+    shows millimetres (``.2f`` printed a 10 cm cube's position as 0.00, -0.00, 0.36)."""
+    from quatrack.recognition.overlay import resolving_decimals
+
+    n = resolving_decimals(1e-3 * float(extent))
+    return ", ".join(f"{v:.{n}f}" for v in np.round(np.asarray(t, float), n) + 0.0)  # (+0: no "-0.000")
 
 
 def _locate_all(args: argparse.Namespace, camera, params) -> int:
@@ -481,6 +490,7 @@ def _locate_all(args: argparse.Namespace, camera, params) -> int:
             print(f"warning: {n}: {exc}", file=sys.stderr)
     if not models:
         raise UserError(f"no usable trained object in {store}")
+    extent = {m.name: m.mesh.extent for m in models}
     failed = False
     for path in args.images:
         t0 = time.perf_counter()
@@ -501,7 +511,7 @@ def _locate_all(args: argparse.Namespace, camera, params) -> int:
         elif not found:
             print(f"{path}: none of {len(models)} objects found  {total:.0f} ms")
         for r in found if not args.json else ():
-            t = ", ".join(f"{v:.2f}" for v in r.t)
+            t = _position_text(r.t, extent[r.object])
             q = ", ".join(f"{v:.4f}" for v in r.q_wxyz)
             print(f"{path}: found {r.object}  t = [{t}]  q_wxyz = [{q}]  inliers {r.inliers}/{r.matches}  "
                   f"confidence {r.confidence:.2f}  {total:.0f} ms")

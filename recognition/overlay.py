@@ -84,6 +84,19 @@ def draw_overlay(image: np.ndarray, camera: PinholeCamera, mesh: Mesh | None, st
     return out
 
 
+def resolving_decimals(resolution: float, most: int = 9) -> int:
+    """Decimals a number needs to show steps of ``resolution``: ``⌈−log₁₀ resolution⌉``,
+    within ``[0, most]``. Why: positions are in the mesh's units, so a fixed ``.2f`` shows a
+    mesh in metres to the centimetre (0.00) and one in millimetres to the hundredth.
+
+    >>> resolving_decimals(0.02), resolving_decimals(2e-4), resolving_decimals(0.2), resolving_decimals(50.0)
+    (2, 4, 1, 0)
+    """
+    if not np.isfinite(resolution) or resolution <= 0:
+        return most
+    return int(min(max(np.ceil(-np.log10(resolution) - 1e-9), 0), most))
+
+
 def _panel(canvas, box, times, values, sigmas, title, unit, tmax, colours):
     """One plot panel: series (columns of ``values``) with 3σ bands; NaN breaks a line (lost frames)."""
     x0, y0, x1, y1 = box
@@ -117,8 +130,12 @@ def _panel(canvas, box, times, values, sigmas, title, unit, tmax, colours):
                 cv2.polylines(canvas, [np.column_stack([X(times[run]), Y(v[run])])], False, c, 1, cv2.LINE_AA)
     font = cv2.FONT_HERSHEY_SIMPLEX
     cv2.putText(canvas, title, (x0 + 6, y0 + 16), font, 0.5, (0, 0, 0), 1, cv2.LINE_AA)
-    cv2.putText(canvas, f"{hi:.1f} {unit}", (x0 - 78, y0 + 12), font, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
-    cv2.putText(canvas, f"{lo:.1f} {unit}", (x0 - 78, y1), font, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
+    # the axis' ends to a hundredth of its span (a mesh in metres moves by millimetres), right-aligned
+    n = resolving_decimals((hi - lo) / 100)
+    for v, y in ((hi, y0 + 12), (lo, y1)):
+        text = f"{v:.{n}f} {unit}"
+        (tw, _), _ = cv2.getTextSize(text, font, 0.4, 1)
+        cv2.putText(canvas, text, (max(x0 - 6 - tw, 0), y), font, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
 
 
 def plot_track(steps: Sequence, size: tuple[int, int] = (1100, 900)) -> np.ndarray:

@@ -412,6 +412,32 @@ def test_cli_locate_object_all(tmp_path, cube, flat_grey, bgs, capsys):
     assert none == {"image": str(tmp_path / "none.png"), "found": False, "objects": [], "time_ms": none["time_ms"]}
 
 
+def test_cli_locate_prints_positions_to_a_thousandth_of_the_diameter(tmp_path, cube, flat_grey, bgs, capsys):
+    """The text answer shows each object's position in its mesh's units to 0.1 % of its diameter:
+    a fixed ``.2f`` printed the cube (metres) to the centimetre."""
+    import re
+
+    store = tmp_path / "store"
+    for m, _ in (cube, flat_grey):
+        save_model(store, m)
+    cam_file = tmp_path / "camera.json"
+    cam_file.write_text(json.dumps({"width": CAM.width, "height": CAM.height, "fx": CAM.fx, "fy": CAM.fy,
+                                    "cx": CAM.cx, "cy": CAM.cy}))
+    img, _ = _two(cube, flat_grey, bgs)
+    cv2.imwrite(str(tmp_path / "two.png"), img)
+    args = ["locate", "--object", "all", "--camera", str(cam_file), "--store", str(store), str(tmp_path / "two.png")]
+    assert main(args + ["--json"]) == 0
+    exact = {o["object"]: np.array(o["pose"]["t"]) for o in json.loads(capsys.readouterr().out)["objects"]}
+    assert main(args) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert len(lines) == 2, lines
+    for line in lines:
+        name, t = re.search(r"found (\S+)  t = \[([^]]*)\]", line).groups()
+        mesh = (cube if name == "cube-m" else flat_grey)[0].mesh
+        shown = np.array([float(v) for v in t.split(",")])
+        assert np.all(np.abs(shown - exact[name]) <= 0.5e-3 * mesh.extent), (line, exact[name])
+
+
 def test_service_pose_without_a_name(tmp_path, cube, flat_grey, bgs):
     import httpx
 
