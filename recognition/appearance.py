@@ -191,6 +191,10 @@ class TextureRefit:
     pose: Pose | None  # the pose the references' texture puts the object at (None: too few points)
     tracked: int  # corners of the rendered texture followed into the image (both ways)
     inliers: int  # of those, the PnP consensus
+    # the consensus: object points (n, 3) — where the references saw that texture on the mesh —
+    # and their pixels in the image (n, 2); None without a pose
+    X: np.ndarray | None = None
+    uv: np.ndarray | None = None
 
 
 def texture_refit(image: np.ndarray, camera: PinholeCamera, pose: Pose, mesh: Mesh, groups: np.ndarray,
@@ -218,6 +222,7 @@ def texture_refit(image: np.ndarray, camera: PinholeCamera, pose: Pose, mesh: Me
     keyframes' texture rendered at such a pose is the object seen from slightly elsewhere, a
     pattern KLT follows to where the image shows it; the pose solved there moved those drifted
     poses back to within 0.1–1.1 % (bench/RESULTS.md, session 49). A right pose stays where it is.
+    The consensus is returned too (``X``, ``uv``): the tracker follows it as anchors (session 50).
 
     >>> from quatrack.viewsets.mesh import make_mesh
     >>> from quatrack.viewsets.render import render
@@ -235,6 +240,8 @@ def texture_refit(image: np.ndarray, camera: PinholeCamera, pose: Pose, mesh: Me
     >>> fit = texture_refit(frame, cam, off, mesh, mesh.plane_ids, [ref])
     >>> bool(np.linalg.norm(fit.pose.t - truth.t) < 0.03), fit.inliers >= 12
     (True, True)
+    >>> bool(np.abs(cam.project(truth.apply(fit.X)) - fit.uv).max() < 1.0)  # where the truth puts them
+    True
     """
     box = footprint(mesh, camera, pose, margin_px)
     if box is None:
@@ -290,4 +297,5 @@ def texture_refit(image: np.ndarray, camera: PinholeCamera, pose: Pose, mesh: Me
         return TextureRefit(None, len(X), 0 if inl is None else len(inl))
     inl = inl.ravel()
     rvec, tvec = cv2.solvePnPRefineLM(X[inl].astype(np.float64), uv[inl].astype(np.float64), K, dist, rvec, tvec)
-    return TextureRefit(Pose.from_rvec(rvec.ravel(), tvec.ravel()), len(X), len(inl))
+    return TextureRefit(Pose.from_rvec(rvec.ravel(), tvec.ravel()), len(X), len(inl), X[inl].astype(float),
+                        uv[inl].astype(float) + np.array([x0, y0], float))  # (window → image pixels)

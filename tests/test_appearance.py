@@ -271,3 +271,41 @@ def test_live_streams_withhold_a_pose_the_keyframes_texture_moves_away(tmp_path)
     assert pose_shift(tracker.filter.state.pose, off, obj.mesh) == 0.0  # ... or only withheld
     tracker.params = replace(tracker.params, texture_refit_shift=0.0)
     assert audit(off)[0] is None
+
+
+def test_live_streams_take_anchors_from_the_keyframes_texture_that_do_not_anchor(tmp_path):
+    """``TrackerParams.texture_anchors``: a pose drifted by less than the withholding bar (it is
+    reported) but correlating below 0.97 is refitted; with fewer than ``min_inliers`` trained
+    points, the refit's consensus becomes the trained source's tracks — object points where the
+    keyframe saw the texture, at the pixels where this frame shows it (the truth projects them
+    there) — and measured they do not count as anchoring the frame; off, nothing changes."""
+    from dataclasses import replace
+    from types import SimpleNamespace
+
+    from quatrack.recognition.tracker.points import PointBlock, Tracks
+    from quatrack.recognition.video import TrackerParams
+    from quatrack.tracking.state import initial_state
+
+    obj, tracker, pose, grey = _cube_tracker(tmp_path, TrackerParams().for_live_streams())
+    off = _drifted(obj, pose, 2.5, 1.0)
+    assert 0.2 < pose_shift(off, pose, obj.mesh) < tracker.params.texture_refit_shift
+    assert tracker.keyframes.texture_agreement(grey, CAM, off, obj.mesh).ncc < 1 - tracker.params.texture_refit_gain
+
+    def audit():
+        tracker.trained.tracks = Tracks.empty()
+        tracker.filter.state = initial_state(0.0, off.t, off.q_wxyz, np.eye(6) * 1e-6)
+        return tracker._texture_audit(SimpleNamespace(anchored=False, frame=SimpleNamespace(gray=grey)), {})
+
+    assert audit() is None  # (reported: not withheld)
+    tracks = tracker.trained.tracks
+    assert len(tracks) >= tracker.params.texture_refit_min_inliers
+    err = np.linalg.norm(CAM.project(pose.apply(tracks.X)) - tracks.uv, axis=1)
+    drifted = np.linalg.norm(CAM.project(off.apply(tracks.X)) - tracks.uv, axis=1)
+    # keyframe-anchored: where the truth puts them (within the consensus' 2 px), not the drifted pose
+    assert np.median(err) < 0.5 and np.percentile(err, 95) < 2.0 and np.median(drifted) > 4 * np.median(err)
+    block = PointBlock.isotropic("trained", tracks, 1.0)
+    assert tracker._anchoring(block) == 0
+    other = PointBlock.isotropic("trained", Tracks(tracks.X + 1e-3, tracks.uv), 1.0)  # (points SIFT matched)
+    assert tracker._anchoring(other) == len(tracks)
+    tracker.params = replace(tracker.params, texture_anchors=False)
+    assert audit() is None and len(tracker.trained.tracks) == 0

@@ -138,6 +138,9 @@ class Tracker:
         # the track was started on this run's keyframes (re-found after a loss), not on the model's
         # own views nor the user's pose: it keeps no view (TrackerParams.capture_second_hand)
         self._second_hand = False
+        # the object points of the latest anchors taken from the keyframes' texture
+        # (_texture_audit; TrackerParams.texture_anchors): measured, they do not anchor a frame
+        self._keyframe_anchors: set[tuple] = set()
         self.reset()
         if params.pipelined_refresh and params.refresh_every and executor is not None:
             executor.submit(lambda: self._index()._matcher())  # warm the anchor thread's index
@@ -554,7 +557,10 @@ class Tracker:
         gain, is withheld too, and (``texture_refit_restart``) the track goes on from the
         refit's pose with its mesh points lifted again there. Why: the correlation sees a drift
         only as a lower maximum (a flat box 5.4 % off in depth read 0.87–0.93, the truth 0.996);
-        the refit finds where that maximum is (bench/RESULTS.md, session 49)."""
+        the refit finds where that maximum is (bench/RESULTS.md, session 49). A refit that leaves
+        the pose reported, in a frame with fewer than ``min_inliers`` trained points, hands its
+        consensus to the trained source as anchors that never anchor (``texture_anchors``: a
+        track born on its own poses then follows texture placed by the keyframes; session 50)."""
         p = self.params
         if not p.audit_texture or (ctx.anchored and not self._second_hand):
             return None
@@ -573,6 +579,10 @@ class Tracker:
             return None
         shift = pose_shift(fit.pose, pose, mesh)
         if shift <= p.texture_refit_shift:
+            if p.texture_anchors and len(self.trained) < p.min_inliers:
+                # the keyframes' texture, where this frame shows it: anchors that never anchor (params)
+                self.trained.tracks = Tracks(fit.X, fit.uv)
+                self._keyframe_anchors = {tuple(x) for x in fit.X.tolist()}
             return None
         t0 = time.perf_counter()
         there = self.keyframes.texture_agreement(ctx.frame.gray, self.camera, fit.pose, mesh)
@@ -672,7 +682,7 @@ class Tracker:
                 continue
             measured[s] = s.measure(ctx, timings)
             if s is self.trained:
-                ctx.anchored = self._anchored = len(measured[s]) >= p.min_inliers
+                ctx.anchored = self._anchored = self._anchoring(measured[s]) >= p.min_inliers
         shape_ctx = self._recentred(ctx, list(measured.values()), timings)
         for s in self.sources:
             if s in self._shape_sources:
@@ -1136,6 +1146,13 @@ class Tracker:
         if ok:
             self._failed_refreshes = 0
         return ok
+
+    def _anchoring(self, block: PointBlock) -> int:
+        """The trained source's measured points that anchor a frame: all but the anchors taken
+        from the keyframes' texture (``_keyframe_anchors``, ``TrackerParams.texture_anchors``)."""
+        if not self._keyframe_anchors:
+            return len(block)
+        return len(block) - sum(tuple(x) in self._keyframe_anchors for x in block.X.tolist())
 
     def _inliers_of(self, blocks, inl, only=None, exclude: tuple = ()) -> int:
         """Inliers among the blocks of one source (``only``) or of all but some (``exclude``)."""

@@ -201,6 +201,18 @@ class TrackerParams:
     # withheld only, the drift went on and the track was lost a few frames later; 24 live walks,
     # lost while ≥ 30 % visible 2239 → 2224, none beyond 5 %/5° (bench/RESULTS.md, session 49)
     texture_refit_restart: bool = True
+    # ... and where the trained points are fewer than min_inliers and the refit leaves the pose
+    # (it does not withhold it), the refit's consensus becomes the trained source's tracks:
+    # points on the mesh where the keyframes saw that texture, matched to where this frame shows
+    # it — anchors from this run's first-hand views, followed by KLT and measured like trained
+    # points from the next frame on. They never count as anchoring a frame
+    # (Tracker._keyframe_anchors): every judge stays as for a frame no trained point anchors.
+    # Why: a track on sides no photo shows has only points born on the mesh at its own poses,
+    # which drift with it (zoo flat box #11: 2.3–4.1 % off for 20 frames while the refit put the
+    # object 0.4–1.5 % from the truth). 24 live walks: frames lost while ≥ 30 % visible
+    # 2224 → 2060, none beyond 5 %/5°; the frames tracked before are as accurate as before
+    # (bench/RESULTS.md, session 50)
+    texture_anchors: bool = True
     # a track re-found on this run's keyframes keeps no keyframe nor learned view of its own while
     # no trained point anchors its frame (FrameContext.anchored): its points were lifted at a pose
     # that inherits the keyframe's error, and a view taken from it would pass that error on again
