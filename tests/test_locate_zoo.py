@@ -389,13 +389,19 @@ def test_locate_all_with_zero_one_and_two_objects(cube, flat_grey, bgs):
     assert all(r.found and _correct(r, truths[r.object], m.mesh) for r, m in zip(both, models)), [r.reason for r in both]
 
 
-def test_cli_locate_object_all(tmp_path, cube, flat_grey, bgs, capsys):
+def _cli_store(tmp_path, *models):
+    """A model store holding ``models`` ((model, poses) pairs) and the zoo camera's file, for the CLI."""
     store = tmp_path / "store"
-    for m, _ in (cube, flat_grey):
+    for m, _ in models:
         save_model(store, m)
     cam_file = tmp_path / "camera.json"
     cam_file.write_text(json.dumps({"width": CAM.width, "height": CAM.height, "fx": CAM.fx, "fy": CAM.fy,
                                     "cx": CAM.cx, "cy": CAM.cy}))
+    return store, cam_file
+
+
+def test_cli_locate_object_all(tmp_path, cube, flat_grey, bgs, capsys):
+    store, cam_file = _cli_store(tmp_path, cube, flat_grey)
     img, truths = _two(cube, flat_grey, bgs)
     cv2.imwrite(str(tmp_path / "two.png"), img)
     cv2.imwrite(str(tmp_path / "none.png"), bgs[5])
@@ -417,12 +423,7 @@ def test_cli_locate_prints_positions_to_a_thousandth_of_the_diameter(tmp_path, c
     a fixed ``.2f`` printed the cube (metres) to the centimetre."""
     import re
 
-    store = tmp_path / "store"
-    for m, _ in (cube, flat_grey):
-        save_model(store, m)
-    cam_file = tmp_path / "camera.json"
-    cam_file.write_text(json.dumps({"width": CAM.width, "height": CAM.height, "fx": CAM.fx, "fy": CAM.fy,
-                                    "cx": CAM.cx, "cy": CAM.cy}))
+    store, cam_file = _cli_store(tmp_path, cube, flat_grey)
     img, _ = _two(cube, flat_grey, bgs)
     cv2.imwrite(str(tmp_path / "two.png"), img)
     args = ["locate", "--object", "all", "--camera", str(cam_file), "--store", str(store), str(tmp_path / "two.png")]
