@@ -223,6 +223,15 @@ class MeshPoints:
                 and confident(state, self.diameter, p.mesh_spawn_sigma_p, p.mesh_spawn_sigma_deg)):
             self.spawn(ctx, state)
 
+    def _lifted(self, camera: PinholeCamera, state: FilterState, uv: np.ndarray) -> tuple[Tracks, np.ndarray]:
+        """The pixels ``uv`` lifted onto the mesh at ``state``'s pose (those whose ray hits a face
+        seen at ``cos ≥ visibility.min_cos``) and their 3-D covariances inherited from the pose's."""
+        pose = state.pose
+        X, face, cos = cast_rays(self.mesh, pose, undistort_pixels(camera, uv))
+        ok = (face >= 0) & (cos >= self.params.visibility.min_cos)
+        cov = lifted_covariance(pose, X[ok], face_normals(self.mesh)[face[ok]], state.pose_covariance)
+        return Tracks(X[ok], np.asarray(uv)[ok]), cov
+
     def relift(self, camera: PinholeCamera, state: FilterState) -> int:
         """Every point lifted again, from where it is seen now, onto the mesh at ``state``'s pose
         (a pose the tracker moved to because its points had drifted with it: Tracker._texture_audit);
@@ -230,12 +239,8 @@ class MeshPoints:
         the mesh (the others are dropped)."""
         if not len(self.tracks):
             return 0
-        pose = state.pose
-        X, face, cos = cast_rays(self.mesh, pose, undistort_pixels(camera, self.tracks.uv))
-        ok = (face >= 0) & (cos >= self.params.visibility.min_cos)
-        n = int(ok.sum())
-        self.tracks = Tracks(X[ok], self.tracks.uv[ok])
-        self.cov_X = lifted_covariance(pose, X[ok], face_normals(self.mesh)[face[ok]], state.pose_covariance)
+        self.tracks, self.cov_X = self._lifted(camera, state, self.tracks.uv)
+        n = len(self.tracks)
         self.cohort, self._births = np.full(n, self._births), self._births + 1
         self.vouched, self.ema = np.zeros(n, bool), np.zeros(n)
         return n
@@ -258,14 +263,12 @@ class MeshPoints:
         uv = corners_in_mask(ctx.frame.gray, mask, n_new, p.mesh_quality, p.mesh_min_distance_px)
         if uv is None:
             return 0
-        X, face, cos = cast_rays(self.mesh, pose, undistort_pixels(cam, uv))
-        ok = (face >= 0) & (cos >= p.visibility.min_cos)
-        if not ok.any():
+        born, cov = self._lifted(cam, state, uv)
+        n = len(born)
+        if not n:
             return 0
-        n = int(ok.sum())
-        self.tracks = self.tracks + Tracks(X[ok], uv[ok])
-        self.cov_X = np.concatenate([self.cov_X, lifted_covariance(pose, X[ok], face_normals(self.mesh)[face[ok]],
-                                                                  state.pose_covariance)])
+        self.tracks = self.tracks + born
+        self.cov_X = np.concatenate([self.cov_X, cov])
         self.cohort = np.concatenate([self.cohort, np.full(n, self._births)])
         self.vouched = np.concatenate([self.vouched, np.full(n, vouched)])
         self._births += 1
