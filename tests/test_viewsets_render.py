@@ -374,3 +374,34 @@ def test_the_compiled_texture_lookup_equals_the_numpy_one(camera, masked):
         checked += int(tex.sum())
         untextured += int(((buf.face >= 0) & ~tex).sum())
     assert checked > 50000 and untextured > 30000  # textured faces, and faces the photo cannot texture
+
+
+@pytest.mark.parametrize("cx", [322.0, 321.123456789])
+def test_a_crop_s_rays_are_its_own_pixels_rays(cx):
+    """pixel_rays of a crop (PinholeCamera.cropped, a crop of a crop too): a distorted camera's
+    are the whole image's sliced, equal to the crop's own pixels undistorted to 1e-12 (and no
+    new undistortion: the whole image's array is shared); an undistorted camera's are computed
+    for the crop, ``(u − cx)/fx`` bit for bit. A crop reaching outside the image it claims is
+    undistorted for itself."""
+    from quatrack.viewsets.render import pixel_rays
+
+    def own(cam):
+        u, v = np.meshgrid(np.arange(cam.width, dtype=float), np.arange(cam.height, dtype=float))
+        return undistort_pixels(cam, np.stack([u.ravel(), v.ravel()], axis=1)).reshape(cam.height, cam.width, 2)
+
+    whole = PinholeCamera(700.0, 690.0, cx, 241.3, CAM_DIST.dist_coeffs, width=640, height=480)
+    rng = np.random.default_rng(11)
+    for _ in range(5):
+        (x0, x1), (y0, y1) = np.sort(rng.choice(641, 2, replace=False)), np.sort(rng.choice(481, 2, replace=False))
+        crop = whole.cropped(x0, y0, x1, y1)
+        inner = crop.cropped(1, 2, crop.width - 1, crop.height)
+        for cam in (crop, inner):
+            rays = pixel_rays(cam)
+            assert rays.shape == (cam.height, cam.width, 2) and not rays.flags.writeable
+            np.testing.assert_allclose(rays, own(cam), rtol=0, atol=1e-12)
+            assert np.shares_memory(rays, pixel_rays(whole))
+        plain = PinholeCamera(700.0, 690.0, cx, 241.3, width=640, height=480).cropped(x0, y0, x1, y1)
+        np.testing.assert_array_equal(pixel_rays(plain), own(plain))
+    beyond = whole.cropped(600, 400, 700, 500)  # (reaches past the 640 × 480 image)
+    np.testing.assert_allclose(pixel_rays(beyond), own(beyond), rtol=0, atol=1e-12)
+    assert not np.shares_memory(pixel_rays(beyond), pixel_rays(whole))

@@ -20,6 +20,8 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from quatrack.tracking.jit import lazily_compiled
+
 _MAX_DIST = 8  # k1 k2 p1 p2 k3 k4 k5 k6 (thin-prism and tilt terms are not supported)
 
 
@@ -39,6 +41,10 @@ class PinholeCamera:
     # derived once: they are asked on every projection
     has_distortion: bool = field(init=False, repr=False, compare=False)
     is_reference: bool = field(init=False, repr=False, compare=False)
+    # set by cropped(): (x0, y0, width, height) of this crop in the whole image, so that the
+    # per-pixel rays of a distorted camera's crops are sliced from the whole image's, computed
+    # once (viewsets/render.py: pixel_rays), not undistorted again for every window
+    crop_of: tuple[int, int, int, int] | None = field(default=None, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         d = np.asarray(self.dist_coeffs, dtype=float).ravel()
@@ -70,7 +76,12 @@ class PinholeCamera:
         >>> PinholeCamera(800.0, 800.0, 320.0, 240.0, width=640, height=480).cropped(100, 50, 300, 250).project([[0.0, 0.0, 1.0]])
         array([[220., 190.]])
         """
-        return replace(self, cx=self.cx - x0, cy=self.cy - y0, width=int(x1 - x0), height=int(y1 - y0))
+        if self.crop_of is not None:  # (a crop of a crop: placed in the whole image)
+            whole = (self.crop_of[0] + int(x0), self.crop_of[1] + int(y0), *self.crop_of[2:])
+        else:
+            whole = None if self.width is None or self.height is None else (int(x0), int(y0), int(self.width),
+                                                                             int(self.height))
+        return replace(self, cx=self.cx - x0, cy=self.cy - y0, width=int(x1 - x0), height=int(y1 - y0), crop_of=whole)
 
     def scaled(self, s: float, width: int | None = None, height: int | None = None, pad: int = 0) -> "PinholeCamera":
         """The camera of its image resized by ``s`` (pixel centres preserved: ``u' = s(u + ½) − ½``),
@@ -87,7 +98,8 @@ class PinholeCamera:
                 raise ValueError("the camera needs an image size to be scaled")
             width, height = max(1, int(round(self.width * s))), max(1, int(round(self.height * s)))
         return replace(self, fx=self.fx * s, fy=self.fy * s, cx=s * (self.cx + 0.5) - 0.5 + pad,
-                       cy=s * (self.cy + 0.5) - 0.5 + pad, width=int(width) + 2 * pad, height=int(height) + 2 * pad)
+                       cy=s * (self.cy + 0.5) - 0.5 + pad, width=int(width) + 2 * pad, height=int(height) + 2 * pad,
+                       crop_of=None)
 
     def project(self, X_cam: np.ndarray) -> np.ndarray:
         """Pixel coordinates (n, 2) of points (n, 3) given in *this* camera's frame."""
@@ -114,6 +126,24 @@ class PinholeCamera:
         return self._project_distorted(x, y, iz, jacobian)
 
     def _project_distorted(self, x, y, iz, jacobian: bool):
+        """Distorted pixels of the normalised points ``(x, y)`` (``iz = 1/z``) and ``∂uv/∂X_cam``,
+        in one compiled pass (:func:`_distorted_pass`). Why: written in numpy, ~30 whole-array
+        operations on a few dozen points, it cost ~70 µs a call, and the tracker projects ~35
+        times a frame: a distorted camera's step took 56 % longer than an undistorted one's on
+        ``box.mp4`` (bench/RESULTS.md, session 51). The same expressions, the same bits."""
+        d = np.zeros(_MAX_DIST)
+        d[: self.dist_coeffs.size] = self.dist_coeffs
+        n = x.shape[0]
+        uv = np.empty((n, 2))
+        J = np.empty((n, 2, 3)) if jacobian else np.empty((0, 2, 3))
+        _compiled_distorted_pass()(np.ascontiguousarray(x, np.float64), np.ascontiguousarray(y, np.float64),
+                                   np.ascontiguousarray(iz, np.float64), d, float(self.fx), float(self.fy),
+                                   float(self.cx), float(self.cy), bool(jacobian), uv, J)
+        return uv, (J if jacobian else None)
+
+    def _project_distorted_numpy(self, x, y, iz, jacobian: bool):
+        """:meth:`_project_distorted` in numpy, as it was until session 51 (the reference of its
+        test: tests/test_camera.py)."""
         d = np.zeros(_MAX_DIST)
         d[: self.dist_coeffs.size] = self.dist_coeffs
         k1, k2, p1, p2, k3, k4, k5, k6 = d
@@ -144,3 +174,40 @@ class PinholeCamera:
         J[:, 1, 1] = self.fy * dyd_dy * iz
         J[:, 1, 2] = -self.fy * (dyd_dx * x + dyd_dy * y) * iz
         return uv, J
+
+
+def _distorted_pass(x, y, iz, d, fx, fy, cx, cy, jacobian, uv, J):  # pragma: no cover (compiled)
+    """Per point, :meth:`PinholeCamera._project_distorted_numpy`'s expressions term for term
+    (OpenCV's model: ``r² = x² + y²``, ``radial = (1 + k1 r² + k2 r⁴ + k3 r⁶)/(1 + k4 r² + k5 r⁴
+    + k6 r⁶)``, ``x_d = x·radial + 2p1·x·y + p2(r² + 2x²)``, ``y_d = y·radial + p1(r² + 2y²) +
+    2p2·x·y``, ``u = fx x_d + cx``, ``v = fy y_d + cy``), and the chain rule through
+    ``∂(x, y)/∂X = 1/z [[1, 0, −x], [0, 1, −y]]`` into ``J`` when ``jacobian``."""
+    k1, k2, p1, p2, k3, k4, k5, k6 = d[0], d[1], d[2], d[3], d[4], d[5], d[6], d[7]
+    for i in range(x.shape[0]):
+        xi, yi, izi = x[i], y[i], iz[i]
+        r2 = xi * xi + yi * yi
+        num = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        den = 1.0 + r2 * (k4 + r2 * (k5 + r2 * k6))
+        radial = num / den
+        xd = xi * radial + 2.0 * p1 * xi * yi + p2 * (r2 + 2.0 * xi * xi)
+        yd = yi * radial + p1 * (r2 + 2.0 * yi * yi) + 2.0 * p2 * xi * yi
+        uv[i, 0] = fx * xd + cx
+        uv[i, 1] = fy * yd + cy
+        if not jacobian:
+            continue
+        dnum = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
+        dden = k4 + r2 * (2.0 * k5 + 3.0 * k6 * r2)
+        dradial = (dnum * den - num * dden) / (den * den)
+        dxd_dx = radial + xi * dradial * 2.0 * xi + 2.0 * p1 * yi + p2 * 6.0 * xi
+        dxd_dy = xi * dradial * 2.0 * yi + 2.0 * p1 * xi + p2 * 2.0 * yi
+        dyd_dx = yi * dradial * 2.0 * xi + p1 * 2.0 * xi + 2.0 * p2 * yi
+        dyd_dy = radial + yi * dradial * 2.0 * yi + p1 * 6.0 * yi + 2.0 * p2 * xi
+        J[i, 0, 0] = fx * dxd_dx * izi
+        J[i, 0, 1] = fx * dxd_dy * izi
+        J[i, 0, 2] = -fx * (dxd_dx * xi + dxd_dy * yi) * izi
+        J[i, 1, 0] = fy * dyd_dx * izi
+        J[i, 1, 1] = fy * dyd_dy * izi
+        J[i, 1, 2] = -fy * (dyd_dx * xi + dyd_dy * yi) * izi
+
+
+_compiled_distorted_pass = lazily_compiled(_distorted_pass)
