@@ -72,7 +72,7 @@ def limit_blas_threads(threads: int = 1) -> bool:
 def compile_hot_loops() -> float:
     """Run each loop that numba compiles (:mod:`quatrack.tracking.jit`: the z-buffer, the
     texture lookup, the point block's linearisation, the 1-D edge search, the texture evidence's
-    block sums) once on a small box, so that its
+    block sums, the distorted projection) once on a small box, so that its
     compilation happens now and not in the first request's frame; returns the seconds taken.
 
     Why: numba compiles a loop at its first call and keeps the machine code on disk. Where no
@@ -111,4 +111,10 @@ def compile_hot_loops() -> float:
     g = np.zeros((48, 64), np.float32)
     edge_candidates(g, g, np.array([[30.0, 20.0]]), np.array([[1.0, 0.0]]), np.array([4.0]), 6.0, 0.5)
     tile_correlations(g, g, g > 0, 8)
+    # a camera with lens distortion: its projection, and a crop's rays (a read-only slice of the
+    # whole image's: another signature of the texture lookup)
+    lens = PinholeCamera(60.0, 60.0, 32.0, 24.0, np.array([-0.1, 0.01, 0.0, 0.0, 0.0]), width=64, height=48)
+    lens.project_with_jacobian(X + [0.0, 0.0, 4.0])
+    lens.project(X + [0.0, 0.0, 4.0])
+    render_textured_view(box, box.plane_ids, photo, lens, pose, render(box, lens, pose), lens.cropped(4, 4, 60, 44), pose)
     return time.perf_counter() - t0

@@ -40,7 +40,10 @@ def test_the_warm_up_compiles_every_loop_for_the_types_real_work_uses():
     from quatrack.viewsets.novel import _compiled_lookup
     from quatrack.viewsets.render import _compiled_zbuffer
 
-    loops = (_compiled_zbuffer, _compiled_lookup, _compiled_linearize, _compiled_candidates, _compiled_tile_sums)
+    from quatrack.tracking.camera import _compiled_distorted_pass
+
+    loops = (_compiled_zbuffer, _compiled_lookup, _compiled_linearize, _compiled_candidates, _compiled_tile_sums,
+             _compiled_distorted_pass)
     assert compile_hot_loops() >= 0.0
     before = [set(f().signatures) for f in loops]
     assert all(len(s) >= 1 for s in before)
@@ -53,5 +56,13 @@ def test_the_warm_up_compiles_every_loop_for_the_types_real_work_uses():
         ok, frame = cap.read()
         assert ok
         statuses.append(tracker.step(frame, k / 30.0).status)
+    assert statuses[0] == "init" and "tracking" in statuses
+    # the same through a lens (a calibrated webcam's): the distorted projection, a crop's rays
+    from dataclasses import replace
+
+    lens = replace(camera, dist_coeffs=np.array([-0.02, 0.0, 0.0, 0.0, 0.0]))
+    tracker = Tracker(model, lens, TrackerParams())
+    cap.set(cv2.CAP_PROP_POS_FRAMES, 0)
+    statuses = [tracker.step(cap.read()[1], k / 30.0).status for k in range(3)]
     assert statuses[0] == "init" and "tracking" in statuses
     assert [set(f().signatures) for f in loops] == before
