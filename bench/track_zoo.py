@@ -306,12 +306,15 @@ def learn_api():
 
 
 def prepare(name: str, seconds: float, seed: int, workdir: Path, backgrounds, orbit: OrbitParams | None = None,
-            width: int = 640, height: int = 480):
-    """Train ``name`` from one photo and render its walk: ``(model, sequence)``."""
+            width: int = 640, height: int = 480, dist_coeffs=None):
+    """Train ``name`` from one photo and render its walk: ``(model, sequence)``. ``dist_coeffs``:
+    OpenCV's lens distortion of the zoo camera (photo, walk and tracker alike; default none)."""
     from quatrack.viewsets.spec import load_spec
     from quatrack.viewsets.train import train_object
 
     cam = Z.zoo_camera(width, height)
+    if dist_coeffs is not None:
+        cam = replace(cam, dist_coeffs=np.asarray(dist_coeffs, float))
     spec = Z.write_spec(name, workdir / name, n_views=1, backgrounds=backgrounds, seed=seed, camera=cam)
     model = train_object(load_spec(spec))
     params = replace(orbit or OrbitParams(), seconds=seconds)
@@ -340,11 +343,12 @@ def walks(names, renderings: int = 1) -> list[tuple[str, str, int]]:
 
 def study(names=SEQUENCES, seconds: float = 10.0, passes=("truth", "live", "recognition", "learned"), orbit: OrbitParams | None = None,
           width: int = 640, height: int = 480, backgrounds=None, progress: bool = True, out_path: str | None = None,
-          renderings: int = 1) -> dict:
+          renderings: int = 1, dist_coeffs=None) -> dict:
     """Everything in the module docstring; returns one JSON-able dict. The truth-initialised
     passes of every sequence run first (the tracking figures), then the recognition passes
     (slow where recognition fails: it runs on every frame without a pose). ``out_path``: the
-    figures so far are written there (JSON) after every pass."""
+    figures so far are written there (JSON) after every pass. ``dist_coeffs``: the camera's lens
+    distortion (:func:`prepare`; none by default)."""
     from quatrack.recognition.match import index_for
     from quatrack.recognition.video import TrackerParams
 
@@ -352,7 +356,8 @@ def study(names=SEQUENCES, seconds: float = 10.0, passes=("truth", "live", "reco
     bgs = backgrounds if backgrounds is not None else Z.real_backgrounds()
     with_learned, learn_ok = learn_api()
     out = {"machine": f"{os.cpu_count()} cores", "load_before": os.getloadavg(), "seconds": seconds,
-           "learned_viewsets_api": learn_ok, "renderings": renderings, "sequences": {}}
+           "learned_viewsets_api": learn_ok, "renderings": renderings,
+           "dist_coeffs": None if dist_coeffs is None else [float(x) for x in dist_coeffs], "sequences": {}}
 
     def save():
         out["load_after"] = os.getloadavg()
@@ -365,7 +370,8 @@ def study(names=SEQUENCES, seconds: float = 10.0, passes=("truth", "live", "reco
     with tempfile.TemporaryDirectory(prefix="quatrack-track-zoo-") as tmp:
         for key, name, seed in walks(names, renderings):
             ts = time.perf_counter()
-            model, seq = prepare(name, seconds, seed, Path(tmp) / key.replace("#", "-"), bgs, orbit, width, height)
+            model, seq = prepare(name, seconds, seed, Path(tmp) / key.replace("#", "-"), bgs, orbit, width, height,
+                                 dist_coeffs)
             d = float(model.mesh.extent)
             res = {"unit": Z.zoo_object(name).unit, "seed": seed, "diameter": d, "frames": len(seq),
                    "visible_min": float(seq.visible.min()), "frames_below_30pct": int((seq.visible < 0.3).sum()),
@@ -413,7 +419,8 @@ def _f(v, spec=".2f"):
 def report(res: dict) -> str:
     """The figures as text: one table per pass, then what misses the targets."""
     lines = [f"machine {res['machine']}, load {res['load_before'][0]:.1f} before, {res['load_after'][0]:.1f} after; "
-             f"{res['seconds']:g} s per sequence; learned viewsets API: {'yes' if res['learned_viewsets_api'] else 'missing'}",
+             f"{res['seconds']:g} s per sequence; learned viewsets API: {'yes' if res['learned_viewsets_api'] else 'missing'}"
+             + (f"; lens distortion {res['dist_coeffs']}" if res.get("dist_coeffs") else ""),
              "sequence (unit)      frames <30%vis  lost lost>=30% | t mean/max %diam | depth/lateral mean %diam | r mean/max deg | >5%/5deg | "
              "step p50/p95 ms | NEES mean/median | in 95 % ellipsoid | NEES centre/rotation median (3 dof: 2.37)"]
     for name, s in res["sequences"].items():
@@ -473,8 +480,10 @@ def report(res: dict) -> str:
     return "\n".join(lines)
 
 
-def main(as_json: bool = False, seconds: float = 10.0, names: list[str] | None = None, renderings: int = 1) -> int:
-    res = study(tuple(names) if names else SEQUENCES, seconds, progress=not as_json, renderings=renderings)
+def main(as_json: bool = False, seconds: float = 10.0, names: list[str] | None = None, renderings: int = 1,
+         dist_coeffs=None) -> int:
+    res = study(tuple(names) if names else SEQUENCES, seconds, progress=not as_json, renderings=renderings,
+                dist_coeffs=dist_coeffs)
     print(json.dumps(res) if as_json else report(res))
     return 0
 

@@ -34,6 +34,19 @@ def _zoo_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", action="store_true", help="print one JSON object instead of the report")
 
 
+def _lens(text: str | None):
+    """``--lens``'s distortion coefficients (OpenCV's k1, k2, p1, p2[, k3[, k4, k5, k6]]), or None."""
+    if text is None:
+        return None
+    try:
+        d = [float(x) for x in text.split(",")]
+    except ValueError:
+        raise UserError(f"--lens must be 4 to 8 numbers separated by commas (OpenCV's k1,k2,p1,p2[,k3...]), got {text!r}")
+    if not 4 <= len(d) <= 8 or not all(abs(x) < 10 for x in d):
+        raise UserError(f"--lens must be 4 to 8 numbers below 10 in size (OpenCV's k1,k2,p1,p2[,k3...]), got {text!r}")
+    return d
+
+
 def _add_bench(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="benchmark", required=True, metavar="BENCHMARK")
     ude = sub.add_parser(
@@ -97,6 +110,9 @@ def _add_bench(parser: argparse.ArgumentParser) -> None:
                     "losses, errors, NEES, step times, and re-initialisation with and without learned viewsets.",
     )
     _zoo_options(tz)
+    tz.add_argument("--lens", metavar="K1,K2,P1,P2[,K3...]",
+                    help="render, train and track through a lens with OpenCV's distortion coefficients "
+                         "(e.g. -0.15,0.05,0,0,0; default: none)")
     ej = sub.add_parser(
         "edge-judge",
         help="how well the model's edges judge a pose: false alarms at the truth, wrong poses caught",
@@ -180,7 +196,7 @@ def _run_bench(args: argparse.Namespace) -> int:
     if args.benchmark == "track-zoo":
         from quatrack.bench import track_zoo
 
-        return track_zoo.main(args.json, args.seconds, _zoo_walks(args), args.renderings)
+        return track_zoo.main(args.json, args.seconds, _zoo_walks(args), args.renderings, _lens(args.lens))
     if args.benchmark == "edge-judge":
         from quatrack.bench import edge_judge
 

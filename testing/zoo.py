@@ -326,7 +326,7 @@ def write_spec(name: str, directory: str | Path, n_views: int = 1, grey: bool = 
         v = {
             "image": f"view{i}.jpg",
             "camera": {"width": cam.width, "height": cam.height, "fx": cam.fx, "fy": cam.fy, "cx": cam.cx,
-                       "cy": cam.cy, "dist_coeffs": [0.0] * 5},
+                       "cy": cam.cy, "dist_coeffs": [float(x) for x in cam.dist_coeffs]},
             "pose": {"q_wxyz": [float(x) for x in pose.q_wxyz], "t": [float(x) for x in pose.t]},
         }
         if masks:
