@@ -29,7 +29,7 @@ zoo cube behind the walks' passing hand). A right pose scores near 1 (≥ 0.78, 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -38,9 +38,22 @@ from quatrack.tracking.camera import PinholeCamera
 from quatrack.tracking.jit import lazily_compiled
 from quatrack.tracking.pose import Pose
 from quatrack.viewsets.mesh import Mesh
-from quatrack.viewsets.novel import render_textured_view
-from quatrack.viewsets.render import footprint, lift_keypoints
+from quatrack.viewsets.novel import BACKGROUND, render_textured_view
+from quatrack.viewsets.render import RenderBuffers, footprint, lift_keypoints
 from quatrack.viewsets.texture import TextureReference
+
+
+@dataclass(frozen=True)
+class RenderedAt:
+    """References rendered at one pose over one pixel box of the image (``box``: x0, y0, x1, y1),
+    with the box's z-buffer: what :func:`texture_agreement` rendered, for :func:`texture_refit`
+    at the same pose to reuse instead of rendering the same views again (the tracker's audit runs
+    both in one frame: ~2–5 ms of renders a refit)."""
+
+    pose: Pose
+    box: tuple[int, int, int, int]
+    buffers: RenderBuffers
+    views: dict  # id(reference) → (its image rendered, its textured mask)
 
 
 @dataclass(frozen=True)
@@ -48,6 +61,8 @@ class TextureAgreement:
     ncc: float  # the median correlation of the blocks compared (nan: too few, no evidence)
     pixels: int  # pixels of the blocks compared (0: no evidence)
     per_reference: tuple[tuple[float, int], ...] = ()  # (median ρ, pixels) of each reference's blocks
+    # what was rendered (None: nothing); not part of the answer
+    rendered: RenderedAt | None = field(default=None, compare=False, repr=False)
 
 
 def _grey(img: np.ndarray) -> np.ndarray:
@@ -162,14 +177,15 @@ def texture_agreement(image: np.ndarray, camera: PinholeCamera, pose: Pose, mesh
     kernel = np.ones((2 * erode_px + 1, 2 * erode_px + 1), np.uint8) if erode_px > 0 else None
     facing = _facing(mesh, pose) >= min_source_cos
     seen_well = np.append(facing, False)  # (index −1: background)
-    per, all_rho, total, buf = [], [], 0, None
+    per, all_rho, total, buf, views = [], [], 0, None, {}
     for ref in references:
         if not np.any(facing & (_facing(mesh, ref.pose) >= min_source_cos)):
             per.append((float("nan"), 0))  # no face both see well: nothing to compare, nothing rendered
             continue
-        ref = ref.rendered(mesh)
+        key, ref = id(ref), ref.rendered(mesh)
         b_img, textured, buf = render_textured_view(mesh, groups, _grey(ref.image), ref.camera, ref.pose, ref.buffers,
                                                     win, pose, min_source_cos, ref.mask, buf)
+        views[key] = (b_img, textured)
         mask = ((textured > 0) & seen_well[buf.face]).astype(np.uint8)
         if kernel is not None:
             mask = cv2.erode(mask, kernel)
@@ -181,9 +197,18 @@ def texture_agreement(image: np.ndarray, camera: PinholeCamera, pose: Pose, mesh
         all_rho.append(rho)
         total += int(n.sum())
     rho = np.concatenate(all_rho) if all_rho else np.zeros(0)
+    rendered = RenderedAt(pose, box, buf, views) if min_source_cos == _REFIT_MIN_COS and buf is not None else None
     if len(rho) < min_tiles:
-        return TextureAgreement(float("nan"), 0, tuple(per))
-    return TextureAgreement(float(np.median(rho)), total, tuple(per))
+        return TextureAgreement(float("nan"), 0, tuple(per), rendered)
+    return TextureAgreement(float(np.median(rho)), total, tuple(per), rendered)
+
+
+def _rendered_here(rendered: RenderedAt | None, pose: Pose, box) -> bool:
+    """Whether ``rendered`` was rendered at ``pose`` over a box inside ``box``."""
+    if rendered is None or not (np.array_equal(rendered.pose.t, pose.t) and np.array_equal(rendered.pose.q_wxyz, pose.q_wxyz)):
+        return False
+    rx0, ry0, rx1, ry1 = rendered.box
+    return box[0] <= rx0 and box[1] <= ry0 and rx1 <= box[2] and ry1 <= box[3]
 
 
 @dataclass(frozen=True)
@@ -197,10 +222,13 @@ class TextureRefit:
     uv: np.ndarray | None = None
 
 
+_REFIT_MIN_COS = 0.3  # texture_refit renders the faces the references saw at |cos| ≥ this
+
+
 def texture_refit(image: np.ndarray, camera: PinholeCamera, pose: Pose, mesh: Mesh, groups: np.ndarray,
                   references, max_corners: int = 120, max_references: int = 2, margin_px: int = 24,
                   erode_px: int = 3, fb_px: float = 1.0, reprojection_px: float = 2.0,
-                  min_points: int = 12) -> TextureRefit:
+                  min_points: int = 12, rendered: RenderedAt | None = None) -> TextureRefit:
     """Where the object's texture, as the ``references`` saw it, says the object is, starting
     from ``pose``: render, follow, solve. Each reference is rendered at ``pose`` (as
     :func:`texture_agreement` does); its corners (``cv2.goodFeaturesToTrack`` inside its
@@ -223,6 +251,10 @@ def texture_refit(image: np.ndarray, camera: PinholeCamera, pose: Pose, mesh: Me
     pattern KLT follows to where the image shows it; the pose solved there moved those drifted
     poses back to within 0.1–1.1 % (bench/RESULTS.md, session 49). A right pose stays where it is.
     The consensus is returned too (``X``, ``uv``): the tracker follows it as anchors (session 50).
+    ``rendered``: :func:`texture_agreement`'s renders at this very pose
+    (:attr:`TextureAgreement.rendered`), reused: the object lies inside their box, so a render
+    over the wider window here is theirs with the render's background round it (the same
+    pixels where the rays are the same: a principal point of whole or half pixels).
 
     >>> from quatrack.viewsets.mesh import make_mesh
     >>> from quatrack.viewsets.render import render
@@ -251,15 +283,33 @@ def texture_refit(image: np.ndarray, camera: PinholeCamera, pose: Pose, mesh: Me
     a_img = np.ascontiguousarray(_grey(image)[y0:y1, x0:x1])
     kernel = np.ones((2 * erode_px + 1, 2 * erode_px + 1), np.uint8) if erode_px > 0 else None
     from_all, to_all, buf = [], [], None
+    reuse = rendered if _rendered_here(rendered, pose, box) else None
+    if reuse is not None:  # (their box inside this window: theirs pasted into it, see the docstring)
+        rx0, ry0, rx1, ry1 = reuse.box
+        inner = (slice(ry0 - y0, ry1 - y0), slice(rx0 - x0, rx1 - x0))
+        depth = np.full((y1 - y0, x1 - x0), np.inf)
+        face = np.full((y1 - y0, x1 - x0), -1, np.int32)
+        depth[inner], face[inner] = reuse.buffers.depth, reuse.buffers.face
+        buf = RenderBuffers(depth, face)
     here = pose.viewing_direction(mesh.centre)
     references = sorted(references, key=lambda r: -float(r.pose.viewing_direction(mesh.centre) @ here))
     references = references[:max(int(max_references), 1)]
     per_ref = max(int(max_corners) // len(references), min_points) if references else 0
     lk = dict(winSize=(21, 21), maxLevel=3, criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))
     for ref in references:
-        ref = ref.rendered(mesh)
-        b_img, textured, buf = render_textured_view(mesh, groups, _grey(ref.image), ref.camera, ref.pose, ref.buffers,
-                                                    win, pose, 0.3, ref.mask, buf)
+        key, ref = id(ref), ref.rendered(mesh)
+        if reuse is None:
+            b_img, textured, buf = render_textured_view(mesh, groups, _grey(ref.image), ref.camera, ref.pose,
+                                                        ref.buffers, win, pose, _REFIT_MIN_COS, ref.mask, buf)
+        else:
+            got = reuse.views.get(key)
+            if got is None:  # (one the agreement did not render: rendered over its box)
+                got = render_textured_view(mesh, groups, _grey(ref.image), ref.camera, ref.pose, ref.buffers,
+                                           camera.cropped(*reuse.box), pose, _REFIT_MIN_COS, ref.mask,
+                                           reuse.buffers)[:2]
+            b_img = np.full(buf.face.shape, BACKGROUND, got[0].dtype)
+            textured = np.zeros(buf.face.shape, np.uint8)
+            b_img[inner], textured[inner] = got
         mask = textured if kernel is None else cv2.erode(textured, kernel)
         on = mask > 0
         if np.count_nonzero(on) < 64:

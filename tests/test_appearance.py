@@ -221,6 +221,37 @@ def test_the_texture_refit_brings_a_drifted_pose_back(scene, depth_pct, turn_deg
     assert pose_shift(fit.pose, pose, obj.mesh) < 0.25, fit  # within 1.25 % / 1.25° of the truth
 
 
+def test_the_texture_refit_reuses_the_agreement_s_renders_with_the_same_answer(scene, monkeypatch):
+    """texture_refit(rendered=the agreement's renders at that pose): the same pose, points and
+    pixels, bit for bit (the zoo camera's principal point lies on half pixels, so the two
+    windows' rays are the same), a reference the agreement did not render rendered over its box;
+    renders made at another pose are not used."""
+    from quatrack.recognition import appearance
+
+    real = appearance.render_textured_view
+    obj, ref, frame, pose = scene
+    groups = planar_groups(obj.mesh)
+    other = TextureReference(ref.image, CAM, _turned(obj, ref.pose))
+    for off in (_drifted(obj, pose, 5.0, 2.0), pose):
+        agreement = _agreement(obj, frame, off, [ref])
+        assert agreement.rendered is not None and set(agreement.rendered.views) == {id(ref)}
+        for refs in ([ref], [ref, other]):
+            plain = texture_refit(frame, CAM, off, obj.mesh, groups, refs)
+            calls = []
+            monkeypatch.setattr(appearance, "render_textured_view", lambda *a: calls.append(a) or real(*a))
+            reused = texture_refit(frame, CAM, off, obj.mesh, groups, refs, rendered=agreement.rendered)
+            monkeypatch.setattr(appearance, "render_textured_view", real)
+            assert len(calls) == len(refs) - 1  # (only the one the agreement did not render)
+            assert plain.pose is not None and (plain.tracked, plain.inliers) == (reused.tracked, reused.inliers)
+            np.testing.assert_array_equal(plain.pose.t, reused.pose.t)
+            np.testing.assert_array_equal(plain.pose.q_wxyz, reused.pose.q_wxyz)
+            np.testing.assert_array_equal(plain.X, reused.X)
+            np.testing.assert_array_equal(plain.uv, reused.uv)
+    elsewhere = _agreement(obj, frame, _drifted(obj, pose, 0.0, 4.0), [ref]).rendered
+    fit = texture_refit(frame, CAM, pose, obj.mesh, groups, [ref], rendered=elsewhere)
+    assert pose_shift(fit.pose, pose, obj.mesh) < 0.1  # (the other pose's renders ignored)
+
+
 def test_the_texture_refit_leaves_a_right_pose_where_it_is_in_any_light(scene):
     obj, ref, frame, pose = scene
     gain = np.array([0.85, 1.0, 1.15], np.float32) * 0.6  # the zoo walks' new light, as above

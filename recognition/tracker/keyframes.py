@@ -61,7 +61,7 @@ from quatrack.viewsets.viewset import Viewset, ViewsetParams
 
 from quatrack.viewsets.texture import TextureReference
 
-from ..appearance import TextureAgreement, TextureRefit, texture_agreement, texture_refit
+from ..appearance import RenderedAt, TextureAgreement, TextureRefit, texture_agreement, texture_refit
 from ..match import ModelIndex
 
 
@@ -201,10 +201,13 @@ class Keyframes:
         (:func:`..appearance.texture_agreement`); each crop's z-buffer is rendered once."""
         return texture_agreement(image, camera, pose, mesh, mesh.plane_ids, self._texture_references(mesh))
 
-    def texture_refit(self, image: np.ndarray, camera: PinholeCamera, pose: Pose, mesh: Mesh) -> TextureRefit:
+    def texture_refit(self, image: np.ndarray, camera: PinholeCamera, pose: Pose, mesh: Mesh,
+                      rendered: RenderedAt | None = None) -> TextureRefit:
         """Where the keyframes' crops, rendered at ``pose`` and followed into ``image``, put the
-        object (:func:`..appearance.texture_refit`)."""
-        return texture_refit(image, camera, pose, mesh, mesh.plane_ids, self._texture_references(mesh))
+        object (:func:`..appearance.texture_refit`; ``rendered``: :meth:`texture_agreement`'s
+        renders at that pose, reused)."""
+        return texture_refit(image, camera, pose, mesh, mesh.plane_ids, self._texture_references(mesh),
+                             rendered=rendered)
 
     def _texture_references(self, mesh: Mesh) -> list[TextureReference]:
         """The keyframes' crops as texture references, each z-buffer rendered once and kept."""

@@ -573,7 +573,7 @@ class Tracker:
         # the texture followed from the pose to where the frame shows it (see params)
         t0 = time.perf_counter()
         mesh = self.model.mesh
-        fit = self.keyframes.texture_refit(ctx.frame.gray, self.camera, pose, mesh)
+        fit = self.keyframes.texture_refit(ctx.frame.gray, self.camera, pose, mesh, agreement.rendered)
         timings["texture"] += _ms(t0)
         if fit.pose is None or fit.inliers < p.texture_refit_min_inliers:
             return None
