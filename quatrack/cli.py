@@ -112,7 +112,7 @@ def _add_bench(parser: argparse.ArgumentParser) -> None:
     _zoo_options(tz)
     tz.add_argument("--lens", metavar="K1,K2,P1,P2[,K3...]",
                     help="render, train and track through a lens with OpenCV's distortion coefficients "
-                         "(e.g. -0.15,0.05,0,0,0; default: none)")
+                         "(e.g. --lens=-0.15,0.05,0,0,0, with '=' as the first is negative; default: none)")
     ej = sub.add_parser(
         "edge-judge",
         help="how well the model's edges judge a pose: false alarms at the truth, wrong poses caught",

@@ -62,5 +62,5 @@ def test_the_cli_refuses_bad_options_with_a_message(capsys):
     assert main(["bench", "track-zoo", "--renderings", "0"]) == 2
     assert "--renderings must be between 1 and 20" in capsys.readouterr().err
     for bad in ("a,b,c,d", "-0.1,0.02", "1,2,3,4,5,6,7,8,9", "nan,0,0,0"):
-        assert main(["bench", "track-zoo", "--lens", bad]) == 2
+        assert main(["bench", "track-zoo", f"--lens={bad}"]) == 2
         assert "--lens must be 4 to 8 numbers" in capsys.readouterr().err
