@@ -128,9 +128,9 @@ class PinholeCamera:
     def _project_distorted(self, x, y, iz, jacobian: bool):
         """Distorted pixels of the normalised points ``(x, y)`` (``iz = 1/z``) and ``∂uv/∂X_cam``,
         in one compiled pass (:func:`_distorted_pass`). Why: written in numpy, ~30 whole-array
-        operations on a few dozen points, it cost ~70 µs a call, and the tracker projects ~35
-        times a frame: a distorted camera's step took 56 % longer than an undistorted one's on
-        ``box.mp4`` (bench/RESULTS.md, session 51). The same expressions, the same bits."""
+        operations on a few dozen points, it cost ~70–85 µs a call (now ~5), and the tracker
+        projects ~35 times a frame: ``box.mp4``'s step through a lens took 13.3–13.5 ms p50
+        against 11.5 ms now (bench/RESULTS.md, session 51). The same expressions, the same bits."""
         d = np.zeros(_MAX_DIST)
         d[: self.dist_coeffs.size] = self.dist_coeffs
         n = x.shape[0]
@@ -143,7 +143,7 @@ class PinholeCamera:
 
     def _project_distorted_numpy(self, x, y, iz, jacobian: bool):
         """:meth:`_project_distorted` in numpy, as it was until session 51 (the reference of its
-        test: tests/test_camera.py)."""
+        test: tests/test_measurements.py)."""
         d = np.zeros(_MAX_DIST)
         d[: self.dist_coeffs.size] = self.dist_coeffs
         k1, k2, p1, p2, k3, k4, k5, k6 = d
