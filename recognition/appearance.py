@@ -53,7 +53,7 @@ class RenderedAt:
     pose: Pose
     box: tuple[int, int, int, int]
     buffers: RenderBuffers
-    views: dict  # id(reference) → (its image rendered, its textured mask)
+    views: dict  # id(reference) → (the reference, its image rendered, its textured mask)
 
 
 @dataclass(frozen=True)
@@ -182,10 +182,10 @@ def texture_agreement(image: np.ndarray, camera: PinholeCamera, pose: Pose, mesh
         if not np.any(facing & (_facing(mesh, ref.pose) >= min_source_cos)):
             per.append((float("nan"), 0))  # no face both see well: nothing to compare, nothing rendered
             continue
-        key, ref = id(ref), ref.rendered(mesh)
+        given, ref = ref, ref.rendered(mesh)
         b_img, textured, buf = render_textured_view(mesh, groups, _grey(ref.image), ref.camera, ref.pose, ref.buffers,
                                                     win, pose, min_source_cos, ref.mask, buf)
-        views[key] = (b_img, textured)
+        views[id(given)] = (given, b_img, textured)  # (the reference kept: its id stays its own)
         mask = ((textured > 0) & seen_well[buf.face]).astype(np.uint8)
         if kernel is not None:
             mask = cv2.erode(mask, kernel)
@@ -297,13 +297,15 @@ def texture_refit(image: np.ndarray, camera: PinholeCamera, pose: Pose, mesh: Me
     per_ref = max(int(max_corners) // len(references), min_points) if references else 0
     lk = dict(winSize=(21, 21), maxLevel=3, criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))
     for ref in references:
-        key, ref = id(ref), ref.rendered(mesh)
+        given, ref = ref, ref.rendered(mesh)
         if reuse is None:
             b_img, textured, buf = render_textured_view(mesh, groups, _grey(ref.image), ref.camera, ref.pose,
                                                         ref.buffers, win, pose, _REFIT_MIN_COS, ref.mask, buf)
         else:
-            got = reuse.views.get(key)
-            if got is None:  # (one the agreement did not render: rendered over its box)
+            got = reuse.views.get(id(given), (None,))
+            if got[0] is given:
+                got = got[1:]
+            else:  # (one the agreement did not render: rendered over its box)
                 got = render_textured_view(mesh, groups, _grey(ref.image), ref.camera, ref.pose, ref.buffers,
                                            camera.cropped(*reuse.box), pose, _REFIT_MIN_COS, ref.mask,
                                            reuse.buffers)[:2]
