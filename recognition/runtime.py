@@ -114,7 +114,6 @@ def compile_hot_loops() -> float:
     # a camera with lens distortion: its projection, and a crop's rays (a read-only slice of the
     # whole image's: another signature of the texture lookup)
     lens = PinholeCamera(60.0, 60.0, 32.0, 24.0, np.array([-0.1, 0.01, 0.0, 0.0, 0.0]), width=64, height=48)
-    lens.project_with_jacobian(X + [0.0, 0.0, 4.0])
-    lens.project(X + [0.0, 0.0, 4.0])
+    lens.project_with_jacobian(X + [0.0, 0.0, 4.0])  # (project() calls the same pass, the same types)
     render_textured_view(box, box.plane_ids, photo, lens, pose, render(box, lens, pose), lens.cropped(4, 4, 60, 44), pose)
     return time.perf_counter() - t0
