@@ -348,7 +348,9 @@ def study(names=SEQUENCES, seconds: float = 10.0, passes=("truth", "live", "reco
     passes of every sequence run first (the tracking figures), then the recognition passes
     (slow where recognition fails: it runs on every frame without a pose). ``out_path``: the
     figures so far are written there (JSON) after every pass. ``dist_coeffs``: the camera's lens
-    distortion (:func:`prepare`; none by default)."""
+    distortion (:func:`prepare`; none by default). ``width`` × ``height``: the images' size, the
+    field of view kept (:func:`quatrack.testing.zoo.zoo_camera`), so the walk frames the object
+    alike and only the pixels per diameter change (the CLI's ``--size``)."""
     from quatrack.recognition.match import index_for
     from quatrack.recognition.video import TrackerParams
 
@@ -356,7 +358,7 @@ def study(names=SEQUENCES, seconds: float = 10.0, passes=("truth", "live", "reco
     bgs = backgrounds if backgrounds is not None else Z.real_backgrounds()
     with_learned, learn_ok = learn_api()
     out = {"machine": f"{os.cpu_count()} cores", "load_before": os.getloadavg(), "seconds": seconds,
-           "learned_viewsets_api": learn_ok, "renderings": renderings,
+           "learned_viewsets_api": learn_ok, "renderings": renderings, "size": [int(width), int(height)],
            "dist_coeffs": None if dist_coeffs is None else [float(x) for x in dist_coeffs], "sequences": {}}
 
     def save():
@@ -420,7 +422,8 @@ def report(res: dict) -> str:
     """The figures as text: one table per pass, then what misses the targets."""
     lines = [f"machine {res['machine']}, load {res['load_before'][0]:.1f} before, {res['load_after'][0]:.1f} after; "
              f"{res['seconds']:g} s per sequence; learned viewsets API: {'yes' if res['learned_viewsets_api'] else 'missing'}"
-             + (f"; lens distortion {res['dist_coeffs']}" if res.get("dist_coeffs") else ""),
+             + (f"; lens distortion {res['dist_coeffs']}" if res.get("dist_coeffs") else "")
+             + (f"; images {res['size'][0]}x{res['size'][1]}" if res.get("size", [640, 480]) != [640, 480] else ""),
              "sequence (unit)      frames <30%vis  lost lost>=30% | t mean/max %diam | depth/lateral mean %diam | r mean/max deg | >5%/5deg | "
              "step p50/p95 ms | NEES mean/median | in 95 % ellipsoid | NEES centre/rotation median (3 dof: 2.37)"]
     for name, s in res["sequences"].items():
@@ -481,9 +484,9 @@ def report(res: dict) -> str:
 
 
 def main(as_json: bool = False, seconds: float = 10.0, names: list[str] | None = None, renderings: int = 1,
-         dist_coeffs=None) -> int:
-    res = study(tuple(names) if names else SEQUENCES, seconds, progress=not as_json, renderings=renderings,
-                dist_coeffs=dist_coeffs)
+         dist_coeffs=None, size: tuple[int, int] = (640, 480)) -> int:
+    res = study(tuple(names) if names else SEQUENCES, seconds, width=int(size[0]), height=int(size[1]),
+                progress=not as_json, renderings=renderings, dist_coeffs=dist_coeffs)
     print(json.dumps(res) if as_json else report(res))
     return 0
 

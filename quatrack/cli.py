@@ -47,6 +47,17 @@ def _lens(text: str | None):
     return d
 
 
+def _size(text: str) -> tuple[int, int]:
+    """``--size``'s ``WIDTHxHEIGHT`` in pixels."""
+    try:
+        w, h = (int(x) for x in text.lower().split("x"))
+    except ValueError:
+        raise UserError(f"--size must be WIDTHxHEIGHT in pixels (e.g. 1280x720), got {text!r}")
+    if not (160 <= w <= 4096 and 120 <= h <= 4096):
+        raise UserError(f"--size must be between 160x120 and 4096x4096 pixels, got {text!r}")
+    return w, h
+
+
 def _add_bench(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="benchmark", required=True, metavar="BENCHMARK")
     ude = sub.add_parser(
@@ -113,6 +124,8 @@ def _add_bench(parser: argparse.ArgumentParser) -> None:
     tz.add_argument("--lens", metavar="K1,K2,P1,P2[,K3...]",
                     help="render, train and track through a lens with OpenCV's distortion coefficients "
                          "(e.g. --lens=-0.15,0.05,0,0,0, with '=' as the first is negative; default: none)")
+    tz.add_argument("--size", default="640x480", metavar="WxH",
+                    help="the camera's image size, its field of view kept at 56° (default 640x480)")
     ej = sub.add_parser(
         "edge-judge",
         help="how well the model's edges judge a pose: false alarms at the truth, wrong poses caught",
@@ -196,7 +209,8 @@ def _run_bench(args: argparse.Namespace) -> int:
     if args.benchmark == "track-zoo":
         from quatrack.bench import track_zoo
 
-        return track_zoo.main(args.json, args.seconds, _zoo_walks(args), args.renderings, _lens(args.lens))
+        return track_zoo.main(args.json, args.seconds, _zoo_walks(args), args.renderings, _lens(args.lens),
+                              _size(args.size))
     if args.benchmark == "edge-judge":
         from quatrack.bench import edge_judge
 

@@ -64,3 +64,6 @@ def test_the_cli_refuses_bad_options_with_a_message(capsys):
     for bad in ("a,b,c,d", "-0.1,0.02", "1,2,3,4,5,6,7,8,9", "nan,0,0,0"):
         assert main(["bench", "track-zoo", f"--lens={bad}"]) == 2
         assert "--lens must be 4 to 8 numbers" in capsys.readouterr().err
+    for bad in ("1280", "1280x", "wide", "100x100", "8000x720"):
+        assert main(["bench", "track-zoo", "--size", bad]) == 2
+        assert "--size must be" in capsys.readouterr().err

@@ -225,6 +225,34 @@ def test_a_walk_through_a_distorted_lens_is_tracked_as_accurately():
     assert np.allclose(model.viewsets[0].camera.dist_coeffs, lens)  # (trained through the lens it was shot with)
 
 
+def test_another_image_size_frames_the_walk_alike(monkeypatch, capsys):
+    """--size WxH: the walk is rendered and tracked at that size with the zoo camera's field of
+    view, so the object fills the same share of each frame (its pixels scale with the width);
+    the CLI passes the size on and the report names it."""
+    from quatrack.cli import main
+
+    tmp = Path(tempfile.mkdtemp())
+    _, small = B.prepare("small-cube-cm", 0.2, 0, tmp / "a", _backgrounds())
+    _, big = B.prepare("small-cube-cm", 0.2, 0, tmp / "b", _backgrounds(), width=1280, height=720)
+    assert big.camera.width == 1280 and big.camera.height == 720 and big.image(0).shape[:2] == (720, 1280)
+    for k in (0, len(big) - 1):  # the same framing: pixel coordinates ×2 (less the principal point's half pixel)
+        ca = small.camera.project(small.poses[k].apply(np.zeros((1, 3))))[0] / [small.camera.width, small.camera.height]
+        cb = big.camera.project(big.poses[k].apply(np.zeros((1, 3))))[0] / [big.camera.width, big.camera.height]
+        assert np.abs(ca[0] - cb[0]) < 0.01, (ca, cb)
+    seen = {}
+
+    def study(names, seconds, **kw):
+        seen.update(kw)
+        return {"machine": "test", "load_before": (0.0,), "load_after": (0.0,), "seconds": seconds, "renderings": 1,
+                "learned_viewsets_api": True, "size": [kw["width"], kw["height"]], "sequences": {}, "total_s": 0.0}
+
+    monkeypatch.setattr(B, "study", study)
+    assert main(["bench", "track-zoo", "--size", "1280x720", "--sequences", "small-cube-cm"]) == 0
+    assert (seen["width"], seen["height"]) == (1280, 720) and "images 1280x720" in capsys.readouterr().out
+    assert main(["bench", "track-zoo", "--sequences", "small-cube-cm"]) == 0
+    assert (seen["width"], seen["height"]) == (640, 480) and "images" not in capsys.readouterr().out
+
+
 def test_more_renderings_are_other_walks_and_the_first_is_the_usual_one():
     """--renderings N: every object walked N times with other seeds; the first rendering of each
     object has the seed it always had (its place in SEQUENCES, whatever --sequences picks)."""
