@@ -109,16 +109,41 @@ def _edge_samples(mesh: Mesh, camera: PinholeCamera, pose: Pose, params: EdgePar
     return uv[ok], normal[ok], seg[ok], (P[ok] - pose.t) @ pose.R
 
 
+REFERENCE_SIDE = 640  # px: the image side at which the gradient thresholds (min_grad) were set
+
+
+def gradient_scale(shape) -> float:
+    """How many of an image's pixels make one pixel of a 640-px image: ``max(1, longest side / 640)``.
+
+    Why: the edges' thresholds are grey levels per pixel, set on 640 × 480 images; a camera of
+    twice the resolution sees the same motion blur over twice the pixels, and its blurred edges
+    read half the gradient. At 1280 × 720 the model's edges at the true poses of the zoo cube's
+    blurred frames agreed 0.29–0.56 with the image, 0.59–0.67 on the same frames shrunk to
+    640 × 360, and recognition refused those poses; judged at this scale, the six zoo walks at
+    1280 × 720 lost 324 frames instead of 396 and reported no pose beyond 5 %/5° instead of one
+    (bench/RESULTS.md, session 52). The tracker's edge *measurements*
+    (:func:`recognition.tracker.edges.gradients`) keep the image's own pixels: read at this scale
+    too, they located edges less precisely (beyond 2 %/2° 20 → 29 frames on those walks).
+
+    >>> gradient_scale((480, 640)), gradient_scale((240, 320)), gradient_scale((720, 1280))
+    (1.0, 1.0, 2.0)
+    """
+    return max(1.0, max(int(shape[0]), int(shape[1])) / REFERENCE_SIDE)
+
+
 def image_gradients(grey: np.ndarray, box: tuple[int, int, int, int] | None = None) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
     """Sobel gradients (/8: grey levels per pixel) of the σ = 1 blurred image, of the crop ``box``
-    (x0, y0, x1, y1) only; returns gx, gy and the crop's origin."""
+    (x0, y0, x1, y1) only; returns gx, gy and the crop's origin. An image larger than 640 px is
+    read at that scale (:func:`gradient_scale` ``s``): blurred by σ = ``s`` and its gradients
+    given per ``s`` pixels, so the same edge, blur and threshold read alike at any resolution."""
+    s = gradient_scale(grey.shape)
     x0, y0 = 0, 0
     if box is not None:
         x0, y0, x1, y1 = box
         grey = grey[y0:y1, x0:x1]
-    g = cv2.GaussianBlur(grey.astype(np.float32), (0, 0), 1.0)
-    gx = cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)
-    gy = cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)
+    g = cv2.GaussianBlur(grey.astype(np.float32), (0, 0), 1.0 * s)
+    gx = cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3, scale=0.125 * s)
+    gy = cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3, scale=0.125 * s)
     return gx, gy, (x0, y0)
 
 

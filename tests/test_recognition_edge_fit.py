@@ -156,3 +156,28 @@ def test_a_rival_to_measure_is_measured_only_for_a_pose_the_checks_before_it_pas
         assert (lazy.passed, lazy.reason, lazy.confidence, lazy.rival_inliers) == \
             (given.passed, given.reason, given.confidence, given.rival_inliers)
         assert lazy.passed == (n == 0)
+
+
+def test_an_edge_reads_the_same_gradient_at_any_resolution():
+    """``image_gradients`` of an image larger than 640 px is read at that scale (blur σ = s,
+    gradients per s pixels, ``gradient_scale``): a blurred step edge imaged at 640 × 480 and at
+    twice the resolution (twice the blur in pixels, as the same camera motion gives) reads the
+    same peak gradient, where per-pixel gradients would read half; at 640 px and below the
+    gradients are the σ = 1 Sobel as before, bit for bit. (The tracker's edge *measurements*
+    keep the image's own pixels: they locate edges, they do not judge them.)"""
+    from quatrack.recognition.evidence import gradient_scale, image_gradients
+
+    def step(w, h, blur):
+        img = np.zeros((h, w), np.float32)
+        img[:, w // 2:] = 120.0
+        return cv2.GaussianBlur(img, (0, 0), blur).astype(np.uint8) + 40
+
+    peaks = {}
+    for w, h, blur in ((640, 480, 3.0), (1280, 960, 6.0)):
+        grey = step(w, h, blur)
+        gx, gy, _ = image_gradients(grey)
+        peaks[w] = float(np.abs(gx[h // 2]).max())
+    assert gradient_scale((960, 1280)) == 2.0 and peaks[1280] == pytest.approx(peaks[640], rel=0.05), peaks
+    grey = step(320, 240, 1.5)
+    g = cv2.GaussianBlur(grey.astype(np.float32), (0, 0), 1.0)
+    assert np.array_equal(image_gradients(grey)[0], cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3, scale=0.125))

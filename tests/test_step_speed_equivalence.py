@@ -17,6 +17,7 @@ from quatrack.tracking.pose import Pose
 from quatrack.viewsets.render import depth_edges, pixel_rays, render, unit_pixel_rays
 
 CAM = PinholeCamera(520.0, 515.0, 318.0, 243.0, width=640, height=480)
+CAM_VGA = CAM
 CAM_DIST = PinholeCamera(520.0, 515.0, 318.0, 243.0, np.array([-0.2, 0.08, 0.001, -0.0015, 0.0]), width=640, height=480)
 
 
@@ -93,19 +94,21 @@ def test_cached_scaled_cameras_and_face_normals_are_the_computed_ones():
         del cam, mesh
 
 
-@pytest.mark.parametrize("sides", [4, 24])
-def test_audit_fit_image_gives_measure_edges_refit(sides):
+@pytest.mark.parametrize("sides,scale", [(4, 1), (24, 1), (4, 2)])
+def test_audit_fit_image_gives_measure_edges_refit(sides, scale):
     """The audit's edge refit on :func:`fit_image`'s smaller gradient crop equals the refit on
     measure_edges' EdgeImage exactly — object in the middle, at the image's border, partly
-    outside it, and poses a few per cent / degrees off (the refit moves them)."""
+    outside it, and poses a few per cent / degrees off (the refit moves them); also on an image
+    of twice the resolution, whose gradients are read with a wider blur (``gradient_scale``)."""
     from quatrack.recognition.evidence import edge_fit, measure_edges
     from quatrack.recognition.pose import PoseParams
     from quatrack.recognition.tracker.edges import fit_image
 
+    CAM = CAM_VGA if scale == 1 else CAM_VGA.scaled(float(scale))
     mesh = closed_prism(sides)
     pp = PoseParams()
     rng = np.random.default_rng(7 + sides)
-    clutter = cv2.GaussianBlur(rng.uniform(0, 255, (480, 640)).astype(np.float32), (0, 0), 3.0)
+    clutter = cv2.GaussianBlur(rng.uniform(0, 255, (480 * scale, 640 * scale)).astype(np.float32), (0, 0), 3.0 * scale)
     moved, compared = 0, 0
     for k in range(14):
         rvec = rng.normal(0, 0.8, 3)

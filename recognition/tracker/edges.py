@@ -182,10 +182,11 @@ def fit_image(grey: np.ndarray, mesh: Mesh, camera, pose, params, reach: float):
     spanning the whole crop along an axis where the crop meets the image's border (there
     OpenCV's filters depend on the crop's width or height in the last bits). Every pixel the fit
     reads then lies at least 7 px inside that part, and the σ = 1 blur (9 taps) and the 3×3
-    Sobel read at most 5 px round a pixel, so the gradients there are the full crop's bit for bit; the crop's
+    Sobel read at most 5 px round a pixel (an image larger than 640 px: σ = s, 8 s px and
+    4 s + 1, :func:`~recognition.evidence.gradient_scale`), so the gradients there are the full crop's bit for bit; the crop's
     origin is the same, so are the coordinates: the fit is the same (tests/test_step_speed_equivalence.py
     compares the two). None when no sample is visible (as measure_edges)."""
-    from ..evidence import EdgeImage, _edge_samples, image_gradients
+    from ..evidence import EdgeImage, _edge_samples, gradient_scale, image_gradients
 
     uv, normal, seg, X = _edge_samples(mesh, camera, pose, params, None, 0.5)
     if len(uv) == 0:
@@ -201,7 +202,7 @@ def fit_image(grey: np.ndarray, mesh: Mesh, camera, pose, params, reach: float):
 
     radius = params.radius_px + params.radius_share * size
     full = box(int(np.ceil(0.25 * size + radius + 2)))  # measure_edges' crop
-    part = box(int(np.ceil(radius + reach * size)) + 8)
+    part = box(int(np.ceil(radius + reach * size)) + int(np.ceil(8 * gradient_scale(grey.shape))))
     part = [max(part[0], full[0]), max(part[1], full[1]), min(part[2], full[2]), min(part[3], full[3])]
     # where the crop meets the image's border, OpenCV's filters treat its last columns (rows)
     # by the crop's width (height) — a part of another width differs there in the last bits —
