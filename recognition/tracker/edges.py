@@ -180,10 +180,11 @@ def fit_image(grey: np.ndarray, mesh: Mesh, camera, pose, params, reach: float):
     test looks), but gradients computed only where the fit reads them: the samples' box grown by
     the fit's reach ``r = radius_px + (radius_share + reach) × size`` plus 8 px (zero beyond),
     spanning the whole crop along an axis where the crop meets the image's border (there
-    OpenCV's filters depend on the crop's width or height in the last bits). Every pixel the fit
-    reads then lies at least 7 px inside that part, and the σ = 1 blur (9 taps) and the 3×3
-    Sobel read at most 5 px round a pixel (an image larger than 640 px: σ = s, 8 s px and
-    4 s + 1, :func:`~recognition.evidence.gradient_scale`), so the gradients there are the full crop's bit for bit; the crop's
+    OpenCV's filters depend on the crop's width or height in the last bits). With ``s`` =
+    :func:`~recognition.evidence.gradient_scale` (1 for images of 640 px and less) the part is
+    grown by ``8 s`` px more, so every pixel the fit reads lies at least ``8 s − 1`` px inside it,
+    and the σ = ``s`` blur (``4 s`` px of taps each side) and the 3×3 Sobel read at most
+    ``4 s + 1`` px round a pixel: the gradients there are the full crop's bit for bit; the crop's
     origin is the same, so are the coordinates: the fit is the same (tests/test_step_speed_equivalence.py
     compares the two). None when no sample is visible (as measure_edges)."""
     from ..evidence import EdgeImage, _edge_samples, gradient_scale, image_gradients
