@@ -17,7 +17,6 @@ from quatrack.tracking.pose import Pose
 from quatrack.viewsets.render import depth_edges, pixel_rays, render, unit_pixel_rays
 
 CAM = PinholeCamera(520.0, 515.0, 318.0, 243.0, width=640, height=480)
-CAM_VGA = CAM
 CAM_DIST = PinholeCamera(520.0, 515.0, 318.0, 243.0, np.array([-0.2, 0.08, 0.001, -0.0015, 0.0]), width=640, height=480)
 
 
@@ -104,7 +103,7 @@ def test_audit_fit_image_gives_measure_edges_refit(sides, scale):
     from quatrack.recognition.pose import PoseParams
     from quatrack.recognition.tracker.edges import fit_image
 
-    CAM = CAM_VGA if scale == 1 else CAM_VGA.scaled(float(scale))
+    cam = CAM if scale == 1 else CAM.scaled(float(scale))
     mesh = closed_prism(sides)
     pp = PoseParams()
     rng = np.random.default_rng(7 + sides)
@@ -115,21 +114,21 @@ def test_audit_fit_image_gives_measure_edges_refit(sides, scale):
         shift = [(0, 0), (260, 0), (-250, 120), (0, -215), (300, 200), (-290, -10), (30, 230)][k % 7]
         t = np.array([shift[0] / 520.0 * 25, shift[1] / 515.0 * 25, rng.uniform(20, 32)])
         truth = Pose.from_rvec(rvec, t - Pose.from_rvec(rvec, [0, 0, 0]).R @ mesh.centre)
-        buf = render(mesh, CAM, truth)
+        buf = render(mesh, cam, truth)
         img = np.where(buf.face >= 0, 60.0 + 150.0 * ((buf.face * 7919) % 13) / 12.0, clutter)
         gray = np.clip(img + rng.normal(0, 2.0, img.shape), 0, 255).astype(np.uint8)
         off = Pose.from_rvec(rvec + rng.normal(0, 0.03, 3), t + rng.normal(0, 0.3, 3) - Pose.from_rvec(rvec, [0, 0, 0]).R @ mesh.centre)
         for pose in (truth, off):
             X = mesh.vertices[:: max(1, len(mesh.vertices) // 8)]
-            uv = CAM.project(truth.apply(X))
-            _, image = measure_edges(gray, mesh, CAM, pose, pp.edges)
-            small = fit_image(gray, mesh, CAM, pose, pp.edges, pp.edge_fit_reach)
+            uv = cam.project(truth.apply(X))
+            _, image = measure_edges(gray, mesh, cam, pose, pp.edges)
+            small = fit_image(gray, mesh, cam, pose, pp.edges, pp.edge_fit_reach)
             if image is None:
                 assert small is None
                 continue
             assert small.origin == image.origin and small.gx.shape == image.gx.shape
-            a = edge_fit(image, mesh, CAM, pose, X, uv, pp.edges, pp.edge_fit_reach)
-            b = edge_fit(small, mesh, CAM, pose, X, uv, pp.edges, pp.edge_fit_reach)
+            a = edge_fit(image, mesh, cam, pose, X, uv, pp.edges, pp.edge_fit_reach)
+            b = edge_fit(small, mesh, cam, pose, X, uv, pp.edges, pp.edge_fit_reach)
             assert a == b
             compared += 1
             moved += a.samples >= 6 and a.shift > 0.05

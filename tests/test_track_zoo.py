@@ -11,9 +11,7 @@
 
 from __future__ import annotations
 
-import tempfile
 from dataclasses import replace
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -208,7 +206,7 @@ def test_the_bench_computes_its_figures_from_the_truth(cube):
     assert "small-cube-cm" in text and "live stream" in text
 
 
-def test_a_walk_through_a_distorted_lens_is_tracked_as_accurately():
+def test_a_walk_through_a_distorted_lens_is_tracked_as_accurately(tmp_path):
     """--lens: photo, walk and tracker see through a lens with OpenCV's distortion (a webcam's
     barrel, ~14 px at the corners); the tracker, which projects and renders through it, follows
     a short walk to its end within 1 % of the diameter and 1° on average (through a pinhole:
@@ -220,18 +218,18 @@ def test_a_walk_through_a_distorted_lens_is_tracked_as_accurately():
     assert res["dist_coeffs"] == lens and f["frames"] == 30 and f["lost"] == 0 and f["bad"] == 0
     assert f["t_mean_pct"] < 1.0 and f["r_mean_deg"] < 1.0, f
     assert "lens distortion [-0.15, 0.05" in B.report(res)
-    model, seq = B.prepare("small-cube-cm", 1.0, 0, Path(tempfile.mkdtemp()), _backgrounds(), dist_coeffs=lens)
+    model, seq = B.prepare("small-cube-cm", 1.0, 0, tmp_path, _backgrounds(), dist_coeffs=lens)
     assert seq.camera.has_distortion and np.allclose(seq.camera.dist_coeffs, lens)
     assert np.allclose(model.viewsets[0].camera.dist_coeffs, lens)  # (trained through the lens it was shot with)
 
 
-def test_another_image_size_frames_the_walk_alike(monkeypatch, capsys):
+def test_another_image_size_frames_the_walk_alike(monkeypatch, capsys, tmp_path):
     """--size WxH: the walk is rendered and tracked at that size with the zoo camera's field of
     view, so the object fills the same share of each frame (its pixels scale with the width);
     the CLI passes the size on and the report names it."""
     from quatrack.cli import main
 
-    tmp = Path(tempfile.mkdtemp())
+    tmp = tmp_path
     _, small = B.prepare("small-cube-cm", 0.2, 0, tmp / "a", _backgrounds())
     _, big = B.prepare("small-cube-cm", 0.2, 0, tmp / "b", _backgrounds(), width=1280, height=720)
     assert big.camera.width == 1280 and big.camera.height == 720 and big.image(0).shape[:2] == (720, 1280)
