@@ -306,20 +306,22 @@ def learn_api():
 
 
 def prepare(name: str, seconds: float, seed: int, workdir: Path, backgrounds, orbit: OrbitParams | None = None,
-            width: int = 640, height: int = 480, dist_coeffs=None):
+            width: int = 640, height: int = 480, dist_coeffs=None, grey: bool = False):
     """Train ``name`` from one photo and render its walk: ``(model, sequence)``. ``dist_coeffs``:
-    OpenCV's lens distortion of the zoo camera (photo, walk and tracker alike; default none)."""
+    OpenCV's lens distortion of the zoo camera (photo, walk and tracker alike; default none).
+    ``grey``: a monochrome camera — the training photo and every frame of the walk have one
+    channel (the same renderings converted, so a grey walk is its colour walk's twin)."""
     from quatrack.viewsets.spec import load_spec
     from quatrack.viewsets.train import train_object
 
     cam = Z.zoo_camera(width, height)
     if dist_coeffs is not None:
         cam = replace(cam, dist_coeffs=np.asarray(dist_coeffs, float))
-    spec = Z.write_spec(name, workdir / name, n_views=1, backgrounds=backgrounds, seed=seed, camera=cam)
+    spec = Z.write_spec(name, workdir / name, n_views=1, grey=grey, backgrounds=backgrounds, seed=seed, camera=cam)
     model = train_object(load_spec(spec))
     params = replace(orbit or OrbitParams(), seconds=seconds)
     seq = render_orbit(Z.textured(name), cam, backgrounds, params, seed=seed, name=name)
-    return model, seq
+    return model, replace(seq, grey=grey)
 
 
 RENDERING_SEED_STEP = 10  # the r-th rendering of the k-th sequence: seed k + 10 r
@@ -343,14 +345,15 @@ def walks(names, renderings: int = 1) -> list[tuple[str, str, int]]:
 
 def study(names=SEQUENCES, seconds: float = 10.0, passes=("truth", "live", "recognition", "learned"), orbit: OrbitParams | None = None,
           width: int = 640, height: int = 480, backgrounds=None, progress: bool = True, out_path: str | None = None,
-          renderings: int = 1, dist_coeffs=None) -> dict:
+          renderings: int = 1, dist_coeffs=None, grey: bool = False) -> dict:
     """Everything in the module docstring; returns one JSON-able dict. The truth-initialised
     passes of every sequence run first (the tracking figures), then the recognition passes
     (slow where recognition fails: it runs on every frame without a pose). ``out_path``: the
     figures so far are written there (JSON) after every pass. ``dist_coeffs``: the camera's lens
     distortion (:func:`prepare`; none by default). ``width`` × ``height``: the images' size, the
     field of view kept (:func:`quatrack.testing.zoo.zoo_camera`), so the walk frames the object
-    alike and only the pixels per diameter change (the CLI's ``--size``)."""
+    alike and only the pixels per diameter change (the CLI's ``--size``). ``grey``: photo and
+    walks in one channel (:func:`prepare`; the CLI's ``--grey``)."""
     from quatrack.recognition.match import index_for
     from quatrack.recognition.video import TrackerParams
 
@@ -359,7 +362,8 @@ def study(names=SEQUENCES, seconds: float = 10.0, passes=("truth", "live", "reco
     with_learned, learn_ok = learn_api()
     out = {"machine": f"{os.cpu_count()} cores", "load_before": os.getloadavg(), "seconds": seconds,
            "learned_viewsets_api": learn_ok, "renderings": renderings, "size": [int(width), int(height)],
-           "dist_coeffs": None if dist_coeffs is None else [float(x) for x in dist_coeffs], "sequences": {}}
+           "dist_coeffs": None if dist_coeffs is None else [float(x) for x in dist_coeffs], "grey": bool(grey),
+           "sequences": {}}
 
     def save():
         out["load_after"] = os.getloadavg()
@@ -373,7 +377,7 @@ def study(names=SEQUENCES, seconds: float = 10.0, passes=("truth", "live", "reco
         for key, name, seed in walks(names, renderings):
             ts = time.perf_counter()
             model, seq = prepare(name, seconds, seed, Path(tmp) / key.replace("#", "-"), bgs, orbit, width, height,
-                                 dist_coeffs)
+                                 dist_coeffs, grey)
             d = float(model.mesh.extent)
             res = {"unit": Z.zoo_object(name).unit, "seed": seed, "diameter": d, "frames": len(seq),
                    "visible_min": float(seq.visible.min()), "frames_below_30pct": int((seq.visible < 0.3).sum()),
@@ -423,7 +427,8 @@ def report(res: dict) -> str:
     lines = [f"machine {res['machine']}, load {res['load_before'][0]:.1f} before, {res['load_after'][0]:.1f} after; "
              f"{res['seconds']:g} s per sequence; learned viewsets API: {'yes' if res['learned_viewsets_api'] else 'missing'}"
              + (f"; lens distortion {res['dist_coeffs']}" if res.get("dist_coeffs") else "")
-             + (f"; images {res['size'][0]}x{res['size'][1]}" if res.get("size", [640, 480]) != [640, 480] else ""),
+             + (f"; images {res['size'][0]}x{res['size'][1]}" if res.get("size", [640, 480]) != [640, 480] else "")
+             + ("; grey images" if res.get("grey") else ""),
              "sequence (unit)      frames <30%vis  lost lost>=30% | t mean/max %diam | depth/lateral mean %diam | r mean/max deg | >5%/5deg | "
              "step p50/p95 ms | NEES mean/median | in 95 % ellipsoid | NEES centre/rotation median (3 dof: 2.37)"]
     for name, s in res["sequences"].items():
@@ -484,9 +489,9 @@ def report(res: dict) -> str:
 
 
 def main(as_json: bool = False, seconds: float = 10.0, names: list[str] | None = None, renderings: int = 1,
-         dist_coeffs=None, size: tuple[int, int] = (640, 480)) -> int:
+         dist_coeffs=None, size: tuple[int, int] = (640, 480), grey: bool = False) -> int:
     res = study(tuple(names) if names else SEQUENCES, seconds, width=int(size[0]), height=int(size[1]),
-                progress=not as_json, renderings=renderings, dist_coeffs=dist_coeffs)
+                progress=not as_json, renderings=renderings, dist_coeffs=dist_coeffs, grey=grey)
     print(json.dumps(res) if as_json else report(res))
     return 0
 

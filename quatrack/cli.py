@@ -126,6 +126,8 @@ def _add_bench(parser: argparse.ArgumentParser) -> None:
                          "(e.g. --lens=-0.15,0.05,0,0,0, with '=' as the first is negative; default: none)")
     tz.add_argument("--size", default="640x480", metavar="WxH",
                     help="the camera's image size, its field of view kept at 56° (default 640x480)")
+    tz.add_argument("--grey", action="store_true",
+                    help="a monochrome camera: train from a grey photo and track grey frames (default: colour)")
     ej = sub.add_parser(
         "edge-judge",
         help="how well the model's edges judge a pose: false alarms at the truth, wrong poses caught",
@@ -210,7 +212,7 @@ def _run_bench(args: argparse.Namespace) -> int:
         from quatrack.bench import track_zoo
 
         return track_zoo.main(args.json, args.seconds, _zoo_walks(args), args.renderings, _lens(args.lens),
-                              _size(args.size))
+                              _size(args.size), args.grey)
     if args.benchmark == "edge-judge":
         from quatrack.bench import edge_judge
 

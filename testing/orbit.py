@@ -80,12 +80,14 @@ class OrbitSequence:
     inside: np.ndarray
     occluded: np.ndarray
     phases: list[tuple[str, ...]] = field(default_factory=list)
+    grey: bool = False  # frames handed out as one channel (a monochrome camera), converted from colour
 
     def __len__(self) -> int:
         return len(self.frames)
 
     def image(self, k: int) -> np.ndarray:
-        return cv2.imdecode(np.frombuffer(self.frames[k], np.uint8), cv2.IMREAD_COLOR)
+        img = cv2.imdecode(np.frombuffer(self.frames[k], np.uint8), cv2.IMREAD_COLOR)
+        return cv2.cvtColor(img, cv2.COLOR_BGR2GRAY) if self.grey else img
 
 
 def _bump(x: float, phase: tuple[float, float]) -> float:

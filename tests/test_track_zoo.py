@@ -251,6 +251,41 @@ def test_another_image_size_frames_the_walk_alike(monkeypatch, capsys, tmp_path)
     assert (seen["width"], seen["height"]) == (640, 480) and "images" not in capsys.readouterr().out
 
 
+def test_a_grey_walk_is_the_colour_walk_in_one_channel(monkeypatch, capsys, tmp_path):
+    """--grey: a monochrome camera — the training photo and every frame have one channel, the
+    same renderings converted (so grey and colour walks compare frame for frame); a short grey
+    walk is followed to its end; the CLI passes the flag on and the report names it."""
+    import cv2
+
+    from quatrack.cli import main
+
+    _, grey = B.prepare("small-cube-cm", 0.2, 0, tmp_path / "g", _backgrounds(), grey=True)
+    _, colour = B.prepare("small-cube-cm", 0.2, 0, tmp_path / "c", _backgrounds())
+    photos = [cv2.imread(str(f), cv2.IMREAD_UNCHANGED) for f in sorted((tmp_path / "g").rglob("*.jp*g"))]
+    for k in (0, len(grey) - 1):
+        g, c = grey.image(k), colour.image(k)
+        assert g.ndim == 2 and c.ndim == 3
+        assert np.array_equal(g, cv2.cvtColor(c, cv2.COLOR_BGR2GRAY))
+    assert photos and all(ph.ndim == 2 for ph in photos)  # (trained from a grey photo)
+    res = B.study(("small-cube-cm",), seconds=1.0, passes=("truth",), orbit=short_orbit(1.0),
+                  backgrounds=_backgrounds(), progress=False, grey=True)
+    f = res["sequences"]["small-cube-cm"]["truth"]
+    assert res["grey"] is True and f["frames"] == 30 and f["lost"] == 0 and f["bad"] == 0, f
+    assert "grey images" in B.report(res)
+    seen = {}
+
+    def study(names, seconds, **kw):
+        seen.update(kw)
+        return {"machine": "test", "load_before": (0.0,), "load_after": (0.0,), "seconds": seconds, "renderings": 1,
+                "learned_viewsets_api": True, "grey": kw["grey"], "sequences": {}, "total_s": 0.0}
+
+    monkeypatch.setattr(B, "study", study)
+    assert main(["bench", "track-zoo", "--grey", "--sequences", "small-cube-cm"]) == 0
+    assert seen["grey"] is True and "grey images" in capsys.readouterr().out
+    assert main(["bench", "track-zoo", "--sequences", "small-cube-cm"]) == 0
+    assert seen["grey"] is False and "grey" not in capsys.readouterr().out
+
+
 def test_more_renderings_are_other_walks_and_the_first_is_the_usual_one():
     """--renderings N: every object walked N times with other seeds; the first rendering of each
     object has the seed it always had (its place in SEQUENCES, whatever --sequences picks)."""
