@@ -223,28 +223,35 @@ def test_a_walk_through_a_distorted_lens_is_tracked_as_accurately(tmp_path):
     assert np.allclose(model.viewsets[0].camera.dist_coeffs, lens)  # (trained through the lens it was shot with)
 
 
+def _record_study(monkeypatch) -> dict:
+    """Replace ``study`` by a stand-in that records the options the CLI passed and returns an
+    empty result stating them (size, grey), so the report can be checked without a walk."""
+    seen = {}
+
+    def study(names, seconds, **kw):
+        seen.update(kw)
+        return {"machine": "test", "load_before": (0.0,), "load_after": (0.0,), "seconds": seconds, "renderings": 1,
+                "learned_viewsets_api": True, "size": [kw["width"], kw["height"]], "grey": kw["grey"],
+                "sequences": {}, "total_s": 0.0}
+
+    monkeypatch.setattr(B, "study", study)
+    return seen
+
+
 def test_another_image_size_frames_the_walk_alike(monkeypatch, capsys, tmp_path):
     """--size WxH: the walk is rendered and tracked at that size with the zoo camera's field of
     view, so the object fills the same share of each frame (its pixels scale with the width);
     the CLI passes the size on and the report names it."""
     from quatrack.cli import main
 
-    tmp = tmp_path
-    _, small = B.prepare("small-cube-cm", 0.2, 0, tmp / "a", _backgrounds())
-    _, big = B.prepare("small-cube-cm", 0.2, 0, tmp / "b", _backgrounds(), width=1280, height=720)
+    _, small = B.prepare("small-cube-cm", 0.2, 0, tmp_path / "a", _backgrounds())
+    _, big = B.prepare("small-cube-cm", 0.2, 0, tmp_path / "b", _backgrounds(), width=1280, height=720)
     assert big.camera.width == 1280 and big.camera.height == 720 and big.image(0).shape[:2] == (720, 1280)
     for k in (0, len(big) - 1):  # the same framing: pixel coordinates ×2 (less the principal point's half pixel)
         ca = small.camera.project(small.poses[k].apply(np.zeros((1, 3))))[0] / [small.camera.width, small.camera.height]
         cb = big.camera.project(big.poses[k].apply(np.zeros((1, 3))))[0] / [big.camera.width, big.camera.height]
         assert np.abs(ca[0] - cb[0]) < 0.01, (ca, cb)
-    seen = {}
-
-    def study(names, seconds, **kw):
-        seen.update(kw)
-        return {"machine": "test", "load_before": (0.0,), "load_after": (0.0,), "seconds": seconds, "renderings": 1,
-                "learned_viewsets_api": True, "size": [kw["width"], kw["height"]], "sequences": {}, "total_s": 0.0}
-
-    monkeypatch.setattr(B, "study", study)
+    seen = _record_study(monkeypatch)
     assert main(["bench", "track-zoo", "--size", "1280x720", "--sequences", "small-cube-cm"]) == 0
     assert (seen["width"], seen["height"]) == (1280, 720) and "images 1280x720" in capsys.readouterr().out
     assert main(["bench", "track-zoo", "--sequences", "small-cube-cm"]) == 0
@@ -255,8 +262,6 @@ def test_a_grey_walk_is_the_colour_walk_in_one_channel(monkeypatch, capsys, tmp_
     """--grey: a monochrome camera — the training photo and every frame have one channel, the
     same renderings converted (so grey and colour walks compare frame for frame); a short grey
     walk is followed to its end; the CLI passes the flag on and the report names it."""
-    import cv2
-
     from quatrack.cli import main
 
     _, grey = B.prepare("small-cube-cm", 0.2, 0, tmp_path / "g", _backgrounds(), grey=True)
@@ -272,14 +277,7 @@ def test_a_grey_walk_is_the_colour_walk_in_one_channel(monkeypatch, capsys, tmp_
     f = res["sequences"]["small-cube-cm"]["truth"]
     assert res["grey"] is True and f["frames"] == 30 and f["lost"] == 0 and f["bad"] == 0, f
     assert "grey images" in B.report(res)
-    seen = {}
-
-    def study(names, seconds, **kw):
-        seen.update(kw)
-        return {"machine": "test", "load_before": (0.0,), "load_after": (0.0,), "seconds": seconds, "renderings": 1,
-                "learned_viewsets_api": True, "grey": kw["grey"], "sequences": {}, "total_s": 0.0}
-
-    monkeypatch.setattr(B, "study", study)
+    seen = _record_study(monkeypatch)
     assert main(["bench", "track-zoo", "--grey", "--sequences", "small-cube-cm"]) == 0
     assert seen["grey"] is True and "grey images" in capsys.readouterr().out
     assert main(["bench", "track-zoo", "--sequences", "small-cube-cm"]) == 0
