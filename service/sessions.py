@@ -355,7 +355,8 @@ class TrackSession:
             except ApiError as exc:  # a camera without a size, implausible for this frame's
                 raise _SessionError(exc.code, exc.message) from None
             self.tracker = make_tracker(model, camera, index, self.settings.locate_max_pixels, self.executor,
-                                        learn=learns(self.settings, self.name), sources=self.settings.tracker_sources)
+                                        learn=learns(self.settings, self.name), sources=self.settings.tracker_sources,
+                                        relocate_interval_s=self.settings.relocate_interval_s)
             self.tracker_camera = cam_in.model_copy(update={"width": w, "height": h})
         for op in item.controls:
             if op[0] == "init":

@@ -82,6 +82,11 @@ class Settings(BaseSettings):
         TrackerParams().sources,
         description="comma-separated measurement sources of the tracker (some of `trained`, `mesh`, `edges`, `contour`): "
                     "without `contour` (the outline by colour) a step costs about a fifth less and is less accurate")
+    relocate_interval_s: float = Field(0.0, ge=0, description="while a session's object is lost, search for it at "
+                                       "most once per this many seconds of the frames' time (0: every frame). A failed "
+                                       "search costs 0.1-0.6 s of CPU, so a stream whose object is out of view holds a "
+                                       "thread that the other sessions wait for; e.g. 0.25 frees most of it and finds "
+                                       "the object again up to that much later")
     run_dir: Path | None = Field(None, description="directory the worker processes share (session slots, Prometheus "
                                                     "multiprocess files); `quatrack serve` makes a fresh one and wipes it on start")
 

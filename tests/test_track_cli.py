@@ -84,6 +84,8 @@ def test_bop_format(camera, tmp_path):
     (["--format", "bop"], "--mesh-unit"),
     (["--max-frames", "0"], "--max-frames"),
     (["--video", "rtsp://127.0.0.1:9/none"], "cannot be opened as a stream"),
+    (["--relocate-every", "0"], "--relocate-every"),
+    (["--relocate-every", "nan"], "--relocate-every"),
 ])
 def test_bad_live_options_are_one_line_errors(tmp_path, capsys, extra, message):
     out = tmp_path / "poses.csv"

@@ -204,6 +204,27 @@ def test_the_tracker_sources_are_a_setting(monkeypatch):
         Settings.from_env()
 
 
+def test_recognition_while_lost_is_spaced_by_a_setting(monkeypatch):
+    """QUATRACK_RELOCATE_INTERVAL_S reaches the sessions' trackers (0, the default: every frame);
+    a negative value is refused, naming the variable."""
+    from quatrack.recognition.match import index_for
+    from quatrack.service.tracker_factory import make_tracker
+    from quatrack.testing.scenes import EXAMPLE, example_model
+    from quatrack.viewsets.camera import load_camera
+
+    model, camera = example_model(), load_camera(EXAMPLE / "camera.json")
+    assert Settings().relocate_interval_s == 0.0
+    assert make_tracker(model, camera, index_for(model), 4_000_000,
+                        relocate_interval_s=Settings().relocate_interval_s).params.relocate_interval_s is None
+    monkeypatch.setenv("QUATRACK_RELOCATE_INTERVAL_S", "0.25")
+    s = Settings.from_env()
+    tracker = make_tracker(model, camera, index_for(model), 4_000_000, relocate_interval_s=s.relocate_interval_s)
+    assert tracker.params.relocate_interval_s == 0.25
+    monkeypatch.setenv("QUATRACK_RELOCATE_INTERVAL_S", "-1")
+    with pytest.raises(ValueError, match="QUATRACK_RELOCATE_INTERVAL_S"):
+        Settings.from_env()
+
+
 def test_readme_documents_every_setting():
     readme = (ROOT / "README.md").read_text()
     for name in Settings.model_fields:

@@ -141,6 +141,9 @@ class Tracker:
         # the object points of the latest anchors taken from the keyframes' texture
         # (_texture_audit; TrackerParams.texture_anchors): measured, they do not anchor a frame
         self._keyframe_anchors: set[tuple] = set()
+        # the frame time of the latest recognition while lost (TrackerParams.relocate_interval_s);
+        # None once a track holds: the first frame of the next loss searches at once
+        self._relocated_at: float | None = None
         self.reset()
         if params.pipelined_refresh and params.refresh_every and executor is not None:
             executor.submit(lambda: self._index()._matcher())  # warm the anchor thread's index
@@ -237,6 +240,8 @@ class Tracker:
                 # a track that held: re-acquire near it (reacquire_min_run)
                 self._seen = seen
         self._prev = frame if self.tracking else None  # (a withheld pose's frame too: the track goes on)
+        if step.status == "tracking":
+            self._relocated_at = None
         timings["total"] = _ms(t_start)
         step.timings_ms = timings
         return step
@@ -449,6 +454,11 @@ class Tracker:
             self._second_hand, self._birth = False, None
             time_s0 = time_s if t_given is None or t_given > time_s else t_given
         else:
+            wait = self.params.relocate_interval_s
+            if wait and self._relocated_at is not None and time_s - self._relocated_at < wait:
+                return self._lost(time_s, f"not searched: recognition runs every {wait:g} s while lost "
+                                          f"(relocate_interval_s)")
+            self._relocated_at = time_s
             t0 = time.perf_counter()
             model, index, prefer = self.model, self._index(), None
             if len(self.keyframes):  # the sides seen earlier in this run too (keyframes.py)

@@ -230,6 +230,15 @@ class TrackerParams:
     # track started under a passing occluder drifted 0.2 → 2.3 % in two frames, was lost, and
     # re-acquiring near that drifted pose reported 9 % / 9°); recognition starts afresh instead
     reacquire_min_run: int = 5
+    # while lost, recognition (a full ``locate`` over the model's and the keyframes' views) runs
+    # at most once per this many seconds of the frames' time; the frames between are answered
+    # ``lost`` at once (re-acquisition near the last pose still runs in each). None: every frame.
+    # Why: a failed recognition costs 100–600 ms of CPU (the zoo's 24 live walks: lost frames p50
+    # 147 ms, p90 335 ms, against 18 ms for a tracked one; 78 % of all their CPU), so a stream
+    # whose object is out of view or unrecognisable holds a worker's core — the other streams on
+    # it wait (bench/RESULTS.md, session 54). Set for a service with many streams per core; a
+    # video file, where nothing waits, is best searched every frame
+    relocate_interval_s: float | None = None
     # a track re-acquired, or started on mesh-born corners, carries no trained point to vouch for
     # it: for its first probation_frames frames the model's edges must confirm every pose
     probation_frames: int = 15

@@ -1,0 +1,80 @@
+"""Recognition while lost, at most once per ``TrackerParams.relocate_interval_s`` of frame time.
+
+A failed recognition costs a hundred milliseconds or more, so a stream whose object has left the
+view holds its worker's core; with the interval set, the frames between two searches are answered
+``lost`` at once. The first frame of a new loss searches without waiting: the interval counts
+from the latest search of the *same* loss."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import cv2
+import numpy as np
+import pytest
+
+from quatrack.recognition.tracker import machine
+from quatrack.recognition.video import Tracker, TrackerParams
+from quatrack.testing.scenes import EXAMPLE, example_model
+from quatrack.viewsets.camera import load_camera
+
+INTERVAL = 0.25
+DT = 0.0625  # frame times k/16: exact in binary, so "at least 0.25 s later" is never a rounding question
+
+
+def _frames():
+    cap = cv2.VideoCapture(str(EXAMPLE / "box.mp4"))
+    box = [cap.read()[1] for _ in range(5)]
+    cap.release()
+    blank = np.full_like(box[0], 128)
+    # nothing; the box (found after the interval, then tracked); nothing again, the second loss
+    # starting less than the interval after the search that found the box
+    return [blank] + box + [blank] * 8
+
+
+def _run(monkeypatch, params):
+    searched = []
+    original = machine.locate
+
+    def counted(*args, **kwargs):
+        searched[-1] = True
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(machine, "locate", counted)
+    tracker = Tracker(example_model(), load_camera(EXAMPLE / "camera.json"), params)
+    steps = []
+    for k, f in enumerate(_frames()):
+        searched.append(False)
+        steps.append(tracker.step(f, k * DT))
+    return steps, searched
+
+
+@pytest.fixture(scope="module")
+def mp():
+    with pytest.MonkeyPatch.context() as m:
+        yield m
+
+
+def test_lost_frames_search_at_most_once_per_interval(mp):
+    steps, searched = _run(mp, replace(TrackerParams(), relocate_interval_s=INTERVAL))
+    statuses = [s.status for s in steps]
+    assert "tracking" in statuses, statuses  # (the box was found and tracked between the two losses)
+    skipped = [k for k, s in enumerate(steps) if s.reason and "relocate_interval_s" in s.reason]
+    assert skipped and all(statuses[k] == "lost" and not searched[k] for k in skipped)
+    times = [k * DT for k, s in enumerate(searched) if s]
+    runs = [k for k, s in enumerate(searched) if s]
+    for a, b in zip(runs, runs[1:]):
+        if "tracking" not in statuses[a + 1:b]:  # (within one loss)
+            assert (b - a) * DT >= INTERVAL, (times, statuses)
+    # the first frame of the second loss that reaches recognition searches at once
+    last_tracked = max(k for k, s in enumerate(statuses) if s == "tracking")
+    first = min(k for k in runs if k > last_tracked)
+    assert not any(k in skipped for k in range(last_tracked + 1, first)), (first, skipped)
+
+
+def test_every_lost_frame_searches_by_default(mp):
+    assert TrackerParams().relocate_interval_s is None
+    steps, searched = _run(mp, TrackerParams())
+    _, throttled = _run(mp, replace(TrackerParams(), relocate_interval_s=INTERVAL))
+    assert not any(s.reason and "relocate_interval_s" in s.reason for s in steps)
+    assert sum(searched) > sum(throttled)
