@@ -219,6 +219,8 @@ def figures(run: Run, visible: np.ndarray, diameter: float) -> dict:
     e = np.array(run.nees)
     track = st == "tracking"
     steps = [tm["total"] for tm, s in zip(run.timings, run.status) if s == "tracking"]
+    # the frames not tracked (lost, withheld, started): recognition's searches cost most of them
+    untracked = [tm["total"] for tm, s in zip(run.timings, run.status) if s != "tracking"]
     background = [tm.get("background", 0.0) for tm in run.timings]
     stages: dict[str, float] = {}
     for tm, s in zip(run.timings, run.status):
@@ -264,6 +266,11 @@ def figures(run: Run, visible: np.ndarray, diameter: float) -> dict:
         "bad_depth": int((bad & (lateral <= TARGETS["bad_pct"]) & (r <= TARGETS["bad_deg"])).sum()) if split else None,
         "step_p50_ms": _pct(steps, 50),
         "step_p95_ms": _pct(steps, 95),
+        "untracked_step_p50_ms": _pct(untracked, 50),
+        "untracked_step_p90_ms": _pct(untracked, 90),
+        # the share of the steps' CPU spent on frames not tracked (session 54: 79 % on the live walks)
+        "untracked_share_pct": 100.0 * float(np.sum(untracked)) / max(float(np.sum(steps) + np.sum(untracked)), 1e-9)
+        if untracked else 0.0,
         "stage_mean_ms": {k: v / n_track for k, v in sorted(stages.items())},
         # (live pass) CPU of the background jobs (re-anchoring, views lifted) per frame, over all frames
         "background_mean_ms": float(np.mean(background)) if any(background) else None,
@@ -450,11 +457,14 @@ def report(res: dict) -> str:
     live = [(name, s["live"]) for name, s in res["sequences"].items() if s.get("live")]
     if live:
         lines.append("live stream (the service's settings; background jobs two frames late): lost>=30% | "
-                     "t mean/max %diam | r mean/max deg | >5%/5deg | foreground step p50/p95 ms | background ms/frame")
+                     "t mean/max %diam | r mean/max deg | >5%/5deg | foreground step p50/p95 ms | background ms/frame | "
+                     "frames not tracked: step p50/p90 ms, share of the steps' CPU")
         for name, f in live:
             lines.append(f"  {name:<18} {f['lost_visible']:>5} | {_f(f['t_mean_pct'])}/{_f(f['t_max_pct'])} | "
                          f"{_f(f['r_mean_deg'])}/{_f(f['r_max_deg'])} | {f['bad']:>4} | "
-                         f"{_f(f['step_p50_ms'], '.1f')}/{_f(f['step_p95_ms'], '.1f')} | {_f(f.get('background_mean_ms'), '.1f')}")
+                         f"{_f(f['step_p50_ms'], '.1f')}/{_f(f['step_p95_ms'], '.1f')} | {_f(f.get('background_mean_ms'), '.1f')} | "
+                         f"{_f(f.get('untracked_step_p50_ms'), '.1f')}/{_f(f.get('untracked_step_p90_ms'), '.1f')}, "
+                         f"{_f(f.get('untracked_share_pct'), '.0f')} %")
         if len(live) > 1:
             lines.append(f"  all {len(live)} walks: lost while >= 30 % visible {sum(f['lost_visible'] for _, f in live)}, "
                          f"poses beyond 5 %/5° {sum(f['bad'] for _, f in live)}")

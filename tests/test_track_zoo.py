@@ -190,10 +190,12 @@ def test_the_bench_computes_its_figures_from_the_truth(cube):
         run.t_err.append(float("nan") if k in (3, 4) else (0.08 * d if k == 7 else 0.001 * d))
         run.r_err.append(float("nan") if k in (3, 4) else 0.1)
         run.nees.append(float("nan") if k in (3, 4) else 6.0)
-        run.timings.append({"total": 12.0, "klt": 3.0})
+        run.timings.append({"total": 150.0 if k in (3, 4) else 12.0, "klt": 3.0})
     f = B.figures(run, np.full(10, 0.9), d)
     assert (f["lost"], f["lost_visible"], f["bad"], f["first_pose"]) == (2, 2, 1, 0)
     assert f["t_max_pct"] == pytest.approx(8.0) and f["step_p50_ms"] == 12.0
+    # the lost frames' own cost: 2 × 150 ms of the steps' 8 × 12 + 300 ms
+    assert f["untracked_step_p50_ms"] == 150.0 and f["untracked_share_pct"] == pytest.approx(100 * 300 / 396)
     miss = B.shortfalls(f)
     assert any("lost" in m for m in miss) and any("> 5 %" in m for m in miss) and any("step" in m for m in miss)
     # a tiny real study: one object, one second, the truth-initialised and live passes
