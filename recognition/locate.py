@@ -248,13 +248,13 @@ def ransac_iterations_bound(n: int, k: int, sample: int = RANSAC_SAMPLE, confide
     draws miss every all-inlier sample with probability at most ``1 − confidence``.
 
     Why: a pose is refused with fewer than ``min_inliers`` inliers anyway, and a set of few
-    matches without such a consensus ran all of RANSAC's iterations (1000) before giving up — the
-    slow tail of locate (bench/RESULTS.md, issue 13 speed). With AP3P's samples of 4
-    (:func:`~.pose.ransac_pnp`), 17 matches and k = 12 the bound is 40 draws; from 36 matches on
-    it exceeds 1000 and changes nothing. The draws before the cap are the ones RANSAC made
-    anyway: capping only cuts a hopeless search short.
+    matches without such a consensus ran all of RANSAC's iterations (``PoseParams.ransac_iterations``)
+    before giving up — the slow tail of locate (bench/RESULTS.md, issue 13 speed). With AP3P's
+    samples of 4 (:func:`~.pose.ransac_pnp`), 17 matches and k = 12 the bound is 40 draws; from
+    27 matches on it exceeds the 300 draws and changes nothing. The draws before the cap are the
+    ones RANSAC made anyway: capping only cuts a hopeless search short.
 
-    >>> ransac_iterations_bound(17, 12), ransac_iterations_bound(12, 12), ransac_iterations_bound(36, 12) > 1000
+    >>> ransac_iterations_bound(17, 12), ransac_iterations_bound(12, 12), ransac_iterations_bound(27, 12) > 300
     (40, 1, True)
     >>> ransac_iterations_bound(17, 12, sample=5)  # EPnP's samples of 5 (before session 24)
     68

@@ -35,7 +35,14 @@ class PoseParams:
     """RANSAC and verification thresholds (pixels of the query image)."""
 
     ransac_px: float = 6.0
-    ransac_iterations: int = 1000
+    # RANSAC's draws at most (it stops sooner once a consensus makes ransac_confidence sure): 300
+    # find a consensus of inlier ratio 0.4 with probability 0.999, 0.3 with 0.91. A set without
+    # one (a wrong view, a frame without the object) runs them all — ~7 ms at 1000, the bulk of
+    # a failed search. 1000 → 300 (session 54): the 24 live zoo walks, whose lost frames search
+    # ~2100 times, re-found the same tracks in 23 walks and 7 frames sooner in the 24th, with the
+    # frames not tracked costing p50/p99 142/620 → 131/347 ms; bench locate --zoo seeds 0–1, 768
+    # scenes: 2 more correct (tall box), none wrong, the PnP stage p95 −10 % (bench/RESULTS.md)
+    ransac_iterations: int = 300
     ransac_confidence: float = 0.999
     inlier_px: float = 4.0  # after refinement, a match within this is an inlier
     # A consensus this small is enough since the evidence a wrong pose cannot fake judges every
@@ -257,7 +264,7 @@ def _sqpnp(camera: PinholeCamera, X: np.ndarray, uv: np.ndarray, rvec: np.ndarra
 
 
 def ransac_pnp(
-    camera: PinholeCamera, X: np.ndarray, uv: np.ndarray, reprojection_px: float = 6.0, iterations: int = 1000,
+    camera: PinholeCamera, X: np.ndarray, uv: np.ndarray, reprojection_px: float = 6.0, iterations: int = 300,
     confidence: float = 0.999, guess: Pose | None = None, min_inliers: int = 6,
 ) -> tuple[Pose, np.ndarray] | None:
     """RANSAC PnP consensus (OpenCV): the pose and the inlier indices, or None.
@@ -271,7 +278,7 @@ def ransac_pnp(
     Why not EPnP's 5-match samples (before session 24): a draw cost ~40 µs against AP3P's ~10 µs,
     and a draw is all inliers with probability ``w⁴`` instead of ``w⁵`` (inlier ratio ``w``), so
     a consensus is found in fewer draws, and OpenCV stops after ``log(1 − confidence) /
-    log(1 − w^s)`` of them. A set of matches without a consensus ran all 1000 draws: ~40 ms of
+    log(1 − w^s)`` of them. A set of matches without a consensus ran all 1000 draws (the limit until session 54): ~40 ms of
     EPnP, the slow tail of ``locate`` (bench/RESULTS.md, session 24). And OpenCV fits its final
     pose to the consensus by EPnP, whose solution on nearly planar points (one face, mostly)
     could fall so far off that fewer than half the consensus stayed within ``inlier_px`` — in a

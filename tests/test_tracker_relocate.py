@@ -78,3 +78,9 @@ def test_every_lost_frame_searches_by_default(mp):
     _, throttled = _run(mp, replace(TrackerParams(), relocate_interval_s=INTERVAL))
     assert not any(s.reason and "relocate_interval_s" in s.reason for s in steps)
     assert sum(searched) > sum(throttled)
+
+
+@pytest.mark.parametrize("bad", [-0.1, float("nan"), float("inf")])
+def test_a_negative_or_non_finite_interval_is_refused(bad):
+    with pytest.raises(ValueError, match="relocate_interval_s"):
+        TrackerParams(relocate_interval_s=bad)

@@ -233,8 +233,8 @@ class TrackerParams:
     # while lost, recognition (a full ``locate`` over the model's and the keyframes' views) runs
     # at most once per this many seconds of the frames' time; the frames between are answered
     # ``lost`` at once (re-acquisition near the last pose still runs in each). None: every frame.
-    # Why: a failed recognition costs 100–600 ms of CPU (the zoo's 24 live walks: lost frames p50
-    # 147 ms, p90 335 ms, against 18 ms for a tracked one; 78 % of all their CPU), so a stream
+    # Why: a failed recognition costs 100–600 ms of CPU (the zoo's 24 live walks: frames not
+    # tracked p50 142 ms, p90 331 ms, against 18 ms for a tracked one; 79 % of all their CPU), so a stream
     # whose object is out of view or unrecognisable holds a worker's core — the other streams on
     # it wait (bench/RESULTS.md, session 54). Set for a service with many streams per core; a
     # video file, where nothing waits, is best searched every frame
@@ -321,6 +321,10 @@ class TrackerParams:
         if bad or not self.sources:
             raise ValueError(f"unknown measurement source(s) {sorted(bad)}; expected some of 'trained', 'mesh', "
                              "'edges', 'contour'")
+        if self.relocate_interval_s is not None and not (np.isfinite(self.relocate_interval_s)
+                                                          and self.relocate_interval_s >= 0):
+            raise ValueError(f"relocate_interval_s must be None or a number of seconds >= 0, "
+                             f"not {self.relocate_interval_s!r}")
         unknown = set(self.motion_noise) - set(noise)
         if unknown:
             raise ValueError(f"motion model {self.motion_model!r} has no parameter(s) {sorted(unknown)}; "
