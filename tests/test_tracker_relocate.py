@@ -19,6 +19,7 @@ from quatrack.testing.scenes import EXAMPLE, example_model
 from quatrack.viewsets.camera import load_camera
 
 INTERVAL = 0.25
+_LOCATE = machine.locate  # (wrapped afresh by each run, never a wrapper of a wrapper)
 DT = 0.0625  # frame times k/16: exact in binary, so "at least 0.25 s later" is never a rounding question
 
 
@@ -34,11 +35,10 @@ def _frames():
 
 def _run(monkeypatch, params):
     searched = []
-    original = machine.locate
 
     def counted(*args, **kwargs):
         searched[-1] = True
-        return original(*args, **kwargs)
+        return _LOCATE(*args, **kwargs)
 
     monkeypatch.setattr(machine, "locate", counted)
     tracker = Tracker(example_model(), load_camera(EXAMPLE / "camera.json"), params)
@@ -49,14 +49,8 @@ def _run(monkeypatch, params):
     return steps, searched
 
 
-@pytest.fixture(scope="module")
-def mp():
-    with pytest.MonkeyPatch.context() as m:
-        yield m
-
-
-def test_lost_frames_search_at_most_once_per_interval(mp):
-    steps, searched = _run(mp, replace(TrackerParams(), relocate_interval_s=INTERVAL))
+def test_lost_frames_search_at_most_once_per_interval(monkeypatch):
+    steps, searched = _run(monkeypatch, replace(TrackerParams(), relocate_interval_s=INTERVAL))
     statuses = [s.status for s in steps]
     assert "tracking" in statuses, statuses  # (the box was found and tracked between the two losses)
     skipped = [k for k, s in enumerate(steps) if s.reason and "relocate_interval_s" in s.reason]
@@ -72,10 +66,10 @@ def test_lost_frames_search_at_most_once_per_interval(mp):
     assert not any(k in skipped for k in range(last_tracked + 1, first)), (first, skipped)
 
 
-def test_every_lost_frame_searches_by_default(mp):
+def test_every_lost_frame_searches_by_default(monkeypatch):
     assert TrackerParams().relocate_interval_s is None
-    steps, searched = _run(mp, TrackerParams())
-    _, throttled = _run(mp, replace(TrackerParams(), relocate_interval_s=INTERVAL))
+    steps, searched = _run(monkeypatch, TrackerParams())
+    _, throttled = _run(monkeypatch, replace(TrackerParams(), relocate_interval_s=INTERVAL))
     assert not any(s.reason and "relocate_interval_s" in s.reason for s in steps)
     assert sum(searched) > sum(throttled)
 
