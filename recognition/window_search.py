@@ -15,8 +15,8 @@ large numpy/OpenCV calls, with no per-window or per-pixel Python:
   the labels that matter (those in the kept bins);
 - only the model's ``bins`` heaviest bins are counted, the rest pooled into one bin: χ² on that
   merged binning is still an exact χ², of a coarser histogram. Each pair centre (every
-  ``stride``-th pixel, an unbiased sample) adds its few kept (a, b) counts into its cell with
-  one weighted ``bincount``;
+  ``stride``-th pixel, an unbiased sample) adds its few kept (a, b) counts into its cell in one
+  compiled pass (numba; whole numbers, so the same bits as its numpy original);
 - an integral image over cells gives any window's histogram from four rows; all windows of all
   shapes are scored in one batch (``np.take`` of corner rows, then χ²), then the best few are
   refined by ±1 cell and their edges moved one cell at a time.
@@ -41,6 +41,7 @@ import cv2
 import numpy as np
 
 from quatrack.tracking.camera import PinholeCamera
+from quatrack.tracking.jit import lazily_compiled
 from quatrack.viewsets.rfch import RFCHModel, descriptor_planes, nearest_centres, neighbour_planes
 from quatrack.viewsets.store import ObjectModel
 
@@ -123,9 +124,77 @@ def cell_histograms(
     unbiased sample of the histogram at 1/stride² the cost.
 
     Each sampled p with label a adds, for each listed bin (a, b), its count of b-labelled
-    neighbours (read from :func:`neighbour_planes`): one weighted ``bincount`` over about
-    (#p · #bins / n) terms, with no per-pixel n-vector and no n·n array.
+    neighbours (read from :func:`neighbour_planes`) into its cell: one compiled pass over the
+    sampled pixels (:func:`_pair_counts`), with no per-pixel n-vector and no n·n array. Its
+    numpy original, :func:`_cell_histograms_numpy`, gathered the same terms into flat arrays
+    first (~1.8 of the search's ~12 ms, against ~0.2; bench/RESULTS.md, session 55).
     """
+    H, W = labels.shape
+    rows, cols = H // cell, W // cell
+    pooled = bins is not None
+    bins = np.arange(n * n) if bins is None else np.asarray(bins)
+    if pooled and (np.any(np.diff(bins) <= 0) or bins[0] < 0 or bins[-1] >= n * n):
+        raise ValueError("bins must be ascending indices below n·n")
+    k = len(bins)
+    # neighbour counts only for the labels b that some listed bin (a, b) needs
+    used = np.unique(bins % n)
+    plane_of = np.full(n + 1, -1)
+    plane_of[used + 1] = np.arange(len(used))
+    planes = neighbour_planes(plane_of[labels + 1], None, len(used), d)
+    # the listed bins of label a are bins[first[a] : first[a] + count[a]] (they ascend, so they
+    # are grouped by a); each reads the plane of its b, and (a, a) takes p itself back out
+    count = np.bincount(bins // n, minlength=n)
+    first = np.cumsum(count) - count
+    counts = np.zeros((rows * cols, k), np.int64)
+    _compiled_pair_counts()(np.ascontiguousarray(labels, np.int32), planes, first.astype(np.int64),
+                            count.astype(np.int64), plane_of[bins % n + 1].astype(np.int64),
+                            (bins // n == bins % n), int(d), int(cell), int(stride), int(cols), counts)
+    out = np.zeros((rows * cols, k + pooled), np.float32)
+    out[:, :k] = counts
+    if pooled:
+        # all pairs of a cell: labelled neighbours of each p, less p itself
+        o = stride // 2
+        ys = np.arange(o, rows * cell, stride)
+        xs = np.arange(o, cols * cell, stride)
+        pix = (ys[:, None] * W + xs[None, :]).ravel()
+        cells = ((ys // cell)[:, None] * cols + (xs // cell)[None, :]).ravel()
+        ok = labels.ravel()[pix] >= 0
+        pix, cells = pix[ok], cells[ok]
+        valid = (labels >= 0).astype(np.uint8)
+        around = cv2.boxFilter(valid, cv2.CV_32F, (2 * d + 1, 2 * d + 1), normalize=False, borderType=cv2.BORDER_CONSTANT)
+        total = np.bincount(cells, weights=around.ravel()[pix] - 1.0, minlength=rows * cols)
+        out[:, k] = total - out[:, :k].sum(axis=1)
+    return out.reshape(rows, cols, -1)
+
+
+def _pair_counts(labels, planes, first, count, plane, own, d, cell, stride, cols, out):  # pragma: no cover (compiled)
+    """For each sampled p (every ``stride``-th pixel of the whole cells, both axes, from the
+    middle of each stride block) with label a ≥ 0, each listed bin j of a (``first[a] …
+    first[a] + count[a]``) adds the count of its b's plane at p (``planes[plane[j]]``, rows
+    offset by ``d``), less 1 where b = a (``own[j]``: p itself), into ``out[cell of p, j]``.
+    Whole numbers: any order of the additions gives the same counts."""
+    rows = out.shape[0] // cols
+    o = stride // 2
+    for y in range(o, rows * cell, stride):
+        cy = (y // cell) * cols
+        for x in range(o, cols * cell, stride):
+            a = labels[y, x]
+            if a < 0:
+                continue
+            c = cy + x // cell
+            for j in range(first[a], first[a] + count[a]):
+                out[c, j] += planes[plane[j], y + d, x] - (1 if own[j] else 0)
+
+
+_compiled_pair_counts = lazily_compiled(_pair_counts)
+
+
+def _cell_histograms_numpy(
+    labels: np.ndarray, n: int, d: int, cell: int, bins: np.ndarray | None = None, stride: int = 1
+) -> np.ndarray:
+    """:func:`cell_histograms` in numpy alone, its original (a test compares the two): the terms
+    (sampled p, listed bin) are gathered into flat arrays and added up with one weighted
+    ``bincount`` over about #p · #bins / n terms."""
     H, W = labels.shape
     rows, cols = H // cell, W // cell
     pooled = bins is not None

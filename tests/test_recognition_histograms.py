@@ -6,7 +6,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from quatrack.recognition.window_search import WindowSearchParams, _Integral, _score_windows, cell_histograms, chi2_rows, compress
+from quatrack.recognition.window_search import (
+    WindowSearchParams, _cell_histograms_numpy, _Integral, _score_windows, cell_histograms, chi2_rows, compress,
+)
 from quatrack.viewsets.rfch import nearest_centres, neighbour_counts
 
 
@@ -62,22 +64,37 @@ def brute_cells(labels, n, d, cell, stride=1):
     return out
 
 
+@pytest.mark.parametrize("histograms", [cell_histograms, _cell_histograms_numpy], ids=["compiled", "numpy"])
 @pytest.mark.parametrize("stride", [1, 2])
-def test_cell_histograms_brute_force(stride):
+def test_cell_histograms_brute_force(stride, histograms):
     rng = np.random.default_rng(stride)
     n, d, cell = 5, 2, 4
     labels = rng.integers(-1, n, size=(19, 26)).astype(np.int32)  # ragged edge: partial cells
     ref = brute_cells(labels, n, d, cell, stride)
-    np.testing.assert_allclose(cell_histograms(labels, n, d, cell, stride=stride), ref)
+    np.testing.assert_allclose(histograms(labels, n, d, cell, stride=stride), ref)
     # listed bins + everything else pooled: the same pairs, coarser binning
     bins = np.sort(rng.choice(n * n, 7, replace=False))
-    got = cell_histograms(labels, n, d, cell, bins, stride)
+    got = histograms(labels, n, d, cell, bins, stride)
     np.testing.assert_allclose(got, compress(ref, bins), atol=1e-4)
     # pairs of one label (a, a) listed and not: p must not count itself in its own bin
     own = np.array([0, 3, 6, 7, 18, 21])  # (0,0) (0,3) (1,1) (1,2) (3,3) (4,1)
-    np.testing.assert_allclose(cell_histograms(labels, n, d, cell, own, stride), compress(ref, own), atol=1e-4)
+    np.testing.assert_allclose(histograms(labels, n, d, cell, own, stride), compress(ref, own), atol=1e-4)
     with pytest.raises(ValueError):
-        cell_histograms(labels, n, d, cell, bins[::-1])
+        histograms(labels, n, d, cell, bins[::-1])
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 10_000), st.integers(2, 12), st.sampled_from([1, 3, 8]), st.integers(1, 3), st.booleans())
+def test_compiled_cell_histograms_give_the_numpy_answer(seed, n, d, stride, listed):
+    """The compiled pass (whole-number counts: any order of additions gives the same bits)
+    against its numpy original, on label maps with unlabelled pixels, listed bins or all, and a
+    distance whose counts need 16 bits (d = 8)."""
+    rng = np.random.default_rng(seed)
+    labels = rng.integers(-1, n, size=(int(rng.integers(16, 40)), int(rng.integers(16, 40)))).astype(np.int32)
+    bins = np.sort(rng.choice(n * n, int(rng.integers(1, n * n + 1)), replace=False)) if listed else None
+    cell = int(rng.integers(2, 9))
+    np.testing.assert_array_equal(cell_histograms(labels, n, d, cell, bins, stride),
+                                  _cell_histograms_numpy(labels, n, d, cell, bins, stride))
 
 
 def test_window_boxes_and_chi2_brute_force():

@@ -3,7 +3,8 @@
 A compiled loop here repeats the numpy code it replaces expression for expression, so it gives
 the same bits: numba, without ``fastmath``, neither reorders floating-point operations nor fuses
 ``a·b + c`` into one rounding. Each use keeps its numpy original beside it and a test compares
-the two (tests/test_viewsets_render.py, tests/test_measurements.py). One exception: the block
+the two (tests/test_viewsets_render.py, tests/test_measurements.py,
+tests/test_recognition_histograms.py). One exception: the block
 sums of :func:`quatrack.recognition.appearance.tile_correlations` add the pixels in scan order,
 not in numpy's, so they agree to ~1e-12 (tests/test_appearance.py).
 """
