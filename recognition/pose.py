@@ -65,7 +65,12 @@ class PoseParams:
     # are not, so it is ~6× (variance) too confident. Calibrated on rendered scenes at known
     # poses (median NEES 32 → 4.3 on a held-out set; bench/RESULTS.md).
     covariance_inflation: float = 6.0
-    max_view_angle_deg: float = 60.0  # viewing direction vs the matched viewset's
+    # the inliers' median transition tilt from how the matched viewset saw them (transition_tilts):
+    # SIFT does not match across much more than ~2.5 (Morel & Yu), so a pose that puts its inliers
+    # beyond that was not found by true matches; where the normals are unknown, the object's
+    # viewing direction vs the viewset's (max_view_angle_deg) stands in
+    max_transition_tilt: float = 2.5
+    max_view_angle_deg: float = 60.0
     # evidence a wrong pose cannot fake (recognition/evidence.py), judged inside the image
     edges: EdgeParams = EdgeParams()
     min_edge_agreement: float = 0.5  # share of visible model edge samples on aligned image edges
@@ -239,6 +244,62 @@ def view_angle_deg(R: np.ndarray, t: np.ndarray, reference_R: np.ndarray, refere
     b = -(c + np.asarray(reference_R, float).T @ np.asarray(reference_t, float))
     cos = float((a / np.linalg.norm(a)) @ (b / np.linalg.norm(b)))
     return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+
+
+def transition_tilts(R: np.ndarray, t: np.ndarray, reference_R: np.ndarray, reference_t: np.ndarray,
+                     points3d: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """The transition tilt τ ≥ 1 of each surface point between two views of it (object→camera
+    poses R, t and the reference's): how much more one view squeezes the surface round the
+    point than the other, as an affine map sees it (Morel & Yu's ASIFT, whose SIFT matches
+    across τ up to ~2.5). A view from direction d (object frame, from the point to the camera
+    centre ``−Rᵀt``) sees the point's plane (normal n) with tilt ``1/|n·d|`` along the
+    direction of d in the plane; the map from one view's local image to the other's is
+    ``A = diag(t_q, 1) · Rot(Δφ) · diag(1/t_r, 1)`` (Δφ: the angle between the two tilt
+    directions in the plane), and τ is the ratio of its singular values. Turning about the
+    normal costs nothing (SIFT is invariant to it); tilting the plane away, or to the other
+    way, does: for tilts t_r and t_q in directions Δφ apart, τ runs from t_q/t_r (Δφ = 0 or
+    180°: the same squeeze, seen from the same or the other side) to t_q·t_r (Δφ = 90°).
+    ∞ where a view sees the plane edge-on or from behind.
+
+    >>> n = np.array([[0.0, 0.0, -1.0]])  # a face at the origin, facing a camera on −z
+    >>> X = np.zeros((1, 3))
+    >>> front = (np.eye(3), np.array([0.0, 0.0, 5.0]))
+    >>> Rz = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # turned 90° about the normal
+    >>> float(transition_tilts(Rz, np.array([0.0, 0.0, 5.0]), *front, X, n)[0])
+    1.0
+    >>> a = np.radians(60.0)  # seen 60° from the normal: squeezed by cos 60° = ½
+    >>> Ry = np.array([[np.cos(a), 0.0, np.sin(a)], [0.0, 1.0, 0.0], [-np.sin(a), 0.0, np.cos(a)]])
+    >>> round(float(transition_tilts(Ry, np.array([0.0, 0.0, 5.0]), *front, X, n)[0]), 6)
+    2.0
+    >>> Rx = np.array([[1.0, 0.0, 0.0], [0.0, np.cos(a), -np.sin(a)], [0.0, np.sin(a), np.cos(a)]])
+    >>> five = np.array([0.0, 0.0, 5.0])  # squeezed across instead of along: 2 × 2; the other side: 1
+    >>> [round(float(transition_tilts(Ry, five, T, five, X, n)[0]), 6) for T in (Rx, Ry.T)]
+    [4.0, 1.0]
+    """
+    X = np.asarray(points3d, float).reshape(-1, 3)
+    n = np.asarray(normals, float).reshape(-1, 3)
+    n = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+
+    def tilt(R, t):  # (tilt, unit tilt direction in the plane) of each point's view
+        d = -(np.asarray(R, float).T @ np.asarray(t, float)) - X
+        d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+        c = np.einsum("ij,ij->i", n, d)
+        u = d - c[:, None] * n
+        u /= np.maximum(np.linalg.norm(u, axis=1, keepdims=True), 1e-12)
+        with np.errstate(divide="ignore"):
+            return np.where(c > 1e-9, 1.0 / np.maximum(c, 1e-300), np.inf), u
+
+    tq, uq = tilt(R, t)
+    tr, ur = tilt(reference_R, reference_t)
+    cos = np.clip(np.einsum("ij,ij->i", uq, ur), -1.0, 1.0)
+    sin = np.sqrt(1.0 - cos * cos)
+    # A = diag(tq, 1)·[[cos, −sin], [sin, cos]]·diag(1/tr, 1); its singular values σ1 ≥ σ2:
+    # σ1σ2 = |det A| = tq/tr and σ1² + σ2² = ‖A‖²_F, so τ = σ1/σ2 solves τ + 1/τ = ‖A‖²_F / |det A|
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        frob = (tq * cos / tr) ** 2 + (tq * sin) ** 2 + (sin / tr) ** 2 + cos**2
+        ratio = frob / (tq / tr)  # = τ + 1/τ ≥ 2
+        tau = 0.5 * (ratio + np.sqrt(np.maximum(ratio * ratio - 4.0, 0.0)))
+    return np.where(np.isfinite(tq) & np.isfinite(tr), tau, np.inf)
 
 
 def _mirror_candidates(camera: PinholeCamera, X: np.ndarray, uv: np.ndarray):
@@ -654,7 +715,13 @@ def _basic_checks(est: PnPSolution, n_matches: int, params: PoseParams, points3d
         share = facing_share(est, points3d, normals)
         if share < params.min_facing:
             return f"only {100 * share:.0f} % of the inliers face the camera (a mirrored pose)"
-    if prior is not None:
+    if prior is not None and points3d is not None and normals is not None:
+        idx = est.inliers
+        tau = float(np.median(transition_tilts(est.R, est.t, prior[0], prior[1], points3d[idx], normals[idx])))
+        if tau > params.max_transition_tilt:
+            return (f"its inliers would be seen at a transition tilt of {tau:.1f} from its matched viewset's view "
+                    f"(at most {params.max_transition_tilt:g})")
+    elif prior is not None:
         angle = view_angle_deg(est.R, est.t, *prior)
         if angle > params.max_view_angle_deg:
             return f"seen from {angle:.0f}° away from its matched viewset's view"
@@ -673,9 +740,9 @@ def verify(
     prior: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
 ) -> str | None:
     """Why the pose must not be reported (a short reason), or None if it passes the geometric
-    checks (inliers, RMS, facing, viewing angle, plausibility, window). ``points3d``/``normals``:
+    checks (inliers, RMS, facing, transition tilt, plausibility, window). ``points3d``/``normals``:
     the matched model points (indexed like the matches) and their surface normals, for the facing
-    check; ``prior``: the matched viewset's (R, t, centre). The image evidence is
+    and tilt checks; ``prior``: the matched viewset's (R, t, centre). The image evidence is
     :func:`verification`'s."""
     why = _basic_checks(est, n_matches, params, points3d, normals, prior)
     if why is None:

@@ -304,3 +304,83 @@ def test_a_shared_pass_serves_only_a_scale_it_has_the_detail_for():
     assert get(0.3) == 0.3 and made == [0.5, 0.55, 0.3]  # 0.5 is beyond reach (more than 2^¼ finer)
     assert get(0.5, key="b") == 0.5 and made[-1] == 0.5  # other SIFT parameters or image: no sharing
     assert get(0.46, steps=None) == 0.46  # no reach: the same scale only
+
+
+def _look_at(centre, target):
+    """Object→camera pose of a camera at ``centre`` whose optical axis passes through ``target``."""
+    z = np.asarray(target, float) - centre
+    z /= np.linalg.norm(z)
+    x = np.cross([0.0, 0.0, 1.0] if abs(z[2]) < 0.9 else [1.0, 0.0, 0.0], z)
+    x /= np.linalg.norm(x)
+    R = np.stack([x, np.cross(z, x), z])
+    return R, -R @ centre
+
+
+def test_transition_tilt_is_the_anisotropy_of_the_map_between_the_two_images():
+    """transition_tilts against brute force: each camera looks straight at the point, the images
+    of a small patch of the point's plane are taken by projection, and the local affine map from
+    one image to the other (finite differences) has singular values whose ratio is τ."""
+    from quatrack.recognition.pose import transition_tilts
+
+    rng = np.random.default_rng(5)
+    for _ in range(40):
+        n = rng.normal(size=3)
+        n /= np.linalg.norm(n)
+        X = rng.normal(size=3)
+        e1 = np.cross(n, rng.normal(size=3))
+        e1 /= np.linalg.norm(e1)
+        e2 = np.cross(n, e1)
+
+        def camera(n=n, X=X):  # a centre in front of the plane, up to 75° off its normal
+            while True:
+                d = rng.normal(size=3)
+                d /= np.linalg.norm(d)
+                if d @ n > np.cos(np.radians(75.0)):
+                    return X + rng.uniform(3.0, 8.0) * d
+
+        (Rr, tr), (Rq, tq) = (_look_at(camera(), X) for _ in range(2))
+
+        def jacobian(R, t, h=1e-6):  # image of the plane's (e1, e2) coordinates at X, pinhole f = 1
+            proj = lambda P: (R @ P + t)[:2] / (R @ P + t)[2]  # noqa: E731
+            return np.column_stack([(proj(X + h * e) - proj(X - h * e)) / (2 * h) for e in (e1, e2)])
+
+        s = np.linalg.svd(jacobian(Rq, tq) @ np.linalg.inv(jacobian(Rr, tr)), compute_uv=False)
+        tau = transition_tilts(Rq, tq, Rr, tr, X[None], n[None])[0]
+        assert tau == pytest.approx(s[0] / s[1], rel=1e-5)
+        assert tau == pytest.approx(transition_tilts(Rr, tr, Rq, tq, X[None], n[None])[0], rel=1e-9)  # symmetric
+    # a view from behind the plane sees nothing of it
+    R, t = _look_at(np.array([0.0, 0.0, -5.0]), np.zeros(3))
+    assert np.isinf(transition_tilts(R, t, R, t, np.zeros((1, 3)), np.array([[0.0, 0.0, 1.0]]))[0])
+
+
+def test_the_view_rule_judges_the_inliers_faces_not_the_objects_direction():
+    """A face seen from its other side at the same slant shows SIFT the same texture, turned:
+    a pose 70° from its matched view by the object's direction passes (transition tilt ~1),
+    while the face seen as far away but squeezed across instead of along (1.2 × 2.4) is refused."""
+    from quatrack.recognition.pose import PnPSolution, transition_tilts
+    from quatrack.tracking.camera import PinholeCamera
+    from quatrack.viewsets.mesh import make_mesh
+
+    camera = PinholeCamera(500.0, 500.0, 320.0, 240.0, width=640, height=480)
+    mesh = make_mesh(np.array([[-1.0, -1.0, 0.0], [1.0, -1.0, 0.0], [1.0, 1.0, 0.0], [-1.0, 1.0, 0.0]]),
+                     np.array([[0, 1, 2], [0, 2, 3]]))
+    rng = np.random.default_rng(0)
+    X = np.column_stack([rng.uniform(-0.9, 0.9, (30, 2)), np.zeros(30)])
+    normals = np.tile([0.0, 0.0, 1.0], (30, 1))
+
+    def seen_from(azimuth_deg, elevation_deg, distance=6.0):
+        a, e = np.radians(azimuth_deg), np.radians(elevation_deg)
+        return _look_at(distance * np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)]), np.zeros(3))
+
+    Rv, tv = seen_from(0.0, 55.0)  # the matched viewset's view
+    prior = (Rv, tv, np.zeros(3))
+
+    def judged(R, t):
+        est = PnPSolution(Pose(quat.from_matrix(R), t), np.eye(6) * 1e-6, np.arange(30), 0.5)
+        return verify(est, 30, camera, mesh, None, PoseParams(), X, normals, prior), \
+            float(np.median(transition_tilts(R, t, Rv, tv, X, normals)))
+
+    why, tau = judged(*seen_from(180.0, 55.0))  # the other side, the same slant: 70° by the centre
+    assert why is None and tau < 1.3
+    why, tau = judged(*seen_from(90.0, 25.0))  # squeezed across: 1/sin 55° × 1/sin 25° ≈ 2.9, also 70° away
+    assert tau > PoseParams().max_transition_tilt and "transition tilt" in why
