@@ -131,35 +131,58 @@ def cell_histograms(
     """
     H, W = labels.shape
     rows, cols = H // cell, W // cell
-    pooled = bins is not None
-    bins = np.arange(n * n) if bins is None else np.asarray(bins)
-    if pooled and (np.any(np.diff(bins) <= 0) or bins[0] < 0 or bins[-1] >= n * n):
-        raise ValueError("bins must be ascending indices below n·n")
-    k = len(bins)
-    # neighbour counts only for the labels b that some listed bin (a, b) needs
-    used = np.unique(bins % n)
-    plane_of = np.full(n + 1, -1)
-    plane_of[used + 1] = np.arange(len(used))
-    planes = neighbour_planes(plane_of[labels + 1], None, len(used), d)
+    bins, pooled, plane_of, planes = _listed_planes(labels, n, d, bins)
     # the listed bins of label a are bins[first[a] : first[a] + count[a]] (they ascend, so they
     # are grouped by a); each reads the plane of its b, and (a, a) takes p itself back out
     count = np.bincount(bins // n, minlength=n)
     first = np.cumsum(count) - count
-    counts = np.zeros((rows * cols, k), np.int64)
+    counts = np.zeros((rows * cols, len(bins)), np.int64)
     _compiled_pair_counts()(np.ascontiguousarray(labels, np.int32), planes, first.astype(np.int64),
                             count.astype(np.int64), plane_of[bins % n + 1].astype(np.int64),
                             (bins // n == bins % n), int(d), int(cell), int(stride), int(cols), counts)
+    return _assembled(counts, labels, d, cell, stride, pooled)
+
+
+def _listed_planes(labels: np.ndarray, n: int, d: int, bins: np.ndarray | None):
+    """The bins counted (all n·n, or ``bins`` checked), whether the rest is pooled, each label's
+    plane index (``plane_of[label + 1]``, −1: not needed) and the neighbour counts of the labels b
+    that some listed bin (a, b) needs (:func:`neighbour_planes`)."""
+    pooled = bins is not None
+    bins = np.arange(n * n) if bins is None else np.asarray(bins)
+    if pooled and (np.any(np.diff(bins) <= 0) or bins[0] < 0 or bins[-1] >= n * n):
+        raise ValueError("bins must be ascending indices below n·n")
+    used = np.unique(bins % n)
+    plane_of = np.full(n + 1, -1)
+    plane_of[used + 1] = np.arange(len(used))
+    return bins, pooled, plane_of, neighbour_planes(plane_of[labels + 1], None, len(used), d)
+
+
+def _sampled(labels: np.ndarray, cell: int, stride: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The labelled pair centres: every ``stride``-th pixel of the whole cells (both axes, from the
+    middle of each stride × stride block) as flat pixel index, cell index and label."""
+    H, W = labels.shape
+    rows, cols = H // cell, W // cell
+    o = stride // 2
+    ys = np.arange(o, rows * cell, stride)
+    xs = np.arange(o, cols * cell, stride)
+    pix = (ys[:, None] * W + xs[None, :]).ravel()
+    cells = ((ys // cell)[:, None] * cols + (xs // cell)[None, :]).ravel()
+    lab = labels.ravel()[pix]
+    ok = lab >= 0
+    return pix[ok], cells[ok], lab[ok]
+
+
+def _assembled(counts: np.ndarray, labels: np.ndarray, d: int, cell: int, stride: int, pooled: bool) -> np.ndarray:
+    """(rows, cols, k [+ 1]) float32 histograms from the listed bins' counts per cell (rows · cols,
+    k), with, when ``pooled``, all the cell's other pairs in a last bin: the labelled neighbours of
+    each of its centres, less the centre itself, less the listed pairs."""
+    H, W = labels.shape
+    rows, cols = H // cell, W // cell
+    k = counts.shape[1]
     out = np.zeros((rows * cols, k + pooled), np.float32)
     out[:, :k] = counts
     if pooled:
-        # all pairs of a cell: labelled neighbours of each p, less p itself
-        o = stride // 2
-        ys = np.arange(o, rows * cell, stride)
-        xs = np.arange(o, cols * cell, stride)
-        pix = (ys[:, None] * W + xs[None, :]).ravel()
-        cells = ((ys // cell)[:, None] * cols + (xs // cell)[None, :]).ravel()
-        ok = labels.ravel()[pix] >= 0
-        pix, cells = pix[ok], cells[ok]
+        pix, cells, _ = _sampled(labels, cell, stride)
         valid = (labels >= 0).astype(np.uint8)
         around = cv2.boxFilter(valid, cv2.CV_32F, (2 * d + 1, 2 * d + 1), normalize=False, borderType=cv2.BORDER_CONSTANT)
         total = np.bincount(cells, weights=around.ravel()[pix] - 1.0, minlength=rows * cols)
@@ -197,27 +220,12 @@ def _cell_histograms_numpy(
     ``bincount`` over about #p · #bins / n terms."""
     H, W = labels.shape
     rows, cols = H // cell, W // cell
-    pooled = bins is not None
-    bins = np.arange(n * n) if bins is None else np.asarray(bins)
-    if pooled and (np.any(np.diff(bins) <= 0) or bins[0] < 0 or bins[-1] >= n * n):
-        raise ValueError("bins must be ascending indices below n·n")
+    bins, pooled, plane_of, planes = _listed_planes(labels, n, d, bins)
     k = len(bins)
-    # neighbour counts only for the labels b that some listed bin (a, b) needs
-    used = np.unique(bins % n)
-    plane_of = np.full(n + 1, -1)
-    plane_of[used + 1] = np.arange(len(used))
-    planes = neighbour_planes(plane_of[labels + 1], None, len(used), d).reshape(-1)
+    planes = planes.reshape(-1)
     plane_size = (H + 2 * d) * W
-    o = stride // 2  # the middle of each stride × stride block
-    ys = np.arange(o, rows * cell, stride)
-    xs = np.arange(o, cols * cell, stride)
-    pix = (ys[:, None] * W + xs[None, :]).ravel()
-    cells = ((ys // cell)[:, None] * cols + (xs // cell)[None, :]).ravel()
-    lab = labels.ravel()[pix]
-    ok = lab >= 0
-    pix, lab, cells = pix[ok], lab[ok], cells[ok]
-    # one term per (sampled p, listed bin (a, b) with a = label of p); the listed bins of label a
-    # are bins[first[a] : first[a] + count[a]] (they ascend, so they are grouped by a)
+    pix, cells, lab = _sampled(labels, cell, stride)
+    # one term per (sampled p, listed bin (a, b) with a = label of p)
     count = np.bincount(bins // n, minlength=n)
     first = np.cumsum(count) - count
     per = count[lab]
@@ -235,15 +243,7 @@ def _cell_histograms_numpy(
     own = diagonal[lab]
     mine = own >= 0
     counts -= np.bincount(cells[mine] * k + own[mine], minlength=rows * cols * k)
-    out = np.zeros((rows * cols, k + pooled), np.float32)
-    out[:, :k] = counts.reshape(-1, k)
-    if pooled:
-        # all pairs of a cell: labelled neighbours of each p, less p itself
-        valid = (labels >= 0).astype(np.uint8)
-        around = cv2.boxFilter(valid, cv2.CV_32F, (2 * d + 1, 2 * d + 1), normalize=False, borderType=cv2.BORDER_CONSTANT)
-        total = np.bincount(cells, weights=around.ravel()[pix] - 1.0, minlength=rows * cols)
-        out[:, k] = total - out[:, :k].sum(axis=1)
-    return out.reshape(rows, cols, -1)
+    return _assembled(counts.reshape(-1, k), labels, d, cell, stride, pooled)
 
 
 def _kept_bins(model_hist: np.ndarray, k: int) -> np.ndarray:
