@@ -134,17 +134,21 @@ def test_with_learned_is_a_new_bounded_deduplicated_model(cube, run):
 
 def test_learned_views_find_the_object_from_sides_no_photo_shows(cube, run):
     """Recognition without a pose, on views 65°–125° from the photo's: the learned model finds
-    the object (right within 5 % / 5°) in at least 3 of 4, the original model in none."""
+    the object (right within 5 % / 5°) in at least 3 of 4, the original model in fewer, and
+    neither reports a wrong pose. (The original model found none until session 55; judged by the
+    inliers' transition tilt instead of the object's viewing direction, it finds the cube's print
+    on a face seen 125° round in one: bench/RESULTS.md.)"""
     merged = L.with_learned(cube.model, run.learned)
     found_new, found_old = [], []
     for seed, az in enumerate((110.0, 140.0, 170.0, QUERY[0])):
         img, truth = _query(cube, az, QUERY[1], 20 + seed)
         new = locate(img, cube.cam, merged)
-        found_new.append(new.found and _correct(new.t, new.q_wxyz, truth, merged.mesh))
+        found_new.append(None if not new.found else _correct(new.t, new.q_wxyz, truth, merged.mesh))
         old = locate(img, cube.cam, cube.model)
-        found_old.append(old.found and _correct(old.t, old.q_wxyz, truth, cube.model.mesh))
-    assert sum(found_new) >= 3, found_new
-    assert not any(found_old), found_old
+        found_old.append(None if not old.found else _correct(old.t, old.q_wxyz, truth, cube.model.mesh))
+    assert False not in found_new + found_old, (found_new, found_old)  # (None: not found)
+    assert found_new.count(True) >= 3, found_new
+    assert found_old.count(True) < found_new.count(True), found_old
 
 
 def test_a_tracker_on_the_learned_model_reinitialises_from_an_unseen_side(cube, run):
