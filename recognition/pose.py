@@ -252,14 +252,14 @@ def transition_tilts(R: np.ndarray, t: np.ndarray, reference_R: np.ndarray, refe
     poses R, t and the reference's): how much more one view squeezes the surface round the
     point than the other, as an affine map sees it (Morel & Yu's ASIFT, whose SIFT matches
     across τ up to ~2.5). A view from direction d (object frame, from the point to the camera
-    centre ``−Rᵀt``) sees the point's plane (normal n) with tilt ``1/|n·d|`` along the
+    centre ``−Rᵀt``) sees the point's plane (normal n) with tilt ``1/(n·d)`` along the
     direction of d in the plane; the map from one view's local image to the other's is
     ``A = diag(t_q, 1) · Rot(Δφ) · diag(1/t_r, 1)`` (Δφ: the angle between the two tilt
     directions in the plane), and τ is the ratio of its singular values. Turning about the
-    normal costs nothing (SIFT is invariant to it); tilting the plane away, or to the other
-    way, does: for tilts t_r and t_q in directions Δφ apart, τ runs from t_q/t_r (Δφ = 0 or
-    180°: the same squeeze, seen from the same or the other side) to t_q·t_r (Δφ = 90°).
-    ∞ where a view sees the plane edge-on or from behind.
+    normal costs nothing (SIFT is invariant to it); a change of tilt does: for tilts t_r and
+    t_q in directions Δφ apart, τ runs from t_q/t_r (Δφ = 0 or 180°: the same squeeze, seen
+    from the same or the other side) to t_q·t_r (Δφ = 90°: squeezed across instead of along).
+    ∞ where a view sees the plane edge-on or from behind (n·d ≤ 0).
 
     >>> n = np.array([[0.0, 0.0, -1.0]])  # a face at the origin, facing a camera on −z
     >>> X = np.zeros((1, 3))
