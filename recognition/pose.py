@@ -286,8 +286,7 @@ def transition_tilts(R: np.ndarray, t: np.ndarray, reference_R: np.ndarray, refe
         c = np.einsum("ij,ij->i", n, d)
         u = d - c[:, None] * n
         u /= np.maximum(np.linalg.norm(u, axis=1, keepdims=True), 1e-12)
-        with np.errstate(divide="ignore"):
-            return np.where(c > 1e-9, 1.0 / np.maximum(c, 1e-300), np.inf), u
+        return np.where(c > 1e-9, 1.0 / np.maximum(c, 1e-9), np.inf), u
 
     tq, uq = tilt(R, t)
     tr, ur = tilt(reference_R, reference_t)
