@@ -203,11 +203,23 @@ def planar_groups(mesh: Mesh, angle_tol_deg: float = 1.0, offset_tol: float = 1e
     tol = offset_tol * mesh.extent
     groups = np.full(len(n), -1, dtype=np.int32)
     next_id = 0
+    # the faces that may share face i's plane, from a k-d tree of (n, d·c/tol): within the chord
+    # c = 2 sin(angle/2) in normal and tol in offset, so within √2·c in that space (a superset,
+    # tested exactly below). Every face against every other cost O(m²): 5 s for a scanned mesh
+    # of 49 000 triangles, whose faces are nearly all planes of their own
+    from scipy.spatial import cKDTree
+
+    chord = 2.0 * np.sin(np.radians(angle_tol_deg) / 2.0)
+    scale = chord / tol if tol > 0 else 0.0
+    space = np.column_stack([n, d * scale]) if tol > 0 else n
+    tree = cKDTree(space)
+    reach = chord * np.sqrt(2.0) * (1 + 1e-9) + 1e-12
     for i in range(len(n)):
         if groups[i] >= 0:
             continue
-        same = (groups < 0) & (n @ n[i] >= cos_tol) & (np.abs(d - d[i]) <= tol)
-        groups[same] = next_id
+        near = np.asarray(tree.query_ball_point(space[i], reach), dtype=np.int64)
+        near = near[(groups[near] < 0) & (n[near] @ n[i] >= cos_tol) & (np.abs(d[near] - d[i]) <= tol)]
+        groups[near] = next_id
         next_id += 1
     return groups
 

