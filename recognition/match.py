@@ -82,8 +82,9 @@ class ModelIndex:
         self._views: dict[int, tuple] = {}  # match_view's per-view arrays (a dict's item set is atomic)
         # the model's photos with their z-buffers and the mesh's planes (recognition/appearance.py),
         # rendered once per model, not per pose judged
-        self.appearance = [r.rendered(model.mesh) for r in model.appearance]
-        self.planes = model.mesh.plane_ids if self.appearance else None
+        # (on the mesh recognition checks poses with: a scan's decimation, Mesh.run_time)
+        self.appearance = [r.rendered(model.mesh.run_time) for r in model.appearance]
+        self.planes = model.mesh.run_time.plane_ids if self.appearance else None
 
     def _matcher(self) -> cv2.flann_Index:
         """This thread's FLANN k-d forest over all descriptors (built on first use)."""

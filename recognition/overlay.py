@@ -69,7 +69,7 @@ def draw_overlay(image: np.ndarray, camera: PinholeCamera, mesh: Mesh | None, st
     out = image.copy()
     colour = STATUS_COLOURS.get(step.status, (255, 255, 255))
     if edges is None:
-        edges = mesh_edges(mesh)
+        edges = mesh_edges(mesh.run_time)  # (a scan's: its run-time decimation's)
     if step.t is not None and step.q_wxyz is not None and step.status != "lost":
         R = quat.to_matrix(np.asarray(step.q_wxyz, float))
         t = np.asarray(step.t, float)

@@ -63,7 +63,8 @@ async def object_mesh(name: str, state: Annotated[ServiceState, Depends(get_stat
         raise ApiError(404, "unknown_object", f"no object named {name!r} in the store")
     model, _ = await asyncio.get_running_loop().run_in_executor(state.executor, state.registry.get, name)
     v = model.mesh.vertices
-    return MeshEdges(name=name, edges=[[list(map(float, a)), list(map(float, b))] for a, b in mesh_edges(model.mesh)],
+    # (a scan's wireframe from its run-time decimation: thousands of edges, not a million)
+    return MeshEdges(name=name, edges=[[list(map(float, a)), list(map(float, b))] for a, b in mesh_edges(model.mesh.run_time)],
                      bbox=[v.min(axis=0).tolist(), v.max(axis=0).tolist()])
 
 

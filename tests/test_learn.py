@@ -469,3 +469,23 @@ def test_learned_view_renders_only_the_objects_box(cube):
             assert (co is None and vs.cooccurrence is None) or np.array_equal(vs.cooccurrence, co)
             compared += len(vs) > 0
     assert compared >= 6
+
+
+def test_views_learned_on_a_scan_s_decimation_are_kept_with_its_full_mesh(cube, run, tmp_path):
+    """A tracker runs on a mesh of many faces' decimation (Mesh.run_time), so its learned views
+    come with that mesh: the stored model takes them and keeps its own, full mesh."""
+    import trimesh
+
+    from quatrack.viewsets.mesh import RUN_TIME_MAX_FACES, make_mesh
+
+    tm = trimesh.Trimesh(cube.model.mesh.vertices, cube.model.mesh.faces, process=False)
+    for _ in range(5):
+        tm = tm.subdivide()
+    fine = make_mesh(np.asarray(tm.vertices, float), np.asarray(tm.faces, np.int64))
+    assert len(fine.faces) > RUN_TIME_MAX_FACES
+    store = tmp_path / "store"
+    S.save_model(store, dataclasses.replace(cube.model, mesh=fine))
+    _, added, total = L.merge_learned(store, NAME, run.learned, fine.run_time)
+    back = S.load_model(store, NAME)
+    assert added == total == len(run.learned) > 0
+    assert len(back.mesh.faces) == len(fine.faces)  # (the full mesh, not the decimation)

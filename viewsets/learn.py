@@ -221,7 +221,9 @@ def merge_learned(store: str | Path, name: str, viewsets, mesh: Mesh | None = No
     with store_lock(store, name):
         model = load_model(store, name)
         folder = model_path(Path(store), name)
-        if viewsets and mesh is not None and not same_mesh(mesh, model.mesh):
+        # (the views were lifted on the mesh the tracker ran on: the stored one, or its run-time
+        # decimation, Mesh.run_time, which lies on it; the stored model keeps its full mesh)
+        if viewsets and mesh is not None and not (same_mesh(mesh, model.mesh) or same_mesh(mesh, model.mesh.run_time)):
             raise StoreError(f"object {name!r} in {store} has another mesh than the views were learned on "
                              "(retrained meanwhile?); the learned views were not saved")
         if not viewsets:
