@@ -136,6 +136,18 @@ def _add_bench(parser: argparse.ArgumentParser) -> None:
     )
     _zoo_options(ej)
     ej.add_argument("--every", type=int, default=5, metavar="K", help="judge every K-th frame (default 5)")
+    sm = sub.add_parser(
+        "scan-mesh",
+        help="a scan's mesh against the 12-face box: training, locate and tracking on dense and jittered meshes",
+        description="The bundled cookie box trained on its own 12-triangle mesh, on the same box subdivided K times "
+                    "(4^K x 12 triangles) and on that mesh jittered (a scan's noise): training time, synthetic "
+                    "views, locate, tracking step time, and the tracked poses' distance from the 12-face box's.",
+    )
+    sm.add_argument("--subdivisions", type=int, default=6, metavar="K", help="subdivisions (default 6: 49 152 faces)")
+    sm.add_argument("--jitter", type=float, default=0.001, metavar="F",
+                    help="vertex jitter, sigma as a share of the box's diagonal (default 0.001)")
+    sm.add_argument("--frames", type=int, default=150, metavar="N", help="frames of box.mp4 tracked (default 150)")
+    sm.add_argument("--json", action="store_true", help="print one JSON object instead of the table")
     serve = sub.add_parser(
         "serve",
         help="the service under load: 1..16 concurrent 30 fps streams against 1 and N workers and two replicas behind nginx",
@@ -220,6 +232,16 @@ def _run_bench(args: argparse.Namespace) -> int:
         if args.every < 1:
             raise UserError("--every must be >= 1")
         return edge_judge.main(args.json, names, args.renderings, args.every, args.seconds)
+    if args.benchmark == "scan-mesh":
+        from quatrack.bench import scan_mesh
+
+        if not 0 <= args.subdivisions <= 7:
+            raise UserError("--subdivisions must be between 0 and 7")
+        if not 0.0 <= args.jitter <= 0.05:
+            raise UserError("--jitter must be between 0 and 0.05")
+        if not 10 <= args.frames <= 300:
+            raise UserError("--frames must be between 10 and 300")
+        return scan_mesh.main(args.subdivisions, args.jitter, args.frames, args.json)
     if args.benchmark == "locate":
         from quatrack.bench import locate as bench_locate
 
