@@ -51,12 +51,12 @@ class Mesh:
     @cached_property
     def run_time(self) -> "Mesh":
         """The mesh recognition and tracking work with: this one, or, when it has more than
-        ``RUN_TIME_MAX_FACES`` faces (a scan), its quadric decimation to that many
-        (:func:`simplified`), computed once per mesh. Why: the run time's geometry — renders for
-        the checks, silhouettes and edges every frame — costs in proportion to the faces, and a
-        scan's jitter makes every facet a crease: a 49 000-face scan of the cookie box took
-        ~120 ms a tracking step (12 faces: 10 ms) and 0.85 s a ``locate``. Training lifts its
-        keypoints onto the full mesh, which the stored model keeps.
+        ``RUN_TIME_MAX_FACES`` faces (a scan, a fine CAD export), its quadric decimation to at
+        most that many (:func:`simplified`), computed once per mesh. Why: the run time's geometry
+        — renders for the checks, silhouettes and edges every frame — costs in proportion to the
+        faces, and a scan's jitter makes every facet a crease: a 49 000-face scan of the cookie
+        box took ~120 ms a tracking step (12 faces: 10 ms) and about a second a ``locate``.
+        Training lifts its keypoints onto the full mesh, which the stored model keeps.
 
         >>> box = make_mesh(np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1.0)]),
         ...                 np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
@@ -190,10 +190,10 @@ def simplified(mesh: Mesh, faces: int) -> Mesh:
     """
     import fast_simplification
 
-    V, F = fast_simplification.simplify(np.asarray(mesh.vertices, np.float32), np.asarray(mesh.faces, np.int32),
+    V, F = fast_simplification.simplify(np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int32),
                                         lossless=True)
     if len(F) > faces:
-        V, F = fast_simplification.simplify(np.asarray(V, np.float32), np.asarray(F, np.int32),
+        V, F = fast_simplification.simplify(np.asarray(V, np.float64), np.asarray(F, np.int32),
                                             target_reduction=1.0 - faces / len(F))
     V2, F2 = np.asarray(V, float), np.asarray(F)
     return make_mesh(V2, outward_faces(V2, np.asarray(F2, np.int64)), "simplified mesh")
