@@ -310,22 +310,27 @@ def test_a_weakly_textured_object_is_trained_with_a_lower_contrast_threshold(tmp
     assert params_from_manifest(model.manifest).contrast_threshold == fixed.viewsets.contrast_threshold
 
 
-def test_a_scanned_mesh_trains_synthetic_views_as_the_plain_one(tmp_path):
+@pytest.mark.parametrize("subdivisions", [4, 5], ids=["3072 faces", "12288 faces, decimated"])
+def test_a_scanned_mesh_trains_synthetic_views_as_the_plain_one(tmp_path, subdivisions):
     """A scanned object's mesh — thousands of facets, each a plane of its own, its vertices a
     little off the true surface — trains synthetic views as the plain mesh does: their
     keypoints nearly as many, on the texture the photo shows at their 3-D points. (Until
     session 57 its facets were matched to the photo's by plane id, which a facet a few photo
-    pixels wide rarely passes: no synthetic view kept a keypoint, and lifting them took minutes.)"""
+    pixels wide rarely passes: no synthetic view kept a keypoint, and lifting them took minutes.)
+    Over ``RUN_TIME_MAX_FACES`` faces the synthetic views are rendered on the mesh's decimation
+    (``Mesh.run_time``), whose facets are the surface's, not the jitter's."""
     import trimesh
+
+    from quatrack.viewsets.mesh import RUN_TIME_MAX_FACES
 
     plain = box(12.0, 9.0, 6.0)
     tm = trimesh.Trimesh(plain.vertices, plain.faces, process=False)
-    for _ in range(4):
+    for _ in range(subdivisions):
         tm = tm.subdivide()
     V = np.asarray(tm.vertices, float)
     V = V + np.random.default_rng(0).normal(0.0, 0.0005 * plain.extent, V.shape)
     scan = make_mesh(V, np.asarray(tm.faces, np.int64))
-    assert len(scan.faces) >= 3000
+    assert len(scan.faces) >= 3000 and (len(scan.faces) > RUN_TIME_MAX_FACES) == (subdivisions == 5)
     camera = PinholeCamera(600.0, 600.0, 200.0, 150.0, width=400, height=300)
     rvec = np.array([2.1, -0.6, 0.3])
     R = cv2.Rodrigues(rvec)[0]
@@ -348,10 +353,11 @@ def test_a_scanned_mesh_trains_synthetic_views_as_the_plain_one(tmp_path):
         if name == "scan":
             assert len(synthetic) == 4
             photo = cv2.imread(str(d / "photo.png"))
+            run = mesh.run_time  # (what the synthetic views were rendered on)
             for vs in synthetic:  # the colour at each keypoint is the texture's at its 3-D point
-                synth, _, _ = render_textured_view(mesh, planar_groups(mesh), photo, camera, Pose.from_matrix(R, t),
-                                                   render(mesh, camera, Pose.from_matrix(R, t)), vs.camera, vs.pose)
+                synth, _, _ = render_textured_view(run, planar_groups(run), photo, camera, Pose.from_matrix(R, t),
+                                                   render(run, camera, Pose.from_matrix(R, t)), vs.camera, vs.pose)
                 ui, vi = np.rint(vs.keypoints[:, 0]).astype(int), np.rint(vs.keypoints[:, 1]).astype(int)
                 err = np.abs(synth[vi, ui].astype(float) - texture(vs.points3d)).max(axis=1)
                 assert np.median(err) < 25, vs.label
-    assert kept["plain"] > 150 and kept["scan"] > 0.7 * kept["plain"]
+    assert kept["plain"] > 150 and kept["scan"] > (0.8 if subdivisions == 5 else 0.7) * kept["plain"]

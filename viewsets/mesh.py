@@ -56,7 +56,8 @@ class Mesh:
         — renders for the checks, silhouettes and edges every frame — costs in proportion to the
         faces, and a scan's jitter makes every facet a crease: a 49 000-face scan of the cookie
         box took ~120 ms a tracking step (12 faces: 10 ms) and about a second a ``locate``.
-        Training lifts its keypoints onto the full mesh, which the stored model keeps.
+        Training lifts the photos' keypoints onto the full mesh, which the stored model keeps, and
+        renders its synthetic views on this one (viewsets/train.py: ``_run_task``).
 
         >>> box = make_mesh(np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1.0)]),
         ...                 np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],

@@ -128,17 +128,26 @@ def _tasks(mesh: Mesh, views: list[_View], novel: NovelViewParams | None):
     return out
 
 
-def _run_task(mesh: Mesh, groups: np.ndarray, params: TrainParams, task) -> Viewset:
+def _run_task(mesh: Mesh, params: TrainParams, task) -> Viewset:
+    """One viewset: a registered view's keypoints lifted onto ``mesh``; a synthetic view rendered,
+    textured from its photo and lifted on ``mesh.run_time``. Why the decimation there: a scan's
+    facets, each a plane of its own and (at 10⁵–10⁶ faces) under a photo pixel wide, with normals
+    the jitter scatters, are textured from the photo only where a neighbour turns by less than
+    30° (render_textured_view): the cookie box as 786 432 jittered triangles kept no synthetic
+    view, as 49 152 half the keypoints; its decimation's facets are the surface's, a few pixels
+    wide. A planar or coarse mesh is its own run-time mesh: nothing changes for it."""
     label, v, pose = task
     if pose is None:
         feature_mask = cv2.bitwise_and(v.mask, v.buffers.mask)
         return build_viewset(label, v.spec.index, False, v.image, feature_mask, v.spec.camera, v.spec.pose,
                              mesh, v.buffers, params.viewsets)
+    run = mesh.run_time
+    src_buffers = v.buffers if run is mesh else render(run, v.spec.camera, v.spec.pose)
     cam = dataclasses.replace(v.spec.camera, dist_coeffs=np.zeros(5))  # novel views: ideal pinhole
     min_cos = params.novel.min_source_cos if params.novel else 0.3
-    img, textured, buf = render_textured_view(mesh, groups, v.image, v.spec.camera, v.spec.pose, v.buffers,
+    img, textured, buf = render_textured_view(run, run.plane_ids, v.image, v.spec.camera, v.spec.pose, src_buffers,
                                               cam, pose, min_cos, v.mask if v.spec.mask_path is not None else None)
-    return build_viewset(label, v.spec.index, True, img, textured, cam, pose, mesh, buf, params.viewsets)
+    return build_viewset(label, v.spec.index, True, img, textured, cam, pose, run, buf, params.viewsets)
 
 
 def _versions() -> dict:
@@ -243,10 +252,9 @@ def _viewsets_for_texture(mesh: Mesh, tasks: list, params: TrainParams, progress
 def _build_viewsets(mesh: Mesh, tasks: list, params: TrainParams, progress) -> list[Viewset]:
     """One viewset per task (``_tasks``: each registered view and each synthetic view), built
     on ``params.jobs`` threads (OpenCV releases the GIL)."""
-    groups = mesh.plane_ids
 
     def run(task):
-        vs = _run_task(mesh, groups, params, task)
+        vs = _run_task(mesh, params, task)
         if progress:
             progress(1)
         return vs
