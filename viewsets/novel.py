@@ -100,17 +100,19 @@ def plane_homographies(n: np.ndarray, d: np.ndarray, pose_from: Pose, pose_to: P
     return R_rel[None] + np.einsum("i,kj->kij", t_rel, n_c) / d_c[:, None, None]
 
 
-def _group_planes(mesh: Mesh, groups: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per plane group: its first face (whose plane stands for the group's), the centroid of
-    its faces' corners (each corner counted once per face), and its number of faces."""
-    n_groups = int(groups.max()) + 1 if len(groups) else 0
-    first = np.full(n_groups, -1, np.int64)
+def _first_faces(groups: np.ndarray) -> np.ndarray:
+    """Per plane group, its first (lowest) face, whose plane stands for the group's."""
+    first = np.full(int(groups.max()) + 1 if len(groups) else 0, -1, np.int64)
     first[groups[::-1]] = np.arange(len(groups))[::-1]  # (the last write wins: the lowest face)
-    size = np.bincount(groups, minlength=n_groups)
+    return first
+
+
+def _group_centroids(mesh: Mesh, groups: np.ndarray) -> np.ndarray:
+    """Per plane group, the centroid of its faces' corners (each corner counted once per face)."""
+    n_groups = int(groups.max()) + 1 if len(groups) else 0
     corners = mesh.vertices[mesh.faces].sum(axis=1)  # (m, 3): each face's three corners
     centroid = np.column_stack([np.bincount(groups, corners[:, k], n_groups) for k in range(3)])
-    centroid /= np.maximum(3 * size, 1)[:, None]
-    return first, centroid, size
+    return centroid / np.maximum(3 * np.bincount(groups, minlength=n_groups), 1)[:, None]
 
 
 def render_textured_view(
@@ -152,7 +154,7 @@ def render_textured_view(
     use = np.zeros(n_groups, bool)
     Hs = np.zeros((n_groups, 3, 3))
     drawn = np.bincount(buf.face.ravel() + 1, minlength=len(groups) + 1)[1:] > 0  # (faces in view: a count, not a sort)
-    first, centroid, _ = _group_planes(mesh, groups)
+    first = _first_faces(groups)
     gs = np.unique(groups[drawn])
     if len(gs) <= _FEW_GROUPS:  # (a planar model: plane by plane, as ever, the same bits)
         for g in gs:
@@ -163,7 +165,7 @@ def render_textured_view(
                 use[g], Hs[g] = True, plane_homography(n, d, pose, src_pose)
     else:  # (a curved or scanned surface of many facets: all at once)
         n, d = normals[first[gs]], offsets[first[gs]]
-        ray = centroid[gs] - src_centre
+        ray = _group_centroids(mesh, groups)[gs] - src_centre
         seen = np.abs(np.einsum("ij,ij->i", n, ray)) / np.linalg.norm(ray, axis=1) >= min_source_cos
         gs, n, d = gs[seen], n[seen], d[seen]
         use[gs], Hs[gs] = True, plane_homographies(n, d, pose, src_pose)

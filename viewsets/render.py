@@ -320,7 +320,7 @@ def cast_rays(mesh: Mesh, pose: Pose, rays_xy: np.ndarray, chunk: int = 4096):
     tri = mesh.triangles
     normals = face_normals(mesh)
     if len(tri) >= BINNED_MIN_TRIANGLES and n:
-        best_s, best_f = _binned_hits(mesh, pose, xy, origin, dirs)
+        best_s, best_f = _binned_hits(mesh, tri, pose, xy, origin, dirs)
     else:
         best_s, best_f = _all_hits(tri, origin, dirs, chunk)
     found = np.isfinite(best_s)
@@ -368,9 +368,10 @@ def _all_hits(tri: np.ndarray, origin: np.ndarray, dirs: np.ndarray, chunk: int 
     return best_s, best_f
 
 
-def _binned_hits(mesh: Mesh, pose: Pose, xy: np.ndarray, origin: np.ndarray, dirs: np.ndarray,
+def _binned_hits(mesh: Mesh, tri: np.ndarray, pose: Pose, xy: np.ndarray, origin: np.ndarray, dirs: np.ndarray,
                  max_pairs: int = 2_000_000):
-    """:func:`_all_hits` for a large mesh, through a grid over the rays' normalised plane.
+    """:func:`_all_hits` for a large mesh (its ``triangles``, ``tri``), through a grid over the
+    rays' normalised plane.
 
     A triangle wholly in front of the camera (every vertex at depth > ``_NEAR``) is met by the
     ray ``(x, y, 1)`` only if ``(x, y)`` lies in its projection, so only in the grid cells its
@@ -380,7 +381,6 @@ def _binned_hits(mesh: Mesh, pose: Pose, xy: np.ndarray, origin: np.ndarray, dir
     (none, for an object in front of it) are tested against every ray. Ties go to the lower
     triangle, as in :func:`_all_hits`."""
     n = len(xy)
-    tri = mesh.triangles
     m = len(tri)
     zc = pose.apply(mesh.vertices)
     zf = zc[np.asarray(mesh.faces)]  # (m, 3, 3): the triangles in the camera frame

@@ -128,9 +128,10 @@ def _tasks(mesh: Mesh, views: list[_View], novel: NovelViewParams | None):
     return out
 
 
-def _run_task(mesh: Mesh, params: TrainParams, task) -> Viewset:
+def _run_task(mesh: Mesh, params: TrainParams, task, run_buffers: dict) -> Viewset:
     """One viewset: a registered view's keypoints lifted onto ``mesh``; a synthetic view rendered,
-    textured from its photo and lifted on ``mesh.run_time``. Why the decimation there: a scan's
+    textured from its photo and lifted on ``mesh.run_time`` (``run_buffers``: the photo's
+    z-buffer on it, by view index, when it is not ``mesh``: :func:`_build_viewsets`). Why the decimation there: a scan's
     facets, each a plane of its own and (at 10⁵–10⁶ faces) under a photo pixel wide, with normals
     the jitter scatters, are textured from the photo only where a neighbour turns by less than
     30° (render_textured_view): the cookie box as 786 432 jittered triangles kept no synthetic
@@ -142,7 +143,7 @@ def _run_task(mesh: Mesh, params: TrainParams, task) -> Viewset:
         return build_viewset(label, v.spec.index, False, v.image, feature_mask, v.spec.camera, v.spec.pose,
                              mesh, v.buffers, params.viewsets)
     run = mesh.run_time
-    src_buffers = v.buffers if run is mesh else render(run, v.spec.camera, v.spec.pose)
+    src_buffers = v.buffers if run is mesh else run_buffers[v.spec.index]
     cam = dataclasses.replace(v.spec.camera, dist_coeffs=np.zeros(5))  # novel views: ideal pinhole
     min_cos = params.novel.min_source_cos if params.novel else 0.3
     img, textured, buf = render_textured_view(run, run.plane_ids, v.image, v.spec.camera, v.spec.pose, src_buffers,
@@ -252,9 +253,13 @@ def _viewsets_for_texture(mesh: Mesh, tasks: list, params: TrainParams, progress
 def _build_viewsets(mesh: Mesh, tasks: list, params: TrainParams, progress) -> list[Viewset]:
     """One viewset per task (``_tasks``: each registered view and each synthetic view), built
     on ``params.jobs`` threads (OpenCV releases the GIL)."""
+    # each photo's z-buffer on the run-time mesh, once for all its synthetic views (_run_task)
+    photos = {v.spec.index: v for _, v, pose in tasks if pose is not None}
+    run_mesh = mesh.run_time if photos else mesh
+    run_buffers = {} if run_mesh is mesh else {i: render(run_mesh, v.spec.camera, v.spec.pose) for i, v in photos.items()}
 
     def run(task):
-        vs = _run_task(mesh, params, task)
+        vs = _run_task(mesh, params, task, run_buffers)
         if progress:
             progress(1)
         return vs
