@@ -26,18 +26,13 @@ from quatrack.examples import example_dir
 
 
 def _meshes(subdivisions: int, jitter: float, seed: int = 0) -> dict:
-    import trimesh
-
+    from quatrack.testing.scans import scanned
     from quatrack.viewsets.mesh import load_mesh
 
     box = load_mesh(example_dir() / "box.ply")
-    tm = trimesh.Trimesh(box.vertices, box.faces, process=False)
-    for _ in range(subdivisions):
-        tm = tm.subdivide()
-    fine = np.asarray(tm.vertices, float)
-    rough = fine + np.random.default_rng(seed).normal(0.0, jitter * box.extent, fine.shape)
-    return {"12 faces": None, f"{len(tm.faces)} faces": (fine, np.asarray(tm.faces)),
-            f"{len(tm.faces)} faces, jittered {100 * jitter:g} %": (rough, np.asarray(tm.faces))}
+    fine, rough = scanned(box, subdivisions), scanned(box, subdivisions, jitter, seed)
+    return {"12 faces": None, f"{len(fine.faces)} faces": (fine.vertices, fine.faces),
+            f"{len(fine.faces)} faces, jittered {100 * jitter:g} %": (rough.vertices, rough.faces)}
 
 
 def run(subdivisions: int = 6, jitter: float = 0.001, frames: int = 150, progress: bool = True) -> dict:

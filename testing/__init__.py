@@ -11,6 +11,7 @@ and a non-editable install (the Dockerfile's) still finds them:
 - :mod:`.zoo`: eight more objects (boxes, cubes, a cylinder, a prism; meshes in mm, cm and m)
   textured from real photographs, their training specs and degraded scenes;
 - :mod:`.sequences`: smooth trajectories and rendered video sequences with their true poses;
+- :mod:`.scans`: a scan's mesh of a known object (its CAD mesh subdivided, optionally jittered);
 - :mod:`.balancer`: Debian's nginx started in front of local replicas (deployment test, bench);
 - :mod:`.loopback`: a free port, addresses and the start-up wait of anything run on loopback.
 

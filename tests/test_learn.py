@@ -474,14 +474,10 @@ def test_learned_view_renders_only_the_objects_box(cube):
 def test_views_learned_on_a_scan_s_decimation_are_kept_with_its_full_mesh(cube, run, tmp_path):
     """A tracker runs on a mesh of many faces' decimation (Mesh.run_time), so its learned views
     come with that mesh: the stored model takes them and keeps its own, full mesh."""
-    import trimesh
+    from quatrack.testing.scans import scanned
+    from quatrack.viewsets.mesh import RUN_TIME_MAX_FACES
 
-    from quatrack.viewsets.mesh import RUN_TIME_MAX_FACES, make_mesh
-
-    tm = trimesh.Trimesh(cube.model.mesh.vertices, cube.model.mesh.faces, process=False)
-    for _ in range(5):
-        tm = tm.subdivide()
-    fine = make_mesh(np.asarray(tm.vertices, float), np.asarray(tm.faces, np.int64))
+    fine = scanned(cube.model.mesh, 5)
     assert len(fine.faces) > RUN_TIME_MAX_FACES
     store = tmp_path / "store"
     S.save_model(store, dataclasses.replace(cube.model, mesh=fine))

@@ -20,25 +20,17 @@ from quatrack.recognition.match import index_for
 from quatrack.recognition.video import Tracker, TrackerParams
 from quatrack.tracking import quaternion as quat
 from quatrack.viewsets.camera import load_camera
-from quatrack.viewsets.mesh import RUN_TIME_MAX_FACES, load_mesh, make_mesh
+from quatrack.testing.scans import scanned
+from quatrack.viewsets.mesh import RUN_TIME_MAX_FACES, load_mesh
 from quatrack.viewsets.spec import load_spec
 from quatrack.viewsets.train import train_object
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "cookie-box"
 
 
-def subdivided(mesh, times: int):
-    import trimesh
-
-    tm = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)
-    for _ in range(times):
-        tm = tm.subdivide()
-    return make_mesh(np.asarray(tm.vertices, float), np.asarray(tm.faces, np.int64))
-
-
 def test_a_mesh_of_many_faces_runs_on_a_decimation_that_keeps_its_shape():
     plain = load_mesh(EXAMPLE / "box.ply")
-    fine = subdivided(plain, 5)
+    fine = scanned(plain, 5)
     assert len(fine.faces) > RUN_TIME_MAX_FACES and plain.run_time is plain
     run = fine.run_time
     assert run is fine.run_time  # (computed once per mesh)
@@ -60,7 +52,7 @@ def two_boxes(tmp_path_factory):
     spec = json.loads((EXAMPLE / "object.json").read_text())
     for v in spec["views"]:
         v["image"] = str(EXAMPLE / v["image"])
-    fine = subdivided(load_mesh(EXAMPLE / "box.ply"), 5)
+    fine = scanned(load_mesh(EXAMPLE / "box.ply"), 5)
     import trimesh
 
     trimesh.Trimesh(fine.vertices, fine.faces, process=False).export(d / "fine.ply")

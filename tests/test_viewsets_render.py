@@ -427,15 +427,9 @@ def dense_cylinder(radius=4.0, height=12.0, sections=256):
 def noisy_box(subdivisions=3, noise=0.0005, seed=0):
     """The box finely subdivided, its vertices jittered by ``noise`` × its extent: a scanned
     object's mesh in miniature (every facet a plane of its own)."""
-    import trimesh
+    from quatrack.testing.scans import scanned
 
-    box = box_mesh()
-    tm = trimesh.Trimesh(box.vertices, box.faces, process=False)
-    for _ in range(subdivisions):
-        tm = tm.subdivide()
-    V = np.asarray(tm.vertices, float)
-    V = V + np.random.default_rng(seed).normal(0.0, noise * box.extent, V.shape)
-    return make_mesh(V, np.asarray(tm.faces, np.int64))
+    return scanned(box_mesh(), subdivisions, noise, seed)
 
 
 @pytest.mark.parametrize("camera", [CAM, CAM_DIST], ids=["pinhole", "distorted"])

@@ -319,17 +319,11 @@ def test_a_scanned_mesh_trains_synthetic_views_as_the_plain_one(tmp_path, subdiv
     pixels wide rarely passes: no synthetic view kept a keypoint, and lifting them took minutes.)
     Over ``RUN_TIME_MAX_FACES`` faces the synthetic views are rendered on the mesh's decimation
     (``Mesh.run_time``), whose facets are the surface's, not the jitter's."""
-    import trimesh
-
+    from quatrack.testing.scans import scanned
     from quatrack.viewsets.mesh import RUN_TIME_MAX_FACES
 
     plain = box(12.0, 9.0, 6.0)
-    tm = trimesh.Trimesh(plain.vertices, plain.faces, process=False)
-    for _ in range(subdivisions):
-        tm = tm.subdivide()
-    V = np.asarray(tm.vertices, float)
-    V = V + np.random.default_rng(0).normal(0.0, 0.0005 * plain.extent, V.shape)
-    scan = make_mesh(V, np.asarray(tm.faces, np.int64))
+    scan = scanned(plain, subdivisions, 0.0005, seed=0)
     assert len(scan.faces) >= 3000 and (len(scan.faces) > RUN_TIME_MAX_FACES) == (subdivisions == 5)
     camera = PinholeCamera(600.0, 600.0, 200.0, 150.0, width=400, height=300)
     rvec = np.array([2.1, -0.6, 0.3])
