@@ -391,8 +391,7 @@ def locate(
     prep = prepare_image(image, camera, params.max_pixels)
     img, cam = prep.image, prep.camera
     index = index or index_for(model)
-    if model.mesh.run_time is not model.mesh:  # (a scan's mesh: its geometry checked on its decimation)
-        model = replace(model, mesh=model.mesh.run_time)
+    model = model.at_run_time()  # (a scan's mesh: its geometry checked on its decimation)
     timer: dict[str, float] = {"localise": 0.0, "match": 0.0, "pnp": 0.0}
     h, w = img.shape[:2]
 

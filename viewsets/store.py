@@ -18,7 +18,7 @@ import os
 import shutil
 import tempfile
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -50,6 +50,11 @@ class ObjectModel:
     # the registered photos' grey crops of the object (viewsets/texture.py): evidence a wrong
     # pose cannot fake (recognition/appearance.py). Models stored before session 36 have none.
     appearance: list[TextureReference] = field(default_factory=list)
+
+    def at_run_time(self) -> "ObjectModel":
+        """This model with the mesh recognition and tracking work with (``Mesh.run_time``: a
+        scan's decimation; most meshes are their own, and then this is the model itself)."""
+        return self if self.mesh.run_time is self.mesh else replace(self, mesh=self.mesh.run_time)
 
 
 def default_store() -> Path:

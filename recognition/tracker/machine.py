@@ -100,8 +100,7 @@ class Tracker:
 
     def __init__(self, model: ObjectModel, camera: PinholeCamera, params: TrackerParams = TrackerParams(),
                  index: ModelIndex | None = None, executor: Executor | None = None) -> None:
-        if model.mesh.run_time is not model.mesh:  # (a scan's mesh: tracked on its decimation, Mesh.run_time)
-            model = replace(model, mesh=model.mesh.run_time)
+        model = model.at_run_time()  # (a scan's mesh: tracked on its decimation, Mesh.run_time)
         self.model = model
         self.camera = camera
         self.params = params
