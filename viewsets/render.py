@@ -332,6 +332,35 @@ def cast_rays(mesh: Mesh, pose: Pose, rays_xy: np.ndarray, chunk: int = 4096):
     return X, np.where(found, best_f, -1), cos
 
 
+def _ray_hits(d: np.ndarray, origin: np.ndarray, v0: np.ndarray, e1: np.ndarray, e2: np.ndarray) -> np.ndarray:
+    """Möller–Trumbore: the ray parameter ``s`` at which each ray ``origin + s d`` meets the
+    triangle ``(v0, v0 + e1, v0 + e2)`` (inf where it misses, runs parallel to it or meets it
+    at ``s ≤ _NEAR``), over arrays that broadcast along their leading axes (the last is xyz):
+    every ray against every triangle (:func:`_all_hits`: ``d`` (c, 1, 3) against (m, 3)) or
+    listed pairs (:func:`_binned_hits`: (k, 3) against (k, 3)). With ``p = d × e2``,
+    ``det = e1·p``, ``T = origin − v0``, ``Q = T × e1``:
+    ``u = T·p / det``, ``v = d·Q / det``, ``s = e2·Q / det``; a hit needs ``u, v ≥ 0`` and
+    ``u + v ≤ 1`` (within 1e-9, so a ray on a shared edge meets both triangles).
+
+    >>> tri = np.array([[0.0, 0, 1], [1, 0, 0], [0, 1, 0]])  # v0 at z = 1, e1, e2 in the plane z = 1
+    >>> _ray_hits(np.array([[0.2, 0.2, 1.0], [2.0, 0.0, 1.0]]), np.zeros(3), tri[0], tri[1], tri[2]).tolist()
+    [1.0, inf]
+    """
+    dot = lambda a, b: np.einsum("...j,...j->...", a, b)  # noqa: E731 (the last axis, broadcast)
+    pvec = np.cross(d, e2)
+    det = dot(e1, pvec)
+    ok = np.abs(det) > 1e-12
+    inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+    tvec = origin - v0
+    u = dot(tvec, pvec) * inv
+    qvec = np.cross(tvec, e1)
+    v = dot(d, qvec) * inv
+    s = dot(e2, qvec) * inv
+    tol = 1e-9
+    hit = ok & (u >= -tol) & (v >= -tol) & (u + v <= 1 + tol) & (s > _NEAR)
+    return np.where(hit, s, np.inf)
+
+
 def _all_hits(tri: np.ndarray, origin: np.ndarray, dirs: np.ndarray, chunk: int = 4096):
     """Every ray (``origin`` + s ``dirs``, object frame) against every triangle ``tri`` (m, 3, 3):
     the nearest hit's ray parameter ``s`` (inf: none) and triangle (-1: none) per ray; ties go
@@ -342,23 +371,10 @@ def _all_hits(tri: np.ndarray, origin: np.ndarray, dirs: np.ndarray, chunk: int 
     e2 = tri[:, 2] - v0
     best_s = np.full(n, np.inf)
     best_f = np.full(n, -1, dtype=np.int64)
-    eps = 1e-12
     if len(tri) == 0:
         return best_s, best_f
     for s0 in range(0, n, max(1, chunk // max(1, len(tri) // 64 + 1))):
-        d = dirs[s0 : s0 + chunk][:, None, :]  # (c, 1, 3)
-        pvec = np.cross(d, e2[None])  # (c, m, 3)
-        det = np.einsum("mj,cmj->cm", e1, pvec)
-        ok = np.abs(det) > eps
-        inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
-        tvec = origin - v0  # (m, 3)
-        u = np.einsum("mj,cmj->cm", tvec, pvec) * inv
-        qvec = np.cross(tvec, e1)  # (m, 3)
-        v = np.einsum("cj,mj->cm", d[:, 0], qvec) * inv
-        s = np.einsum("mj,mj->m", e2, qvec)[None] * inv
-        tol = 1e-9
-        hit = ok & (u >= -tol) & (v >= -tol) & (u + v <= 1 + tol) & (s > _NEAR)
-        s = np.where(hit, s, np.inf)
+        s = _ray_hits(dirs[s0 : s0 + chunk][:, None, :], origin, v0, e1, e2)  # (c, m)
         j = np.argmin(s, axis=1)
         sj = s[np.arange(len(j)), j]
         sl = slice(s0, s0 + len(j))
@@ -375,7 +391,7 @@ def _binned_hits(mesh: Mesh, tri: np.ndarray, pose: Pose, xy: np.ndarray, origin
 
     A triangle wholly in front of the camera (every vertex at depth > ``_NEAR``) is met by the
     ray ``(x, y, 1)`` only if ``(x, y)`` lies in its projection, so only in the grid cells its
-    projection's box covers: each ray is tested (Möller–Trumbore, as :func:`_all_hits`) against
+    projection's box covers: each ray is tested (:func:`_ray_hits`, as in :func:`_all_hits`) against
     the triangles listed in its own cell, ``G × G`` cells with ``G ≈ √m / 2`` over the rays' box,
     in batches of at most ``max_pairs`` ray–triangle pairs. Triangles reaching behind the camera
     (none, for an object in front of it) are tested against every ray. Ties go to the lower
@@ -419,7 +435,6 @@ def _binned_hits(mesh: Mesh, tri: np.ndarray, pose: Pose, xy: np.ndarray, origin
     count = starts[ray_cell + 1] - starts[ray_cell]
     v0_all = tri[:, 0]
     e1_all, e2_all = tri[:, 1] - v0_all, tri[:, 2] - v0_all
-    eps, tol = 1e-12, 1e-9
     ray_ids = np.flatnonzero(count)
     cum = np.cumsum(count[ray_ids])
     r0 = 0
@@ -432,18 +447,8 @@ def _binned_hits(mesh: Mesh, tri: np.ndarray, pose: Pose, xy: np.ndarray, origin
         ray = np.repeat(rays, cnt)
         j = np.arange(len(ray)) - np.repeat(np.cumsum(cnt) - cnt, cnt)
         f = cell_tris[starts[ray_cell[ray]] + j]
-        d = dirs[ray]
-        e1, e2, v0 = e1_all[f], e2_all[f], v0_all[f]
-        pvec = np.cross(d, e2)
-        det = np.einsum("ij,ij->i", e1, pvec)
-        ok = np.abs(det) > eps
-        inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
-        tvec = origin - v0
-        u = np.einsum("ij,ij->i", tvec, pvec) * inv
-        qvec = np.cross(tvec, e1)
-        v = np.einsum("ij,ij->i", d, qvec) * inv
-        s = np.einsum("ij,ij->i", e2, qvec) * inv
-        hit = ok & (u >= -tol) & (v >= -tol) & (u + v <= 1 + tol) & (s > _NEAR)
+        s = _ray_hits(dirs[ray], origin, v0_all[f], e1_all[f], e2_all[f])
+        hit = np.isfinite(s)
         if not hit.any():
             continue
         ray, f, s = ray[hit], f[hit], s[hit]
