@@ -350,7 +350,10 @@ def walks(names, renderings: int = 1) -> list[tuple[str, str, int]]:
     return out
 
 
-def study(names=SEQUENCES, seconds: float = 10.0, passes=("truth", "live", "recognition", "learned"), orbit: OrbitParams | None = None,
+PASSES = ("truth", "live", "recognition", "learned")  # (the module docstring's four, in the order they run)
+
+
+def study(names=SEQUENCES, seconds: float = 10.0, passes=PASSES, orbit: OrbitParams | None = None,
           width: int = 640, height: int = 480, backgrounds=None, progress: bool = True, out_path: str | None = None,
           renderings: int = 1, dist_coeffs=None, grey: bool = False) -> dict:
     """Everything in the module docstring; returns one JSON-able dict. The truth-initialised
@@ -370,7 +373,7 @@ def study(names=SEQUENCES, seconds: float = 10.0, passes=("truth", "live", "reco
     out = {"machine": f"{os.cpu_count()} cores", "load_before": os.getloadavg(), "seconds": seconds,
            "learned_viewsets_api": learn_ok, "renderings": renderings, "size": [int(width), int(height)],
            "dist_coeffs": None if dist_coeffs is None else [float(x) for x in dist_coeffs], "grey": bool(grey),
-           "sequences": {}}
+           "passes": [k for k in PASSES if k in passes], "sequences": {}}
 
     def save():
         out["load_after"] = os.getloadavg()
@@ -435,7 +438,8 @@ def report(res: dict) -> str:
              f"{res['seconds']:g} s per sequence; learned viewsets API: {'yes' if res['learned_viewsets_api'] else 'missing'}"
              + (f"; lens distortion {res['dist_coeffs']}" if res.get("dist_coeffs") else "")
              + (f"; images {res['size'][0]}x{res['size'][1]}" if res.get("size", [640, 480]) != [640, 480] else "")
-             + ("; grey images" if res.get("grey") else ""),
+             + ("; grey images" if res.get("grey") else "")
+             + (f"; passes: {', '.join(res['passes'])}" if res.get("passes", list(PASSES)) != list(PASSES) else ""),
              "sequence (unit)      frames <30%vis  lost lost>=30% | t mean/max %diam | depth/lateral mean %diam | r mean/max deg | >5%/5deg | "
              "step p50/p95 ms | NEES mean/median | in 95 % ellipsoid | NEES centre/rotation median (3 dof: 2.37)"]
     for name, s in res["sequences"].items():
@@ -499,11 +503,11 @@ def report(res: dict) -> str:
 
 
 def main(as_json: bool = False, seconds: float = 10.0, names: list[str] | None = None, renderings: int = 1,
-         dist_coeffs=None, size: tuple[int, int] = (640, 480), grey: bool = False) -> int:
-    res = study(tuple(names) if names else SEQUENCES, seconds, width=int(size[0]), height=int(size[1]),
-                progress=not as_json, renderings=renderings, dist_coeffs=dist_coeffs, grey=grey)
+         dist_coeffs=None, size: tuple[int, int] = (640, 480), grey: bool = False, passes=PASSES) -> int:
+    res = study(tuple(names) if names else SEQUENCES, seconds, passes=tuple(passes), width=int(size[0]),
+                height=int(size[1]), progress=not as_json, renderings=renderings, dist_coeffs=dist_coeffs, grey=grey)
     print(json.dumps(res) if as_json else report(res))
     return 0
 
 
-__all__ = ["SEQUENCES", "walks", "study", "run_pass", "figures", "nees", "nees_parts", "report", "main"]
+__all__ = ["SEQUENCES", "PASSES", "walks", "study", "run_pass", "figures", "nees", "nees_parts", "report", "main"]

@@ -47,6 +47,19 @@ def _lens(text: str | None):
     return d
 
 
+def _passes(text: str | None, known: tuple[str, ...]) -> tuple[str, ...]:
+    """``--passes``' names, in the benchmark's order (``known``; None: all of them)."""
+    if text is None:
+        return known
+    names = [x.strip() for x in text.split(",") if x.strip()]
+    unknown = sorted(set(names) - set(known))
+    if not names or unknown:
+        raise UserError(f"--passes takes names among {', '.join(known)}, separated by commas; got {text!r}")
+    if "learned" in names and "truth" not in names:
+        raise UserError("--passes: learned re-runs the walk with the views the truth pass learned; add truth")
+    return tuple(k for k in known if k in names)
+
+
 def _size(text: str) -> tuple[int, int]:
     """``--size``'s ``WIDTHxHEIGHT`` in pixels."""
     try:
@@ -128,6 +141,10 @@ def _add_bench(parser: argparse.ArgumentParser) -> None:
                     help="the camera's image size, its field of view kept at 56° (default 640x480)")
     tz.add_argument("--grey", action="store_true",
                     help="a monochrome camera: train from a grey photo and track grey frames (default: colour)")
+    tz.add_argument("--passes", metavar="A,B",
+                    help="which passes to run, of truth, live, recognition, learned (default: all four; "
+                         "learned needs truth, whose views it uses); e.g. --passes live for the service's "
+                         "settings alone")
     ej = sub.add_parser(
         "edge-judge",
         help="how well the model's edges judge a pose: false alarms at the truth, wrong poses caught",
@@ -224,7 +241,7 @@ def _run_bench(args: argparse.Namespace) -> int:
         from quatrack.bench import track_zoo
 
         return track_zoo.main(args.json, args.seconds, _zoo_walks(args), args.renderings, _lens(args.lens),
-                              _size(args.size), args.grey)
+                              _size(args.size), args.grey, _passes(args.passes, track_zoo.PASSES))
     if args.benchmark == "edge-judge":
         from quatrack.bench import edge_judge
 

@@ -234,7 +234,7 @@ def _record_study(monkeypatch) -> dict:
         seen.update(kw)
         return {"machine": "test", "load_before": (0.0,), "load_after": (0.0,), "seconds": seconds, "renderings": 1,
                 "learned_viewsets_api": True, "size": [kw["width"], kw["height"]], "grey": kw["grey"],
-                "sequences": {}, "total_s": 0.0}
+                "passes": list(kw["passes"]), "sequences": {}, "total_s": 0.0}
 
     monkeypatch.setattr(B, "study", study)
     return seen
@@ -284,6 +284,27 @@ def test_a_grey_walk_is_the_colour_walk_in_one_channel(monkeypatch, capsys, tmp_
     assert seen["grey"] is True and "grey images" in capsys.readouterr().out
     assert main(["bench", "track-zoo", "--sequences", "small-cube-cm"]) == 0
     assert seen["grey"] is False and "grey" not in capsys.readouterr().out
+
+
+def test_passes_pick_what_runs(monkeypatch, capsys):
+    """--passes A,B: only those passes run (in the benchmark's order, whatever the order given),
+    the report says which; an unknown name, or the learned pass without the truth pass whose
+    views it uses, is refused in one line (exit status 2) before anything runs."""
+    from quatrack.cli import main
+
+    seen = _record_study(monkeypatch)
+    assert main(["bench", "track-zoo", "--sequences", "small-cube-cm", "--passes", "live"]) == 0
+    assert seen["passes"] == ("live",) and "passes: live" in capsys.readouterr().out
+    assert main(["bench", "track-zoo", "--sequences", "small-cube-cm", "--passes", "learned,truth"]) == 0
+    assert seen["passes"] == ("truth", "learned") and "passes: truth, learned" in capsys.readouterr().out
+    assert main(["bench", "track-zoo", "--sequences", "small-cube-cm"]) == 0
+    assert seen["passes"] == B.PASSES and "passes" not in capsys.readouterr().out
+    seen.clear()
+    for bad in ("live,nope", "learned", ","):
+        assert main(["bench", "track-zoo", "--sequences", "small-cube-cm", "--passes", bad]) == 2
+        err = capsys.readouterr().err
+        assert "--passes" in err and "Traceback" not in err
+    assert seen == {}  # (refused before the study ran)
 
 
 def test_more_renderings_are_other_walks_and_the_first_is_the_usual_one():
