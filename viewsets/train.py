@@ -131,12 +131,14 @@ def _tasks(mesh: Mesh, views: list[_View], novel: NovelViewParams | None):
 def _run_task(mesh: Mesh, params: TrainParams, task, run_buffers: dict) -> Viewset:
     """One viewset: a registered view's keypoints lifted onto ``mesh``; a synthetic view rendered,
     textured from its photo and lifted on ``mesh.run_time`` (``run_buffers``: the photo's
-    z-buffer on it, by view index, when it is not ``mesh``: :func:`_build_viewsets`). Why the decimation there: a scan's
-    facets, each a plane of its own and (at 10⁵–10⁶ faces) under a photo pixel wide, with normals
-    the jitter scatters, are textured from the photo only where a neighbour turns by less than
-    30° (render_textured_view): the cookie box as 786 432 jittered triangles kept no synthetic
-    view, as 49 152 half the keypoints; its decimation's facets are the surface's, a few pixels
-    wide. A planar or coarse mesh is its own run-time mesh: nothing changes for it."""
+    z-buffer on it, by view index, when it is not ``mesh``: :func:`_build_viewsets`).
+
+    Why the decimation there: a scan's facets, each a plane of its own and (at 10⁵–10⁶ faces)
+    under a photo pixel wide, with normals the jitter scatters, are textured from the photo only
+    where a neighbour turns by less than 30° (render_textured_view): the cookie box as 786 432
+    jittered triangles kept no synthetic view, as 49 152 half the keypoints; its decimation's
+    facets are the surface's, a few pixels wide. A planar or coarse mesh is its own run-time
+    mesh: nothing changes for it."""
     label, v, pose = task
     if pose is None:
         feature_mask = cv2.bitwise_and(v.mask, v.buffers.mask)
