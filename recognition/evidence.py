@@ -279,6 +279,15 @@ def edge_fit(image: EdgeImage | None, mesh: Mesh, camera: PinholeCamera, pose: P
     pose is where its edges are: it barely moves. A pose the points hold a few pixels off the
     image's edges moves towards them, by a share of the criterion :class:`EdgeFit` reports.
     Without points (none given) the edges alone are refitted: a pose no point may vouch for.
+
+    Why Cauchy, whose far residuals keep 0.6–0.7 of the largest pull: at a *true* pose the refit's
+    scatter comes from whole edges measured on the wrong line — a weak outline (a light face
+    against a light table) beside a stronger line of the print, 5–6 px inside (zoo wide box). Losses
+    that ignore such edges (Geman–McClure, a 1 σ scale, each edge weighted by its median
+    residual) halve the false alarms at the truth, but also ignore the right edges that disagree
+    with a drifting track, and let recognition's fixes go further: on the zoo's live walks they
+    passed drifts 5–6 % and 7–8° off that this loss catches, and `bench locate --zoo` reported new poses
+    19–90° off (bench/RESULTS.md, session 59).
     ``covariance``: also return the refitted pose's covariance (:class:`EdgeFit`; recognition's
     verification asks for it, the tracker's audits need not pay for it)."""
     from quatrack.tracking import quaternion as quat
