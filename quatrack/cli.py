@@ -194,15 +194,22 @@ def _add_bench(parser: argparse.ArgumentParser) -> None:
     serve.add_argument("--json", action="store_true", help="print one JSON object instead of the tables")
 
 
+def _zoo_names(text: str | None, option: str) -> list[str] | None:
+    """A comma-separated list of zoo objects given to ``option`` (None: not given, the default)."""
+    from quatrack.testing import zoo
+
+    known = [o.name for o in zoo.ZOO]
+    names = text.split(",") if text else None
+    for n in names or ():
+        if n not in known:
+            raise UserError(f"{option}: no zoo object {n!r} (known: {', '.join(known)})")
+    return names
+
+
 def _zoo_walks(args: argparse.Namespace) -> list[str] | None:
     """The zoo benchmarks' ``--sequences`` (None: their default), with ``--seconds`` and
     ``--renderings`` checked."""
-    from quatrack.testing import zoo
-
-    names = args.sequences.split(",") if args.sequences else None
-    for n in names or ():
-        if n not in {o.name for o in zoo.ZOO}:
-            raise UserError(f"--sequences: no zoo object {n!r} (known: {', '.join(o.name for o in zoo.ZOO)})")
+    names = _zoo_names(args.sequences, "--sequences")
     if not 1.0 <= args.seconds <= 60.0:
         raise UserError("--seconds must be between 1 and 60")
     if not 1 <= args.renderings <= 20:
@@ -265,12 +272,7 @@ def _run_bench(args: argparse.Namespace) -> int:
         if args.scenes < 1 or args.every < 1:
             raise UserError("--scenes and --every must be at least 1")
         if args.zoo:
-            from quatrack.testing import zoo
-
-            names = args.zoo_objects.split(",") if args.zoo_objects else None
-            for n in names or ():
-                if n not in {o.name for o in zoo.ZOO}:
-                    raise UserError(f"--zoo-objects: no zoo object {n!r} (known: {', '.join(o.name for o in zoo.ZOO)})")
+            names = _zoo_names(args.zoo_objects, "--zoo-objects")
             if args.zoo_scenes < 1:
                 raise UserError("--zoo-scenes must be at least 1")
             return bench_locate.main_zoo(names, args.zoo_scenes, args.seed, args.json)
