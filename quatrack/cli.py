@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import os
+import select
 import sys
 from typing import Callable
 
@@ -664,10 +666,44 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("quatrack: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError as exc:
+        if not _stdout_closed():  # (another pipe or socket broke: a real error)
+            print(f"quatrack {args.command}: error: {exc}", file=sys.stderr)
+            return 2
+        return 1
     except (UserError, ValueError, OSError) as exc:
         print(f"quatrack {args.command}: error: {exc}", file=sys.stderr)
         return 2
 
 
+def _stdout_closed() -> bool:
+    """Whether the reader of standard output has gone (``quatrack … | head``): then the command
+    stops quietly, as Unix tools do, instead of reporting an error that did not happen (the work
+    was done; its reader wanted no more). Standard output is pointed at the null device, so the
+    interpreter's own flush at exit does not fail again (Python's documentation, *Note on
+    SIGPIPE*); the exit status is 1, as that note says."""
+    try:
+        sys.stdout.flush()
+    except BrokenPipeError:
+        pass
+    except (OSError, ValueError):
+        return False
+    else:  # (nothing was left to flush: ask the pipe itself; its reader gone, it polls POLLERR)
+        try:
+            poll = select.poll()
+            poll.register(sys.stdout.fileno(), select.POLLOUT)
+            if not any(ev & select.POLLERR for _, ev in poll.poll(0)):
+                return False
+        except (AttributeError, OSError, ValueError):  # (no poll here, or no file behind stdout)
+            return False
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, sys.stdout.fileno())
+    return True
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    # ``python -m quatrack.cli``: this file runs as ``__main__``, a second copy of the module whose
+    # UserError the other modules (track_cli.py) do not raise; run the one they know instead
+    from quatrack.cli import main as _main
+
+    sys.exit(_main())

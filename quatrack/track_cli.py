@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from contextlib import ExitStack
 from dataclasses import dataclass
@@ -98,6 +99,8 @@ def _load_init_pose(path: str):
         raise UserError(f"--init-pose {path}: {exc.strerror or exc}") from None
     except json.JSONDecodeError as exc:
         raise UserError(f"--init-pose {path}: not valid JSON ({exc.msg}, line {exc.lineno})") from None
+    except RecursionError:
+        raise UserError(f"--init-pose {path}: not valid JSON (nested too deeply)") from None
     if isinstance(data, dict) and isinstance(data.get("pose"), dict):
         data = data["pose"]
     return parse_pose(data, f"--init-pose {path}")
@@ -114,6 +117,30 @@ class _Setup:
     store: object = None
 
 
+def _check_outputs(args: argparse.Namespace) -> None:
+    """Refuse, before any frame is read, outputs that would overwrite the input (a video or image
+    named as ``--out``, ``--overlay`` or ``--plot`` was replaced by the poses, silently) or one
+    another, and outputs that are folders (found only at the end, after the whole track)."""
+    import glob
+
+    outputs = [(opt, path) for opt, path in (("--out", args.out), ("--overlay", args.overlay), ("--plot", args.plot))
+               if path]
+    inputs = []
+    if args.video and os.path.isfile(args.video):
+        inputs.append(("--video", args.video))
+    for pattern in ([args.images] if isinstance(args.images, str) else args.images or []):
+        inputs += [("--images", f) for f in (glob.glob(pattern) if glob.has_magic(pattern) else [pattern])]
+    seen: dict[str, str] = {os.path.realpath(path): opt for opt, path in inputs}
+    for opt, path in outputs:
+        if os.path.isdir(path):
+            raise UserError(f"{opt} {path}: is a folder; give a file name")
+        real = os.path.realpath(path)
+        if real in seen:
+            what = "the input" if seen[real] in ("--video", "--images") else f"also {seen[real]}"
+            raise UserError(f"{opt} {path}: is {what}; give another file name (it would be overwritten)")
+        seen[real] = opt
+
+
 def _setup(args: argparse.Namespace) -> _Setup:
     from quatrack.recognition.match import index_for
     from quatrack.recognition.trackio import open_frames
@@ -124,6 +151,7 @@ def _setup(args: argparse.Namespace) -> _Setup:
     for opt, path, ext in (("--overlay", args.overlay, ".mp4"), ("--plot", args.plot, ".png")):
         if path and not path.lower().endswith(ext):
             raise UserError(f"{opt} {path}: the file name must end in {ext}")
+    _check_outputs(args)
     if args.format == "bop" and args.mesh_unit is None:
         raise UserError("--format bop needs --mesh-unit (mm, cm or m): BOP's t is in millimetres")
     relocate = getattr(args, "relocate_every", None)

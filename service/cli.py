@@ -10,6 +10,7 @@ load is no more than the least-loaded worker's; it passes the others to that one
 from __future__ import annotations
 
 import argparse
+import errno
 
 
 def add_serve(parser: argparse.ArgumentParser) -> None:
@@ -23,6 +24,27 @@ def add_serve(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"])
 
 
+def check_address(host: str, port: int) -> None:
+    """Raise ValueError (one line for the user) unless the service can listen on ``host:port``:
+    the name resolves and nothing else listens there. Why here: uvicorn finds out only after the
+    models are loaded, logs one JSON line and exits 3, the last lines printed being the models
+    loaded, as if the server had started. Bound (with SO_REUSEADDR, as uvicorn binds) and closed
+    at once: another process may still take the port in between, and uvicorn then reports it."""
+    import socket
+
+    try:
+        family, kind, proto, _, address = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)[0]
+    except (socket.gaierror, UnicodeError) as exc:
+        raise ValueError(f"--host {host}: cannot resolve it ({getattr(exc, 'strerror', None) or exc})") from None
+    with socket.socket(family, kind, proto) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind(address)
+        except OSError as exc:
+            hint = " (is another server running there?)" if exc.errno == errno.EADDRINUSE else ""
+            raise ValueError(f"--host {host} --port {port}: cannot listen there: {exc.strerror or exc}{hint}") from None
+
+
 def run_serve(args: argparse.Namespace) -> int:
     import os
     import shutil
@@ -33,6 +55,7 @@ def run_serve(args: argparse.Namespace) -> int:
                                  threads=args.threads)
     if settings.store.exists() and not settings.store.is_dir():
         raise ValueError(f"--store {settings.store}: not a directory")
+    check_address(settings.host, settings.port)
     from .workers import prepare_run_dir
 
     settings, run_dir, made = prepare_run_dir(settings)  # before uvicorn (and prometheus-client) start

@@ -60,3 +60,24 @@ def test_cli_says_it_in_one_line(tmp_path, capsys):
     assert main(["locate", "--object", "cookie-box", "--camera", str(cam), "--store", str(tmp_path / "s"), str(img)]) == 2
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "fx" in err and "Traceback" not in err, err
+
+
+@pytest.mark.parametrize("text, detail", [
+    ("%YAML:1.0\ncamera_matrix: 5\n", "must be a 3×3 matrix"),  # valid YAML, wrong shape (cv2.error)
+    ("hello world\n", "not a valid OpenCV YAML/XML camera file (line 1: Only collections"),  # not YAML (SystemError)
+    ("%YAML:1.0\nfoo: [1,2\n", "not a valid OpenCV YAML/XML camera file (line "),  # unclosed
+])
+def test_malformed_yaml_calibrations_are_one_line_errors(tmp_path, text, detail):
+    path = tmp_path / "cam.yml"
+    path.write_text(text)
+    with pytest.raises(SpecError) as err:
+        load_camera(path)
+    msg = str(err.value)
+    assert msg.startswith(str(path)) and detail in msg and "\n" not in msg and "persistence" not in msg, msg
+
+
+def test_deeply_nested_json_is_not_valid_json(tmp_path):
+    path = tmp_path / "cam.json"
+    path.write_text("[" * 100_000 + "]" * 100_000)
+    with pytest.raises(SpecError, match="nested too deeply"):
+        load_camera(path)

@@ -170,3 +170,27 @@ def test_a_sequence_with_no_readable_image_is_a_one_line_error(tmp_path, capsys)
     err = capsys.readouterr().err.strip()
     assert rc == 2 and "no frame can be read" in err and "\n" not in err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.png", "b.png"]  # no output, no temporary
+
+
+@pytest.mark.parametrize("option", ["--out", "--overlay", "--plot"])
+def test_an_output_that_is_the_input_is_refused_before_anything_is_written(tmp_path, capsys, option):
+    frame = tmp_path / ("frame.mp4" if option == "--overlay" else "frame.png")
+    frame.write_bytes(b"the user's only copy")
+    rest = [] if option == "--out" else ["--out", str(tmp_path / "poses.csv")]
+    rc = _track(tmp_path, "--images", str(tmp_path / "frame.*"), option, str(frame), *rest)
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and "is the input" in err and "\n" not in err, err
+    assert frame.read_bytes() == b"the user's only copy"
+    assert sorted(p.name for p in tmp_path.iterdir()) == [frame.name]
+
+
+def test_two_outputs_on_one_file_and_a_folder_as_output_are_refused(tmp_path, capsys):
+    video = ["--video", str(EXAMPLE / "box.mp4"), "--max-frames", "2"]
+    same = tmp_path / "x.png"
+    assert _track(tmp_path, *video, "--out", str(same), "--plot", str(same)) == 2
+    assert "also --out" in capsys.readouterr().err
+    folder = tmp_path / "poses.csv"
+    folder.mkdir()
+    assert _track(tmp_path, *video, "--out", str(folder)) == 2
+    assert "is a folder" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["poses.csv"]  # nothing tracked, nothing written

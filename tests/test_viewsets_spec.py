@@ -136,3 +136,13 @@ def test_camera_path_and_mask_resolved_relative_to_spec(tmp_path):
     spec = load_spec(p)
     assert spec.views[0].camera.fx == 1770.0
     assert spec.views[0].mask_path == (tmp_path / "sub" / "m.png").resolve()
+
+
+def test_a_deeply_nested_spec_is_not_valid_json(tmp_path):
+    from quatrack.viewsets.errors import SpecError
+    from quatrack.viewsets.spec import load_spec
+
+    path = tmp_path / "object.json"
+    path.write_text("[" * 100_000 + "]" * 100_000)
+    with pytest.raises(SpecError, match="nested too deeply"):
+        load_spec(path)

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from pathlib import Path
 from typing import Any
 
@@ -96,10 +97,31 @@ def _make(fx, fy, cx, cy, dist, width, height, where) -> PinholeCamera:
         raise SpecError(f"{where}: {exc}") from None
 
 
+def _opencv_detail(exc: BaseException) -> str:
+    """What OpenCV says is wrong with a file, as `` (…)`` to append, or "": a parsing error's
+    place and reason (OpenCV puts them in the error's ``func``: ``"cam.yml(1): Missing , between
+    the elements"``); an assertion's text means nothing to a user and is left out. A SystemError
+    is OpenCV's binding raising with the cv2.error as its cause."""
+    import cv2
+
+    cause = exc.__cause__ or exc.__context__
+    if isinstance(exc, SystemError) and cause is not None:
+        exc = cause
+    if getattr(exc, "code", None) == cv2.Error.StsParseError and getattr(exc, "func", ""):
+        where = re.match(r"^.*\((\d+)\):\s*(.*)$", str(exc.func).strip(), re.S)  # "<path>(line): reason"
+        return f" (line {where[1]}: {where[2][:200]})" if where else f" ({str(exc.func).strip()[:200]})"
+    return ""
+
+
 def _camera_from_yaml(path: Path) -> PinholeCamera:
     import cv2
 
-    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    # OpenCV's parser raises cv2.error on a malformed file, and SystemError (an exception set
+    # inside its binding) on text that is not YAML at all: both are the user's file, not a bug
+    try:
+        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    except (cv2.error, SystemError) as exc:
+        raise SpecError(f"{path}: not a valid OpenCV YAML/XML camera file{_opencv_detail(exc)}") from None
     try:
         if not fs.isOpened():
             raise SpecError(f"{path}: cannot read camera file (not JSON nor OpenCV YAML)")
@@ -109,6 +131,10 @@ def _camera_from_yaml(path: Path) -> PinholeCamera:
         h = fs.getNode("image_height")
         width = int(w.real()) if not w.empty() else 0
         height = int(h.real()) if not h.empty() else 0
+    except (cv2.error, SystemError, TypeError, ValueError) as exc:
+        raise SpecError(f"{path}: not a valid OpenCV camera file: 'camera_matrix', 'distortion_coefficients', "
+                        f"'image_width' and 'image_height' must be a 3×3 matrix, a vector and two numbers"
+                        f"{_opencv_detail(exc)}") from None
     finally:
         fs.release()
     if K is None or K.shape != (3, 3):
@@ -135,6 +161,8 @@ def load_camera(path: str | Path) -> PinholeCamera:
         data = json.loads(text)
     except json.JSONDecodeError as exc:
         raise SpecError(f"{path}: not valid JSON ({exc.msg} at line {exc.lineno})") from None
+    except RecursionError:
+        raise SpecError(f"{path}: not valid JSON (nested too deeply)") from None
     return camera_from_dict(data, str(path))
 
 

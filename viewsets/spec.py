@@ -105,6 +105,8 @@ def load_spec(path: str | Path) -> ObjectSpec:
         data = json.loads(raw.decode("utf-8"))
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise SpecError(f"{path}: not valid JSON ({exc})") from None
+    except RecursionError:
+        raise SpecError(f"{path}: not valid JSON (nested too deeply)") from None
     if not isinstance(data, dict):
         raise SpecError(f"{path}: the spec must be a JSON object")
     base = path.resolve().parent

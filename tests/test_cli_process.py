@@ -1,0 +1,55 @@
+"""The command line as a process: how it starts and how it ends (exit status, one-line errors)."""
+
+from __future__ import annotations
+
+import socket
+import subprocess
+import sys
+
+import pytest
+
+
+
+def _run(*args: str, **kw) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, *args], capture_output=True, text=True, timeout=120, **kw)
+
+
+def test_python_m_quatrack_cli_reports_user_errors_in_one_line(tmp_path):
+    # run as ``-m quatrack.cli`` the module is __main__, a second copy whose UserError track_cli.py
+    # does not raise: the error came out as a traceback, exit 1
+    r = _run("-m", "quatrack.cli", "track", "--object", "x", "--camera", "c.json", "--video", "v.mp4",
+             "--out", str(tmp_path / "o.csv"), "--relocate-every", "0", cwd=tmp_path)
+    assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
+    assert r.stderr.strip().startswith("quatrack track: error: --relocate-every") and "\n" not in r.stderr.strip()
+
+
+def test_a_reader_that_stops_reading_is_no_error():
+    # ``quatrack … | head -1``: the command's output pipe closes early; it stops quietly (exit 1,
+    # Python's own convention), not "error: [Errno 32] Broken pipe"
+    script = ("import sys, quatrack.cli as c\n"
+              "name, add, _ = c.COMMANDS['models']\n"
+              "def talk(args):\n"
+              "    for _ in range(10000):\n"
+              "        print('x' * 1000)\n"
+              "    return 0\n"
+              "c.COMMANDS['models'] = (name, add, talk)\n"
+              "sys.exit(c.main(['models', 'list']))\n")
+    p = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    p.stdout.read(10)
+    p.stdout.close()  # (the reader goes)
+    err = p.stderr.read().decode()
+    assert p.wait(timeout=120) == 1 and err == "", err
+
+
+def test_the_service_address_is_checked_before_anything_starts():
+    from quatrack.service.cli import check_address
+
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        with pytest.raises(ValueError, match=f"--port {port}: cannot listen there.*another server"):
+            check_address("127.0.0.1", port)
+    check_address("127.0.0.1", port)  # free again: no error
+    with pytest.raises(ValueError, match="--host no-such-host.invalid: cannot resolve it"):
+        check_address("no-such-host.invalid", port)
