@@ -373,6 +373,10 @@ def _run_train(args: argparse.Namespace) -> int:
     store = resolve_store(args.store)
     if store.exists() and not store.is_dir():
         raise UserError(f"--store {store}: not a directory")
+    # (its nearest existing folder must be one: else the model, trained first, could not be saved)
+    above = next((p for p in store.absolute().parents if p.exists()), None)
+    if above is not None and not above.is_dir():
+        raise UserError(f"--store {store}: {above} is a file, not a folder")
     if len(args.spec) > 1 or args.ray:
         return _run_train_many(args, params, store)
     spec_path = args.spec[0]

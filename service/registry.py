@@ -127,7 +127,9 @@ class ModelRegistry:
                     return entry
             if hit is not None:  # a broken retraining: the previous model stays in service
                 return hit
-            raise ApiError(503, "model_unavailable", f"{failed[1]} (fix or retrain it; the other objects are served)")
+            why = failed[1]
+            advice = "the other objects are served" if why.endswith("retrain it") else "fix or retrain it; the other objects are served"
+            raise ApiError(503, "model_unavailable", f"{why} ({advice})")
 
     def refresh(self) -> None:
         """Bring the registry in step with the store: load new and retrained models, drop deleted ones."""

@@ -274,6 +274,10 @@ class TrackSession:
         # The contract's exchange is one message per frame; a client that wants the camera
         # acknowledged asks for it with "ack": true (then {"type": "ready", ...} answers).
         ack = isinstance(data, dict) and data.get("ack") is True
+        if isinstance(data, dict) and "ack" in data and not isinstance(data["ack"], bool):
+            # ("ack": "yes" was ignored: no ready, no error, and the client waited for the answer)
+            await self.send_error("bad_camera", f"camera.ack: expected true or false, got {repr(data['ack'])[:40]}")
+            return
         try:
             cam = CameraIn.model_validate(data)
             if cam.width is not None and cam.height is not None:

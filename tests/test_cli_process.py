@@ -53,3 +53,14 @@ def test_the_service_address_is_checked_before_anything_starts():
     check_address("127.0.0.1", port)  # free again: no error
     with pytest.raises(ValueError, match="--host no-such-host.invalid: cannot resolve it"):
         check_address("no-such-host.invalid", port)
+
+
+def test_a_store_under_a_file_is_refused_before_training(tmp_path, capsys):
+    from quatrack.cli import main
+    from quatrack.testing.scenes import EXAMPLE
+
+    afile = tmp_path / "afile"
+    afile.write_text("not a folder")
+    assert main(["train", str(EXAMPLE / "object.json"), "--store", str(afile / "sub")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == f"quatrack train: error: --store {afile / 'sub'}: {afile} is a file, not a folder", err

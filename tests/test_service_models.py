@@ -76,7 +76,8 @@ def test_a_corrupt_model_is_that_objects_error(tmp_path, frames):
             r = c.post("/v1/objects/broken/pose", content=frames[0], params={k: CAMERA[k] for k in ("fx", "fy", "cx", "cy")},
                        headers={"content-type": "image/jpeg"})
             assert r.status_code == 503 and r.json()["error"]["code"] == "model_unavailable", r.text
-            assert "'broken'" in r.json()["error"]["message"]
+            msg = r.json()["error"]["message"]
+            assert "'broken'" in msg and msg.count("retrain it") == 1, msg  # (said once, not twice)
             with pytest.raises(InvalidStatus) as err:
                 connect(f"{srv.ws_url}/v1/objects/broken/track", open_timeout=20)
             assert err.value.response.status_code == 503

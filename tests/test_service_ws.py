@@ -125,7 +125,7 @@ def test_bad_messages_keep_the_session_usable(server, frames):
         assert recv(ws)["error"]["code"] == "camera_required"
         ws.send(json.dumps({"type": "reset"}))
         assert recv(ws)["error"]["code"] == "camera_required"
-        for bad in ({**CAMERA, "fx": -1}, {"fx": 600}, {**CAMERA, "dist_coeffs": "x"}):
+        for bad in ({**CAMERA, "fx": -1}, {"fx": 600}, {**CAMERA, "dist_coeffs": "x"}, {**CAMERA, "ack": "yes"}):
             ws.send(json.dumps(bad))
             assert recv(ws)["error"]["code"] == "bad_camera"
         ws.send(CAM_ACK)
