@@ -522,7 +522,7 @@ def _run_locate(args: argparse.Namespace) -> int:
             if args.json:
                 print(json.dumps({"image": path, "found": False, "error": str(exc)}), flush=True)
             else:
-                print(f"{path}: error: {exc}", file=sys.stderr)
+                print(f"{path}: error: {_unprefixed(exc, path)}", file=sys.stderr)
             continue
         if args.json:
             print(json.dumps({"image": path, **result.to_json()}), flush=True)
@@ -580,7 +580,7 @@ def _locate_all(args: argparse.Namespace, camera, params) -> int:
             if args.json:
                 print(json.dumps({"image": path, "found": False, "error": str(exc)}), flush=True)
             else:
-                print(f"{path}: error: {exc}", file=sys.stderr)
+                print(f"{path}: error: {_unprefixed(exc, path)}", file=sys.stderr)
             continue
         found = [r for r in results if r.found]
         total = (time.perf_counter() - t0) * 1e3
@@ -678,6 +678,12 @@ def main(argv: list[str] | None = None) -> int:
     except (UserError, ValueError, OSError) as exc:
         print(f"quatrack {args.command}: error: {exc}", file=sys.stderr)
         return 2
+
+
+def _unprefixed(exc: Exception, path: str) -> str:
+    """An image's error without the file name it starts with (the line names the file already)."""
+    msg = str(exc)
+    return msg[len(path) + 2:] if msg.startswith(f"{path}: ") else msg
 
 
 def _stdout_closed() -> bool:

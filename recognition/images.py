@@ -35,10 +35,16 @@ class PreparedImage:
     scale: float
 
 
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
 def decode_image(data: bytes) -> np.ndarray:
     """Decode JPEG/PNG/WebP/... bytes (any bit depth, any channels) to an array."""
     if not data:
         raise ImageError("the image is empty (0 bytes)")
+    if data[:8] == _PNG_SIGNATURE and data.rfind(b"IEND") < 0:
+        # (libpng would say "PNG input buffer is incomplete" on stderr, beside this message)
+        raise ImageError("the image cannot be decoded (a PNG without its end: truncated)")
     buf = np.frombuffer(data, dtype=np.uint8)
     img = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED)
     if img is None or img.size == 0:

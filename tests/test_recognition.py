@@ -384,3 +384,12 @@ def test_the_view_rule_judges_the_inliers_faces_not_the_objects_direction():
     assert why is None and tau < 1.3
     why, tau = judged(*seen_from(90.0, 25.0))  # squeezed across: 1/sin 55° × 1/sin 25° ≈ 2.9, also 70° away
     assert tau > PoseParams().max_transition_tilt and "transition tilt" in why
+
+
+def test_a_truncated_png_is_refused_without_the_decoders_chatter(capfd):
+    ok, png = cv2.imencode(".png", np.random.default_rng(0).integers(0, 255, (64, 64, 3), np.uint8))
+    data = png.tobytes()
+    assert decode_image(data).shape == (64, 64, 3)
+    with pytest.raises(ImageError, match="truncated"):
+        decode_image(data[: len(data) // 2])
+    assert "libpng" not in capfd.readouterr().err  # (C-level stderr: libpng's own message)
