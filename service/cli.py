@@ -32,10 +32,17 @@ def check_address(host: str, port: int) -> None:
     at once: another process may still take the port in between, and uvicorn then reports it."""
     import socket
 
-    try:
-        family, kind, proto, _, address = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)[0]
-    except (socket.gaierror, UnicodeError) as exc:
-        raise ValueError(f"--host {host}: cannot resolve it ({getattr(exc, 'strerror', None) or exc})") from None
+    # the family uvicorn binds (IPv6 for a host with ':', else IPv4), then any the name has
+    found, why = None, None
+    for family in (socket.AF_INET6 if ":" in host else socket.AF_INET, socket.AF_UNSPEC):
+        try:
+            found = socket.getaddrinfo(host, port, family, socket.SOCK_STREAM)[0]
+            break
+        except (socket.gaierror, UnicodeError) as exc:
+            why = getattr(exc, "strerror", None) or exc
+    if found is None:
+        raise ValueError(f"--host {host}: cannot resolve it ({why})")
+    family, kind, proto, _, address = found
     with socket.socket(family, kind, proto) as s:
         s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
