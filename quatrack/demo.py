@@ -115,6 +115,10 @@ def _check(args: argparse.Namespace) -> _Plan:
                "plot": _output(out_dir, args.plot, ".png", "--plot")}
     if outputs["csv"] is None:
         raise ValueError("--out: a CSV file name is required")
+    from quatrack.recognition.trackio import check_outputs
+
+    check_outputs([("--video", video), ("--camera", camera_file), ("--mesh", args.mesh)],
+                  [("--out", outputs["csv"]), ("--overlay", outputs["overlay"]), ("--plot", outputs["plot"])])
     return _Plan(load_camera(camera_file), video, ws_url, http_url, token, settings, mesh, outputs)
 
 

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 from contextlib import ExitStack
 from dataclasses import dataclass
@@ -118,27 +117,15 @@ class _Setup:
 
 
 def _check_outputs(args: argparse.Namespace) -> None:
-    """Refuse, before any frame is read, outputs that would overwrite the input (a video or image
-    named as ``--out``, ``--overlay`` or ``--plot`` was replaced by the poses, silently) or one
-    another, and outputs that are folders (found only at the end, after the whole track)."""
+    """No output on an input, on another output or on a folder (:func:`~quatrack.recognition.trackio.check_outputs`)."""
     import glob
 
-    outputs = [(opt, path) for opt, path in (("--out", args.out), ("--overlay", args.overlay), ("--plot", args.plot))
-               if path]
-    inputs = []
-    if args.video and os.path.isfile(args.video):
-        inputs.append(("--video", args.video))
+    from quatrack.recognition.trackio import check_outputs
+
+    inputs = [("--video", args.video)] if args.video else []
     for pattern in ([args.images] if isinstance(args.images, str) else args.images or []):
         inputs += [("--images", f) for f in (glob.glob(pattern) if glob.has_magic(pattern) else [pattern])]
-    seen: dict[str, str] = {os.path.realpath(path): opt for opt, path in inputs}
-    for opt, path in outputs:
-        if os.path.isdir(path):
-            raise UserError(f"{opt} {path}: is a folder; give a file name")
-        real = os.path.realpath(path)
-        if real in seen:
-            what = "the input" if seen[real] in ("--video", "--images") else f"also {seen[real]}"
-            raise UserError(f"{opt} {path}: is {what}; give another file name (it would be overwritten)")
-        seen[real] = opt
+    check_outputs(inputs, [("--out", args.out), ("--overlay", args.overlay), ("--plot", args.plot)])
 
 
 def _setup(args: argparse.Namespace) -> _Setup:

@@ -428,6 +428,33 @@ class RowWriter:
 
 # --- files ---------------------------------------------------------------------------------------
 
+
+def check_outputs(inputs: Sequence[tuple[str, str]], outputs: Sequence[tuple[str, str]]) -> None:
+    """Raise :class:`SourceError` if an output (``(option, path)``) is an input file, another
+    output, or a folder — before anything is read or written. Why: ``--out``/``--overlay``
+    naming the input video replaced it with the poses, silently (``track``, ``demo``), and an
+    output that is a folder was found only after the whole run. Paths compare resolved
+    (``os.path.realpath``: links and ``..`` followed); inputs that are not files are ignored.
+
+    >>> try:
+    ...     check_outputs([("--video", __file__)], [("--out", __file__)])
+    ... except SourceError as exc:
+    ...     print(str(exc).split(": ", 1)[1])
+    is the input; give another file name (it would be overwritten)
+    """
+    seen = {os.path.realpath(path): opt for opt, path in inputs if path and os.path.isfile(path)}
+    for opt, path in outputs:
+        if not path:
+            continue
+        if os.path.isdir(path):
+            raise SourceError(f"{opt} {path}: is a folder; give a file name")
+        real = os.path.realpath(path)
+        if real in seen:
+            what = "the input" if seen[real] in {o for o, _ in inputs} else f"also {seen[real]}"
+            raise SourceError(f"{opt} {path}: is {what}; give another file name (it would be overwritten)")
+        seen[real] = opt
+
+
 @contextlib.contextmanager
 def atomic_path(target: str | os.PathLike, option: str = "") -> Iterator[str]:
     """A temporary path beside ``target`` (same folder, so the rename is atomic) that becomes

@@ -64,3 +64,19 @@ def test_a_store_under_a_file_is_refused_before_training(tmp_path, capsys):
     assert main(["train", str(EXAMPLE / "object.json"), "--store", str(afile / "sub")]) == 2
     err = capsys.readouterr().err.strip()
     assert err == f"quatrack train: error: --store {afile / 'sub'}: {afile} is a file, not a folder", err
+
+
+def test_demo_refuses_an_overlay_on_its_input_video(tmp_path, capsys):
+    import shutil
+
+    from quatrack.cli import main
+    from quatrack.testing.scenes import EXAMPLE
+
+    video = tmp_path / "in.mp4"
+    shutil.copy(EXAMPLE / "box.mp4", video)
+    before = video.read_bytes()
+    rc = main(["demo", "--url", "http://127.0.0.1:9", "--video", str(video), "--camera", str(EXAMPLE / "camera.json"),
+               "--out-dir", str(tmp_path / "out"), "--overlay", str(video), "--quiet"])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and "--overlay" in err and "is the input" in err and "\n" not in err, err
+    assert video.read_bytes() == before and not (tmp_path / "out").exists()
