@@ -81,3 +81,19 @@ def test_deeply_nested_json_is_not_valid_json(tmp_path):
     path.write_text("[" * 100_000 + "]" * 100_000)
     with pytest.raises(SpecError, match="nested too deeply"):
         load_camera(path)
+
+
+@pytest.mark.parametrize("change, message", [
+    ({"dist_coeffs": [0.0, 0.0, 0.0]}, "4, 5 or 8"),  # (passed on to OpenCV, misread: the object "not found")
+    ({"dist_coeffs": [0.1]}, "4, 5 or 8"),
+    ({"dist_coeffs": [np.nan] * 5}, "finite"),
+    ({"cx": np.inf}, "principal point"),
+    ({"width": -640}, "width"),
+    ({"fx": "600"}, "fx must be a number"),
+])
+def test_a_camera_built_in_python_is_checked_as_a_camera_file_is(change, message):
+    from quatrack.tracking.camera import PinholeCamera
+
+    kw = {"fx": 600.0, "fy": 600.0, "cx": 320.0, "cy": 240.0, "width": 640, "height": 480, **change}
+    with pytest.raises(ValueError, match=message):
+        PinholeCamera(**kw)

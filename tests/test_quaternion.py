@@ -239,3 +239,21 @@ def test_angle_coefficients_keep_their_digits_near_zero():
         got = _angle_coefficients(np.array(th))
         for g, r in zip(got, ref):
             assert abs(Decimal(float(g)) - r) <= Decimal(1e-13) * abs(r), (th, float(g), float(r))
+
+
+def test_pose_constructors_refuse_what_is_not_a_pose():
+    from quatrack.tracking.pose import Pose
+
+    assert np.allclose(Pose([1e300, 1e300, 0.0, 0.0], [0.0, 0.0, 1.0]).q_wxyz, [0.5**0.5, 0.5**0.5, 0.0, 0.0])
+    with pytest.raises(ValueError, match="R is not a rotation"):
+        Pose.from_matrix(np.diag([1.0, 1.0, -1.0]), [0.0, 0.0, 1.0])  # a reflection
+    with pytest.raises(ValueError, match="R is not a rotation"):
+        Pose.from_matrix(2.0 * np.eye(3), [0.0, 0.0, 1.0])
+    T = Pose.from_rvec([0.1, 0.2, 0.3], [1.0, 2.0, 3.0]).as_matrix()
+    with pytest.raises(ValueError, match="last row"):
+        Pose.from_homogeneous(T.T)
+    with pytest.raises(ValueError, match="4×4 or 3×4"):
+        Pose.from_homogeneous(np.eye(3))
+    with pytest.raises(ValueError, match="q_wxyz must be 4 numbers"):
+        Pose([1.0, 0.0, 0.0], [0.0, 0.0, 1.0])
+    assert np.allclose(Pose.from_homogeneous(T[:3]).as_matrix(), T)

@@ -78,3 +78,36 @@ def test_every_lost_frame_searches_by_default(monkeypatch):
 def test_a_negative_or_non_finite_interval_is_refused(bad):
     with pytest.raises(ValueError, match="relocate_interval_s"):
         TrackerParams(relocate_interval_s=bad)
+
+
+def test_reset_restarts_the_interval_and_time_may_not_go_back_while_lost(monkeypatch):
+    searched = []
+
+    def counted(*args, **kwargs):
+        searched.append(True)
+        return _LOCATE(*args, **kwargs)
+
+    monkeypatch.setattr(machine, "locate", counted)
+    blank = _frames()[0]
+    tracker = Tracker(example_model(), load_camera(EXAMPLE / "camera.json"),
+                      replace(TrackerParams(), relocate_interval_s=INTERVAL))
+    assert tracker.step(blank, 100.0).status == "lost" and len(searched) == 1
+    with pytest.raises(ValueError, match="time goes backwards"):  # (lost: no state, a clock all the same)
+        tracker.step(blank, 99.0)
+    tracker.reset()  # a new stream: its clock starts again, and the next frame searches at once
+    step = tracker.step(blank, 0.0)
+    assert len(searched) == 2 and "relocate_interval_s" not in (step.reason or ""), step.reason
+
+
+def test_init_pose_checks_what_it_is_given():
+    from quatrack.tracking.pose import Pose
+
+    tracker = Tracker(example_model(), load_camera(EXAMPLE / "camera.json"))
+    with pytest.raises(ValueError, match="time_s must be finite"):
+        tracker.init_pose([0.0, 0.0, 60.0], [1.0, 0.0, 0.0, 0.0], time_s=float("nan"))
+    with pytest.raises(ValueError, match="q_wxyz must be 4 numbers, got shape"):
+        tracker.init_pose([0.0, 0.0, 60.0], [1.0, 0.0, 0.0])
+    with pytest.raises(ValueError, match="t must be 3 numbers"):
+        tracker.init_pose([0.0, 60.0], [1.0, 0.0, 0.0, 0.0])
+    tracker.init_pose(Pose([1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 60.0]))  # the one pose type, as such
+    assert tracker._pending[0].t.tolist() == [0.0, 0.0, 60.0]

@@ -47,13 +47,31 @@ class PinholeCamera:
     crop_of: tuple[int, int, int, int] | None = field(default=None, repr=False, compare=False)
 
     def __post_init__(self) -> None:
-        d = np.asarray(self.dist_coeffs, dtype=float).ravel()
+        for name in ("fx", "fy", "cx", "cy"):
+            v = getattr(self, name)
+            if isinstance(v, (str, bytes, bool)) or not np.ndim(v) == 0:
+                raise ValueError(f"{name} must be a number, got {v!r}"[:120])
+            object.__setattr__(self, name, float(v))
+        try:
+            d = np.asarray(self.dist_coeffs, dtype=float).ravel()
+        except (TypeError, ValueError):
+            raise ValueError(f"dist_coeffs must be numbers, got {self.dist_coeffs!r}"[:120]) from None
         if d.size > _MAX_DIST:
             if np.any(d[_MAX_DIST:] != 0.0):
                 raise ValueError("only OpenCV distortion terms k1..k6, p1, p2 are supported")
             d = d[:_MAX_DIST]
+        # (OpenCV reads 4, 5 or 8 terms; 1 or 3 were passed on and silently misread: "not found")
+        if d.size not in (0, 4, 5, 8) or not np.all(np.isfinite(d)):
+            raise ValueError(f"dist_coeffs must be 4, 5 or 8 finite numbers (k1, k2, p1, p2[, k3[, k4, k5, k6]]), "
+                             f"got {d.size}: {np.round(d, 6).tolist()}"[:200])
         if not (np.isfinite(self.fx) and np.isfinite(self.fy) and self.fx > 0 and self.fy > 0):
             raise ValueError(f"focal lengths must be positive, got fx={self.fx}, fy={self.fy}")
+        if not (np.isfinite(self.cx) and np.isfinite(self.cy)):
+            raise ValueError(f"the principal point must be finite, got cx={self.cx}, cy={self.cy}")
+        for name in ("width", "height"):
+            v = getattr(self, name)
+            if v is not None and (isinstance(v, bool) or not float(v).is_integer() or v <= 0):
+                raise ValueError(f"{name} must be a whole number of pixels above 0, got {v!r}")
         object.__setattr__(self, "dist_coeffs", d)
         object.__setattr__(self, "R_rig", np.asarray(self.R_rig, dtype=float).reshape(3, 3))
         object.__setattr__(self, "t_rig", np.asarray(self.t_rig, dtype=float).reshape(3))

@@ -30,6 +30,23 @@ import numpy as np
 from . import quaternion as quat
 
 
+def _numbers(value: Any, shape, name: str) -> np.ndarray:
+    """``value`` as a float array of ``shape`` (an int: a vector of that length), or a ValueError
+    that says so (numpy's own says "cannot reshape array of size 3 into shape (4,)")."""
+    want = (shape,) if isinstance(shape, int) else tuple(shape)
+    try:
+        a = np.array(value, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be {_shape_words(want)}, got {type(value).__name__}") from None
+    if a.size != int(np.prod(want)) or (a.ndim > 1 and a.shape != want and len(want) > 1):
+        raise ValueError(f"{name} must be {_shape_words(want)}, got shape {a.shape}")
+    return a.reshape(want)
+
+
+def _shape_words(shape: tuple) -> str:
+    return f"{shape[0]} numbers" if len(shape) == 1 else "a " + "×".join(map(str, shape)) + " matrix of numbers"
+
+
 def _readonly(a: np.ndarray) -> np.ndarray:
     a.setflags(write=False)
     return a
@@ -48,11 +65,14 @@ class Pose:
     t: np.ndarray
 
     def __post_init__(self) -> None:
-        q = np.array(self.q_wxyz, dtype=float).reshape(4)
-        t = np.array(self.t, dtype=float).reshape(3)
+        q = _numbers(self.q_wxyz, 4, "q_wxyz")
+        t = _numbers(self.t, 3, "t")
         if not (np.all(np.isfinite(q)) and np.all(np.isfinite(t))):
             raise ValueError("a pose must be finite")
         n = float(np.linalg.norm(q))
+        if not n < 1e150:  # (‖q‖ of 1e300s overflows: brought to order 1 first)
+            q = q / max(float(np.max(np.abs(q))), 1e-300)
+            n = float(np.linalg.norm(q))
         if not n > 1e-12:
             raise ValueError("a pose's quaternion must not be zero")
         object.__setattr__(self, "q_wxyz", _readonly(quat.canonical(q / n)))
@@ -66,13 +86,29 @@ class Pose:
 
     @classmethod
     def from_matrix(cls, R: Any, t: Any) -> "Pose":
-        """From a 3×3 rotation matrix (rows) and a translation."""
-        return cls(quat.from_matrix(np.asarray(R, float)), t)
+        """From a 3×3 rotation matrix (rows) and a translation. ``R`` must be a rotation:
+        orthonormal within 1e-3 (``RRᵀ ≈ I``) and ``det R > 0`` — a reflection or a scaled
+        matrix has no quaternion, and was read as some rotation without a word.
+
+        >>> Pose.from_matrix(np.diag([1.0, 1.0, -1.0]), [0.0, 0.0, 1.0])
+        Traceback (most recent call last):
+        ...
+        ValueError: R is not a rotation matrix (orthonormal, det +1)
+        """
+        R = _numbers(R, (3, 3), "R")
+        if not (np.all(np.isfinite(R)) and np.allclose(R @ R.T, np.eye(3), atol=1e-3) and np.linalg.det(R) > 0):
+            raise ValueError("R is not a rotation matrix (orthonormal, det +1)")
+        return cls(quat.from_matrix(R), t)
 
     @classmethod
     def from_homogeneous(cls, T: Any) -> "Pose":
-        """From a 4×4 (or 3×4) matrix ``[R t]``."""
+        """From a 4×4 matrix ``[[R, t], [0, 1]]`` or its top 3×4 ``[R t]``; a 4×4 whose last row
+        is not ``[0, 0, 0, 1]`` (a transposed matrix, a projection) is refused."""
         T = np.asarray(T, float)
+        if T.shape not in ((4, 4), (3, 4)):
+            raise ValueError(f"a homogeneous pose is 4×4 or 3×4, got shape {T.shape}")
+        if T.shape == (4, 4) and not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0]):
+            raise ValueError(f"a 4×4 pose's last row must be [0, 0, 0, 1], got {T[3].tolist()} (transposed?)")
         return cls.from_matrix(T[:3, :3], T[:3, 3])
 
     @classmethod

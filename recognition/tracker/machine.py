@@ -86,9 +86,13 @@ def _ms(t0: float) -> float:
 
 
 def _check_pose(t, q) -> Pose:
+    if q is None:
+        raise ValueError("give t and q_wxyz, or a Pose")
     try:
         return Pose(q, t)
-    except ValueError:
+    except ValueError as exc:
+        if "must be" in str(exc) and "finite" not in str(exc):  # (a shape: Pose says which)
+            raise
         raise ValueError("the pose must be finite and its quaternion not zero") from None
 
 
@@ -142,16 +146,20 @@ class Tracker:
         # the object points of the latest anchors taken from the keyframes' texture
         # (_texture_audit; TrackerParams.texture_anchors): measured, they do not anchor a frame
         self._keyframe_anchors: set[tuple] = set()
-        # the frame time of the latest recognition while lost (TrackerParams.relocate_interval_s);
-        # None once a track holds: the first frame of the next loss searches at once
-        self._relocated_at: float | None = None
+        # (reset: _relocated_at, the frame time of the latest recognition while lost
+        # (TrackerParams.relocate_interval_s), None once a track holds: the first frame of the
+        # next loss searches at once; _last_time, the latest frame's time)
         self.reset()
         if params.pipelined_refresh and params.refresh_every and executor is not None:
             executor.submit(lambda: self._index()._matcher())  # warm the anchor thread's index
 
     # -- public -------------------------------------------------------------------------------
     def reset(self) -> None:
-        """Forget the state and the last pose: the next frame re-initialises by recognition."""
+        """Forget the state and the last pose: the next frame re-initialises by recognition (at
+        once: the ``relocate_interval_s`` clock restarts), and its time may start again (a new
+        stream: until then frame times must not go back, lost or not)."""
+        self._relocated_at: float | None = None
+        self._last_time: float | None = None
         self.filter.state = None
         self.filter.prior = None
         for s in (self.trained, self.mesh_points, self.edges, self.contour):  # tracks, what each learned
@@ -183,11 +191,16 @@ class Tracker:
             self._keep_view(job.future.result(), job)
         return list(self.learned)
 
-    def init_pose(self, t, q_wxyz, time_s: float | None = None) -> None:
-        """Start from a user-given pose (object → camera) at the next frame (or at ``time_s``)."""
-        pose = _check_pose(t, q_wxyz)
+    def init_pose(self, t, q_wxyz=None, time_s: float | None = None) -> None:
+        """Start from a user-given pose (object → camera) at the next frame (or at ``time_s``):
+        ``t`` (3 numbers) and ``q_wxyz`` (4), or a :class:`~quatrack.tracking.pose.Pose` as ``t``."""
+        pose = t if isinstance(t, Pose) and q_wxyz is None else _check_pose(t, q_wxyz)
+        if time_s is not None:
+            time_s = float(time_s)
+            if not np.isfinite(time_s):
+                raise ValueError("time_s must be finite")
         self.reset()
-        self._pending = (pose, None if time_s is None else float(time_s))
+        self._pending = (pose, time_s)
 
     def skip(self, time_s: float, reason: str) -> TrackStep:
         """A frame taken at ``time_s`` that could not be read (an image sequence's unreadable
@@ -198,6 +211,7 @@ class Tracker:
         if not np.isfinite(time_s):
             raise ValueError("time_s must be finite")
         self._frame += 1
+        self._last_time = max(time_s, self._last_time if self._last_time is not None else time_s)
         return TrackStep(self._frame, time_s, "lost", reason=reason)
 
     @property
@@ -223,8 +237,10 @@ class Tracker:
         if cam.width is None or cam.height is None:
             self.camera = cam = replace(cam, width=w, height=h)
         state = self.filter.state
-        if state is not None and time_s < state.t:
-            raise ValueError(f"time goes backwards ({time_s} s after {state.t} s)")
+        last = state.t if state is not None else self._last_time  # (lost too: a clock gone back)
+        if last is not None and time_s < last:
+            raise ValueError(f"time goes backwards ({time_s} s after {last} s)")
+        self._last_time = time_s
         self._frame += 1
         timings: dict[str, float] = {}
         frame = make_frame(cv2.cvtColor(img, cv2.COLOR_BGR2GRAY))
@@ -279,9 +295,9 @@ class Tracker:
         return self._anchor
 
     def _lost(self, time_s: float, reason: str, inliers: int = 0) -> TrackStep:
-        pending, seen = self._pending, self._seen
+        kept = self._pending, self._seen, self._relocated_at, self._last_time
         self.reset()
-        self._pending, self._seen = pending, seen
+        self._pending, self._seen, self._relocated_at, self._last_time = kept
         return TrackStep(self._frame, time_s, "lost", inliers=inliers, reason=reason)
 
     def _doubt(self, time_s: float, why: str, inliers: int) -> TrackStep:
