@@ -36,8 +36,10 @@ from quatrack.service.schemas import LocateOut, ObjectList, TrackMessage
 
 
 class QuatrackError(Exception):
-    """An error answered by the server (``code``, ``message``, HTTP ``status``), or
-    ``code="unreachable"`` when there is no server at the address."""
+    """An error answered by the server (``code``, ``message``, HTTP ``status``), or one of the
+    client's own: ``code="unreachable"`` when there is no server at the address, ``"timeout"``
+    when the server does not answer within the client's ``timeout``, ``"closed"`` when the
+    connection is lost in the middle of a stream."""
 
     def __init__(self, code: str, message: str, status: int | None = None) -> None:
         super().__init__(f"{code}: {message}" if status is None else f"{status} {code}: {message}")
@@ -133,7 +135,23 @@ class _Endpoint:
         return name
 
     def _unreachable(self, exc: Exception) -> QuatrackError:
+        import httpx
+
+        if isinstance(exc, httpx.TimeoutException) and not isinstance(exc, httpx.ConnectTimeout):
+            # (connected, then no answer in time: a slow server, not an absent one)
+            return QuatrackError("timeout", f"{self.http_url}: no answer within {self.timeout:g} s")
         return QuatrackError("unreachable", f"{self.http_url}: {exc}")
+
+    def _stream_error(self, exc: BaseException) -> QuatrackError | None:
+        """A stream's failure after the handshake, as a QuatrackError (None: not one of these)."""
+        from websockets.exceptions import ConnectionClosed
+
+        if isinstance(exc, ConnectionClosed):
+            why = f" ({exc.rcvd.code} {exc.rcvd.reason})".rstrip() if exc.rcvd is not None else ""
+            return QuatrackError("closed", f"{self.ws_url}: the connection was closed{why}")
+        if isinstance(exc, TimeoutError):
+            return QuatrackError("timeout", f"{self.ws_url}: no answer within {self.timeout:g} s")
+        return None
 
     @staticmethod
     def _answer(r):
@@ -228,14 +246,21 @@ class Client(_Endpoint):
         except Exception as exc:  # refused handshake or no server: typed, with the server's code
             raise _ws_error(exc) from None
         with ws:
-            ws.send(self._hello(camera))
-            self._expect(json.loads(ws.recv(self.timeout)), "ready")
-            for item in frames:
-                header, data = self._frame_parts(item)
-                if header is not None:
-                    ws.send(header)
-                ws.send(data)
-                yield TrackMessage.model_validate(self._expect(json.loads(ws.recv(self.timeout)), "pose"))
+            try:
+                ws.send(self._hello(camera))
+                self._expect(json.loads(ws.recv(self.timeout)), "ready")
+                for item in frames:
+                    header, data = self._frame_parts(item)
+                    if header is not None:
+                        ws.send(header)
+                    ws.send(data)
+                    msg = json.loads(ws.recv(self.timeout))
+                    yield TrackMessage.model_validate(self._expect(msg, "pose"))
+            except Exception as exc:  # (the server gone, or silent: typed as the other errors are)
+                typed = self._stream_error(exc)
+                if typed is None:
+                    raise
+                raise typed from None
 
     def close(self) -> None:
         self._http.close()
@@ -283,25 +308,30 @@ class AsyncClient(_Endpoint):
                                           open_timeout=self.timeout)
         except Exception as exc:
             raise _ws_error(exc) from None
+        async def items():
+            if hasattr(frames, "__aiter__"):
+                async for item in frames:
+                    yield item
+            else:
+                for item in frames:
+                    yield item
+
         async with ws:
-            await ws.send(self._hello(camera))
-            self._expect(json.loads(await asyncio.wait_for(ws.recv(), self.timeout)), "ready")
-
-            async def items():
-                if hasattr(frames, "__aiter__"):
-                    async for item in frames:
-                        yield item
-                else:
-                    for item in frames:
-                        yield item
-
-            async for item in items():
-                header, data = self._frame_parts(item)
-                if header is not None:
-                    await ws.send(header)
-                await ws.send(data)
-                msg = json.loads(await asyncio.wait_for(ws.recv(), self.timeout))
-                yield TrackMessage.model_validate(self._expect(msg, "pose"))
+            try:
+                await ws.send(self._hello(camera))
+                self._expect(json.loads(await asyncio.wait_for(ws.recv(), self.timeout)), "ready")
+                async for item in items():
+                    header, data = self._frame_parts(item)
+                    if header is not None:
+                        await ws.send(header)
+                    await ws.send(data)
+                    msg = json.loads(await asyncio.wait_for(ws.recv(), self.timeout))
+                    yield TrackMessage.model_validate(self._expect(msg, "pose"))
+            except Exception as exc:  # (the server gone, or silent: typed as the other errors are)
+                typed = self._stream_error(exc)
+                if typed is None:
+                    raise
+                raise typed from None
 
     async def aclose(self) -> None:
         await self._http.aclose()

@@ -197,3 +197,42 @@ def test_async_client_gives_the_same_answers(server, frames):
     found, msgs, code = asyncio.run(go())
     assert found.found and code == "unknown_object"
     assert [m.status for m in msgs] == ["init"] + ["tracking"] * 4 and [m.frame for m in msgs] == list(range(5))
+
+
+def test_a_server_that_goes_away_or_stays_silent_is_a_quatrack_error(frames):
+    # the server stops mid-stream: "closed" (was websockets' ConnectionClosedError)
+    with BackgroundServer(Settings(store=example_store())) as srv:
+        c = Client(srv.url, object="cookie-box")
+        stream = c.track(frames, CAMERA)
+        assert next(stream).frame == 0
+    with pytest.raises(QuatrackError) as e:
+        list(stream)
+    assert e.value.code == "closed", e.value
+    c.close()
+
+
+def test_a_silent_server_is_a_timeout_not_unreachable(frames):
+    # connected, then no answer: "timeout" (was TimeoutError "timed out in 0.0s" on the WebSocket
+    # and "unreachable" over HTTP); the servers here never answer, so no machine is too fast for it
+    import socket
+    import threading
+
+    from websockets.sync.server import serve
+
+    done = threading.Event()
+    with serve(lambda ws: done.wait(30), "127.0.0.1", 0) as ws_server:
+        threading.Thread(target=ws_server.serve_forever, daemon=True).start()
+        port = ws_server.socket.getsockname()[1]
+        with Client(f"http://127.0.0.1:{port}", object="cookie-box", timeout=1.0) as c:
+            with pytest.raises(QuatrackError) as e:
+                next(c.track(frames, CAMERA))
+        assert e.value.code == "timeout" and "1 s" in e.value.message, e.value
+        done.set()
+        ws_server.shutdown()
+    with socket.socket() as silent:  # accepts (the kernel's backlog) and never reads nor answers
+        silent.bind(("127.0.0.1", 0))
+        silent.listen()
+        with Client(f"http://127.0.0.1:{silent.getsockname()[1]}", object="cookie-box", timeout=1.0) as c:
+            with pytest.raises(QuatrackError) as e:
+                c.objects()
+        assert e.value.code == "timeout", e.value
