@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import math
 import os
 import time
 from dataclasses import dataclass, field
@@ -358,6 +359,10 @@ class StreamResult:
     local_port: int | None = None  # the socket's own port (which server process holds it: bench serve)
 
 
+# errors for a frame refused on arrival, before the server numbers it (service/sessions.py)
+_REFUSED = frozenset({"too_large", "unsupported_image", "rate_limited", "camera_required"})
+
+
 class _Session:
     """One open socket's bookkeeping: the caller's index of each server frame number, send times."""
 
@@ -374,7 +379,19 @@ class _Session:
         self.res.sent += 1
 
     def take(self, msg: dict) -> int | None:
-        """Record one answer; returns the server frame number it closes, if any."""
+        """Record one answer; returns the server frame number it closes, if any. A frame the
+        server refuses on arrival (an error without ``frame``: too large, not an image, over the
+        rate) gets no number there, so its own is dropped here: the next frame's answer, numbered
+        as the server counts, was filed under the refused one's index, and lock-step waited for a
+        number that never came (until the server's idle timeout)."""
+        if msg.get("type") == "error" and "frame" not in msg and msg.get("error", {}).get("code") in _REFUSED \
+                and self.numbers:
+            # (the frame just sent — lock-step: the only one in flight; real time: refusals come back
+            # at once, before the next frame is sent at any usual rate)
+            self.numbers.pop()
+            self.sent_at.pop()
+            self.res.errors.append(msg)
+            return None
         if msg.get("type") == "pose":
             n = msg["frame"]
             self.res.poses[self.numbers[n]] = msg
@@ -418,13 +435,18 @@ async def _realtime(s: _Session, frames, fps: float, timeout: float) -> None:
     receiver.cancel()
 
 
-async def stream(url: str, camera: dict, frames: Iterable[tuple[int, float, bytes]], fps: float | None = None,
+async def stream(url: str, camera: Any, frames: Iterable[tuple[int, float, bytes]], fps: float | None = None,
                  token: str | None = None, timeout: float = 60.0, on_answer=None) -> StreamResult:
     """Stream ``(index, time_s, JPEG bytes)`` through one tracking session at ``url`` (the full
     ``ws://.../v1/objects/NAME/track``) and collect the answers: lock-step when ``fps`` is None,
-    else real time at ``fps`` frames/s; ``on_answer(msg)`` is called on each pose message as it
-    arrives. Raises :class:`QuatrackError` when the server refuses."""
+    else real time at ``fps`` frames/s (> 0); ``on_answer(msg)`` is called on each pose message as
+    it arrives. ``camera``: as :class:`Client` takes it (a dict, a PinholeCamera or a camera
+    file's path). Raises :class:`QuatrackError` when the server refuses."""
     import websockets
+
+    if fps is not None and not (isinstance(fps, (int, float)) and math.isfinite(fps) and fps > 0):
+        raise ValueError(f"fps: frames per second above 0, or None for lock-step; got {fps!r}")
+    hello = json.loads(Client._hello(camera))
 
     headers = {"Authorization": f"Bearer {token}"} if token else None
     res = StreamResult()
@@ -438,7 +460,7 @@ async def stream(url: str, camera: dict, frames: Iterable[tuple[int, float, byte
             res.local_port = int(ws.local_address[1])
         except (AttributeError, IndexError, TypeError, ValueError):
             pass
-        await ws.send(json.dumps({**camera, "ack": True}))  # ask for the "ready" handshake
+        await ws.send(json.dumps(hello))  # (with "ack": the "ready" handshake)
         Client._expect(json.loads(await asyncio.wait_for(ws.recv(), timeout)), "ready")
         s = _Session(ws, res, on_answer)
         if fps is None:

@@ -387,3 +387,18 @@ def test_no_permessage_deflate(server):
     inflated on the event loop (and deflated by the client) for nothing."""
     with connect(f"{server.ws_url}/v1/objects/cookie-box/track", open_timeout=60) as ws:
         assert ws.response.headers.get("Sec-WebSocket-Extensions") is None
+
+
+def test_stream_lock_step_goes_on_after_a_refused_frame(server, frames):
+    # the server refuses "xx" on arrival without numbering it; the client filed the next answer
+    # under the refused frame's index and waited for a frame number that never came
+    import asyncio
+
+    from quatrack.client import stream
+
+    url = f"{server.ws_url}/v1/objects/cookie-box/track"
+    res = asyncio.run(stream(url, CAMERA, [(0, 0.0, frames[0]), (1, 0.1, b"xx"), (2, 0.2, frames[1])], timeout=30.0))
+    assert sorted(res.poses) == [0, 2] and [m["frame"] for _, m in sorted(res.poses.items())] == [0, 1]
+    assert [e["error"]["code"] for e in res.errors] == ["unsupported_image"]
+    with pytest.raises(ValueError, match="fps"):
+        asyncio.run(stream(url, CAMERA, [], fps=0))
