@@ -103,7 +103,7 @@ def _add_bench(parser: argparse.ArgumentParser) -> None:
                      help="the object zoo instead (issue 13): other shapes, units, grey, out of frame, 1 and 4 photos, "
                           "no object and two objects")
     loc.add_argument("--zoo-objects", metavar="A,B", help="zoo objects to run (default: all; see testing/zoo.py)")
-    loc.add_argument("--zoo-scenes", type=int, default=12, metavar="N", help="scenes per trained zoo model (default 12)")
+    loc.add_argument("--zoo-scenes", type=int, default=None, metavar="N", help="scenes per trained zoo model (default 12)")
     loc.add_argument("--json", action="store_true", help="print one JSON object instead of the report")
     track = sub.add_parser(
         "track",
@@ -275,9 +275,12 @@ def _run_bench(args: argparse.Namespace) -> int:
             raise UserError("--scenes and --every must be at least 1")
         if args.zoo:
             names = _zoo_names(args.zoo_objects, "--zoo-objects")
-            if args.zoo_scenes < 1:
+            scenes = 12 if args.zoo_scenes is None else args.zoo_scenes
+            if scenes < 1:
                 raise UserError("--zoo-scenes must be at least 1")
-            return bench_locate.main_zoo(names, args.zoo_scenes, args.seed, args.json)
+            return bench_locate.main_zoo(names, scenes, args.seed, args.json)
+        if args.zoo_scenes is not None or args.zoo_objects:  # (were ignored, the other benchmark ran)
+            raise UserError("--zoo-scenes and --zoo-objects need --zoo")
         return bench_locate.main(args.scenes, args.seed, args.every, args.sheet, args.json)
     raise UserError(f"unknown benchmark {args.benchmark!r}")
 

@@ -55,6 +55,10 @@ def base_urls(url: str) -> tuple[str, str]:
         raise ValueError(f"{url!r}: give the server's address, e.g. http://127.0.0.1:8000 or ws://127.0.0.1:8000")
     if parts.path not in ("", "/") or parts.query or parts.fragment:
         raise ValueError(f"{url!r}: give the server's address only (scheme://host:port), without a path")
+    try:
+        parts.port  # (a port that is not a number, or out of range)
+    except ValueError:
+        raise ValueError(f"{url!r}: the port must be a number from 1 to 65535") from None
     secure = parts.scheme in ("https", "wss")
     http = urlunsplit(("https" if secure else "http", parts.netloc, "", "", ""))
     ws = urlunsplit(("wss" if secure else "ws", parts.netloc, "", "", ""))
@@ -130,10 +134,14 @@ class _Endpoint:
         return {"Authorization": f"Bearer {self.token}"} if self.token else {}
 
     def _name(self, object: str | None) -> str:
-        name = object or self.object
+        """The object's name for the URL path: the store's rule (letters, digits, ``._-``), so
+        that no name can reach another path ("../x") or add a query ("a?b=1")."""
+        from quatrack.viewsets.names import check_object_name
+
+        name = self.object if object is None else object
         if not name:
             raise ValueError(f"which object? give object=NAME here or to {type(self).__name__}(...)")
-        return name
+        return check_object_name(name)
 
     def _unreachable(self, exc: Exception) -> QuatrackError:
         import httpx

@@ -86,7 +86,7 @@ def _check(args: argparse.Namespace) -> _Plan:
             hint = "" if getattr(args, opt[2:]) else " (the bundled example is not installed here; give the option)"
             raise ValueError(f"{opt} {path}: no such file{hint}")
     if args.fps is not None and not 0 < args.fps <= 240:
-        raise ValueError("--fps must be between 0 and 240")
+        raise ValueError("--fps must be above 0 and at most 240")
     if args.max_frames is not None and args.max_frames < 1:
         raise ValueError("--max-frames must be at least 1")
     http_url = ws_url = None

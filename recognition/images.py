@@ -7,6 +7,7 @@ frame); anything that cannot be a photo of the object is refused with :class:`Im
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, replace
 
 import cv2
@@ -67,7 +68,10 @@ def read_image(path: str) -> np.ndarray:
 
 def to_bgr8(image: np.ndarray) -> np.ndarray:
     """8-bit, 3-channel BGR from grey, BGRA, 16-bit or float images."""
-    img = np.asarray(image)
+    if image is None or isinstance(image, (str, bytes, os.PathLike)):
+        raise ImageError(f"expected an image array (numpy), got {type(image).__name__}"
+                         + ("" if image is None else ": read the file first (cv2.imread)"))
+    img = np.asarray(image)  # (any array-like: a PIL image too)
     if img.ndim == 3 and img.shape[2] == 1:
         img = img[..., 0]
     if img.ndim not in (2, 3) or (img.ndim == 3 and img.shape[2] not in (3, 4)):

@@ -332,12 +332,24 @@ def _describe_and_pose(img, box, scale: float, index: ModelIndex, model: ObjectM
     return _pose_from(feats, index, model, camera, window, params, timer, grey, prefer)
 
 
+def check_inputs(camera, model) -> None:
+    """TypeError unless ``camera`` is a PinholeCamera and ``model`` an ObjectModel (a camera's dict
+    or path, a model's name: AttributeError deep inside before), saying where each comes from."""
+    if not isinstance(camera, PinholeCamera):
+        raise TypeError(f"camera: a PinholeCamera (quatrack.viewsets.camera.load_camera reads a camera file), "
+                        f"got {type(camera).__name__}")
+    if not isinstance(model, ObjectModel):
+        raise TypeError(f"model: an ObjectModel (quatrack.viewsets.store.load_model(store, name) loads one), "
+                        f"got {type(model).__name__}")
+
+
 def locate(
     image: np.ndarray, camera: PinholeCamera, model: ObjectModel, params: LocateParams = LocateParams(),
     index: ModelIndex | None = None, shared: dict | None = None, prefer=None,
 ) -> Located:
     """Find ``model`` in ``image`` (any bit depth/channels) seen by ``camera``; never raises for
-    an image without the object (``found`` is False), raises ImageError for an unusable image.
+    an image without the object (``found`` is False), raises ImageError for an unusable image
+    (and TypeError for a camera or model of the wrong type: :func:`check_inputs`).
 
     ``index``: the model's matching index (:func:`~quatrack.recognition.match.index_for`, built
     once per loaded model and cached); pass it when calling in a loop. ``shared``: a dict kept
@@ -388,6 +400,7 @@ def locate(
     >>> shutil.rmtree(store)
     """
     t_start = time.perf_counter()
+    check_inputs(camera, model)
     prep = prepare_image(image, camera, params.max_pixels)
     img, cam = prep.image, prep.camera
     index = index or index_for(model)

@@ -80,3 +80,43 @@ def test_demo_refuses_an_overlay_on_its_input_video(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert rc == 2 and "--overlay" in err and "is the input" in err and "\n" not in err, err
     assert video.read_bytes() == before and not (tmp_path / "out").exists()
+
+
+def test_library_inputs_of_the_wrong_kind_say_what_is_expected():
+    import numpy as np
+
+    from quatrack.client import Client, base_urls
+    from quatrack.recognition.images import ImageError, to_bgr8
+    from quatrack.recognition.locate import locate
+    from quatrack.recognition.video import Tracker, TrackerParams
+    from quatrack.testing.scenes import EXAMPLE, example_model
+    from quatrack.viewsets.camera import load_camera
+    from quatrack.viewsets.errors import StoreError
+
+    camera, model = load_camera(EXAMPLE / "camera.json"), example_model()
+    image = np.zeros((camera.height, camera.width, 3), np.uint8)
+    with pytest.raises(ImageError, match="expected an image array.*cv2.imread"):
+        to_bgr8("frame.png")
+    with pytest.raises(TypeError, match="camera: a PinholeCamera"):
+        locate(image, {"fx": 600}, model)
+    with pytest.raises(TypeError, match="model: an ObjectModel"):
+        locate(image, camera, "cookie-box")
+    with pytest.raises(TypeError, match="camera: a PinholeCamera"):
+        Tracker(model, None)
+    with pytest.raises(ValueError, match="not a string"):
+        TrackerParams(sources="edges")
+    with pytest.raises(ValueError, match="sigma_px"):
+        TrackerParams(sigma_px=0.0)
+    with pytest.raises(ValueError, match="port must be a number"):
+        base_urls("http://127.0.0.1:abc")
+    with Client("http://127.0.0.1:9", token="t") as c:  # (no request is made: the name is refused first)
+        for bad in ("../x", "a?b=1"):
+            with pytest.raises(StoreError, match="invalid object name"):
+                c.pose(image, camera, object=bad)
+
+
+def test_bench_zoo_options_need_zoo(capsys):
+    from quatrack.cli import main
+
+    assert main(["bench", "locate", "--zoo-scenes", "3"]) == 2
+    assert "need --zoo" in capsys.readouterr().err

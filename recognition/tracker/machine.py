@@ -65,7 +65,7 @@ from quatrack.viewsets.viewset import Viewset, params_from_manifest
 
 from ..images import ImageError, to_bgr8
 from ..klt import Frame, make_frame
-from ..locate import locate
+from ..locate import check_inputs, locate
 from ..match import ModelIndex, index_for
 from ..evidence import EdgeFit, edge_fit, measure_edges, pose_shift, silhouette_inside
 from ..pose import PoseParams, edges_agree, plausible
@@ -104,6 +104,7 @@ class Tracker:
 
     def __init__(self, model: ObjectModel, camera: PinholeCamera, params: TrackerParams = TrackerParams(),
                  index: ModelIndex | None = None, executor: Executor | None = None) -> None:
+        check_inputs(camera, model)  # (a camera's dict, a model's name: a TypeError that says so)
         model = model.at_run_time()  # (a scan's mesh: tracked on its decimation, Mesh.run_time)
         self.model = model
         self.camera = camera

@@ -317,6 +317,8 @@ class TrackerParams:
         noise = DEFAULT_MOTION_NOISE.get(self.motion_model)
         if noise is None:
             raise ValueError(f"unknown motion model {self.motion_model!r}; expected one of {sorted(DEFAULT_MOTION_NOISE)}")
+        if isinstance(self.sources, str):  # ("edges" was read as the letters e, d, g, …)
+            raise ValueError(f"sources: a tuple of names, e.g. ({self.sources!r},), not a string")
         bad = set(self.sources) - {"trained", "mesh", "edges", "contour"}
         if bad or not self.sources:
             raise ValueError(f"unknown measurement source(s) {sorted(bad)}; expected some of 'trained', 'mesh', "
@@ -329,6 +331,14 @@ class TrackerParams:
         if unknown:
             raise ValueError(f"motion model {self.motion_model!r} has no parameter(s) {sorted(unknown)}; "
                              f"expected {sorted(noise)}")
+        for key, value in self.motion_noise.items():
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not (np.isfinite(value) and value >= 0):
+                raise ValueError(f"motion_noise[{key!r}] must be a finite number >= 0, not {value!r}")
+        if not (np.isfinite(self.sigma_px) and self.sigma_px > 0):
+            raise ValueError(f"sigma_px must be a number of pixels above 0, not {self.sigma_px!r}")
+        for name in ("max_points", "min_points", "min_inliers"):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f"{name} must be at least 1, not {getattr(self, name)!r}")
 
     def motion_noise_params(self, diameter: float) -> dict[str, float]:
         """The motion model's noise parameters (mesh units) for an object of this diameter."""
