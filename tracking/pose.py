@@ -69,7 +69,8 @@ class Pose:
         t = _numbers(self.t, 3, "t")
         if not (np.all(np.isfinite(q)) and np.all(np.isfinite(t))):
             raise ValueError("a pose must be finite")
-        n = float(np.linalg.norm(q))
+        with np.errstate(over="ignore"):
+            n = float(np.linalg.norm(q))
         if not n < 1e150:  # (‖q‖ of 1e300s overflows: brought to order 1 first)
             q = q / max(float(np.max(np.abs(q))), 1e-300)
             n = float(np.linalg.norm(q))
