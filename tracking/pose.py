@@ -38,7 +38,9 @@ def _numbers(value: Any, shape, name: str) -> np.ndarray:
         a = np.array(value, dtype=float)
     except (TypeError, ValueError):
         raise ValueError(f"{name} must be {_shape_words(want)}, got {type(value).__name__}") from None
-    if a.size != int(np.prod(want)) or (a.ndim > 1 and a.shape != want and len(want) > 1):
+    if a.shape == want:  # (the usual case, first: a pose is made ~100 times a frame)
+        return a
+    if a.size != int(np.prod(want)) or (a.ndim > 1 and len(want) > 1):
         raise ValueError(f"{name} must be {_shape_words(want)}, got shape {a.shape}")
     return a.reshape(want)
 
@@ -69,11 +71,10 @@ class Pose:
         t = _numbers(self.t, 3, "t")
         if not (np.all(np.isfinite(q)) and np.all(np.isfinite(t))):
             raise ValueError("a pose must be finite")
-        with np.errstate(over="ignore"):
-            n = float(np.linalg.norm(q))
-        if not n < 1e150:  # (‖q‖ of 1e300s overflows: brought to order 1 first)
-            q = q / max(float(np.max(np.abs(q))), 1e-300)
-            n = float(np.linalg.norm(q))
+        big = max(abs(v) for v in q.tolist())
+        if big > 1e150:  # (‖q‖ of 1e300s would overflow: brought to order 1 first)
+            q = q / big
+        n = float(np.linalg.norm(q))
         if not n > 1e-12:
             raise ValueError("a pose's quaternion must not be zero")
         object.__setattr__(self, "q_wxyz", _readonly(quat.canonical(q / n)))
