@@ -86,14 +86,10 @@ def _ms(t0: float) -> float:
 
 
 def _check_pose(t, q) -> Pose:
+    """The user's pose; Pose's own errors say what is wrong (a shape, not finite, a zero quaternion)."""
     if q is None:
         raise ValueError("give t and q_wxyz, or a Pose")
-    try:
-        return Pose(q, t)
-    except ValueError as exc:
-        if "must be" in str(exc) and "finite" not in str(exc):  # (a shape: Pose says which)
-            raise
-        raise ValueError("the pose must be finite and its quaternion not zero") from None
+    return Pose(q, t)
 
 
 class Tracker:
