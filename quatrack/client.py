@@ -107,6 +107,19 @@ def _error_of(status: int, body: bytes | str) -> QuatrackError:
         return QuatrackError("http_error", text.strip()[:200] or f"HTTP {status}", status)
 
 
+def _stream_error(exc: BaseException, url: str, timeout: float) -> QuatrackError | None:
+    """A stream's failure after the handshake, as a QuatrackError: ``"closed"`` (the connection
+    lost), ``"timeout"`` (no answer within ``timeout``); None for any other exception."""
+    from websockets.exceptions import ConnectionClosed
+
+    if isinstance(exc, ConnectionClosed):
+        why = f" ({exc.rcvd.code} {exc.rcvd.reason})".rstrip() if exc.rcvd is not None else ""
+        return QuatrackError("closed", f"{url}: the connection was closed{why}")
+    if isinstance(exc, TimeoutError):
+        return QuatrackError("timeout", f"{url}: no answer within {timeout:g} s")
+    return None
+
+
 def _ws_error(exc: BaseException) -> QuatrackError:
     """A refused WebSocket handshake (its HTTP answer) or a connection failure, as a QuatrackError."""
     from websockets.exceptions import InvalidStatus
@@ -152,15 +165,7 @@ class _Endpoint:
         return QuatrackError("unreachable", f"{self.http_url}: {exc}")
 
     def _stream_error(self, exc: BaseException) -> QuatrackError | None:
-        """A stream's failure after the handshake, as a QuatrackError (None: not one of these)."""
-        from websockets.exceptions import ConnectionClosed
-
-        if isinstance(exc, ConnectionClosed):
-            why = f" ({exc.rcvd.code} {exc.rcvd.reason})".rstrip() if exc.rcvd is not None else ""
-            return QuatrackError("closed", f"{self.ws_url}: the connection was closed{why}")
-        if isinstance(exc, TimeoutError):
-            return QuatrackError("timeout", f"{self.ws_url}: no answer within {self.timeout:g} s")
-        return None
+        return _stream_error(exc, self.ws_url, self.timeout)
 
     @staticmethod
     def _answer(r):
@@ -317,6 +322,7 @@ class AsyncClient(_Endpoint):
                                           open_timeout=self.timeout)
         except Exception as exc:
             raise _ws_error(exc) from None
+
         async def items():
             if hasattr(frames, "__aiter__"):
                 async for item in frames:
@@ -468,13 +474,19 @@ async def stream(url: str, camera: Any, frames: Iterable[tuple[int, float, bytes
             res.local_port = int(ws.local_address[1])
         except (AttributeError, IndexError, TypeError, ValueError):
             pass
-        await ws.send(json.dumps(hello))  # (with "ack": the "ready" handshake)
-        Client._expect(json.loads(await asyncio.wait_for(ws.recv(), timeout)), "ready")
-        s = _Session(ws, res, on_answer)
-        if fps is None:
-            await _lockstep(s, frames, timeout)
-        else:
-            await _realtime(s, frames, fps, timeout)
+        try:
+            await ws.send(json.dumps(hello))  # (with "ack": the "ready" handshake)
+            Client._expect(json.loads(await asyncio.wait_for(ws.recv(), timeout)), "ready")
+            s = _Session(ws, res, on_answer)
+            if fps is None:
+                await _lockstep(s, frames, timeout)
+            else:
+                await _realtime(s, frames, fps, timeout)
+        except Exception as exc:  # (the server gone, or silent: typed as the other errors are)
+            typed = _stream_error(exc, url, timeout)
+            if typed is None:
+                raise
+            raise typed from None
     res.wall_s = time.perf_counter() - t_start
     return res
 
