@@ -42,8 +42,13 @@ import uuid
 from pathlib import Path
 from typing import Callable
 
-from .metrics import MULTIPROC_ENV
 from .settings import Settings
+
+# prometheus-client's multiprocess directory; named here, not imported from .metrics: importing
+# prometheus_client reads it once, and `quatrack serve` must set it first — with one worker the
+# app runs in this very process, and a client imported before kept its counters in memory while
+# /metrics read the empty directory (every metric but one missing)
+MULTIPROC_ENV = "PROMETHEUS_MULTIPROC_DIR"
 
 log = logging.getLogger("quatrack.service")
 

@@ -120,3 +120,38 @@ def test_bench_zoo_options_need_zoo(capsys):
 
     assert main(["bench", "locate", "--zoo-scenes", "3"]) == 2
     assert "need --zoo" in capsys.readouterr().err
+
+
+def test_metrics_of_a_one_worker_server(tmp_path):
+    # with one worker the app runs in `quatrack serve`'s own process: prometheus_client, imported
+    # there before the multiprocess directory was set, kept its counters in memory while /metrics
+    # read the empty directory — every metric but one was missing
+    import os
+    import time
+
+    import httpx
+
+    from quatrack.service.server import free_port
+    from quatrack.testing.scenes import example_store
+
+    port = free_port()
+    env = {**os.environ, "XDG_DATA_HOME": str(tmp_path), "HOME": str(tmp_path)}
+    proc = subprocess.Popen([sys.executable, "-m", "quatrack", "serve", "--store", str(example_store()), "--port", str(port),
+                             "--workers", "1"], env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        url = f"http://127.0.0.1:{port}"
+        for _ in range(600):  # (up to 60 s: the models load first)
+            try:
+                if httpx.get(f"{url}/readyz", timeout=2).status_code == 200:
+                    break
+            except httpx.TransportError:
+                pass
+            assert proc.poll() is None, "the server exited"
+            time.sleep(0.1)
+        assert httpx.get(f"{url}/v1/objects", timeout=10).status_code == 200
+        text = httpx.get(f"{url}/metrics", timeout=10).text
+        for name in ("quatrack_http_requests_total", "quatrack_models_loaded", "quatrack_ws_sessions_active"):
+            assert name in text, (name, text[:500])
+    finally:
+        proc.terminate()
+        proc.wait(timeout=30)
