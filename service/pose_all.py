@@ -43,8 +43,10 @@ router = APIRouter(prefix="/v1", tags=["pose"], dependencies=[Depends(require_to
 async def pose_all(
     request: Request, state: Annotated[ServiceState, Depends(get_state)], query_camera: CameraQuery,
 ) -> dict:
-    data, camera = await read_pose_request(request, query_camera)
-    return await in_pool(state, _locate_all, state, data, camera)
+    data, camera, image_name = await read_pose_request(request, query_camera)
+    out = await in_pool(state, _locate_all, state, data, camera)
+    out["objects"] = [{"image": image_name, **o} for o in out["objects"]]
+    return out
 
 
 def _locate_all(state: ServiceState, data: bytes, camera: CameraIn) -> dict:

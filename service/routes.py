@@ -208,9 +208,11 @@ def _camera_from_json(text: str) -> CameraIn:
 
 
 
-async def read_pose_request(request: Request, camera: CameraIn | None) -> tuple[bytes, CameraIn]:
-    """The image bytes and the camera of a pose request (multipart fields ``image`` and ``camera``, or
-    a raw image body with the camera from the query, given as ``camera``); both pose endpoints."""
+async def read_pose_request(request: Request, camera: CameraIn | None) -> tuple[bytes, CameraIn, str | None]:
+    """The image bytes, the camera and the image's file name of a pose request (multipart fields
+    ``image`` and ``camera``, or a raw image body — no name — with the camera from the query,
+    given as ``camera``); both pose endpoints."""
+    name = None
     ctype = request.headers.get("content-type", "").split(";")[0].strip().lower()
     if ctype == "multipart/form-data":
         try:
@@ -228,6 +230,7 @@ async def read_pose_request(request: Request, camera: CameraIn | None) -> tuple[
         if upload is None or isinstance(upload, str):
             raise ApiError(422, "missing_image", "multipart field 'image' (a file) is required")
         data = await upload.read()
+        name = upload.filename or None
         cam_field = form.get("camera")
         if cam_field is not None:
             if not isinstance(cam_field, str):
@@ -245,7 +248,7 @@ async def read_pose_request(request: Request, camera: CameraIn | None) -> tuple[
         raise ApiError(422, "bad_camera", "a camera is required: multipart field 'camera' or query parameters fx, fy, cx, cy")
     if camera.width is not None and camera.height is not None:
         camera.to_camera()  # implausible intrinsics: 422 before any decoding
-    return data, camera
+    return data, camera, name
 
 
 def decode_with_camera(state: ServiceState, data: bytes, camera: CameraIn):
@@ -283,8 +286,8 @@ async def pose(
     registry.check_name(name)
     if not registry.is_known(name):
         raise ApiError(404, "unknown_object", f"no object named {name!r} in the store")
-    data, camera = await read_pose_request(request, query_camera)
-    result = await in_pool(state, _locate, state, name, data, camera)
+    data, camera, image_name = await read_pose_request(request, query_camera)
+    result = {"image": image_name, **await in_pool(state, _locate, state, name, data, camera)}
     return JSONResponse(ros.add_to_locate(result, unit)) if unit else result  # "ros" added: LocateOut + ros
 
 

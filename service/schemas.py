@@ -91,8 +91,9 @@ class PoseOut(BaseModel):
 
 
 class LocateOut(BaseModel):
-    """The same JSON object as ``quatrack locate --json`` (without ``image``)."""
+    """The same JSON object as ``quatrack locate --json``."""
 
+    image: str | None = Field(None, description="the uploaded file's name (multipart); null for a raw body")
     found: bool
     bbox: list[float] | None = Field(None, description="[x, y, w, h] of the RFCH window, pixels")
     chi2: float | None = None

@@ -116,6 +116,8 @@ def test_pose_multipart_and_raw_agree(client, frame_jpeg):
     _check_pose_json(r2.json())
     assert np.allclose(r.json()["pose"]["t"], r2.json()["pose"]["t"], atol=1e-6)
     assert r2.headers["x-request-id"]
+    # "the same JSON object as locate --json", which begins with "image": the upload's name (none raw)
+    assert list(r.json())[:2] == ["image", "found"] and r.json()["image"] == "f.jpg" and r2.json()["image"] is None
 
 
 def test_pose_png_and_webp(client):
