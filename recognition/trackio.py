@@ -318,8 +318,14 @@ def csv_row(step) -> str:
 
 
 def jsonl_row(step) -> str:
-    """The full per-frame message (:func:`step_message`) as one JSON line (no newline)."""
-    return json.dumps(step_message(step), separators=(",", ":"))
+    """The full per-frame message (:func:`step_message`) as one JSON line (no newline), with the
+    WebSocket message's other keys (the contract: "the WebSocket's pose message per line"):
+    ``latency_ms`` (the step's own time: a file's frame waits for nothing else) and ``skipped`` (0:
+    every frame of a file is tracked)."""
+    msg = step_message(step)
+    msg["latency_ms"] = round(float(msg["timings_ms"].get("total", 0.0)), 2)
+    msg["skipped"] = 0
+    return json.dumps(msg, separators=(",", ":"))
 
 
 def _unit_scale(unit: str, to_metres: float) -> float:

@@ -130,6 +130,9 @@ def test_message_round_trip_and_jsonl():
     s = _step()
     msg = json.loads(trackio.jsonl_row(s))
     assert msg["type"] == "pose" and msg["status"] == "tracking" and len(msg["covariance"]) == 6
+    # the WebSocket pose message's keys (the contract's list and the extension's), each line
+    contract = {"frame", "status", "pose", "velocity", "covariance", "inliers", "latency_ms"}
+    assert contract | {"type", "time_s", "skipped", "reason", "timings_ms"} <= set(msg), set(msg)
     back = trackio.step_from_message(msg)
     assert np.allclose(back.t, s.t) and np.allclose(back.q_wxyz, s.q_wxyz)
     assert np.allclose(back.v, s.v) and np.allclose(back.omega, s.omega) and np.allclose(back.covariance, s.covariance)
