@@ -406,6 +406,8 @@ class _Session:
             self.sent_at.pop()
             self.res.errors.append(msg)
             return None
+        if msg.get("type") == "pose" and msg.get("dropped"):  # answered, not tracked (newer frames came)
+            return msg["frame"]
         if msg.get("type") == "pose":
             n = msg["frame"]
             self.res.poses[self.numbers[n]] = msg

@@ -305,7 +305,7 @@ def _locate(state: ServiceState, name: str, data: bytes, camera: CameraIn) -> di
 
 @sockets.websocket("/objects/{name}/track")
 async def track(websocket: WebSocket, name: str) -> None:
-    """Camera JSON first, then binary frames; one JSON message per processed frame (see the README)."""
+    """Camera JSON first, then binary frames; one JSON message per frame (see the README)."""
     state = get_ws_state(websocket)
     token = None
     auth = websocket.headers.get("authorization", "")

@@ -95,6 +95,8 @@ class TrackSession:
         self.mailbox = threading.Lock()
         self.pending: _PendingFrame | None = None
         self.skipped = 0
+        # frames replaced by newer ones before their turn, not yet answered (_answer_dropped)
+        self.dropped: list[_PendingFrame] = []
         self.next_frame = 0
         self.last_time: float | None = None
         self.header_time: float | None = None
@@ -214,6 +216,7 @@ class TrackSession:
             if stale is not None:  # not started yet: the newer frame wins
                 self.skipped += 1
                 controls = stale.controls + controls
+                self.dropped.append(stale)
             self.pending = _PendingFrame(number, time_s, data, arrival, controls)
         if stale is not None:
             self.metrics.frames.labels("skipped").inc()
@@ -308,6 +311,7 @@ class TrackSession:
             if taken is None:
                 continue
             item, skipped, out = taken
+            await self._answer_dropped(item.number)
             if isinstance(out, _SessionError):
                 self.metrics.frames.labels("error").inc()
                 await self.send_error(out.code, out.message, item.number)
@@ -318,6 +322,24 @@ class TrackSession:
             self.metrics.frames.labels("processed").inc()
             self.metrics.frame_latency.observe(out["latency_ms"] / 1e3)
             await self.send(out)
+
+    async def _answer_dropped(self, before: int) -> None:
+        """Answer, in order, the frames numbered below ``before`` that newer ones replaced: the
+        contract's "for each frame the server sends one JSON text message" holds when a client
+        sends faster than the tracker runs (a burst got 2 answers for 20 frames, and a client
+        reading one answer per frame sent waited forever). Such a frame was not tracked: its
+        message is ``lost`` with no pose, ``"dropped": true`` and the reason; the next processed
+        frame's ``skipped`` still counts them. Sent just before the answer of the frame that
+        replaced them, so answers stay in frame order."""
+        with self.mailbox:
+            early = [d for d in self.dropped if d.number < before]
+            self.dropped = [d for d in self.dropped if d.number >= before]
+        for d in early:
+            msg = {"type": "pose", "frame": d.number, "time_s": d.time_s, "status": "lost", "pose": None,
+                   "velocity": None, "covariance": None, "inliers": 0, "dropped": True, "skipped": 0,
+                   "reason": "not tracked: a newer frame arrived before this one's turn (the newest is tracked)",
+                   "timings_ms": {}, "latency_ms": round((time.perf_counter() - d.arrival) * 1e3, 2)}
+            await self.send(add_to_track_message(msg, self.ros_unit))
 
     def _process_newest(self) -> tuple[_PendingFrame, int, dict | _SessionError] | None:
         """Worker thread: take the session's newest frame *now*, when a thread is free, and

@@ -202,10 +202,15 @@ def test_back_pressure_processes_the_newest(server, frames, monkeypatch):
             send_frame(ws, f, i / 30)
         assert wait_until(lambda: frames_received(server) == before + n, timeout=60)
         gate.set()
-        got = [recv(ws)]
-        k = got[0]["frame"]
-        if k < n - 1:
-            got.append(recv(ws))
+        msgs = []
+        while not msgs or msgs[-1]["frame"] != n - 1:
+            msgs.append(recv(ws))
+    # one message per frame, in frame order (the contract); the replaced frames' say so
+    assert [m["frame"] for m in msgs] == list(range(n))
+    got = [m for m in msgs if not m.get("dropped")]
+    assert all(m["status"] == "lost" and m["pose"] is None and m["reason"] for m in msgs if m.get("dropped"))
+    k = got[0]["frame"]
+    assert len(got) == (1 if k == n - 1 else 2)
     assert got[0]["skipped"] == k  # the frames before it, replaced before a thread took one
     if k < n - 1:
         assert (got[1]["frame"], got[1]["skipped"]) == (n - 1, n - 2 - k)
@@ -226,8 +231,10 @@ def test_a_frame_waiting_for_a_busy_pool_is_replaced_by_a_newer_one(store, frame
             send_frame(ws, f, i / 30)
         assert wait_until(lambda: frames_received(srv) == before + n, timeout=60)
         gate.set()
-        first = recv(ws)
-    assert (first["frame"], first["skipped"]) == (n - 1, n - 1), first
+        msgs = [recv(ws) for _ in range(n)]
+    assert [m["frame"] for m in msgs] == list(range(n)) and all(m.get("dropped") for m in msgs[:-1])
+    first = msgs[-1]  # the first tracked: the newest
+    assert (first["frame"], first["skipped"], first.get("dropped")) == (n - 1, n - 1, None), first
 
 
 def test_two_sessions_one_fed_garbage(server, frames):
