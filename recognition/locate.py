@@ -332,6 +332,19 @@ def _describe_and_pose(img, box, scale: float, index: ModelIndex, model: ObjectM
     return _pose_from(feats, index, model, camera, window, params, timer, grey, prefer)
 
 
+def _image_box(camera: PinholeCamera, size: tuple[int, int], vertices: np.ndarray, t: np.ndarray, q: np.ndarray):
+    """``(x, y, w, h)`` of the mesh's projected vertices at ``(t, q)``, clipped to the image of
+    ``size`` (width, height); None when a vertex lies behind the camera or nothing is inside."""
+    from .pose import projected_bbox
+
+    box = projected_bbox(camera, vertices, t, q)
+    if box is None:
+        return None
+    x0, y0 = max(box[0], 0.0), max(box[1], 0.0)
+    x1, y1 = min(box[0] + box[2], float(size[0])), min(box[1] + box[3], float(size[1]))
+    return None if x1 <= x0 or y1 <= y0 else (x0, y0, x1 - x0, y1 - y0)
+
+
 def check_inputs(camera, model) -> None:
     """TypeError unless ``camera`` is a PinholeCamera and ``model`` an ObjectModel (a camera's dict
     or path, a model's name: AttributeError deep inside before), saying where each comes from."""
@@ -454,6 +467,9 @@ def locate(
     if est is None:
         return Located(False, bbox, None if win is None else win.chi2, res.viewset, res.matches, 0, None,
                        time_ms=timer, reason=res.reason, searched=searched, verification=ver, object=model.name)
+    if bbox is None:  # (no window searched: the found object's projected box, in the image — the contract's bbox)
+        h0, w0 = np.shape(image)[:2]
+        bbox = _image_box(camera, (w0, h0), model.mesh.vertices, np.array(est.t), np.array(est.q))
     return Located(
         True, bbox, None if win is None else win.chi2, res.viewset, res.matches, len(est.inliers), est.rms_px * inv,
         np.array(est.t), np.array(est.q), est.covariance, time_ms=timer, searched=searched, verification=ver,

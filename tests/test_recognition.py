@@ -393,3 +393,12 @@ def test_a_truncated_png_is_refused_without_the_decoders_chatter(capfd):
     with pytest.raises(ImageError, match="truncated"):
         decode_image(data[: len(data) // 2])
     assert "libpng" not in capfd.readouterr().err  # (C-level stderr: libpng's own message)
+
+
+def test_a_pose_found_without_a_window_still_has_its_bbox(model, scenes):
+    # the contract's bbox is [x, y, w, h]; with no window searched (--whole-image) it was null on
+    # a found pose: it is the found object's projected box in the image
+    sc = scenes[0][0]
+    r = locate(sc.image, CAMERA, model, LocateParams(use_window=False))
+    assert r.found and r.searched == "image" and r.bbox is not None
+    assert iou(r.bbox, sc.bbox) > 0.7, (r.bbox, sc.bbox)  # the rendered object's own box
