@@ -99,6 +99,7 @@ class TrackSession:
         self.dropped: list[_PendingFrame] = []
         self.next_frame = 0
         self.last_time: float | None = None
+        self.last_clock = 0.0  # the session clock at the latest frame's arrival
         self.header_time: float | None = None
         self.t0: float | None = None
         self.wakeup = asyncio.Event()
@@ -199,15 +200,19 @@ class TrackSession:
             self.metrics.frames.labels("rate_limited").inc()
             await self.send_error("rate_limited", f"more than {self.settings.max_fps:g} frames per second; frame dropped")
             return
+        now = self.clock()
         if self.header_time is not None:
             time_s, self.header_time = self.header_time, None
-        else:
-            now = self.clock()
+        elif self.last_time is None:
             self.t0 = now if self.t0 is None else self.t0
             time_s = now - self.t0
-            if self.last_time is not None and time_s <= self.last_time:
-                time_s = self.last_time + 1e-6  # clock mixed with client times: keep it increasing
-        self.last_time = time_s
+        else:
+            # the previous frame's time plus the time between their arrivals: the session clock when
+            # no frame is timed; after a client's time (say 100 s), its continuation — measuring
+            # from the session's start (0.1 s) and bumping by 1 µs put frames 0.1 s apart 1 µs
+            # apart, and the velocities blew up (v ≈ −17 000 mesh units/s)
+            time_s = self.last_time + max(now - self.last_clock, 1e-6)
+        self.last_time, self.last_clock = time_s, now
         number, self.next_frame = self.next_frame, self.next_frame + 1
         self.metrics.frames.labels("received").inc()
         controls, self.controls = self.controls, []

@@ -409,3 +409,18 @@ def test_stream_lock_step_goes_on_after_a_refused_frame(server, frames):
     assert [e["error"]["code"] for e in res.errors] == ["unsupported_image"]
     with pytest.raises(ValueError, match="fps"):
         asyncio.run(stream(url, CAMERA, [], fps=0))
+
+
+def test_frames_without_a_time_continue_from_a_client_time(server, frames):
+    # after a frame at the client's 100 s, untimed frames got 100.000001, 100.000002, … (the session
+    # clock from its start, bumped by 1 µs): frames 0.3 s apart must be about 0.3 s apart
+    import time
+
+    with open_session(server) as ws:
+        send_frame(ws, frames[0], 100.0)
+        times = [recv(ws)["time_s"]]
+        for f in frames[1:3]:
+            time.sleep(0.3)
+            ws.send(f)
+            times.append(recv(ws)["time_s"])
+    assert times[0] == 100.0 and times[1] - times[0] > 0.2 and times[2] - times[1] > 0.2, times
