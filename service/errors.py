@@ -45,12 +45,20 @@ async def _on_http(request: Request, exc: StarletteHTTPException) -> JSONRespons
     return _json(exc.status_code, code, message, getattr(exc, "headers", None))
 
 
+# the pose endpoints' camera query parameters: a value of the wrong type there is a bad camera
+_CAMERA_QUERY = frozenset({"fx", "fy", "cx", "cy", "width", "height", "dist"})
+
+
 async def _on_validation(request: Request, exc: RequestValidationError) -> JSONResponse:
-    parts = []
-    for e in exc.errors()[:5]:
-        where = ".".join(str(x) for x in e.get("loc", ()) if x != "body") or "request"
-        parts.append(f"{where}: {e.get('msg', 'invalid')}")
-    return _json(422, "invalid_input", "; ".join(parts) or "invalid request")
+    parts, camera = [], True
+    for e in exc.errors():
+        loc = tuple(e.get("loc", ()))
+        camera &= len(loc) == 2 and loc[0] == "query" and loc[1] in _CAMERA_QUERY
+        if len(parts) < 5:
+            where = ".".join(str(x) for x in loc if x != "body") or "request"
+            parts.append(f"{where}: {e.get('msg', 'invalid')}")
+    # (the contract: a camera given as strings is 422 bad_camera, in the query as in the JSON field)
+    return _json(422, "bad_camera" if camera and parts else "invalid_input", "; ".join(parts) or "invalid request")
 
 
 async def _on_unexpected(request: Request, exc: Exception) -> JSONResponse:

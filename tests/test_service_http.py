@@ -176,6 +176,9 @@ def test_implausible_query_camera_and_a_huge_camera_field(client, frame_jpeg):
     r = client.post(url, content=frame_jpeg, headers={"content-type": "image/jpeg"},
                     params={"fx": 1e300, "fy": 600, "cx": 320, "cy": 240})  # size from the image
     assert "fx" in assert_error(r, 422, "bad_camera")["error"]["message"]
+    r = client.post(url, content=frame_jpeg, headers={"content-type": "image/jpeg"},
+                    params={"fx": "abc", "fy": 600, "cx": 320, "cy": 240})  # a string: bad_camera (invalid_input before)
+    assert "fx" in assert_error(r, 422, "bad_camera")["error"]["message"]
     huge = json.dumps({**CAMERA, "pad": "x" * 1_000_000})  # "malformed multipart body (HTTPException)" before
     r = client.post(url, files={"image": ("f.jpg", frame_jpeg, "image/jpeg")}, data={"camera": huge})
     assert "camera" in assert_error(r, 413, "too_large")["error"]["message"]
