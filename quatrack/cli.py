@@ -394,6 +394,14 @@ def _run_train(args: argparse.Namespace) -> int:
         if trained_from == spec.checksum:
             print(f"{spec.name!r} is already trained from {spec_path} in {store}: nothing to do")
             return 0
+    if model_path(store, spec.name).exists():  # (retraining replaces the model, views learned by tracking too)
+        try:
+            n_learned = int(load_manifest(store, spec.name).get("learned_viewsets") or 0)
+        except (ValueError, TypeError):
+            n_learned = 0
+        if n_learned:
+            print(f"quatrack train: warning: {spec.name!r} in {store} holds {n_learned} view(s) learned while tracking; "
+                  f"retraining replaces them (track --learn learns them again)", file=sys.stderr)
     bar = tqdm(total=0, desc=f"training {spec.name}", unit="view", file=sys.stderr, disable=None, leave=False)
 
     def set_total(n: int) -> None:

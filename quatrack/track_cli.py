@@ -20,6 +20,7 @@ and one line says how many and where. A run that ends in an error stores nothing
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import sys
 from contextlib import ExitStack
@@ -204,6 +205,25 @@ def _track_frames(s: _Setup, rows, video, progress) -> tuple[list, bool]:
     return steps, False
 
 
+@contextlib.contextmanager
+def _terminate_as_interrupt():
+    """SIGTERM (``timeout``, ``docker stop``, systemd) ends the tracking loop as Ctrl-C does:
+    outputs complete, learned views stored. Without it the process died at once, the views
+    were lost and a temporary output file was left beside the output. Only in the main thread
+    (signal handlers cannot be set elsewhere); the previous handler comes back afterwards."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGTERM, signal.default_int_handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 def run(args: argparse.Namespace) -> int:
     import cv2
 
@@ -221,7 +241,8 @@ def run(args: argparse.Namespace) -> int:
         with open(tmp_out, "w", newline="", encoding="utf-8") as f:
             rows = RowWriter(f, args.format, args.mesh_unit, args.obj_id)
             try:
-                steps, interrupted = _track_frames(s, rows, video, progress)
+                with _terminate_as_interrupt():
+                    steps, interrupted = _track_frames(s, rows, video, progress)
             finally:
                 progress.close()
                 if video is not None:
@@ -250,15 +271,24 @@ def _store_learned(s: _Setup, name: str) -> None:
     """Merge the views learned in this run into the stored model (atomic, under the store's
     lock: a concurrent writer's views are kept) and say so in one line on stderr."""
     from quatrack.viewsets.learn import merge_learned
+    from quatrack.viewsets.store import model_path
 
     learned = s.tracker.learned_viewsets()
-    folder, added, total = merge_learned(s.store, name, learned, s.model.mesh,
-                                         s.tracker.params.learn_max_views, s.tracker.params.learn_min_angle_deg)
+    folder = model_path(s.store, name)
+    if not learned:  # (nothing to write: the store is not touched, not even its lock — it may be read-only)
+        print(f"quatrack track: learned no new views (none seen from a new direction with a confident pose); "
+              f"{folder} unchanged", file=sys.stderr)
+        return
+    try:
+        folder, added, total = merge_learned(s.store, name, learned, s.model.mesh, s.tracker.params.learn_max_views,
+                                             s.tracker.params.learn_min_angle_deg, learned_on=s.tracker.model)
+    except OSError as exc:  # (a full disk, a read-only store: the poses are written, the views are not)
+        raise UserError(f"--learn: the {len(learned)} learned view(s) were not saved to {folder}: "
+                        f"{exc.strerror or exc}") from None
     if added:
         print(f"quatrack track: learned {added} new view(s) -> {folder} ({total} learned in all)", file=sys.stderr)
     else:
-        why = "none seen from a new direction with a confident pose" if not learned else "none new to the stored model"
-        print(f"quatrack track: learned no new views ({why}); {folder} unchanged", file=sys.stderr)
+        print(f"quatrack track: learned no new views (none new to the stored model); {folder} unchanged", file=sys.stderr)
 
 
 def _summary(steps, out: str) -> None:

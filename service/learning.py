@@ -35,7 +35,8 @@ def store_views(settings: Settings, name: str, tracker) -> int:
         return 0
     try:
         folder, added, total = merge_learned(settings.store, name, learned, tracker.model.mesh,
-                                             tracker.params.learn_max_views, tracker.params.learn_min_angle_deg)
+                                             tracker.params.learn_max_views, tracker.params.learn_min_angle_deg,
+                                             learned_on=tracker.model)
     except Exception as exc:  # the session is over: nothing to answer, only to log
         log.error("object %s: the %d view(s) a session learned were not stored: %s", name, len(learned), exc)
         return 0

@@ -239,6 +239,31 @@ def test_views_learned_on_another_mesh_are_refused(cube, run, tmp_path):
     assert not any(vs.learned for vs in S.load_model(store, NAME).viewsets)
 
 
+def test_views_learned_with_other_feature_settings_are_refused(cube, run, tmp_path):
+    # retrained meanwhile with RootSIFT (or other RFCH clusters): views described the old way
+    # would never match and their colours would be counted in the wrong clusters
+    store = tmp_path / "store"
+    S.save_model(store, cube.model)
+    manifest = json.loads(json.dumps(cube.model.manifest))
+    manifest["parameters"]["viewsets"]["root_sift"] = not manifest["parameters"]["viewsets"].get("root_sift", False)
+    other = dataclasses.replace(cube.model, manifest=manifest)
+    with pytest.raises(S.StoreError, match="other feature settings"):
+        L.merge_learned(store, NAME, run.learned, cube.model.mesh, learned_on=other)
+    assert not any(vs.learned for vs in S.load_model(store, NAME).viewsets)
+    L.merge_learned(store, NAME, run.learned, cube.model.mesh, learned_on=cube.model)  # (the same: kept)
+    assert any(vs.learned for vs in S.load_model(store, NAME).viewsets)
+
+
+def test_retraining_says_it_replaces_learned_views(cube, run, tmp_path, capsys):
+    store = tmp_path / "store"
+    S.save_model(store, cube.model)
+    _, added, _ = L.merge_learned(store, NAME, run.learned, cube.model.mesh)
+    assert added >= 1
+    spec = Z.write_spec(NAME, tmp_path / "spec", n_views=1, backgrounds=(clutter_background(4),))
+    assert main(["train", str(spec), "--store", str(store), "--novel-views", "none", "--novel-scales", "none"]) == 0
+    assert f"holds {added} view(s) learned while tracking; retraining replaces them" in capsys.readouterr().err
+
+
 # -- the command line -----------------------------------------------------------------------------
 
 def _cli_inputs(cube, tmp_path: Path, n: int) -> tuple[Path, list[str]]:
@@ -258,6 +283,15 @@ def _cli_inputs(cube, tmp_path: Path, n: int) -> tuple[Path, list[str]]:
     args = ["track", "--object", NAME, "--camera", str(cam), "--images", str(frames / "*.png"), "--store", str(store),
             "--init-pose", str(init), "--out", str(tmp_path / "poses.csv"), "--quiet", "--learn"]
     return store, args
+
+
+def test_cli_learn_with_nothing_learned_does_not_touch_the_store(cube, tmp_path, capsys):
+    # (a read-only store failed the run, after the whole track, on the lock it took for nothing)
+    store, args = _cli_inputs(cube, tmp_path, 3)
+    before = sorted(p.name for p in store.iterdir())
+    assert main(args) == 0
+    assert "learned no new views" in capsys.readouterr().err
+    assert sorted(p.name for p in store.iterdir()) == before  # no lock file, nothing written
 
 
 def test_cli_learn_stores_the_views_into_the_model(cube, tmp_path, capsys):

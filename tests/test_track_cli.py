@@ -194,3 +194,25 @@ def test_two_outputs_on_one_file_and_a_folder_as_output_are_refused(tmp_path, ca
     assert _track(tmp_path, *video, "--out", str(folder)) == 2
     assert "is a folder" in capsys.readouterr().err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["poses.csv"]  # nothing tracked, nothing written
+
+
+def test_sigterm_ends_a_run_as_ctrl_c_does(monkeypatch, tmp_path, capsys):
+    # timeout, docker stop and systemd send SIGTERM: the process died at once, the learned views
+    # were lost and a temporary output was left beside the output
+    import os
+    import signal
+
+    class Terminated(LoopedCamera):
+        def read(self):
+            if self.k >= 4 or len(self.frames) >= 5:  # SIGTERM arrives at the 6th frame
+                os.kill(os.getpid(), signal.SIGTERM)
+            return super().read()
+
+    monkeypatch.setattr(trackio, "open_capture", Terminated)
+    out = tmp_path / "poses.csv"
+    before = signal.getsignal(signal.SIGTERM)
+    rc = _track(tmp_path, "--video", "0", "--out", str(out))
+    err = capsys.readouterr().err
+    assert rc == 0 and "stopped (Ctrl-C) after" in err, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["poses.csv"]  # complete, no temporary left
+    assert signal.getsignal(signal.SIGTERM) is before  # (the handler is the caller's again)

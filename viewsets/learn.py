@@ -211,12 +211,15 @@ def store_lock(store: str | Path, name: str):
 
 
 def merge_learned(store: str | Path, name: str, viewsets, mesh: Mesh | None = None, max_learned: int = MAX_LEARNED,
-                  min_angle_deg: float = MIN_ANGLE_DEG) -> tuple[Path, int, int]:
+                  min_angle_deg: float = MIN_ANGLE_DEG, learned_on: ObjectModel | None = None) -> tuple[Path, int, int]:
     """Merge ``viewsets`` into the *stored* model ``name`` (re-read under :func:`store_lock`, so a
     concurrent writer's views are kept) and write it atomically. Returns ``(folder, views added,
     learned views in the model)``; nothing is written when none is new. Raises
     :class:`StoreError` if the object is missing or its mesh is not ``mesh``, the one they were
-    learned on (the object was retrained on another mesh meanwhile)."""
+    learned on (the object was retrained on another mesh meanwhile), or — given ``learned_on``,
+    the model the tracker ran — if the stored model describes its views otherwise (its SIFT
+    settings, e.g. RootSIFT, or its RFCH colour clusters differ: retrained meanwhile; such views
+    would never match, and their colours would be counted in the wrong clusters)."""
     viewsets = list(viewsets)
     with store_lock(store, name):
         model = load_model(store, name)
@@ -226,6 +229,9 @@ def merge_learned(store: str | Path, name: str, viewsets, mesh: Mesh | None = No
         if viewsets and mesh is not None and not (same_mesh(mesh, model.mesh) or same_mesh(mesh, model.mesh.run_time)):
             raise StoreError(f"object {name!r} in {store} has another mesh than the views were learned on "
                              "(retrained meanwhile?); the learned views were not saved")
+        if viewsets and learned_on is not None and not same_description(learned_on, model):
+            raise StoreError(f"object {name!r} in {store} was retrained with other feature settings than the views "
+                             "were learned with (SIFT or RFCH); the learned views were not saved")
         if not viewsets:
             return folder, 0, sum(vs.learned for vs in model.viewsets)
         merged = with_learned(model, viewsets, max_learned, min_angle_deg)
@@ -241,6 +247,15 @@ def save_learned(store: str | Path, name: str, viewsets, mesh: Mesh | None = Non
     return merge_learned(store, name, viewsets, mesh)[0]
 
 
+def same_description(a: ObjectModel, b: ObjectModel) -> bool:
+    """The same SIFT settings (the manifests' viewset parameters) and the same RFCH clusters: views
+    described for one are views of the other."""
+    from .viewset import params_from_manifest
+
+    return params_from_manifest(a.manifest) == params_from_manifest(b.manifest) \
+        and np.array_equal(a.rfch.centres, b.rfch.centres)
+
+
 def same_mesh(a: Mesh, b: Mesh) -> bool:
     """The same vertices and faces (learned 3-D points only make sense on their own mesh)."""
     return a.vertices.shape == b.vertices.shape and a.faces.shape == b.faces.shape \
@@ -248,4 +263,5 @@ def same_mesh(a: Mesh, b: Mesh) -> bool:
 
 
 __all__ = ["MAX_LEARNED", "MIN_ANGLE_DEG", "MIN_COS", "view_angles_deg", "is_new_direction",
-           "learned_viewset", "with_learned", "merge_learned", "save_learned", "store_lock", "same_mesh"]
+           "learned_viewset", "with_learned", "merge_learned", "save_learned", "store_lock", "same_mesh",
+           "same_description"]
