@@ -481,7 +481,9 @@ def _run_models(args: argparse.Namespace) -> int:
                 print(f"{name}\tBROKEN\t{exc}")
                 continue
             s = m.get("training_summary", {})
-            print(f"{name}\t{s.get('viewsets', '?')} viewsets\t{s.get('points3d_total', '?')} points\t{m.get('created', '?')}")
+            learned = f" (+{m['learned_viewsets']} learned)" if m.get("learned_viewsets") else ""  # (tracking's, not training's)
+            print(f"{name}\t{s.get('viewsets', '?')} viewsets{learned}\t{s.get('points3d_total', '?')} points\t"
+                  f"{m.get('created', '?')}")
         return 0
     if args.action == "show":
         print(json.dumps(load_manifest(store, args.name), indent=1))

@@ -120,7 +120,8 @@ async def list_objects(state: State) -> ObjectList:
             s = m.get("training_summary")
             s = s if isinstance(s, dict) else {}
             item = ObjectSummary(name=name, created=m.get("created"), viewsets=s.get("viewsets"),
-                                 points3d=s.get("points3d_total"), loaded=name in loaded, error=failed.get(name))
+                                 points3d=s.get("points3d_total"), learned_viewsets=int(m.get("learned_viewsets") or 0),
+                                 loaded=name in loaded, error=failed.get(name))
         except (ApiError, ValidationError) as exc:  # a manifest nobody can read: listed as broken
             item = ObjectSummary(name=name, loaded=name in loaded,
                                  error=failed.get(name) or getattr(exc, "message", f"object {name!r}: unreadable manifest"))

@@ -121,8 +121,9 @@ class LocateOut(BaseModel):
 class ObjectSummary(BaseModel):
     name: str
     created: str | None = None
-    viewsets: int | None = None
+    viewsets: int | None = Field(None, description="viewsets made by training")
     points3d: int | None = None
+    learned_viewsets: int = Field(0, description="viewsets learned while tracking since (track --learn, the service)")
     loaded: bool = Field(description="already in memory (first request needs no loading)")
     error: str | None = Field(None, description="why the model cannot be loaded (corrupt files): requests for it get 503")
 

@@ -254,6 +254,15 @@ def test_views_learned_with_other_feature_settings_are_refused(cube, run, tmp_pa
     assert any(vs.learned for vs in S.load_model(store, NAME).viewsets)
 
 
+def test_models_list_counts_the_learned_views(cube, run, tmp_path, capsys):
+    store = tmp_path / "store"
+    S.save_model(store, cube.model)
+    _, added, _ = L.merge_learned(store, NAME, run.learned, cube.model.mesh)
+    assert main(["models", "list", "--store", str(store)]) == 0
+    line = capsys.readouterr().out.strip()
+    assert f"{len(cube.model.viewsets)} viewsets (+{added} learned)\t" in line, line
+
+
 def test_retraining_says_it_replaces_learned_views(cube, run, tmp_path, capsys):
     store = tmp_path / "store"
     S.save_model(store, cube.model)
