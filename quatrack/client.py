@@ -22,6 +22,7 @@ frames it cannot keep up with (``quatrack demo --fps`` and ``quatrack bench serv
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import math
 import os
@@ -107,17 +108,20 @@ def _error_of(status: int, body: bytes | str) -> QuatrackError:
         return QuatrackError("http_error", text.strip()[:200] or f"HTTP {status}", status)
 
 
-def _stream_error(exc: BaseException, url: str, timeout: float) -> QuatrackError | None:
-    """A stream's failure after the handshake, as a QuatrackError: ``"closed"`` (the connection
-    lost), ``"timeout"`` (no answer within ``timeout``); None for any other exception."""
+@contextlib.contextmanager
+def _typed_stream_errors(url: str, timeout: float) -> Iterator[None]:
+    """A stream's failures after the handshake raised as QuatrackError: ``"closed"`` (the
+    connection lost), ``"timeout"`` (no answer within ``timeout``); any other exception as it is.
+    (A plain context manager: it wraps the blocking and the asyncio streams alike.)"""
     from websockets.exceptions import ConnectionClosed
 
-    if isinstance(exc, ConnectionClosed):
+    try:
+        yield
+    except ConnectionClosed as exc:
         why = f" ({exc.rcvd.code} {exc.rcvd.reason})".rstrip() if exc.rcvd is not None else ""
-        return QuatrackError("closed", f"{url}: the connection was closed{why}")
-    if isinstance(exc, TimeoutError):
-        return QuatrackError("timeout", f"{url}: no answer within {timeout:g} s")
-    return None
+        raise QuatrackError("closed", f"{url}: the connection was closed{why}") from None
+    except TimeoutError:
+        raise QuatrackError("timeout", f"{url}: no answer within {timeout:g} s") from None
 
 
 def _ws_error(exc: BaseException) -> QuatrackError:
@@ -163,9 +167,6 @@ class _Endpoint:
             # (connected, then no answer in time: a slow server, not an absent one)
             return QuatrackError("timeout", f"{self.http_url}: no answer within {self.timeout:g} s")
         return QuatrackError("unreachable", f"{self.http_url}: {exc}")
-
-    def _stream_error(self, exc: BaseException) -> QuatrackError | None:
-        return _stream_error(exc, self.ws_url, self.timeout)
 
     @staticmethod
     def _answer(r):
@@ -259,22 +260,16 @@ class Client(_Endpoint):
             ws = connect(url, additional_headers=self._headers or None, max_size=None, open_timeout=self.timeout)
         except Exception as exc:  # refused handshake or no server: typed, with the server's code
             raise _ws_error(exc) from None
-        with ws:
-            try:
-                ws.send(self._hello(camera))
-                self._expect(json.loads(ws.recv(self.timeout)), "ready")
-                for item in frames:
-                    header, data = self._frame_parts(item)
-                    if header is not None:
-                        ws.send(header)
-                    ws.send(data)
-                    msg = json.loads(ws.recv(self.timeout))
-                    yield TrackMessage.model_validate(self._expect(msg, "pose"))
-            except Exception as exc:  # (the server gone, or silent: typed as the other errors are)
-                typed = self._stream_error(exc)
-                if typed is None:
-                    raise
-                raise typed from None
+        with ws, _typed_stream_errors(self.ws_url, self.timeout):  # (the server gone, or silent)
+            ws.send(self._hello(camera))
+            self._expect(json.loads(ws.recv(self.timeout)), "ready")
+            for item in frames:
+                header, data = self._frame_parts(item)
+                if header is not None:
+                    ws.send(header)
+                ws.send(data)
+                msg = json.loads(ws.recv(self.timeout))
+                yield TrackMessage.model_validate(self._expect(msg, "pose"))
 
     def close(self) -> None:
         self._http.close()
@@ -332,7 +327,7 @@ class AsyncClient(_Endpoint):
                     yield item
 
         async with ws:
-            try:
+            with _typed_stream_errors(self.ws_url, self.timeout):  # (the server gone, or silent)
                 await ws.send(self._hello(camera))
                 self._expect(json.loads(await asyncio.wait_for(ws.recv(), self.timeout)), "ready")
                 async for item in items():
@@ -342,11 +337,6 @@ class AsyncClient(_Endpoint):
                     await ws.send(data)
                     msg = json.loads(await asyncio.wait_for(ws.recv(), self.timeout))
                     yield TrackMessage.model_validate(self._expect(msg, "pose"))
-            except Exception as exc:  # (the server gone, or silent: typed as the other errors are)
-                typed = self._stream_error(exc)
-                if typed is None:
-                    raise
-                raise typed from None
 
     async def aclose(self) -> None:
         await self._http.aclose()
@@ -476,7 +466,7 @@ async def stream(url: str, camera: Any, frames: Iterable[tuple[int, float, bytes
             res.local_port = int(ws.local_address[1])
         except (AttributeError, IndexError, TypeError, ValueError):
             pass
-        try:
+        with _typed_stream_errors(url, timeout):  # (the server gone, or silent)
             await ws.send(json.dumps(hello))  # (with "ack": the "ready" handshake)
             Client._expect(json.loads(await asyncio.wait_for(ws.recv(), timeout)), "ready")
             s = _Session(ws, res, on_answer)
@@ -484,11 +474,7 @@ async def stream(url: str, camera: Any, frames: Iterable[tuple[int, float, bytes
                 await _lockstep(s, frames, timeout)
             else:
                 await _realtime(s, frames, fps, timeout)
-        except Exception as exc:  # (the server gone, or silent: typed as the other errors are)
-            typed = _stream_error(exc, url, timeout)
-            if typed is None:
-                raise
-            raise typed from None
+
     res.wall_s = time.perf_counter() - t_start
     return res
 
