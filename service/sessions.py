@@ -29,6 +29,7 @@ from starlette.websockets import WebSocket, WebSocketDisconnect, WebSocketState
 from quatrack.recognition.images import ImageError
 from quatrack.recognition.trackio import step_message
 from quatrack.recognition.match import ModelIndex
+from quatrack.recognition.video import TrackStep
 from quatrack.viewsets.store import ObjectModel
 from quatrack.viewsets.errors import SpecError
 from quatrack.viewsets.spec import parse_pose
@@ -339,11 +340,10 @@ class TrackSession:
         with self.mailbox:
             early = [d for d in self.dropped if d.number < before]
             self.dropped = [d for d in self.dropped if d.number >= before]
+        why = "not tracked: a newer frame arrived before this one's turn (the newest is tracked)"
         for d in early:
-            msg = {"type": "pose", "frame": d.number, "time_s": d.time_s, "status": "lost", "pose": None,
-                   "velocity": None, "covariance": None, "inliers": 0, "dropped": True, "skipped": 0,
-                   "reason": "not tracked: a newer frame arrived before this one's turn (the newest is tracked)",
-                   "timings_ms": {}, "latency_ms": round((time.perf_counter() - d.arrival) * 1e3, 2)}
+            msg = {**_message(d, TrackStep(d.number, d.time_s, "lost", reason=why)), "dropped": True, "skipped": 0,
+                   "latency_ms": round((time.perf_counter() - d.arrival) * 1e3, 2)}
             await self.send(add_to_track_message(msg, self.ros_unit))
 
     def _process_newest(self) -> tuple[_PendingFrame, int, dict | _SessionError] | None:
