@@ -46,6 +46,10 @@ class CameraIn(BaseModel):
     cx: float
     cy: float
     dist_coeffs: list[float] | None = None
+    # (WebSocket) the intrinsics are a guess, not a calibration (the viewer's 60° field of view
+    # when none is pasted): the session learns no views from it (QUATRACK_LEARN_VIEWS), since
+    # views lifted with wrong intrinsics would teach the stored model wrong 3-D points
+    guessed: bool = False
     model_config = ConfigDict(extra="ignore", json_schema_extra={"examples": [CAMERA_EXAMPLE]})
 
     @field_validator("fx", "fy", "cx", "cy", "width", "height", mode="before")
@@ -54,6 +58,13 @@ class CameraIn(BaseModel):
         """JSON numbers only: pydantic's lax mode would take ``true`` as 1 and ``"600"`` as 600."""
         if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float))):
             raise ValueError(f"must be a number, got {type(v).__name__}")
+        return v
+
+    @field_validator("guessed", mode="before")
+    @classmethod
+    def _a_bool(cls, v):
+        if not isinstance(v, bool):
+            raise ValueError(f"expected true or false, got {repr(v)[:40]}")
         return v
 
     @field_validator("dist_coeffs", mode="before")
@@ -72,7 +83,7 @@ class CameraIn(BaseModel):
 
     def to_camera(self, image_size: tuple[int, int] | None = None) -> PinholeCamera:
         """The project's camera; the image's (width, height) fills a missing size."""
-        data = self.model_dump()
+        data = self.model_dump(exclude={"guessed"})
         if data["width"] is None or data["height"] is None:
             if image_size is None:
                 raise ApiError(422, "bad_camera", "camera: width and height are required")

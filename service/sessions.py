@@ -303,7 +303,12 @@ class TrackSession:
         self._control(("camera", cam))
         if ack:
             await self.send({"type": "ready", "session": self.sid, "object": self.name, "tracker": TRACKER_KIND,
-                             "camera_replaced": not first})
+                             "camera_replaced": not first, "learns": self._learns(cam)})
+
+    def _learns(self, camera: CameraIn) -> bool:
+        """Whether this session's tracker learns views: its object learns (QUATRACK_LEARN_VIEWS)
+        and the camera is a calibration, not a guess (``guessed``)."""
+        return learns(self.settings, self.name) and not camera.guessed
 
     # --- processing -------------------------------------------------------------------------------
     async def _process_loop(self) -> None:
@@ -386,7 +391,7 @@ class TrackSession:
             except ApiError as exc:  # a camera without a size, implausible for this frame's
                 raise _SessionError(exc.code, exc.message) from None
             self.tracker = make_tracker(model, camera, index, self.settings.locate_max_pixels, self.executor,
-                                        learn=learns(self.settings, self.name), sources=self.settings.tracker_sources,
+                                        learn=self._learns(cam_in), sources=self.settings.tracker_sources,
                                         relocate_interval_s=self.settings.relocate_interval_s)
             self.tracker_camera = cam_in.model_copy(update={"width": w, "height": h})
         for op in item.controls:

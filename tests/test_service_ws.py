@@ -424,3 +424,25 @@ def test_frames_without_a_time_continue_from_a_client_time(server, frames):
             ws.send(f)
             times.append(recv(ws)["time_s"])
     assert times[0] == 100.0 and times[1] - times[0] > 0.2 and times[2] - times[1] > 0.2, times
+
+
+def test_a_guessed_camera_teaches_the_model_nothing(store):
+    """QUATRACK_LEARN_VIEWS on: a session whose camera is a calibration learns views; one whose
+    camera says ``"guessed": true`` (the viewer's 60° field of view when none is pasted) does
+    not — views lifted with wrong intrinsics would put wrong 3-D points into the stored model.
+    ``ready`` says which; a non-boolean ``guessed`` is a ``bad_camera`` error."""
+    with BackgroundServer(Settings(store=store, learn_views=("*",), max_sessions=2)) as srv:
+        url = f"{srv.ws_url}/v1/objects/cookie-box/track"
+        with connect(url, open_timeout=20) as ws:
+            ws.send(CAM_ACK)
+            assert recv(ws)["learns"] is True
+            ws.send(json.dumps({**CAMERA, "ack": True, "guessed": True}))
+            ready = recv(ws)
+            assert ready["type"] == "ready" and ready["camera_replaced"] and ready["learns"] is False, ready
+            ws.send(json.dumps({**CAMERA, "ack": True, "guessed": "yes"}))
+            err = recv(ws)
+            assert err["type"] == "error" and err["error"]["code"] == "bad_camera" and "guessed" in err["error"]["message"]
+    with BackgroundServer(Settings(store=store, max_sessions=1)) as srv:  # learning off: a calibration learns nothing either
+        with open_session(srv) as ws:
+            ws.send(CAM_ACK)
+            assert recv(ws)["learns"] is False

@@ -171,7 +171,7 @@ function cameraFor(w, h) {
     }
   } else {
     const f = 0.5 * w / Math.tan(30 * Math.PI / 180);
-    cam = { fx: f, fy: f, cx: w / 2, cy: h / 2 };
+    cam = { fx: f, fy: f, cx: w / 2, cy: h / 2, guessed: true };  // (the service learns no views from a guess)
   }
   return { ...cam, width: w, height: h };
 }
