@@ -8,6 +8,8 @@ with its traceback and answered as a 500 *without* details — bad input never g
 
 from __future__ import annotations
 
+import functools
+import inspect
 import logging
 
 from fastapi import FastAPI, Request
@@ -45,15 +47,20 @@ async def _on_http(request: Request, exc: StarletteHTTPException) -> JSONRespons
     return _json(exc.status_code, code, message, getattr(exc, "headers", None))
 
 
-# the pose endpoints' camera query parameters: a value of the wrong type there is a bad camera
-_CAMERA_QUERY = frozenset({"fx", "fy", "cx", "cy", "width", "height", "dist"})
+@functools.cache
+def _camera_query() -> frozenset[str]:
+    """The pose endpoints' camera query parameters (:func:`.routes.camera_query`'s, read from its
+    signature: one list): a value of the wrong type there is a bad camera."""
+    from .routes import camera_query  # (routes imports this module: imported when first needed)
+
+    return frozenset(inspect.signature(camera_query).parameters)
 
 
 async def _on_validation(request: Request, exc: RequestValidationError) -> JSONResponse:
     parts, camera = [], True
     for e in exc.errors():
         loc = tuple(e.get("loc", ()))
-        camera &= len(loc) == 2 and loc[0] == "query" and loc[1] in _CAMERA_QUERY
+        camera &= len(loc) == 2 and loc[0] == "query" and loc[1] in _camera_query()
         if len(parts) < 5:
             where = ".".join(str(x) for x in loc if x != "body") or "request"
             parts.append(f"{where}: {e.get('msg', 'invalid')}")
