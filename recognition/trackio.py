@@ -21,6 +21,8 @@ hold everywhere:
   (``scene_id,im_id,obj_id,score,R,t,time``) and ROS ``geometry_msgs/PoseWithCovarianceStamped``.
 - **Files** are written atomically (:func:`atomic_path`): to a temporary file beside the target,
   renamed into place only when complete, so an error or Ctrl-C never leaves half a file.
+  A target that exists and is not a regular file (``/dev/null``, ``/dev/stdout``, a FIFO) is
+  written in place.
 - A **progress line** (:class:`Progress`) on stderr when it is a terminal, silent otherwise.
 """
 
@@ -465,10 +467,15 @@ def check_outputs(inputs: Sequence[tuple[str, str]], outputs: Sequence[tuple[str
 def atomic_path(target: str | os.PathLike, option: str = "") -> Iterator[str]:
     """A temporary path beside ``target`` (same folder, so the rename is atomic) that becomes
     ``target`` when the block ends normally, and is deleted if it raises. Permissions follow the
-    umask (``mkstemp``'s 0600 would survive the rename)."""
+    umask (``mkstemp``'s 0600 would survive the rename). A target that exists and is neither a
+    regular file nor a folder (``/dev/null``, ``/dev/stdout``, a FIFO) is yielded as it is and
+    written in place: renaming onto it replaced the device with a regular file."""
     target = os.fspath(target)
     folder = os.path.dirname(os.path.abspath(target))
     name = f"{option} {target}" if option else target
+    if os.path.exists(target) and not os.path.isfile(target) and not os.path.isdir(target):
+        yield target
+        return
     if not os.path.isdir(folder):
         raise SourceError(f"{name}: the folder {folder} does not exist")
     suffix = os.path.splitext(target)[1]

@@ -206,6 +206,18 @@ def test_atomic_path_renames_only_on_success(tmp_path):
             pass
 
 
+def test_atomic_path_writes_a_device_or_fifo_in_place(tmp_path):
+    # `track --out /dev/null` (only the overlay wanted) replaced /dev/null with a regular file
+    # when run as root: the rename of the temporary file went onto the device
+    import stat
+
+    fifo = tmp_path / "poses.fifo"
+    os.mkfifo(fifo)
+    with trackio.atomic_path(fifo, "--out") as tmp:
+        assert tmp == str(fifo)
+    assert stat.S_ISFIFO(os.stat(fifo).st_mode) and sorted(p.name for p in tmp_path.iterdir()) == ["poses.fifo"]
+
+
 def test_progress_line_only_on_a_terminal():
     class Tty(io.StringIO):
         def isatty(self):
