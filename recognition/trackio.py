@@ -476,6 +476,8 @@ def atomic_path(target: str | os.PathLike, option: str = "") -> Iterator[str]:
     if os.path.exists(target) and not os.path.isfile(target) and not os.path.isdir(target):
         yield target
         return
+    if not os.path.basename(target):  # ("" or "new/": the rename at the end failed, after the whole run)
+        raise SourceError(f"{name}: give a file name, not a folder")
     if not os.path.isdir(folder):
         raise SourceError(f"{name}: the folder {folder} does not exist")
     suffix = os.path.splitext(target)[1]

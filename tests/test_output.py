@@ -204,6 +204,10 @@ def test_atomic_path_renames_only_on_success(tmp_path):
     with pytest.raises(trackio.SourceError, match="does not exist"):
         with trackio.atomic_path(tmp_path / "nowhere" / "x.csv"):
             pass
+    for name in ("", str(tmp_path / "new") + os.sep):  # (failed at the rename, after the whole run)
+        with pytest.raises(trackio.SourceError, match="give a file name"):
+            with trackio.atomic_path(name, "--out"):
+                pass
 
 
 def test_atomic_path_writes_a_device_or_fifo_in_place(tmp_path):
