@@ -225,6 +225,12 @@ def run(args: argparse.Namespace) -> int:
     """Stream a video through the WebSocket; write the poses (CSV), an overlay video and a plot."""
     plan = _check(args)
     res, times = _stream_video(plan, args)
+    if res.errors:  # (a camera of another size than the video's frames: every frame refused, exit 0, no word why)
+        first = res.errors[0].get("error") or {}
+        why = f"{first.get('message') or first.get('code') or res.errors[0]}"
+        if not res.poses:
+            raise ValueError(f"the server refused every frame of --video {plan.video}: {why}")
+        print(f"demo: the server refused {len(res.errors)} frame(s), written as lost; the first: {why}", file=sys.stderr)
     steps = _write_outputs(plan, args, res, times)
     counts = {k: sum(s.status == k for s in steps if s.reason != "no answer") for k in ("tracking", "init", "lost")}
     written = ", ".join(p for p in plan.outputs.values() if p)
