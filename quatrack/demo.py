@@ -115,6 +115,10 @@ def _check(args: argparse.Namespace) -> _Plan:
                "plot": _output(out_dir, args.plot, ".png", "--plot")}
     if outputs["csv"] is None:
         raise ValueError("--out: a CSV file name is required")
+    for opt, key in (("--out", "csv"), ("--overlay", "overlay"), ("--plot", "plot")):
+        folder = Path(outputs[key]).parent if outputs[key] else out_dir
+        if folder != out_dir and not folder.is_dir():  # (found after the whole stream, when writing)
+            raise ValueError(f"{opt} {getattr(args, opt[2:])}: the folder {folder} does not exist")
     from quatrack.recognition.trackio import check_outputs
 
     check_outputs([("--video", video), ("--camera", camera_file), ("--mesh", args.mesh)],

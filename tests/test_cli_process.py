@@ -82,6 +82,18 @@ def test_demo_refuses_an_overlay_on_its_input_video(tmp_path, capsys):
     assert video.read_bytes() == before and not (tmp_path / "out").exists()
 
 
+def test_demo_refuses_an_output_in_a_missing_folder_before_streaming(tmp_path, capsys):
+    # `--out sub/poses.csv`: the whole video was streamed (a server started) before the write failed
+    from quatrack.cli import main
+    from quatrack.testing.scenes import EXAMPLE
+
+    rc = main(["demo", "--url", "http://127.0.0.1:9", "--camera", str(EXAMPLE / "camera.json"),
+               "--out-dir", str(tmp_path / "out"), "--out", "sub/poses.csv", "--quiet"])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and err.startswith("quatrack demo: error: --out sub/poses.csv: the folder") and "\n" not in err, err
+    assert "does not exist" in err and "no server answers" not in err and not (tmp_path / "out").exists()
+
+
 def test_library_inputs_of_the_wrong_kind_say_what_is_expected():
     import numpy as np
 
