@@ -74,7 +74,15 @@ def open_capture(target: int | str):
     import cv2
 
     quiet_ffmpeg()
-    return cv2.VideoCapture(target)
+    # (a camera index or URL it cannot open made OpenCV print "[ WARN:0@0.5] global cap_v4l.cpp:914
+    # open VIDEOIO(V4L2:/dev/video7): can't open camera by index" and more above the one-line error)
+    log = cv2.utils.logging
+    previous = log.getLogLevel()
+    log.setLogLevel(min(previous, log.LOG_LEVEL_ERROR))
+    try:
+        return cv2.VideoCapture(target)
+    finally:
+        log.setLogLevel(previous)
 
 
 def frame_rate(given: float | None, reported: float | None = None) -> float:

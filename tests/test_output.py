@@ -68,6 +68,19 @@ def test_bad_sources_are_one_line_errors(tmp_path, monkeypatch, video, message):
         trackio.open_frames(video=str(tmp_path / video) if video.endswith(".mp4") else video)
 
 
+def test_a_camera_that_cannot_be_opened_is_one_line_without_opencv_warnings(tmp_path):
+    # `track --video 7` without such a camera: OpenCV's "[ WARN:0@0.5] global cap_v4l.cpp ... can't
+    # open camera by index" lines came on stderr before the error
+    import subprocess
+    import sys
+
+    script = ("from quatrack.recognition import trackio\n"
+              "try:\n    trackio.open_frames(video='97')\n"
+              "except trackio.SourceError as exc:\n    print(exc)\n")
+    p = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60, cwd=tmp_path)
+    assert p.stdout.strip() == "--video 97: cannot be opened as a camera" and "WARN" not in p.stderr, p.stderr
+
+
 class LoopedCamera:
     """A stand-in for a camera: ``cv2.VideoCapture(0)`` needs a device, so the frames of
     box.mp4 are served in a loop, endlessly, as a camera would; it records what it was opened on."""
