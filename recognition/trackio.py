@@ -208,6 +208,10 @@ def open_frames(video: str | None = None, images: str | Sequence[str] | None = N
         paths = list(dict.fromkeys(paths))  # each file once, first place kept
         label = " ".join(repr(p) for p in patterns[:2]) + (f" … ({len(patterns)} in all)" if len(patterns) > 2 else "")
         if not paths:
+            folder = next((p for p in patterns if os.path.isdir(os.path.expanduser(p))), None)
+            if folder is not None:  # (was "no file matches" for a folder full of frames)
+                raise SourceError(f"--images {folder}: is a folder; give a glob of its images, "
+                                  f"e.g. {os.path.join(folder, '*.png')!r}")
             raise SourceError(f"--images {label}: no file matches")
 
         def frames() -> Iterator[np.ndarray | ImageError]:

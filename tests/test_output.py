@@ -52,6 +52,8 @@ def test_images_sorted_by_name(tmp_path):
     assert [int(img[0, 0, 0]) for _, _, img in got] == [1, 2, 10]
     assert [t for _, t, _ in got] == [0.0, 0.1, 0.2]
     assert src.where(2).endswith("f10.png")
+    with pytest.raises(trackio.SourceError, match="is a folder; give a glob of its images, e.g. '.*\\*.png'"):
+        trackio.open_frames(images=str(tmp_path))  # (was "no file matches")
 
 
 @pytest.mark.parametrize("video, message", [("missing.mp4", "no such file"), ("7", "cannot be opened as a camera")])
