@@ -188,13 +188,25 @@ def _track_frames(s: _Setup, rows, video, progress) -> tuple[list, bool]:
             done += 1
             emit(s.tracker.skip(t, f"the frame cannot be read: {why}"), last)
 
+    from quatrack.recognition.images import ImageError
+
+    stepped = False  # a frame of the sequence fitted the camera
     try:
         for i, t, image in s.source:
             skipped_until(i)
             try:
                 step = s.tracker.step(image, t)
+            except ImageError as exc:
+                if not (s.source.names and stepped):  # (a video, or the camera wrong for the first frame already)
+                    raise UserError(f"{s.source.where(i)}: {exc}") from None
+                # one image of another size among thousands (a stray thumbnail) ended the run with nothing
+                # written: it is skipped as an unreadable one is
+                s.source.skipped.append((i, t, f"{s.source.where(i)}: {exc}"))
+                skipped_until(i + 1)
+                continue
             except ValueError as exc:
                 raise UserError(f"{s.source.where(i)}: {exc}") from None
+            stepped = True
             last = to_bgr8(image) if video is not None else None
             emit(step, last)
         skipped_until(None)

@@ -162,6 +162,28 @@ def test_an_unreadable_image_in_a_sequence_is_a_lost_row_and_the_track_goes_on(t
     cap.release()
 
 
+def test_an_image_of_another_size_in_a_sequence_is_a_lost_row_and_the_track_goes_on(tmp_path, capsys):
+    """A stray image of another size in the middle of a sequence ended the run (exit 2, nothing
+    written); it is now skipped as an unreadable one is. The camera wrong for the first frame
+    stays a one-line error at once."""
+    import cv2
+
+    frames = _box_frames(5)
+    for k, frame in enumerate(frames):
+        assert cv2.imwrite(str(tmp_path / f"{k:04d}.png"), cv2.resize(frame, (320, 240)) if k == 2 else frame)
+    out = tmp_path / "poses.csv"
+    assert _track(tmp_path, "--images", str(tmp_path / "*.png"), "--out", str(out)) == 0
+    err = capsys.readouterr().err
+    rows = list(csv.reader(out.open()))[1:]
+    assert [int(r[0]) for r in rows] == list(range(5)) and [r[2] for r in rows][2:] == ["lost", "tracking", "tracking"]
+    assert "frame 2 cannot be read" in err and "0002.png" in err and "320×240" in err
+    assert cv2.imwrite(str(tmp_path / "0000.png"), cv2.resize(frames[0], (320, 240)))
+    assert _track(tmp_path, "--images", str(tmp_path / "*.png"), "--out", str(tmp_path / "again.csv")) == 2
+    err = capsys.readouterr().err.strip()
+    assert "0000.png: the camera is for 640×480 px images but the frame is 320×240 px" in err and "\n" not in err
+    assert not (tmp_path / "again.csv").exists()
+
+
 def test_a_sequence_with_no_readable_image_is_a_one_line_error(tmp_path, capsys):
     for name in ("a.png", "b.png"):
         (tmp_path / name).write_text("not an image")
