@@ -111,6 +111,9 @@ def capture_target(video: str) -> int | str:
         return int(text)
     if "://" in text:
         return text
+    if os.path.isdir(text):  # (was "no such file": a folder of frames is --images)
+        raise SourceError(f"--video {video}: is a folder; for its images give --images "
+                          f"{os.path.join(video, '*.png')!r}")
     if not os.path.isfile(text):
         raise SourceError(f"--video {video}: no such file (give a file, a camera index such as 0, or a stream URL)")
     return text

@@ -56,7 +56,8 @@ def test_images_sorted_by_name(tmp_path):
         trackio.open_frames(images=str(tmp_path))  # (was "no file matches")
 
 
-@pytest.mark.parametrize("video, message", [("missing.mp4", "no such file"), ("7", "cannot be opened as a camera")])
+@pytest.mark.parametrize("video, message", [("missing.mp4", "no such file"), ("7", "cannot be opened as a camera"),
+                                            ("frames", "is a folder; for its images give --images '.*frames/\\*.png'")])
 def test_bad_sources_are_one_line_errors(tmp_path, monkeypatch, video, message):
     class Closed:
         def isOpened(self):
@@ -66,8 +67,9 @@ def test_bad_sources_are_one_line_errors(tmp_path, monkeypatch, video, message):
             pass
 
     monkeypatch.setattr(trackio, "open_capture", lambda target: Closed())
+    (tmp_path / "frames").mkdir()
     with pytest.raises(trackio.SourceError, match=message):
-        trackio.open_frames(video=str(tmp_path / video) if video.endswith(".mp4") else video)
+        trackio.open_frames(video=str(tmp_path / video) if not video.isdigit() else video)
 
 
 def test_a_camera_that_cannot_be_opened_is_one_line_without_opencv_warnings(tmp_path):
