@@ -169,6 +169,8 @@ def _track_frames(s: _Setup, rows, video, progress) -> tuple[list, bool]:
     edges = mesh_edges(s.model.mesh)
     steps = []
     last = None  # the overlay's latest frame read: an unreadable one's shows it again, marked lost
+    if video is not None and s.camera.width and s.camera.height:  # (before any: a black frame, so that
+        last = np.zeros((s.camera.height, s.camera.width, 3), np.uint8)  # overlay frame k stays row k)
 
     def emit(step, image) -> None:
         rows.write(step)
