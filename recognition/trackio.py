@@ -269,6 +269,13 @@ def _vec(x) -> list[float] | None:
     return None if x is None else [float(v) for v in np.asarray(x, float).ravel()]
 
 
+def _covariance6(cov) -> np.ndarray:
+    """The pose block (6×6) of a covariance, exactly symmetric: the filter's products leave it
+    asymmetric by ~1e-17, which a consumer's ``C == C.T`` check (or ROS's) refused."""
+    c = np.asarray(cov, float)[:6, :6]
+    return (c + c.T) / 2
+
+
 def step_message(step) -> dict:
     """The contract's per-frame JSON object (``"type": "pose"``) of a
     :class:`~recognition.video.TrackStep`: pose, velocity and 6×6 covariance are ``null`` when
@@ -283,7 +290,7 @@ def step_message(step) -> dict:
         "status": step.status,
         "pose": {"t": _vec(step.t), "q_wxyz": _vec(step.q_wxyz)} if has_pose else None,
         "velocity": {"v": _vec(v), "omega": _vec(omega)} if has_vel else None,
-        "covariance": [[float(x) for x in row] for row in np.asarray(cov, float)[:6, :6]]
+        "covariance": [[float(x) for x in row] for row in _covariance6(cov)]
         if has_pose and cov is not None else None,
         "inliers": int(getattr(step, "inliers", 0) or 0),
         "reason": getattr(step, "reason", None),
@@ -398,7 +405,7 @@ def ros_pose_with_covariance(step_or_msg, mesh_unit: str, frame_id: str = "camer
     w, x, y, z = (float(v) for v in np.ravel(step.q_wxyz))
     if step.covariance is not None:
         scale = np.array([s, s, s, 1.0, 1.0, 1.0])
-        cov = (np.asarray(step.covariance, float)[:6, :6] * np.outer(scale, scale)).ravel()
+        cov = (_covariance6(step.covariance) * np.outer(scale, scale)).ravel()
     else:
         cov = np.zeros(36)  # unknown; ROS says -1 in [0] means "unknown"
         cov[0] = -1.0

@@ -158,6 +158,17 @@ def test_message_round_trip_and_jsonl():
     assert (none.frame, none.status, none.t) == (9, "lost", None)
 
 
+def test_the_written_covariance_is_exactly_symmetric():
+    # the tracker's covariance is asymmetric by ~1e-17 (the filter's products): jsonl lines, the
+    # WebSocket message and the ROS message carried it so, and `C == C.T` failed
+    s = _step()
+    s.covariance = s.covariance + np.triu(np.full((6, 6), 1e-17), 1)
+    C = np.array(json.loads(trackio.jsonl_row(s))["covariance"])
+    assert np.array_equal(C, C.T) and np.allclose(C, s.covariance, rtol=0, atol=1e-16)
+    R = np.array(trackio.ros_pose_with_covariance(s, "m")["pose"]["covariance"]).reshape(6, 6)
+    assert np.array_equal(R, R.T)
+
+
 @pytest.mark.parametrize("unit, mm", [("mm", 1.0), ("cm", 10.0), ("m", 1000.0)])
 def test_bop_row_round_trip(unit, mm):
     s = _step(seed=5)
