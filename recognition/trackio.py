@@ -503,7 +503,10 @@ def atomic_path(target: str | os.PathLike, option: str = "") -> Iterator[str]:
     if not os.path.isdir(folder):
         raise SourceError(f"{name}: the folder {folder} does not exist")
     suffix = os.path.splitext(target)[1]
-    fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(target)}.", suffix=suffix, dir=folder)
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(target)}.", suffix=suffix, dir=folder)
+    except OSError as exc:  # (a read-only folder: the message named the temporary file, not the option)
+        raise SourceError(f"{name}: cannot write in {folder} ({exc.strerror or exc})") from None
     os.close(fd)
     umask = os.umask(0)
     os.umask(umask)

@@ -238,6 +238,21 @@ def test_atomic_path_renames_only_on_success(tmp_path):
                 pass
 
 
+def test_atomic_path_in_a_folder_that_cannot_be_written_names_the_option(tmp_path, monkeypatch):
+    # a read-only folder: "[Errno 13] Permission denied: '/ro/.x.csv.0nlka4m6.csv'" named the
+    # temporary file; the message now names the option, the target and the folder
+    import tempfile
+
+    def refuse(**kw):
+        raise PermissionError(13, "Permission denied", os.path.join(kw["dir"], ".x.csv.0nlka4m6.csv"))
+
+    monkeypatch.setattr(tempfile, "mkstemp", refuse)
+    with pytest.raises(trackio.SourceError) as err:
+        with trackio.atomic_path(tmp_path / "x.csv", "--out"):
+            pass
+    assert str(err.value) == f"--out {tmp_path / 'x.csv'}: cannot write in {tmp_path} (Permission denied)"
+
+
 def test_atomic_path_writes_a_device_or_fifo_in_place(tmp_path):
     # `track --out /dev/null` (only the overlay wanted) replaced /dev/null with a regular file
     # when run as root: the rename of the temporary file went onto the device
