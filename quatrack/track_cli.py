@@ -124,6 +124,7 @@ def _check_outputs(args: argparse.Namespace) -> None:
     from quatrack.recognition.trackio import check_outputs
 
     inputs = [("--video", args.video)] if args.video else []
+    inputs += [("--camera", args.camera), ("--init-pose", args.init_pose)]  # (--out on either replaced it)
     for pattern in ([args.images] if isinstance(args.images, str) else args.images or []):
         inputs += [("--images", f) for f in (glob.glob(pattern) if glob.has_magic(pattern) else [pattern])]
     check_outputs(inputs, [("--out", args.out), ("--overlay", args.overlay), ("--plot", args.plot)])

@@ -206,6 +206,24 @@ def test_an_output_that_is_the_input_is_refused_before_anything_is_written(tmp_p
     assert sorted(p.name for p in tmp_path.iterdir()) == [frame.name]
 
 
+@pytest.mark.parametrize("option", ["--camera", "--init-pose"])
+def test_an_output_on_the_camera_or_the_initial_pose_file_is_refused(tmp_path, capsys, option):
+    # `--out` given the calibration (or --init-pose) file replaced it with the poses, silently
+    import shutil
+
+    given = tmp_path / "given.json"
+    if option == "--camera":
+        shutil.copy(EXAMPLE / "camera.json", given)
+    else:
+        given.write_text(json.dumps({"q_wxyz": [1, 0, 0, 0], "t": [0, 0, 50]}))
+    before = given.read_bytes()
+    rc = _track(tmp_path, "--video", str(EXAMPLE / "box.mp4"), "--max-frames", "2", option, str(given),
+                "--out", str(given))
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and err.endswith("is the input; give another file name (it would be overwritten)"), err
+    assert given.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == ["given.json"]
+
+
 def test_two_outputs_on_one_file_and_a_folder_as_output_are_refused(tmp_path, capsys):
     video = ["--video", str(EXAMPLE / "box.mp4"), "--max-frames", "2"]
     same = tmp_path / "x.png"
