@@ -40,14 +40,17 @@ _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 
 def decode_image(data: bytes) -> np.ndarray:
-    """Decode JPEG/PNG/WebP/... bytes (any bit depth, any channels) to an array."""
+    """Decode JPEG/PNG/WebP/... bytes (any bit depth, grey or colour; an alpha channel is dropped)
+    to an array, turned upright by its EXIF orientation as training's ``cv2.imread`` turns the
+    photos (``IMREAD_UNCHANGED`` ignored it: a phone's portrait photo came sideways, so the
+    camera of its registration did not fit it)."""
     if not data:
         raise ImageError("the image is empty (0 bytes)")
     if data[:8] == _PNG_SIGNATURE and data.rfind(b"IEND") < 0:
         # (libpng would say "PNG input buffer is incomplete" on stderr, beside this message)
         raise ImageError("the image cannot be decoded (a PNG without its end: truncated)")
     buf = np.frombuffer(data, dtype=np.uint8)
-    img = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED)
+    img = cv2.imdecode(buf, cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR)
     if img is None or img.size == 0:
         raise ImageError("the image cannot be decoded (not an image, or truncated)")
     return img

@@ -113,6 +113,28 @@ def test_undecodable_images_are_refused(make, message):
         decode_image(make())
 
 
+def test_a_jpeg_is_read_upright_by_its_exif_orientation_as_training_reads_it(tmp_path):
+    # a phone's portrait photo (EXIF Orientation 6): training's cv2.imread turns it upright,
+    # locate/track read it sideways, and the camera of its registration did not fit it
+    import struct
+
+    from quatrack.recognition.images import read_image, to_bgr8
+
+    image = np.zeros((48, 64, 3), np.uint8)
+    image[:8, :8] = 255  # (a mark in the top left corner)
+    jpg = cv2.imencode(".jpg", image)[1].tobytes()
+    tiff = b"MM\x00\x2a" + struct.pack(">IH", 8, 1) + struct.pack(">HHII", 0x0112, 3, 1, 6 << 16) + struct.pack(">I", 0)
+    data = jpg[:2] + b"\xff\xe1" + struct.pack(">H", 8 + len(tiff)) + b"Exif\x00\x00" + tiff + jpg[2:]
+    path = str(tmp_path / "portrait.jpg")
+    open(path, "wb").write(data)
+    upright = cv2.imread(path)
+    assert upright.shape == (64, 48, 3)  # (what training sees)
+    got = decode_image(data)
+    assert got.shape == upright.shape and read_image(path).shape == upright.shape
+    for keep in (np.full((20, 30), 7, np.uint16), np.full((20, 30, 4), 9, np.uint8)):  # 16-bit, BGRA: as before
+        assert np.array_equal(to_bgr8(decode_image(cv2.imencode(".png", keep)[1].tobytes())), to_bgr8(keep))
+
+
 @pytest.mark.parametrize(
     "image",
     [
