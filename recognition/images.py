@@ -39,6 +39,25 @@ class PreparedImage:
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 
+def _png_damaged_chunk(data: bytes) -> str | None:
+    """The type of the first chunk of a PNG whose CRC does not match its bytes, or None (a
+    chunk running past the end is left to the decoder)."""
+    import zlib
+
+    view, pos = memoryview(data), 8
+    while pos + 12 <= len(data):
+        n = int.from_bytes(view[pos:pos + 4], "big")
+        end = pos + 12 + n
+        if end > len(data):
+            return None
+        if zlib.crc32(view[pos + 4:end - 4]) != int.from_bytes(view[end - 4:end], "big"):
+            return "".join(c if c.isalpha() else "?" for c in bytes(view[pos + 4:pos + 8]).decode("latin-1"))
+        if view[pos + 4:pos + 8] == b"IEND":
+            return None
+        pos = end
+    return None
+
+
 def decode_image(data: bytes) -> np.ndarray:
     """Decode JPEG/PNG/WebP/... bytes (any bit depth, grey or colour; an alpha channel is dropped)
     to an array, turned upright by its EXIF orientation as training's ``cv2.imread`` turns the
@@ -49,6 +68,9 @@ def decode_image(data: bytes) -> np.ndarray:
     if data[:8] == _PNG_SIGNATURE and data.rfind(b"IEND") < 0:
         # (libpng would say "PNG input buffer is incomplete" on stderr, beside this message)
         raise ImageError("the image cannot be decoded (a PNG without its end: truncated)")
+    if data[:8] == _PNG_SIGNATURE and (bad := _png_damaged_chunk(data)) is not None:
+        # (libpng would say "libpng error: bad adaptive filter value" on stderr, beside this message)
+        raise ImageError(f"the image cannot be decoded (a damaged PNG: its {bad} chunk fails its checksum)")
     buf = np.frombuffer(data, dtype=np.uint8)
     img = cv2.imdecode(buf, cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR)
     if img is None or img.size == 0:

@@ -113,6 +113,16 @@ def test_undecodable_images_are_refused(make, message):
         decode_image(make())
 
 
+def test_a_damaged_png_is_refused_without_libpng_on_stderr(capfd):
+    # a PNG whose data is damaged (not truncated): libpng printed "libpng error: bad adaptive
+    # filter value" on stderr beside the one-line error, once per read
+    good = bytearray(cv2.imencode(".png", np.random.default_rng(0).integers(0, 255, (64, 64, 3), np.uint8))[1])
+    good[len(good) // 2:len(good) // 2 + 40] = bytes(40)
+    with pytest.raises(ImageError, match="a damaged PNG: its IDAT chunk fails its checksum"):
+        decode_image(bytes(good))
+    assert capfd.readouterr().err == ""
+
+
 def test_a_jpeg_is_read_upright_by_its_exif_orientation_as_training_reads_it(tmp_path):
     # a phone's portrait photo (EXIF Orientation 6): training's cv2.imread turns it upright,
     # locate/track read it sideways, and the camera of its registration did not fit it
