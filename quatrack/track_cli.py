@@ -119,14 +119,12 @@ class _Setup:
 
 def _check_outputs(args: argparse.Namespace) -> None:
     """No output on an input, on another output or on a folder (:func:`~quatrack.recognition.trackio.check_outputs`)."""
-    import glob
-
-    from quatrack.recognition.trackio import check_outputs
+    from quatrack.recognition.trackio import check_outputs, image_paths
 
     inputs = [("--video", args.video)] if args.video else []
     inputs += [("--camera", args.camera), ("--init-pose", args.init_pose)]  # (--out on either replaced it)
-    for pattern in ([args.images] if isinstance(args.images, str) else args.images or []):
-        inputs += [("--images", f) for f in (glob.glob(pattern) if glob.has_magic(pattern) else [pattern])]
+    # (the files open_frames reads: a quoted '~/frames/*.png' matched nothing here, and --out overwrote a frame)
+    inputs += [("--images", f) for f in image_paths(args.images or [])]
     check_outputs(inputs, [("--out", args.out), ("--overlay", args.overlay), ("--plot", args.plot)])
 
 

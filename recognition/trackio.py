@@ -172,6 +172,20 @@ class FrameSource:
         self.close()
 
 
+def image_paths(patterns: str | Sequence[str]) -> list[str]:
+    """The files of ``--images``: each glob (``~`` expanded) sorted by name, in the order given, or
+    a file as the shell gave it (``[1].png`` is no pattern then); each file once, first place
+    kept. :func:`open_frames` reads these; ``track`` checks its outputs against them."""
+    paths: list[str] = []
+    for pattern in [patterns] if isinstance(patterns, str) else patterns:
+        path = os.path.expanduser(pattern)
+        if os.path.isfile(path):
+            paths.append(path)
+        else:
+            paths += sorted(p for p in globlib.glob(path) if os.path.isfile(p))
+    return list(dict.fromkeys(paths))
+
+
 def open_frames(video: str | None = None, images: str | Sequence[str] | None = None, fps: float | None = None,
                 max_frames: int | None = None) -> FrameSource:
     """A :class:`FrameSource` for ``--video`` (file, camera index, URL) or ``--images`` (a glob, or
@@ -201,14 +215,7 @@ def open_frames(video: str | None = None, images: str | Sequence[str] | None = N
         from .images import ImageError, read_image
 
         patterns = [images] if isinstance(images, str) else list(images)
-        paths: list[str] = []
-        for pattern in patterns:
-            path = os.path.expanduser(pattern)
-            if os.path.isfile(path):  # a file as the shell gave it (``[1].png`` is no pattern then)
-                paths.append(path)
-            else:
-                paths += sorted(p for p in globlib.glob(path) if os.path.isfile(p))
-        paths = list(dict.fromkeys(paths))  # each file once, first place kept
+        paths = image_paths(patterns)
         label = " ".join(repr(p) for p in patterns[:2]) + (f" … ({len(patterns)} in all)" if len(patterns) > 2 else "")
         if not paths:
             folder = next((p for p in patterns if os.path.isdir(os.path.expanduser(p))), None)

@@ -224,6 +224,21 @@ def test_an_output_on_the_camera_or_the_initial_pose_file_is_refused(tmp_path, c
     assert given.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == ["given.json"]
 
 
+def test_an_output_on_an_image_of_a_quoted_tilde_glob_is_refused(tmp_path, capsys, monkeypatch):
+    # --images '~/frames/*.png' (quoted: the tool expands it) with --out ~/frames/0001.png: the
+    # check globbed '~' literally, matched nothing, and the CSV replaced the frame
+    import cv2
+
+    monkeypatch.setenv("HOME", str(tmp_path))
+    for k, image in enumerate(_box_frames(2)):
+        assert cv2.imwrite(str(tmp_path / f"{k:04d}.png"), image)
+    frame = tmp_path / "0001.png"
+    before = frame.read_bytes()
+    rc = _track(tmp_path, "--images", "~/*.png", "--out", str(frame))
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and "is the input" in err and frame.read_bytes() == before, err
+
+
 def test_two_outputs_on_one_file_and_a_folder_as_output_are_refused(tmp_path, capsys):
     video = ["--video", str(EXAMPLE / "box.mp4"), "--max-frames", "2"]
     same = tmp_path / "x.png"
