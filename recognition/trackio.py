@@ -520,7 +520,8 @@ def atomic_path(target: str | os.PathLike, option: str = "") -> Iterator[str]:
     os.chmod(tmp, 0o666 & ~umask)
     try:
         yield tmp
-        os.replace(tmp, target)
+        if os.path.exists(tmp):  # (its writer removed it: nothing to write, the target is left as it was)
+            os.replace(tmp, target)
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
@@ -543,9 +544,13 @@ class VideoOut:
         self.writer.write(image)
 
     def close(self) -> None:
+        """Finish the video; without a frame written (Ctrl-C before the first) there is no video:
+        the file is removed (an empty .mp4 no player opens was left)."""
         if self.writer is not None:
             self.writer.release()
             self.writer = None
+        elif os.path.isfile(self.path) and os.path.getsize(self.path) == 0:
+            os.unlink(self.path)
 
 
 # --- progress --------------------------------------------------------------------------------------

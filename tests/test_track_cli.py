@@ -65,6 +65,22 @@ def test_ctrl_c_ends_a_live_run_with_a_complete_csv(monkeypatch, tmp_path, capsy
     assert sorted(p.name for p in tmp_path.iterdir()) == ["overlay.mp4", "poses.csv"]  # no temporary left
 
 
+def test_ctrl_c_before_the_first_frame_leaves_no_empty_overlay(monkeypatch, tmp_path, capsys):
+    # Ctrl-C during the first frame's recognition: a 0-byte overlay.mp4 (no player opens it) was
+    # renamed into place, over any earlier one; now the overlay is not written, the CSV has its header
+    from quatrack.recognition.video import Tracker
+
+    def interrupted(self, image, time_s):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(Tracker, "step", interrupted)
+    out, overlay = tmp_path / "poses.csv", tmp_path / "overlay.mp4"
+    rc = _track(tmp_path, "--video", str(EXAMPLE / "box.mp4"), "--out", str(out), "--overlay", str(overlay))
+    assert rc == 0 and "stopped (Ctrl-C) after 0 frames" in capsys.readouterr().err
+    assert out.read_text().splitlines() == [trackio.CSV_HEADER]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["poses.csv"]  # no empty video, no temporary
+
+
 def test_bop_format(camera, tmp_path):
     out = tmp_path / "poses_bop.csv"
     assert _track(tmp_path, "--video", "0", "--fps", "30", "--max-frames", "4", "--out", str(out),
