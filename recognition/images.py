@@ -8,6 +8,7 @@ frame); anything that cannot be a photo of the object is refused with :class:`Im
 from __future__ import annotations
 
 import os
+import struct
 from dataclasses import dataclass, replace
 
 import cv2
@@ -39,6 +40,69 @@ class PreparedImage:
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 
+def sniff(data: bytes) -> str | None:
+    """The format from the magic bytes (never from a client's content type)."""
+    if data[:3] == b"\xff\xd8\xff":
+        return "jpeg"
+    if data[:8] == b"\x89PNG\r\n\x1a\n":
+        return "png"
+    if data[:4] == b"RIFF" and data[8:12] == b"WEBP":
+        return "webp"
+    return None
+
+
+def _jpeg_size(data: bytes) -> tuple[int, int] | None:
+    i = 2
+    n = len(data)
+    while i + 4 <= n:
+        if data[i] != 0xFF:
+            return None
+        marker = data[i + 1]
+        if marker == 0xFF:  # fill byte
+            i += 1
+            continue
+        if marker in (0x01, *range(0xD0, 0xD8)):  # standalone markers
+            i += 2
+            continue
+        (length,) = struct.unpack(">H", data[i + 2:i + 4])
+        if marker in (0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF):
+            if i + 9 > n:
+                return None
+            h, w = struct.unpack(">HH", data[i + 5:i + 9])
+            return w, h
+        i += 2 + length
+    return None
+
+
+def _png_size(data: bytes) -> tuple[int, int] | None:
+    if len(data) < 24 or data[12:16] != b"IHDR":
+        return None
+    return struct.unpack(">II", data[16:24])
+
+
+def _webp_size(data: bytes) -> tuple[int, int] | None:
+    chunk = data[12:16]
+    if chunk == b"VP8X" and len(data) >= 30:
+        w = 1 + int.from_bytes(data[24:27], "little")
+        h = 1 + int.from_bytes(data[27:30], "little")
+        return w, h
+    if chunk == b"VP8 " and len(data) >= 30:
+        w, h = struct.unpack("<HH", data[26:30])
+        return w & 0x3FFF, h & 0x3FFF
+    if chunk == b"VP8L" and len(data) >= 25:
+        b = int.from_bytes(data[21:25], "little")
+        return (b & 0x3FFF) + 1, ((b >> 14) & 0x3FFF) + 1
+    return None
+
+
+def header_size(data: bytes, fmt: str) -> tuple[int, int] | None:
+    """(width, height) from the header, or None when the header is unreadable."""
+    try:
+        return {"jpeg": _jpeg_size, "png": _png_size, "webp": _webp_size}[fmt](data)
+    except struct.error:
+        return None
+
+
 def _png_damaged_chunk(data: bytes) -> str | None:
     """The type of the first chunk of a PNG whose CRC does not match its bytes, or None (a
     chunk running past the end is left to the decoder)."""
@@ -65,6 +129,11 @@ def decode_image(data: bytes) -> np.ndarray:
     camera of its registration did not fit it)."""
     if not data:
         raise ImageError("the image is empty (0 bytes)")
+    fmt = sniff(data)
+    size = header_size(data, fmt) if fmt else None
+    if size is not None and size[0] * size[1] > MAX_DECODE_PIXELS:
+        # (read from the header: a 120-megapixel file took ~700 MB to decode before it was refused)
+        raise ImageError(f"the image is too large ({size[0]}×{size[1]} px; at most {MAX_DECODE_PIXELS} pixels)")
     if data[:8] == _PNG_SIGNATURE and data.rfind(b"IEND") < 0:
         # (libpng would say "PNG input buffer is incomplete" on stderr, beside this message)
         raise ImageError("the image cannot be decoded (a PNG without its end: truncated)")

@@ -434,3 +434,31 @@ def test_a_pose_found_without_a_window_still_has_its_bbox(model, scenes):
     r = locate(sc.image, CAMERA, model, LocateParams(use_window=False))
     assert r.found and r.searched == "image" and r.bbox is not None
     assert iou(r.bbox, sc.bbox) > 0.7, (r.bbox, sc.bbox)  # the rendered object's own box
+
+
+def test_an_image_too_large_is_refused_from_its_header_before_decoding(tmp_path, monkeypatch):
+    """A file whose header says 12000×10000 px (120 MP) is refused before the decoder runs (a
+    real one took ~700 MB to decode before ``locate`` refused it), by ``read_image`` as by the
+    command line; one whose header says 640×480 still decodes."""
+    import struct
+    import zlib
+
+    from quatrack.recognition import images as I
+
+    def png(w, h):
+        ihdr = struct.pack(">IIBBBBB", w, h, 8, 0, 0, 0, 0)
+        chunk = lambda kind, body: struct.pack(">I", len(body)) + kind + body + struct.pack(">I", zlib.crc32(kind + body))  # noqa: E731
+        return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(b"")) + chunk(b"IEND", b"")
+
+    calls = []
+    real = cv2.imdecode
+    monkeypatch.setattr(I.cv2, "imdecode", lambda *a: calls.append(1) or real(*a))
+    path = tmp_path / "huge.png"
+    path.write_bytes(png(12000, 10000))
+    with pytest.raises(ImageError, match="too large.*12000×10000"):
+        I.read_image(str(path))
+    assert not calls  # (refused before decoding)
+    good = tmp_path / "ok.png"
+    cv2.imwrite(str(good), np.full((480, 640, 3), 90, np.uint8))
+    assert I.read_image(str(good)).shape == (480, 640, 3) and calls
+    assert I.header_size(png(12000, 10000), I.sniff(png(12000, 10000))) == (12000, 10000)
