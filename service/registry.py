@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -95,6 +96,17 @@ class ModelRegistry:
         self.check_name(name)
         hit = self._models.get(name)
         stamp = model_stamp(self.store, name)
+        if hit is not None and stamp is None and self._watcher is None:
+            # no poll will decide (QUATRACK_MODEL_POLL_S=0; `reload` reaches one worker process of
+            # several): absent again a moment later — a retraining's two renames are microseconds
+            # apart — the object was deleted
+            time.sleep(0.05)
+            stamp = model_stamp(self.store, name)
+            if stamp is None:
+                with self._lock:
+                    self._models.pop(name, None)
+                log.info("object %s left the store: out of service", name)
+                raise ApiError(404, "unknown_object", f"no object named {name!r} in the store")
         if hit is not None and (stamp is None or stamp == hit.stamp):  # None: mid-retraining or deleted; the poll decides
             return hit.model, hit.index
         if stamp is None:

@@ -152,3 +152,21 @@ def test_retrained_and_deleted_models_are_picked_up_live(tmp_path, frames):
             assert httpx.get(f"{srv.url}/readyz").json()["models"] == []
             old.send(frames[2])  # ... while the running one finishes
             assert json.loads(old.recv(timeout=60))["type"] == "pose"
+
+
+def test_without_polling_a_deleted_model_leaves_every_worker_at_its_next_request(tmp_path):
+    """QUATRACK_MODEL_POLL_S=0 with several worker processes: `reload` reaches one worker only, and
+    the others served a deleted object forever (a stamp of None was left to a poll that never runs)."""
+    from quatrack.service.errors import ApiError
+    from quatrack.service.registry import ModelRegistry
+
+    store = copy_store(tmp_path, ("gone", "cookie-box"))
+    registry = ModelRegistry(store)  # no start_watching: as with model_poll_s=0
+    registry.load_all()
+    assert registry.loaded() == ["cookie-box", "gone"]
+    assert main(["models", "delete", "gone", "--store", str(store)]) == 0
+    with pytest.raises(ApiError) as err:
+        registry.get("gone")
+    assert err.value.status_code == 404 and err.value.code == "unknown_object"
+    assert registry.loaded() == ["cookie-box"] and not registry.is_known("gone")
+    assert registry.get("cookie-box")[0].name == "cookie-box"
