@@ -14,6 +14,6 @@ USER quatrack
 RUN quatrack train examples/cookie-box/object.json
 EXPOSE 8000
 HEALTHCHECK --interval=30s --timeout=5s --start-period=20s --retries=3 \
-    CMD ["python", "-c", "import sys, urllib.request; sys.exit(urllib.request.urlopen('http://127.0.0.1:8000/healthz', timeout=4).status != 200)"]
+    CMD ["python", "-c", "import os, sys, urllib.request; sys.exit(urllib.request.urlopen('http://127.0.0.1:%s/healthz' % os.environ.get('QUATRACK_PORT', '8000'), timeout=4).status != 200)"]
 ENTRYPOINT ["quatrack"]
 CMD ["serve"]

@@ -46,6 +46,36 @@ def test_manifests_describe_replicas_with_readiness():
     assert "ReadWriteMany" in docs["PersistentVolumeClaim"]["spec"]["accessModes"]
 
 
+def test_the_image_health_check_follows_quatrack_port(tmp_path):
+    """The Dockerfile's HEALTHCHECK asks the port the server listens on: `docker run -e
+    QUATRACK_PORT=9000` (a documented setting) left the container unhealthy, its check asking 8000."""
+    import http.server
+    import subprocess
+    import sys
+    import threading
+
+    line = next(x for x in (ROOT / "Dockerfile").read_text().splitlines() if x.strip().startswith("CMD [\"python\""))
+    argv = json.loads(line.strip()[len("CMD"):])
+    assert argv[:2] == ["python", "-c"]
+
+    class Healthz(http.server.BaseHTTPRequestHandler):
+        def do_GET(self):
+            self.send_response(200 if self.path == "/healthz" else 404)
+            self.end_headers()
+
+        def log_message(self, *args):
+            pass
+
+    with http.server.ThreadingHTTPServer(("127.0.0.1", 0), Healthz) as srv:
+        threading.Thread(target=srv.serve_forever, daemon=True).start()
+        try:
+            env = {"PATH": "/usr/bin:/bin", "QUATRACK_PORT": str(srv.server_address[1])}
+            done = subprocess.run([sys.executable, *argv[1:]], env=env, capture_output=True, timeout=60)
+            assert done.returncode == 0, done.stderr.decode()[-500:]
+        finally:
+            srv.shutdown()
+
+
 class Session:
     """A tracking client until stopped or closed by the server: lock-step (one frame, one answer),
     or ``push``: frames at 30 fps without waiting for answers, as a camera sends them, so that
