@@ -46,6 +46,18 @@ def test_manifests_describe_replicas_with_readiness():
     assert "ReadWriteMany" in docs["PersistentVolumeClaim"]["spec"]["accessModes"]
 
 
+def test_the_training_job_may_write_the_model_claim():
+    """The image runs as an unprivileged user; a fresh claim's root belongs to root, so the training
+    Job failed with "Permission denied" until its pod says whose group the volume is (fsGroup)."""
+    yaml = pytest.importorskip("yaml")
+    uid = int(re.search(r"useradd[^\n]*--uid (\d+)", (ROOT / "Dockerfile").read_text()).group(1))
+    docs = {d["kind"]: d for d in yaml.safe_load_all((DEPLOY / "kubernetes.yaml").read_text())}
+    pod = docs["Job"]["spec"]["template"]["spec"]
+    (c,) = pod["containers"]
+    assert any(m["mountPath"] == "/data/models" and not m.get("readOnly") for m in c["volumeMounts"])
+    assert pod.get("securityContext", {}).get("fsGroup") == uid
+
+
 def test_the_image_health_check_follows_quatrack_port(tmp_path):
     """The Dockerfile's HEALTHCHECK asks the port the server listens on: `docker run -e
     QUATRACK_PORT=9000` (a documented setting) left the container unhealthy, its check asking 8000."""
