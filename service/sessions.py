@@ -106,7 +106,8 @@ class TrackSession:
         self.wakeup = asyncio.Event()
         self.send_lock = asyncio.Lock()
         self.closed = False
-        self.tokens = settings.max_fps  # token bucket: max_fps per second, bursts up to 1 s
+        # token bucket: max_fps per second, bursts up to 1 s — and at least one frame (max_fps < 1)
+        self.tokens = max(settings.max_fps, 1.0)
         self.clock = clock
         self.token_time = clock()
         # owned by the processor (worker thread, one job at a time):
@@ -175,7 +176,7 @@ class TrackSession:
     def _take_token(self) -> bool:
         now = self.clock()
         rate = self.settings.max_fps
-        self.tokens = min(rate, self.tokens + (now - self.token_time) * rate)
+        self.tokens = min(max(rate, 1.0), self.tokens + (now - self.token_time) * rate)
         self.token_time = now
         if self.tokens < 1.0:
             return False

@@ -446,3 +446,21 @@ def test_a_guessed_camera_teaches_the_model_nothing(store):
         with open_session(srv) as ws:
             ws.send(CAM_ACK)
             assert recv(ws)["learns"] is False
+
+
+def test_a_rate_below_one_frame_per_second_still_lets_frames_through(tmp_path):
+    """QUATRACK_MAX_FPS=0.5 (one frame every 2 s): the bucket held at most 0.5 of a token, so every
+    frame of every session was refused as rate_limited."""
+    from quatrack.service.sessions import TrackSession
+
+    now = [100.0]
+    session = TrackSession(None, "sid", "cookie-box", None, Settings(store=tmp_path, max_fps=0.5), None, None,
+                           clock=lambda: now[0])
+    assert session._take_token()  # the first frame
+    assert not session._take_token()  # the next one at once: above 0.5 frames/s
+    now[0] += 1.0
+    assert not session._take_token()
+    now[0] += 1.0
+    assert session._take_token()  # 2 s later
+    now[0] += 60.0
+    assert session._take_token() and not session._take_token()  # a long pause saves no burst beyond one frame
