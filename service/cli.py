@@ -70,6 +70,7 @@ def run_serve(args: argparse.Namespace) -> int:
     try:
         import uvicorn
 
+        from .httphead import BoundedHttpToolsProtocol
         from .logs import configure
         from .shutdown import GracefulWebSocketProtocol
 
@@ -85,6 +86,7 @@ def run_serve(args: argparse.Namespace) -> int:
         # one was compressed by the client and inflated on the worker's event loop for nothing.
         uvicorn.run("quatrack.service.workers:app_from_env", factory=True, workers=settings.workers,
                     ws=GracefulWebSocketProtocol, loop=loop, ws_per_message_deflate=False,
+                    http=BoundedHttpToolsProtocol,  # a request head of at most 64 KiB (service/httphead.py)
                     host=settings.host, port=settings.port, log_config=configure(args.log_level),
                     ws_max_size=2 * settings.max_body_bytes, timeout_graceful_shutdown=5, server_header=False)
     finally:
