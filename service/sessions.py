@@ -190,6 +190,7 @@ class TrackSession:
             return
         if len(data) > self.settings.max_body_bytes:
             self.header_time = None
+            self.metrics.frames.labels("error").inc()
             await self.send_error("too_large", f"a frame may have at most {self.settings.max_body_bytes} bytes")
             return
         if sniff(data) is None:  # cheap, and keeps garbage from using a frame number or a time

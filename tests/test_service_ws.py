@@ -464,3 +464,14 @@ def test_a_rate_below_one_frame_per_second_still_lets_frames_through(tmp_path):
     assert session._take_token()  # 2 s later
     now[0] += 60.0
     assert session._take_token() and not session._take_token()  # a long pause saves no burst beyond one frame
+
+
+def test_an_oversized_frame_counts_as_a_frame_error(server, frames):
+    """/metrics counts refused frames by result (garbage, undecodable: "error"; too fast:
+    "rate_limited"); a frame over QUATRACK_MAX_BODY_BYTES was refused without being counted."""
+    name = 'quatrack_ws_frames_total{result="error"}'
+    before = metric(server, name)
+    with open_session(server) as ws:
+        ws.send(b"\xff\xd8\xff" + b"0" * 2_100_000)  # over max_body_bytes
+        assert recv(ws)["error"]["code"] == "too_large"
+    assert metric(server, name) == before + 1
