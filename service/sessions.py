@@ -247,7 +247,10 @@ class TrackSession:
             return
         kind = msg.get("type")
         if kind is None and "fx" in msg or kind == "camera":
-            await self._on_camera(msg.get("camera", msg) if kind == "camera" else msg)
+            cam = msg.get("camera", msg) if kind == "camera" else msg
+            if cam is not msg and isinstance(cam, dict) and "ack" in msg:  # {"type": "camera", "camera": {...}, "ack": true}
+                cam = {**cam, "ack": msg["ack"]}
+            await self._on_camera(cam)
         elif self.camera is None:
             await self.send_error("camera_required", "the first message must be the camera (JSON)")
         elif kind == "frame":

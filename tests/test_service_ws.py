@@ -475,3 +475,17 @@ def test_an_oversized_frame_counts_as_a_frame_error(server, frames):
         ws.send(b"\xff\xd8\xff" + b"0" * 2_100_000)  # over max_body_bytes
         assert recv(ws)["error"]["code"] == "too_large"
     assert metric(server, name) == before + 1
+
+
+def test_a_typed_camera_message_with_ack_is_answered(server):
+    """{"type": "camera", "camera": {...}, "ack": true} (the typed form the errors name: "use camera,
+    frame, reset or init"): its "ack" was read inside the nested camera only, so no "ready" came and
+    a client waiting for it waited forever."""
+    for msg in ({"type": "camera", "camera": CAMERA, "ack": True}, {"type": "camera", "camera": {**CAMERA, "ack": True}},
+                {"type": "camera", **CAMERA, "ack": True}):
+        with connect(f"{server.ws_url}/v1/objects/cookie-box/track", open_timeout=20) as ws:
+            ws.send(json.dumps(msg))
+            assert recv(ws, timeout=20)["type"] == "ready", msg
+    with connect(f"{server.ws_url}/v1/objects/cookie-box/track", open_timeout=20) as ws:
+        ws.send(json.dumps({"type": "camera", "camera": CAMERA, "ack": "yes"}))
+        assert recv(ws, timeout=20)["error"]["code"] == "bad_camera"
