@@ -21,6 +21,7 @@ from fastapi.responses import JSONResponse, PlainTextResponse
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from pydantic import ValidationError
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.requests import ClientDisconnect
 
 from quatrack.recognition.images import MIN_SIDE, ImageError
 from quatrack.recognition.locate import LocateParams, locate
@@ -208,6 +209,12 @@ def _camera_from_json(text: str) -> CameraIn:
         raise ApiError(422, "bad_camera", f"camera{'.' + where if where else ''}: {e['msg']}") from None
 
 
+def _client_left() -> ApiError:
+    """The client closed the connection before its body ended (a timeout, a dropped link): nobody
+    hears the answer; 499 (nginx's "client closed request") keeps it out of the 5xx counts and the
+    error log, where an unhandled ClientDisconnect put it (a 500 with a traceback)."""
+    return ApiError(499, "client_closed", "the client closed the connection before the body ended")
+
 
 async def read_pose_request(request: Request, camera: CameraIn | None) -> tuple[bytes, CameraIn, str | None]:
     """The image bytes, the camera and the image's file name of a pose request (multipart fields
@@ -220,6 +227,8 @@ async def read_pose_request(request: Request, camera: CameraIn | None) -> tuple[
             form = await request.form(max_files=2, max_fields=8, max_part_size=MAX_CAMERA_BYTES)
         except ApiError:
             raise
+        except ClientDisconnect:
+            raise _client_left() from None
         except StarletteHTTPException as exc:
             if "maximum size" in str(exc.detail):
                 raise ApiError(413, "too_large", f"a multipart text field (the camera) may have at most "
@@ -241,7 +250,10 @@ async def read_pose_request(request: Request, camera: CameraIn | None) -> tuple[
                 cam_field = raw.decode("utf-8", "replace")
             camera = _camera_from_json(cam_field)
     elif ctype.startswith("image/") or ctype == "application/octet-stream":
-        data = await request.body()
+        try:
+            data = await request.body()
+        except ClientDisconnect:
+            raise _client_left() from None
     else:
         raise ApiError(415, "unsupported_media_type",
                        "send multipart/form-data (fields image, camera) or the raw image with an image/* content type")

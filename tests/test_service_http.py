@@ -305,3 +305,32 @@ def test_an_endless_request_head_is_refused(server, client):
     assert client.get("/healthz").status_code == 200  # the server goes on
     big_cookie = {"cookie": "a=" + "b" * 8000}  # a long but reasonable head still passes
     assert client.get("/healthz", headers=big_cookie).status_code == 200
+
+
+def test_a_client_leaving_mid_upload_is_not_a_server_error(server, client):
+    """A raw-body upload the client abandons (a timeout, a dropped mobile link): the server logged
+    "unexpected error" with a traceback and counted a 500 — alerts on 5xx fired for the clients'
+    aborts. Now it is 499 (nginx's "client closed request"), as for a multipart upload."""
+    import socket
+
+    from conftest import wait_until
+
+    def count(status: str) -> float:
+        total = 0.0
+        for line in client.get("/metrics").text.splitlines():
+            if line.startswith("quatrack_http_requests_total{") and f'status="{status}"' in line and "pose" in line:
+                total += float(line.split()[-1])
+        return total
+
+    before = count("499"), count("500")
+    query = "fx=669.7&fy=667.8&cx=320&cy=240"
+    for path, ctype, start in ((f"/v1/objects/cookie-box/pose?{query}", "image/jpeg", b"\xff\xd8\xff"),
+                               (f"/v1/pose?{query}", "image/jpeg", b"\xff\xd8\xff"),
+                               ("/v1/objects/cookie-box/pose", "multipart/form-data; boundary=XX",
+                                b'--XX\r\nContent-Disposition: form-data; name="image"; filename="a.jpg"\r\n'
+                                b"Content-Type: image/jpeg\r\n\r\n\xff\xd8\xff")):
+        with socket.create_connection(("127.0.0.1", server.port), timeout=10) as s:
+            s.sendall(f"POST {path} HTTP/1.1\r\nHost: x\r\nContent-Type: {ctype}\r\nContent-Length: 100000\r\n\r\n".encode()
+                      + start + b"a" * 1000)
+    assert wait_until(lambda: count("499") == before[0] + 3), (count("499"), count("500"), before)
+    assert count("500") == before[1]
