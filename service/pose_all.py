@@ -13,14 +13,16 @@ import time
 from typing import Annotated
 
 from fastapi import APIRouter, Depends, Request
+from fastapi.responses import JSONResponse
 from pydantic import BaseModel, Field
 
 from quatrack.recognition.images import ImageError
 from quatrack.recognition.locate import LocateParams, locate_all
 
 from .errors import ApiError
-from .routes import (ERRORS, CameraQuery, ServiceState, decode_with_camera, get_state, in_pool, read_pose_request,
-                     require_token)
+from . import ros
+from .routes import (ERRORS, CameraQuery, FormatQuery, MeshUnitQuery, ServiceState, decode_with_camera, get_state,
+                     in_pool, read_pose_request, require_token)
 from .schemas import CameraIn, LocateOut
 
 
@@ -42,11 +44,15 @@ router = APIRouter(prefix="/v1", tags=["pose"], dependencies=[Depends(require_to
              summary="search every trained object in one image (as `quatrack locate --object all --json`)")
 async def pose_all(
     request: Request, state: Annotated[ServiceState, Depends(get_state)], query_camera: CameraQuery,
+    format: FormatQuery = "json", mesh_unit: MeshUnitQuery = None,
 ) -> dict:
+    """With ``format=ros`` each object found also carries ``"ros"``, as the per-object endpoint's
+    answer does (``mesh_unit``: the unit of the meshes); it was ignored here."""
+    unit = ros.ros_unit({"format": format, "mesh_unit": mesh_unit})
     data, camera, image_name = await read_pose_request(request, query_camera)
     out = await in_pool(state, _locate_all, state, data, camera)
-    out["objects"] = [{"image": image_name, **o} for o in out["objects"]]
-    return out
+    out["objects"] = [ros.add_to_locate({"image": image_name, **o}, unit) for o in out["objects"]]
+    return JSONResponse(out) if unit else out  # ("ros" is not in LocateOut: not filtered out)
 
 
 def _locate_all(state: ServiceState, data: bytes, camera: CameraIn) -> dict:

@@ -88,12 +88,14 @@ ops = APIRouter(tags=["operations"], dependencies=[Depends(require_token)])
 sockets = APIRouter(prefix="/v1")  # authenticated inside: HTTPBearer needs an HTTP request
 
 
-@health.get("/healthz", response_model=Health, summary="the process is alive")
+# (HEAD too: monitors and load balancers often probe with it; GET-only routes answered 405)
+@health.api_route("/healthz", methods=["GET", "HEAD"], response_model=Health, summary="the process is alive")
 async def healthz() -> Health:
     return Health()
 
 
-@health.get("/readyz", response_model=Ready, summary="models are loaded", responses={503: {"model": Ready}})
+@health.api_route("/readyz", methods=["GET", "HEAD"], response_model=Ready, summary="models are loaded",
+                  responses={503: {"model": Ready}})
 async def readyz(state: State):
     body = Ready(ready=state.registry.ready, models=state.registry.loaded(), tracker=TRACKER_KIND,
                  failed=state.registry.failed())
@@ -287,12 +289,16 @@ async def in_pool(state: ServiceState, fn, *args):
         state.pending -= 1
 
 
+# the pose endpoints' output format (one definition for both: ``/v1/objects/{name}/pose``, ``/v1/pose``)
+FormatQuery = Annotated[str, Query(description="json, or ros: also a geometry_msgs/PoseWithCovarianceStamped under \"ros\"")]
+MeshUnitQuery = Annotated[str | None, Query(description="with format=ros: the mesh's unit, mm, cm or m")]
+
+
 @api.post("/objects/{name}/pose", response_model=LocateOut, openapi_extra=_POSE_BODY,
           summary="recognise the object in one image and estimate its pose (as `quatrack locate --json`)")
 async def pose(
     name: str, request: Request, state: State, query_camera: CameraQuery,
-    format: Annotated[str, Query(description="json, or ros: also a geometry_msgs/PoseWithCovarianceStamped under \"ros\"")] = "json",
-    mesh_unit: Annotated[str | None, Query(description="with format=ros: the mesh's unit, mm, cm or m")] = None,
+    format: FormatQuery = "json", mesh_unit: MeshUnitQuery = None,
 ) -> dict:
     unit = ros.ros_unit({"format": format, "mesh_unit": mesh_unit})
     registry = state.registry

@@ -103,6 +103,14 @@ def test_ros_format_round_trips(server, frames):
     assert r.status_code == 422 and r.json()["error"]["code"] == "bad_format"
     plain = httpx.post(f"{server.url}/v1/objects/cookie-box/pose", files=files, headers=headers).json()
     assert "ros" not in plain  # the contract's object unchanged without format=ros
+    # POST /v1/pose (every object) takes format=ros as well: each object found carries "ros" (was ignored)
+    every = httpx.post(f"{server.url}/v1/pose?format=ros&mesh_unit=mm", files=files, headers=headers).json()
+    assert [o["object"] for o in every["objects"]] == ["cookie-box"], every
+    pose, _ = trackio.pose_from_ros(every["objects"][0]["ros"], "mm")
+    assert pose.allclose(Pose(every["objects"][0]["pose"]["q_wxyz"], every["objects"][0]["pose"]["t"]), atol=1e-9)
+    r = httpx.post(f"{server.url}/v1/pose?format=ros", files=files, headers=headers)
+    assert r.status_code == 422 and r.json()["error"]["code"] == "bad_format"
+    assert "ros" not in httpx.post(f"{server.url}/v1/pose", files=files, headers=headers).json()["objects"][0]
 
 
 def _jpeg(image) -> bytes:

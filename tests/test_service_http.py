@@ -94,6 +94,15 @@ def test_health_ready_objects(client):
     assert detail["name"] == "cookie-box" and detail["training_summary"]["viewsets"] == objs[0]["viewsets"]
 
 
+def test_health_probes_answer_head(client):
+    """Monitors and load balancers often probe with HEAD: /healthz and /readyz answer it as GET
+    (status and headers, no body); they were 405."""
+    for path in ("/healthz", "/readyz"):
+        get, head = client.get(path), client.head(path)
+        assert head.status_code == get.status_code == 200 and head.content == b"", (path, head.status_code)
+        assert head.headers["content-type"] == get.headers["content-type"]
+
+
 def _check_pose_json(body: dict) -> None:
     assert body["found"], body
     q = np.array(body["pose"]["q_wxyz"])
