@@ -87,6 +87,10 @@ class Metrics:
                                  buckets=LATENCY_BUCKETS, registry=reg)
         self.sessions = Counter("quatrack_ws_sessions", "tracking sessions by outcome", ("outcome",), registry=reg)
         self.frames = Counter("quatrack_ws_frames", "WebSocket frames by result", ("result",), registry=reg)
+        # handshakes refused before a session opens (no token, unknown object, sessions full, ...):
+        # they reach no session outcome, and a full server was invisible in the metrics
+        self.ws_refused = Counter("quatrack_ws_refused", "WebSocket handshakes refused, by error code", ("code",),
+                                  registry=reg)
         self.frame_latency = Histogram("quatrack_ws_frame_latency_seconds", "frame arrival to pose message",
                                        buckets=LATENCY_BUCKETS, registry=reg)
         self.frame_wait = Histogram("quatrack_ws_frame_wait_seconds", "frame arrival to its processing starting "

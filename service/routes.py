@@ -369,6 +369,7 @@ async def _deny(ws: WebSocket, status: int, code: str, message: str, close_code:
     send the error message and close (1008 policy / 1013 try again later). Logged at info level
     with the reason: a refusal is the service working, not an error (see ``logs.mark_refused``)."""
     log.info("websocket refused", extra={"status": status, "code": code, "reason": message, "path": ws.url.path})
+    get_ws_state(ws).metrics.ws_refused.labels(code).inc()
     try:
         await ws.send_denial_response(JSONResponse(error_body(code, message), status_code=status, headers=headers))
         mark_refused()

@@ -18,7 +18,7 @@ from websockets.sync.client import connect
 from quatrack.testing.scenes import example_store
 from quatrack.service.server import BackgroundServer
 from quatrack.service.settings import Settings
-from conftest import wait_until
+from conftest import metric_samples, wait_until
 from test_service_http import CAMERA, jpeg, video_frames
 
 CAM_TEXT = json.dumps(CAMERA)
@@ -298,6 +298,9 @@ def test_auth_limits_and_idle(strict, frames, monkeypatch):
         with pytest.raises(InvalidStatus) as err:  # one session at most
             connect(url + "?token=tok")
         assert err.value.response.status_code == 503 and err.value.response.headers["Retry-After"]
+        refused = metric_samples(httpx.get(f"{strict.url}/metrics", headers={"Authorization": "Bearer tok"}).text)
+        for code in ("unauthorized", "too_many_sessions"):  # the refused handshakes are counted (they were in no metric)
+            assert refused[("quatrack_ws_refused_total", frozenset({("code", code)}))] == 1.0, code
         for i in range(10):  # 5 frames/s allowed, and the session's clock stands still: exactly 5 refused
             send_frame(ws, frames[i], i / 30)
         msgs = [recv(ws)]
