@@ -248,6 +248,25 @@ def test_a_closed_outward_mesh_is_recognised_and_a_flipped_or_open_one_is_not():
     assert make_mesh(V, F).closed_outward
 
 
+def test_an_stl_s_mixed_windings_are_made_outward(tmp_path):
+    """An STL stores every triangle's corners apart (no shared vertex): load_mesh must still
+    wind its faces outward, joining them through vertices at the same position (before, the
+    winding was left as exported, and locate refused the right pose as 'a mirrored pose')."""
+    import trimesh
+
+    from quatrack.viewsets.mesh import load_mesh
+
+    box = box_mesh()
+    F = box.faces.copy()
+    F[::3] = F[::3, ::-1]  # mixed windings, as the bundled box.ply has
+    trimesh.Trimesh(box.vertices, F, process=False).export(tmp_path / "box.stl")
+    mesh = load_mesh(tmp_path / "box.stl")
+    assert len(mesh.vertices) == 3 * len(F)  # (the soup as stored)
+    out = np.einsum("ij,ij->i", mesh.face_normals, mesh.face_centroids - mesh.centre)
+    assert np.all(out > 0)
+    assert mesh.closed_outward
+
+
 @pytest.mark.parametrize("name", ["cube-m", "cylinder-mm", "hex-prism-m"])
 def test_skipping_the_faces_a_closed_mesh_turns_away_changes_no_pixel(name):
     """Faces turned away are hidden behind faces turned towards the camera: the culled render's

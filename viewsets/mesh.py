@@ -227,14 +227,20 @@ def outward_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
     Exported meshes often mix windings (the bundled box.ply does); visibility tests need to know
     which side of a face is outside. An open mesh is only made consistent, not turned inside out.
+    Faces are joined through vertices at the same position (an STL file stores each triangle's
+    corners apart; texture seams split vertices), as in :attr:`Mesh.closed_outward`.
     """
     import trimesh
 
-    tm = trimesh.Trimesh(np.asarray(vertices, float), np.asarray(faces), process=False)
+    F = np.asarray(faces)
+    _, same = np.unique(np.asarray(vertices, float), axis=0, return_inverse=True)
+    merged = same.reshape(-1)[F]
+    tm = trimesh.Trimesh(np.unique(np.asarray(vertices, float), axis=0), merged, process=False)
     trimesh.repair.fix_winding(tm)
     if tm.is_watertight and tm.volume < 0:
         tm.invert()
-    return np.asarray(tm.faces)
+    flipped = np.any(np.asarray(tm.faces) != merged, axis=1)  # (fix_winding and invert reverse a face's corners)
+    return np.where(flipped[:, None], F[:, ::-1], F)
 
 
 def planar_groups(mesh: Mesh, angle_tol_deg: float = 1.0, offset_tol: float = 1e-3) -> np.ndarray:
