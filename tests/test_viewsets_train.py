@@ -84,6 +84,25 @@ def test_a_missing_mask_is_one_line_naming_it_and_nothing_else(tmp_path, capfd):
     assert not store.exists() or list_models(store) == []
 
 
+@pytest.mark.parametrize("cut", [20000, -3000])
+def test_a_truncated_photo_is_one_line_naming_it(tmp_path, capfd, cut):
+    """A photo cut short (an interrupted copy): OpenCV decodes it anyway, its missing part grey,
+    with only libjpeg's "Premature end of JPEG file" on stderr; training then learned the grey,
+    or failed with 'no keypoints ... is the pose right?'. Now: one line naming the file."""
+    photo = tmp_path / "photo.jpg"
+    photo.write_bytes((EXAMPLE / "resized_IMG_3875.JPG").read_bytes()[:cut])
+    data = json.loads((EXAMPLE / "object.json").read_text())
+    data["mesh"] = str(EXAMPLE / data["mesh"])
+    data["views"][0]["image"] = "photo.jpg"
+    spec = tmp_path / "object.json"
+    spec.write_text(json.dumps(data))
+    store = tmp_path / "store"
+    assert main(["train", str(spec), "--store", str(store), "--novel-views", "none", "--novel-scales", "none"]) == 2
+    err = capfd.readouterr().err.strip()
+    assert "photo.jpg: the file is truncated" in err and "\n" not in err and "Premature" not in err
+    assert not store.exists() or list_models(store) == []
+
+
 def test_every_stored_point_reprojects_onto_its_keypoint(trained_store):
     model = load_model(trained_store, "cookie-box")
     for vs in model.viewsets:

@@ -54,13 +54,46 @@ class _View:
     buffers: RenderBuffers
 
 
-def _read_image(view: ViewSpec) -> np.ndarray:
-    where = f"view {view.index}: image {view.image_path}"
-    if not view.image_path.is_file():
+def _truncated(data: bytes) -> bool:
+    """Whether a JPEG or PNG file lacks its end (a copy or download cut short). OpenCV decodes
+    such a file anyway, its missing part grey, and only libjpeg's "Premature end of JPEG file" on
+    stderr says so: the model would learn the grey. A JPEG's end-of-image marker must follow its
+    first scan (an EXIF thumbnail, before it, has its own); a PNG ends with its IEND chunk."""
+    if data[:8] == b"\x89PNG\r\n\x1a\n":
+        return data.rfind(b"IEND") < 0
+    if data[:2] != b"\xff\xd8":
+        return False
+    i = 2
+    while i + 4 <= len(data) and data[i] == 0xFF:  # the segments before the first scan (SOS)
+        if data[i + 1] == 0xDA:
+            return data.find(b"\xff\xd9", i) < 0
+        if data[i + 1] == 0xFF:  # (fill byte)
+            i += 1
+            continue
+        i += 2 + int.from_bytes(data[i + 2:i + 4], "big")
+    return True
+
+
+def _read(path, flags: int, where: str) -> np.ndarray:
+    """An image file decoded by OpenCV (``flags``: as ``cv2.imread``'s, EXIF orientation applied),
+    or a :class:`SpecError` naming ``where``: missing, not a file, truncated, not an image."""
+    if not path.exists():
         raise SpecError(f"{where}: file not found")
-    img = cv2.imread(str(view.image_path), cv2.IMREAD_COLOR)
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise SpecError(f"{where}: cannot read ({exc.strerror or exc})") from None
+    if _truncated(data):
+        raise SpecError(f"{where}: the file is truncated (its end is missing)")
+    img = cv2.imdecode(np.frombuffer(data, np.uint8), flags) if data else None
     if img is None:
         raise SpecError(f"{where}: unreadable image")
+    return img
+
+
+def _read_image(view: ViewSpec) -> np.ndarray:
+    where = f"view {view.index}: image {view.image_path}"
+    img = _read(view.image_path, cv2.IMREAD_COLOR, where)
     cam = view.camera
     if (img.shape[1], img.shape[0]) != (cam.width, cam.height):
         raise SpecError(
@@ -98,11 +131,7 @@ def _prepare_view(mesh: Mesh, view: ViewSpec) -> _View:
     buffers = check_pose(mesh, view)
     mask = buffers.mask
     if view.mask_path is not None:
-        if not view.mask_path.is_file():  # (before OpenCV, which would warn on stderr too)
-            raise SpecError(f"view {view.index}: mask {view.mask_path}: file not found")
-        m = cv2.imread(str(view.mask_path), cv2.IMREAD_GRAYSCALE)
-        if m is None:
-            raise SpecError(f"view {view.index}: mask {view.mask_path}: missing or unreadable image")
+        m = _read(view.mask_path, cv2.IMREAD_GRAYSCALE, f"view {view.index}: mask {view.mask_path}")
         if m.shape != mask.shape:
             raise SpecError(f"view {view.index}: mask {view.mask_path}: size {m.shape[::-1]} differs from the image's")
         mask = np.where(m > 0, 255, 0).astype(np.uint8)
