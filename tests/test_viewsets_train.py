@@ -300,6 +300,20 @@ def test_the_percentile_from_the_histogram_is_numpys(values):
     assert percentile_99(values) == float(np.percentile(values, 99))
 
 
+def test_views_holding_max_features_are_not_weak_texture_however_large_their_box():
+    """Keypoints per pixel of the box cannot exceed ``max_features`` over the box: a photo of
+    6000×4000 px (or ``--max-features 100`` on the cookie box) read as weak texture, and training
+    built the registered views three more times, at lower thresholds that could add nothing, and
+    warned falsely. Views holding max_features keep the threshold asked for."""
+    from quatrack.viewsets.viewset import ViewsetParams
+
+    warnings = []
+    params = TrainParams(novel=None, viewsets=ViewsetParams(max_features=100))
+    model = train_object(load_spec(EXAMPLE / "object.json"), params, warn=warnings.append)
+    assert model.manifest["parameters"]["viewsets"]["contrast_threshold"] == 0.04
+    assert not any("weak texture" in w for w in warnings), warnings
+
+
 def test_a_weakly_textured_object_is_trained_with_a_lower_contrast_threshold(tmp_path):
     """SIFT's contrast threshold is absolute: on a dark, weakly textured object (the zoo's tall
     box, a night sky: ~3 keypoints per 10 000 px of its box at 0.04) it keeps a handful of

@@ -267,6 +267,7 @@ def _viewsets_for_texture(mesh: Mesh, tasks: list, params: TrainParams, progress
     built = _build_viewsets(mesh, [tasks[i] for i in registered], params, progress)
     first = density = keypoint_density(built)
     while (params.min_keypoint_density is not None and density < params.min_keypoint_density
+           and not _capped(built, params.viewsets.max_features)
            and params.viewsets.contrast_threshold / 2 >= params.min_contrast_threshold * (1 - 1e-9)):
         params = dataclasses.replace(params, viewsets=dataclasses.replace(
             params.viewsets, contrast_threshold=params.viewsets.contrast_threshold / 2))
@@ -279,6 +280,20 @@ def _viewsets_for_texture(mesh: Mesh, tasks: list, params: TrainParams, progress
     built += _build_viewsets(mesh, [tasks[i] for i in synthetic], params, progress)
     order = np.argsort(registered + synthetic, kind="stable")  # (back in the tasks' order)
     return [built[k] for k in order], params, first
+
+
+def _capped(viewsets: list[Viewset], max_features: int) -> bool:
+    """Whether the registered views keep at least half the keypoints SIFT may give (the median
+    over them, of ``max_features``): a lower contrast threshold cannot add many, however few they
+    are per pixel of a large box (a high-resolution photo: 6000×4000 px read 1.5 per 10 000 px
+    with 1384 keypoints, and was built three times more for nothing, with a false warning).
+
+    >>> from types import SimpleNamespace as V
+    >>> _capped([V(synthetic=False, keypoints=range(1400))], 1500), _capped([V(synthetic=False, keypoints=range(20))], 1500)
+    (True, False)
+    """
+    n = [len(vs.keypoints) for vs in viewsets if not vs.synthetic]
+    return bool(n) and float(np.median(n)) >= 0.5 * max_features
 
 
 def _build_viewsets(mesh: Mesh, tasks: list, params: TrainParams, progress) -> list[Viewset]:
