@@ -84,6 +84,10 @@ def test_camera_json_and_yaml(tmp_path):
         ({"width": 0}, ["width"]),
         ({"cx": "a"}, ["cx"]),
         ({"dist_coeffs": [1, 2, 3]}, ["dist_coeffs"]),
+        # a JSON integer too large for a float (math.isfinite raised OverflowError: a traceback)
+        ({"fx": 10**400}, ["fx", "finite"]),
+        ({"width": 10**400}, ["width"]),
+        ({"dist_coeffs": [10**400, 0, 0, 0, 0]}, ["dist_coeffs"]),
     ],
 )
 def test_bad_cameras_are_named(tmp_path, change, words):
@@ -117,6 +121,7 @@ def _spec(tmp_path, **changes):
         ({"name": "../escape"}, ["name"]),
         ({"views": []}, ["views"]),
         ({"view_pose": {"foo": 1}}, ["view 0", "unknown pose format"]),
+        ({"view_pose": {"rvec": [0, 0, 0], "tvec": [0, 0, 10**400]}}, ["view 0", "tvec", "finite"]),
         ({"view_camera": "missing_camera.json"}, ["missing_camera.json"]),
         ({"view_camera": {"width": 718, "height": 480, "fx": 0, "fy": 1, "cx": 1, "cy": 1}}, ["view 0", "positive"]),
     ],

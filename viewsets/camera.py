@@ -21,9 +21,25 @@ from .errors import SpecError
 _KEYS = ("fx", "fy", "cx", "cy")
 
 
+def isfinite(x) -> bool:
+    """``math.isfinite``, False for an integer too large for a float (JSON's integers have no
+    bound: ``"fx": 1e400`` reads as inf, but ``"fx": 1000…0`` (400 digits) as an int that
+    ``math.isfinite`` refuses with OverflowError)."""
+    try:
+        return math.isfinite(x)
+    except OverflowError:
+        return False
+
+
+def _shown(value: Any) -> str:
+    """A value for a message, cut to 40 characters (a 400-digit number is not a line)."""
+    r = repr(value)
+    return r if len(r) <= 40 else r[:37] + "..."
+
+
 def _number(value: Any, where: str, field: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise SpecError(f"{where}: field {field!r} must be a finite number, got {value!r}")
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not isfinite(value):
+        raise SpecError(f"{where}: field {field!r} must be a finite number, got {_shown(value)}")
     return float(value)
 
 
@@ -41,13 +57,13 @@ def camera_from_dict(data: Any, where: str = "camera") -> PinholeCamera:
     for k in ("width", "height"):
         v = data[k]
         if isinstance(v, bool) or not isinstance(v, (int, float)) or v != int(v) or v <= 0:
-            raise SpecError(f"{where}: field {k!r} must be a positive integer, got {v!r}")
+            raise SpecError(f"{where}: field {k!r} must be a positive integer, got {_shown(v)}")
         size.append(int(v))
     dist = data.get("dist_coeffs", [0.0] * 5)
     if dist is None:
         dist = [0.0] * 5
     if not isinstance(dist, list) or not all(
-        isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in dist
+        isinstance(x, (int, float)) and not isinstance(x, bool) and isfinite(x) for x in dist
     ):
         raise SpecError(f"{where}: field 'dist_coeffs' must be a list of numbers")
     if len(dist) not in (0, 4, 5, 8):
@@ -70,11 +86,11 @@ def check_plausible(fx: float, fy: float, cx: float, cy: float, width: int, heig
     real camera's for a ``width`` × ``height`` image. The one place both the CLI and the service
     check a camera: every parser ends here."""
     for name, v in (("fx", fx), ("fy", fy), ("cx", cx), ("cy", cy)):
-        if isinstance(v, bool) or not isinstance(v, (int, float, np.floating, np.integer)) or not math.isfinite(v):
-            raise SpecError(f"{where}: field {name!r} must be a finite number, got {v!r}")
+        if isinstance(v, bool) or not isinstance(v, (int, float, np.floating, np.integer)) or not isfinite(v):
+            raise SpecError(f"{where}: field {name!r} must be a finite number, got {_shown(v)}")
     for name, v in (("width", width), ("height", height)):
         if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not 0 < v <= MAX_SIDE:
-            raise SpecError(f"{where}: field {name!r} must be an integer 1..{MAX_SIDE}, got {v!r}")
+            raise SpecError(f"{where}: field {name!r} must be an integer 1..{MAX_SIDE}, got {_shown(v)}")
     side = max(width, height)
     lo, hi = FOCAL_PER_SIZE[0] * side, FOCAL_PER_SIZE[1] * side
     for name, f in (("fx", fx), ("fy", fy)):

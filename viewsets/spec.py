@@ -20,7 +20,7 @@ from quatrack.tracking import quaternion as quat
 from quatrack.tracking.camera import PinholeCamera
 from quatrack.tracking.pose import Pose
 
-from .camera import camera_from_dict, load_camera
+from .camera import camera_from_dict, isfinite, load_camera
 from .errors import SpecError, StoreError
 from .names import check_object_name
 
@@ -50,7 +50,7 @@ class ObjectSpec:
 def _vector(value: Any, n: int, where: str, field: str) -> np.ndarray:
     if not isinstance(value, list) or len(value) != n:
         raise SpecError(f"{where}: field {field!r} must be a list of {n} numbers")
-    if not all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in value):
+    if not all(isinstance(x, (int, float)) and not isinstance(x, bool) and isfinite(x) for x in value):
         raise SpecError(f"{where}: field {field!r} must contain finite numbers only")
     return np.asarray(value, dtype=float)
 
