@@ -192,6 +192,20 @@ def test_retraining_replaces_model(store):
     assert [p.name for p in store.iterdir()] == ["cookie-box"]
 
 
+def test_a_model_folder_is_as_readable_as_the_umask_lets_it(base_store, tmp_path):
+    """The model was written in a folder made by mkdtemp, 0700, and renamed into place with that
+    mode: a server run by another user than the training (a system-wide store) could not read it.
+    Its files followed the umask; now the folder does too."""
+    model = load_model(base_store, "cookie-box")
+    umask = os.umask(0o022)
+    try:
+        path = save_model(tmp_path / "store", model)
+    finally:
+        os.umask(umask)
+    assert path.stat().st_mode & 0o777 == 0o755
+    assert (path / "manifest.json").stat().st_mode & 0o777 == 0o644
+
+
 def test_delete(store):
     assert main(["models", "delete", "cookie-box", "--store", str(store)]) == 0
     assert list_models(store) == [] and list(store.iterdir()) == []

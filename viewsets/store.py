@@ -158,6 +158,9 @@ def save_model(store: str | Path, model: ObjectModel, overwrite: bool = True) ->
     store.mkdir(parents=True, exist_ok=True)
     remove_stale(store)
     tmp = Path(tempfile.mkdtemp(prefix=f".tmp-{model.name}-", dir=store))
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp, 0o777 & ~umask)  # (mkdtemp's 0700 would survive the rename: a server run by another user could not read the model)
     old = None
     try:
         manifest = dict(model.manifest)
