@@ -84,6 +84,34 @@ def test_a_missing_mask_is_one_line_naming_it_and_nothing_else(tmp_path, capfd):
     assert not store.exists() or list_models(store) == []
 
 
+@pytest.mark.parametrize("kind", ["labels16", "cutout"])
+def test_a_16_bit_or_transparent_mask_is_read_as_stored(tmp_path, kind):
+    """'non-zero = object': a 16-bit label mask (1 = object) read as 8 bits was all zeros
+    ("empty (no non-zero pixel)"); an RGBA cut-out (alpha = object, as an editor exports it) was
+    read through its colour, here black: refused as empty too."""
+    spec0 = load_spec(EXAMPLE / "object.json")
+    from quatrack.viewsets.mesh import load_mesh
+
+    v = spec0.views[0]
+    silhouette = render(load_mesh(spec0.mesh_path), v.camera, v.pose).mask > 0
+    if kind == "labels16":
+        m = silhouette.astype(np.uint16)
+    else:
+        m = np.zeros(silhouette.shape + (4,), np.uint8)
+        m[..., 3] = 255 * silhouette
+    cv2.imwrite(str(tmp_path / "mask.png"), m)
+    data = json.loads((EXAMPLE / "object.json").read_text())
+    data["mesh"] = str(EXAMPLE / data["mesh"])
+    data["views"][0]["image"] = str(EXAMPLE / data["views"][0]["image"])
+    data["views"][0]["mask"] = "mask.png"
+    (tmp_path / "object.json").write_text(json.dumps(data))
+    from quatrack.viewsets.train import _prepare_view
+
+    spec = load_spec(tmp_path / "object.json")
+    view = _prepare_view(load_mesh(spec.mesh_path), spec.views[0])
+    np.testing.assert_array_equal(view.mask > 0, silhouette)
+
+
 @pytest.mark.parametrize("cut", [20000, -3000])
 def test_a_truncated_photo_is_one_line_naming_it(tmp_path, capfd, cut):
     """A photo cut short (an interrupted copy): OpenCV decodes it anyway, its missing part grey,

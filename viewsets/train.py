@@ -131,7 +131,10 @@ def _prepare_view(mesh: Mesh, view: ViewSpec) -> _View:
     buffers = check_pose(mesh, view)
     mask = buffers.mask
     if view.mask_path is not None:
-        m = _read(view.mask_path, cv2.IMREAD_GRAYSCALE, f"view {view.index}: mask {view.mask_path}")
+        # read as stored: a 16-bit mask's labels (1 = object) were 0 once brought to 8 bits
+        m = _read(view.mask_path, cv2.IMREAD_UNCHANGED, f"view {view.index}: mask {view.mask_path}")
+        if m.ndim == 3:  # colour: any channel non-zero; with transparency, the alpha channel (a cut-out)
+            m = m[..., 3] if m.shape[2] == 4 else m.max(axis=2)
         if m.shape != mask.shape:
             raise SpecError(f"view {view.index}: mask {view.mask_path}: size {m.shape[::-1]} differs from the image's")
         mask = np.where(m > 0, 255, 0).astype(np.uint8)
