@@ -219,7 +219,14 @@ def load_mesh(path: str | Path) -> Mesh:
         raise SpecError(f"{path}: the mesh has no vertices")
     if faces is None or len(faces) == 0:
         raise SpecError(f"{path}: the mesh has no faces (a point cloud cannot be rendered)")
-    return make_mesh(np.asarray(vertices), outward_faces(np.asarray(vertices), np.asarray(faces)), str(path))
+    mesh = make_mesh(np.asarray(vertices), outward_faces(np.asarray(vertices), np.asarray(faces)), str(path))
+    # vertices no face uses (an exporter's leftovers, a CAD file's origin point) are dropped: far
+    # off, one moved the bounding box's centre, about which the synthetic views turn the object,
+    # out of the object (each kept no keypoint) and its extent, the mesh's length scale
+    used, faces = np.unique(mesh.faces, return_inverse=True)
+    if len(used) == len(mesh.vertices):
+        return mesh
+    return Mesh(mesh.vertices[used], faces.reshape(mesh.faces.shape).astype(np.int32))
 
 
 def outward_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
