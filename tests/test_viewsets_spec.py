@@ -76,6 +76,20 @@ def test_camera_json_and_yaml(tmp_path):
     assert d2 == pytest.approx({k: v for k, v in cam.items() if k != "dist_coeffs"})
 
 
+def test_an_opencv_yaml_image_size_written_as_text_is_named(tmp_path):
+    """``image_width: "718"`` (quoted): OpenCV reads a string's real() as 1.8e308, and the
+    message said "'width' must be an integer 1..100000, got 1797693134862315708...": now it
+    names the file's own field."""
+    fs = cv2.FileStorage(str(tmp_path / "c.yml"), cv2.FILE_STORAGE_WRITE)
+    fs.write("image_width", "718")
+    fs.write("image_height", 480)
+    fs.write("camera_matrix", np.array([[600.0, 0, 359], [0, 600, 240], [0, 0, 1]]))
+    fs.write("distortion_coefficients", np.zeros((1, 5)))
+    fs.release()
+    with pytest.raises(SpecError, match=r"c\.yml: field 'image_width' must be a number of pixels$"):
+        load_camera(tmp_path / "c.yml")
+
+
 @pytest.mark.parametrize(
     "change, words",
     [

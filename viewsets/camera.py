@@ -145,6 +145,8 @@ def _camera_from_yaml(path: Path) -> PinholeCamera:
         D = fs.getNode("distortion_coefficients").mat()
         w = fs.getNode("image_width")
         h = fs.getNode("image_height")
+        # (a string's real() is 1.8e308: "'width' must be an integer 1..100000, got 17976931348623157...")
+        not_numbers = [k for k, n in (("image_width", w), ("image_height", h)) if not (n.empty() or n.isInt() or n.isReal())]
         width = int(w.real()) if not w.empty() else 0
         height = int(h.real()) if not h.empty() else 0
     except (cv2.error, SystemError, TypeError, ValueError) as exc:
@@ -153,6 +155,8 @@ def _camera_from_yaml(path: Path) -> PinholeCamera:
                         f"{_opencv_detail(exc)}") from None
     finally:
         fs.release()
+    if not_numbers:
+        raise SpecError(f"{path}: field {not_numbers[0]!r} must be a number of pixels")
     if K is None or K.shape != (3, 3):
         raise SpecError(f"{path}: field 'camera_matrix' missing or not 3×3")
     if width <= 0 or height <= 0:
