@@ -76,6 +76,17 @@ def test_camera_json_and_yaml(tmp_path):
     assert d2 == pytest.approx({k: v for k, v in cam.items() if k != "dist_coeffs"})
 
 
+def test_a_spec_and_a_camera_saved_with_a_byte_order_mark_are_read(tmp_path):
+    """Windows tools (Notepad, PowerShell's Out-File) save UTF-8 with a BOM, which JSON may carry
+    (RFC 8259): both files were refused as "not valid JSON (Unexpected UTF-8 BOM ...)"."""
+    cam = {"width": 718, "height": 480, "fx": 1770.0, "fy": 1770.0, "cx": 359.0, "cy": 240.0}
+    (tmp_path / "cam.json").write_bytes(b"\xef\xbb\xbf" + json.dumps(cam).encode())
+    assert camera_to_dict(load_camera(tmp_path / "cam.json"))["fx"] == 1770.0
+    spec = _spec(tmp_path, view_camera="cam.json")
+    spec.write_bytes(b"\xef\xbb\xbf" + spec.read_bytes())
+    assert load_spec(spec).views[0].camera.fx == 1770.0
+
+
 def test_an_opencv_yaml_image_size_written_as_text_is_named(tmp_path):
     """``image_width: "718"`` (quoted): OpenCV reads a string's real() as 1.8e308, and the
     message said "'width' must be an integer 1..100000, got 1797693134862315708...": now it

@@ -172,7 +172,7 @@ def load_camera(path: str | Path) -> PinholeCamera:
     """A camera from a JSON file (contract format) or an OpenCV YAML/XML calibration file."""
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8")
+        text = path.read_text(encoding="utf-8-sig")  # (a BOM, as Windows tools write, is not part of the JSON)
     except (OSError, UnicodeDecodeError) as exc:
         raise SpecError(f"{path}: cannot read camera file ({exc.__class__.__name__}: {exc})") from None
     if path.suffix.lower() in (".yml", ".yaml", ".xml") or text.lstrip().startswith("%YAML"):

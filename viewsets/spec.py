@@ -102,7 +102,7 @@ def load_spec(path: str | Path) -> ObjectSpec:
     except OSError as exc:
         raise SpecError(f"{path}: cannot read spec ({exc.strerror or exc})") from None
     try:
-        data = json.loads(raw.decode("utf-8"))
+        data = json.loads(raw.decode("utf-8-sig"))
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise SpecError(f"{path}: not valid JSON ({exc})") from None
     except RecursionError:
