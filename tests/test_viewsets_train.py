@@ -84,6 +84,34 @@ def test_a_missing_mask_is_one_line_naming_it_and_nothing_else(tmp_path, capfd):
     assert not store.exists() or list_models(store) == []
 
 
+def test_a_photo_over_the_pixel_budget_is_trained_downscaled_with_its_camera(tmp_path, monkeypatch):
+    """A 6000×4000 photo took 10 GB of memory and 80 s (230 s before the weak-texture fix) to
+    train, for keypoints and colour pairs at scales no query shows (locate reads at most 4 MP).
+    Over ``MAX_PHOTO_PIXELS`` the photo, its camera and its mask are downscaled together (the
+    budget is lowered here so the bundled photo, 718×480, is over it)."""
+    import quatrack.viewsets.train as T
+    from quatrack.recognition.images import DEFAULT_MAX_PIXELS
+
+    assert T.MAX_PHOTO_PIXELS == DEFAULT_MAX_PIXELS  # (as locate reads a query)
+    monkeypatch.setattr(T, "MAX_PHOTO_PIXELS", 718 * 480 // 4)
+    spec0 = load_spec(EXAMPLE / "object.json")
+    from quatrack.viewsets.mesh import load_mesh
+
+    cv2.imwrite(str(tmp_path / "mask.png"), render(load_mesh(spec0.mesh_path), spec0.views[0].camera, spec0.views[0].pose).mask)
+    data = json.loads((EXAMPLE / "object.json").read_text())
+    data["mesh"] = str(EXAMPLE / data["mesh"])
+    data["views"][0]["image"] = str(EXAMPLE / data["views"][0]["image"])
+    data["views"][0]["mask"] = "mask.png"
+    (tmp_path / "object.json").write_text(json.dumps(data))
+    model = train_object(load_spec(tmp_path / "object.json"), TrainParams(novel=None))
+    cam = model.viewsets[0].camera
+    assert (cam.width, cam.height) == (359, 240) and cam.fx == pytest.approx(spec0.views[0].camera.fx / 2, rel=1e-3)
+    assert len(model.viewsets[0]) > 200
+    # its keypoints' 3-D points project onto them in the downscaled photo
+    uv = cam.project(model.viewsets[0].pose.apply(model.viewsets[0].points3d))
+    assert np.median(np.linalg.norm(uv - model.viewsets[0].keypoints, axis=1)) < 0.5
+
+
 @pytest.mark.parametrize("kind", ["labels16", "cutout"])
 def test_a_16_bit_or_transparent_mask_is_read_as_stored(tmp_path, kind):
     """'non-zero = object': a 16-bit label mask (1 = object) read as 8 bits was all zeros

@@ -126,8 +126,27 @@ def check_pose(mesh: Mesh, view: ViewSpec, buffers: RenderBuffers | None = None,
     return buffers
 
 
+# A photo larger than this is trained downscaled, its camera with it, as `locate` reads a query
+# (recognition.images.DEFAULT_MAX_PIXELS): at 6000×4000 px training took 10 GB of memory and 80 s
+# for a model of keypoints and colour pairs at scales no query (≤ 4 MP) shows.
+MAX_PHOTO_PIXELS = 4_000_000
+
+
+def _within_pixels(view: ViewSpec, image: np.ndarray) -> tuple[ViewSpec, np.ndarray]:
+    """The view and its photo, downscaled with its camera when over :data:`MAX_PHOTO_PIXELS`."""
+    h, w = image.shape[:2]
+    if w * h <= MAX_PHOTO_PIXELS:
+        return view, image
+    s = float(np.sqrt(MAX_PHOTO_PIXELS / (w * h)))
+    nw, nh = int(w * s), int(h * s)
+    small = cv2.resize(image, (nw, nh), interpolation=cv2.INTER_AREA)
+    return dataclasses.replace(view, camera=view.camera.scaled(nw / w, nw, nh)), small
+
+
 def _prepare_view(mesh: Mesh, view: ViewSpec) -> _View:
     image = _read_image(view)
+    full = image.shape[:2]
+    view, image = _within_pixels(view, image)
     buffers = check_pose(mesh, view)
     mask = buffers.mask
     if view.mask_path is not None:
@@ -135,8 +154,10 @@ def _prepare_view(mesh: Mesh, view: ViewSpec) -> _View:
         m = _read(view.mask_path, cv2.IMREAD_UNCHANGED, f"view {view.index}: mask {view.mask_path}")
         if m.ndim == 3:  # colour: any channel non-zero; with transparency, the alpha channel (a cut-out)
             m = m[..., 3] if m.shape[2] == 4 else m.max(axis=2)
-        if m.shape != mask.shape:
+        if m.shape != full:
             raise SpecError(f"view {view.index}: mask {view.mask_path}: size {m.shape[::-1]} differs from the image's")
+        if m.shape != mask.shape:  # (the photo was downscaled)
+            m = cv2.resize((m > 0).astype(np.uint8), mask.shape[::-1], interpolation=cv2.INTER_NEAREST)
         mask = np.where(m > 0, 255, 0).astype(np.uint8)
         if not np.any(mask):
             raise SpecError(f"view {view.index}: mask {view.mask_path}: empty (no non-zero pixel)")
