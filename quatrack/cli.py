@@ -383,7 +383,7 @@ def _run_train(args: argparse.Namespace) -> int:
     if len(args.spec) > 1 or args.ray:
         return _run_train_many(args, params, store)
     spec_path = args.spec[0]
-    spec = load_spec(spec_path)
+    spec = load_spec(spec_path, warn=lambda msg: print(f"quatrack train: warning: {msg}", file=sys.stderr))
     if args.no_overwrite and model_path(store, spec.name).exists():
         raise UserError(f"object {spec.name!r} already exists in {store} (and --no-overwrite was given)")
     if args.skip_existing and model_path(store, spec.name).exists():
@@ -449,7 +449,8 @@ def _run_train_many(args: argparse.Namespace, params, store) -> int:
                   f"{r.seconds:.1f} s)", flush=True)
 
     results = train_many(args.spec, store, params, jobs=args.jobs, overwrite=not args.no_overwrite,
-                         skip_existing=args.skip_existing, ray_address=args.ray, on_done=done)
+                         skip_existing=args.skip_existing, ray_address=args.ray, on_done=done,
+                         warn=lambda msg: print(f"quatrack train: warning: {msg}", file=sys.stderr))
     failed = sum(r.error is not None for r in results)
     where = f"on Ray ({args.ray})" if args.ray else f"locally, --jobs {args.jobs}"
     print(f"{len(results) - failed} of {len(results)} objects trained {where} in {time.perf_counter() - t0:.1f} s")

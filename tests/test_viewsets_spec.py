@@ -76,6 +76,19 @@ def test_camera_json_and_yaml(tmp_path):
     assert d2 == pytest.approx({k: v for k, v in cam.items() if k != "dist_coeffs"})
 
 
+def test_fields_a_spec_does_not_know_are_warned_of(tmp_path):
+    """A typo (``"mask_path"`` for ``"mask"``) trained silently without the mask: the fields are
+    still ignored (a spec may carry more), but the CLI is told, one line per object or view."""
+    said = []
+    spec = load_spec(_spec(tmp_path, units="cm", view_mask_path="mask.png"), warn=said.append)
+    assert spec.views[0].mask_path is None
+    assert len(said) == 2
+    assert "'units'" in said[0] and "view 0" in said[1] and "'mask_path'" in said[1] and "mask" in said[1]
+    said.clear()
+    load_spec(EXAMPLE / "object.json", warn=said.append)
+    assert said == []
+
+
 def test_a_spec_and_a_camera_saved_with_a_byte_order_mark_are_read(tmp_path):
     """Windows tools (Notepad, PowerShell's Out-File) save UTF-8 with a BOM, which JSON may carry
     (RFC 8259): both files were refused as "not valid JSON (Unexpected UTF-8 BOM ...)"."""

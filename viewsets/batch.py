@@ -71,13 +71,14 @@ def train_one(spec_path: str, store: str, params: TrainParams, overwrite: bool =
     return Trained(spec_path, name, str(path), model.manifest["training_summary"], time.perf_counter() - t0)
 
 
-def check_specs(spec_paths: list[str], store: Path, no_overwrite: bool) -> list[str]:
+def check_specs(spec_paths: list[str], store: Path, no_overwrite: bool, warn=None) -> list[str]:
     """Absolute paths of the specs, after loading each (raises SpecError naming the culprit);
-    two specs of one object name, or an existing object with ``no_overwrite``, are refused."""
+    two specs of one object name, or an existing object with ``no_overwrite``, are refused.
+    ``warn``: as :func:`~.spec.load_spec`'s (fields a spec does not know)."""
     names: dict[str, str] = {}
     out = []
     for p in spec_paths:
-        spec = load_spec(p)
+        spec = load_spec(p, warn)
         if spec.name in names:
             raise SpecError(f"{p} and {names[spec.name]} both define object {spec.name!r}")
         names[spec.name] = p
@@ -89,17 +90,19 @@ def check_specs(spec_paths: list[str], store: Path, no_overwrite: bool) -> list[
 
 def train_many(spec_paths: list[str], store: str | Path, params: TrainParams = TrainParams(), jobs: int = 2,
                overwrite: bool = True, skip_existing: bool = False, ray_address: str | None = None,
-               on_done: Callable[[Trained], None] | None = None) -> list[Trained]:
+               on_done: Callable[[Trained], None] | None = None,
+               warn: Callable[[str], None] | None = None) -> list[Trained]:
     """Train every spec into ``store``; results in the order of ``spec_paths``.
 
     ``jobs`` is the CPU budget (see the module docstring); ``ray_address`` sends each spec to a
     Ray cluster instead ("auto" finds a local one, "local" starts a private one for this call).
-    ``on_done`` is called as each spec finishes (for progress lines).
+    ``on_done`` is called as each spec finishes (for progress lines); ``warn`` is told of fields
+    a spec does not know, as the specs are checked.
     """
     if jobs < 1:
         raise ValueError("jobs must be at least 1")
     store = str(Path(store).expanduser().resolve())
-    specs = check_specs(spec_paths, Path(store), not overwrite)
+    specs = check_specs(spec_paths, Path(store), not overwrite, warn)
     Path(store).mkdir(parents=True, exist_ok=True)
     if ray_address is not None:
         results = _on_ray(specs, store, dataclasses.replace(params, jobs=jobs), overwrite, skip_existing,

@@ -94,8 +94,17 @@ def _path(base: Path, value: Any, where: str, field: str) -> Path:
     return (base / value).resolve()
 
 
-def load_spec(path: str | Path) -> ObjectSpec:
-    """Parse and check an object spec file; cameras given as paths are loaded too."""
+def _unknown(data: dict, known: tuple[str, ...], where: str, warn) -> None:
+    """Tell ``warn`` of fields the spec does not know (a typo such as ``"mask_path"`` trained
+    silently without the mask): ignored, as the contract lets a spec carry more."""
+    extra = [k for k in data if k not in known]
+    if extra and warn:
+        warn(f"{where}: unknown field(s) {', '.join(map(repr, extra))} ignored (known: {', '.join(known)})")
+
+
+def load_spec(path: str | Path, warn=None) -> ObjectSpec:
+    """Parse and check an object spec file; cameras given as paths are loaded too. ``warn``
+    (optional) receives one message per object or view with fields the spec does not know."""
     path = Path(path)
     try:
         raw = path.read_bytes()
@@ -110,6 +119,7 @@ def load_spec(path: str | Path) -> ObjectSpec:
     if not isinstance(data, dict):
         raise SpecError(f"{path}: the spec must be a JSON object")
     base = path.resolve().parent
+    _unknown(data, ("name", "mesh", "views"), str(path), warn)
     for key in ("name", "mesh", "views"):
         if key not in data:
             raise SpecError(f"{path}: missing field {key!r}")
@@ -129,6 +139,7 @@ def load_spec(path: str | Path) -> ObjectSpec:
         for key in ("image", "camera", "pose"):
             if key not in v:
                 raise SpecError(f"{where}: missing field {key!r}")
+        _unknown(v, ("image", "camera", "pose", "mask"), where, warn)
         image = _path(base, v["image"], where, "image")
         cam = v["camera"]
         if isinstance(cam, str):
