@@ -167,3 +167,30 @@ def test_metrics_of_a_one_worker_server(tmp_path):
     finally:
         proc.terminate()
         proc.wait(timeout=30)
+
+
+def test_ctrl_c_while_trimesh_imports_is_not_swallowed(tmp_path):
+    """trimesh wraps its optional imports (scipy: seconds on a cold disk) in ``except
+    BaseException``: a Ctrl-C pressed meanwhile was swallowed and training went on, replacing the
+    model. A stand-in trimesh that swallows the same way: loading a mesh must end interrupted."""
+    fake = tmp_path / "trimesh"
+    fake.mkdir()
+    (fake / "__init__.py").write_text(
+        "import os, signal\n"
+        "try:\n"
+        "    os.kill(os.getpid(), signal.SIGINT)\n"
+        "    for _ in range(100000):\n"
+        "        pass\n"
+        "except BaseException:  # as trimesh does around its optional imports\n"
+        "    pass\n")
+    script = ("import sys\n"
+              f"sys.path.insert(0, {str(tmp_path)!r})\n"
+              "from quatrack.viewsets.mesh import load_mesh\n"
+              "try:\n"
+              "    load_mesh('no-such-mesh.ply')\n"
+              "except KeyboardInterrupt:\n"
+              "    print('interrupted')\n"
+              "except ValueError as exc:\n"
+              "    print('went on:', exc)\n")
+    r = _run("-c", script, cwd=tmp_path)
+    assert r.stdout.strip() == "interrupted", r.stdout + r.stderr

@@ -200,9 +200,32 @@ def simplified(mesh: Mesh, faces: int) -> Mesh:
     return make_mesh(V2, outward_faces(V2, np.asarray(F2, np.int64)), "simplified mesh")
 
 
+def _trimesh():
+    """The trimesh module, imported with Ctrl-C held until the import ends. trimesh wraps its
+    optional imports (scipy, seconds on a cold disk) in ``except BaseException``: a Ctrl-C
+    there was swallowed, and training went on to replace the model the user meant to keep."""
+    import signal
+    import sys
+    import threading
+
+    if "trimesh" in sys.modules or threading.current_thread() is not threading.main_thread():
+        import trimesh
+
+        return trimesh
+    pressed = []
+    previous = signal.signal(signal.SIGINT, lambda *_: pressed.append(True))
+    try:
+        import trimesh
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if pressed:
+        raise KeyboardInterrupt
+    return trimesh
+
+
 def load_mesh(path: str | Path) -> Mesh:
     """Load a PLY or OBJ mesh (polygons are triangulated by trimesh); faces are required."""
-    import trimesh
+    trimesh = _trimesh()
 
     path = Path(path)
     if not path.is_file():
@@ -237,7 +260,7 @@ def outward_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     Faces are joined through vertices at the same position (an STL file stores each triangle's
     corners apart; texture seams split vertices), as in :attr:`Mesh.closed_outward`.
     """
-    import trimesh
+    trimesh = _trimesh()
 
     F = np.asarray(faces)
     _, same = np.unique(np.asarray(vertices, float), axis=0, return_inverse=True)
