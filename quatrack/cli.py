@@ -673,13 +673,17 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    tune_allocator()
-    limit_blas_threads()  # recognition's small BLAS products: one thread (runtime.py says why)
-    quiet_ffmpeg()  # no FFmpeg decoder chatter from any command reading a video (box.mp4's h264)
+    try:  # (building the parser imports the commands' modules: a Ctrl-C then is no traceback either)
+        parser = build_parser()
+        args = parser.parse_args(argv)
+    except KeyboardInterrupt:
+        print("quatrack: interrupted", file=sys.stderr)
+        return 130
     run = COMMANDS[args.command][2]
     try:
+        tune_allocator()
+        limit_blas_threads()  # recognition's small BLAS products: one thread (runtime.py says why)
+        quiet_ffmpeg()  # no FFmpeg decoder chatter from any command reading a video (box.mp4's h264)
         return run(args)
     except KeyboardInterrupt:
         print("quatrack: interrupted", file=sys.stderr)

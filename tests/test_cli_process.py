@@ -194,3 +194,20 @@ def test_ctrl_c_while_trimesh_imports_is_not_swallowed(tmp_path):
               "    print('went on:', exc)\n")
     r = _run("-c", script, cwd=tmp_path)
     assert r.stdout.strip() == "interrupted", r.stdout + r.stderr
+
+
+def test_ctrl_c_while_the_commands_load_is_one_line(monkeypatch, capsys):
+    """Building the parser imports the commands' modules (a tenth of a second): a Ctrl-C then
+    was a KeyboardInterrupt traceback, not the 'interrupted' line of a Ctrl-C a moment later."""
+    import quatrack.cli as cli
+
+    def interrupted():
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli, "build_parser", interrupted)
+    try:
+        status = cli.main(["models", "list"])
+    except KeyboardInterrupt:
+        pytest.fail("the KeyboardInterrupt left main(): a traceback")
+    assert status == 130
+    assert capsys.readouterr().err == "quatrack: interrupted\n"
