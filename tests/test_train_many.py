@@ -126,3 +126,27 @@ def test_an_unreachable_ray_address_is_one_line(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert f"--ray 127.0.0.1:{port}" in err and len(err.splitlines()) == 1
     assert not (tmp_path / "s").exists() or list_models(tmp_path / "s") == []
+
+
+def test_ctrl_c_ends_the_worker_processes_and_trains_nothing_queued(tmp_path, monkeypatch):
+    """Ctrl-C while several specs train: the parent stopped waiting, but leaving the pool waited
+    for every spec, queued ones too, each trained and stored after the user's Ctrl-C (and the
+    workers, taking the Ctrl-C themselves, printed their tracebacks). Now the workers ignore it
+    and the parent ends them: nothing is stored after the Ctrl-C."""
+    import quatrack.viewsets.batch as batch
+    from quatrack.viewsets.train import TrainParams
+
+    def ctrl_c(futures):
+        raise KeyboardInterrupt
+        yield  # (a generator, as as_completed)
+
+    monkeypatch.setattr(batch, "as_completed", ctrl_c)
+    specs = [str(renamed_spec(tmp_path, f"box-{i}")) for i in range(3)]
+    store = tmp_path / "store"
+    store.mkdir()
+    t0 = time.perf_counter()
+    with pytest.raises(KeyboardInterrupt):
+        batch._local(specs, str(store), TrainParams(novel=None), True, False, 2, None)
+    assert time.perf_counter() - t0 < 5
+    time.sleep(2)  # (a worker left running would store a model meanwhile)
+    assert list_models(store) == []

@@ -126,13 +126,30 @@ def _local(specs, store, params, overwrite, skip_existing, processes, on_done) -
 
     out = {}
     # spawn, not fork: the parent may hold OpenCV/BLAS thread pools that fork would copy mid-use
-    with ProcessPoolExecutor(processes, mp_context=multiprocessing.get_context("spawn")) as pool:
+    with ProcessPoolExecutor(processes, mp_context=multiprocessing.get_context("spawn"),
+                             initializer=_ignore_ctrl_c) as pool:
         futures = {pool.submit(train_one, p, store, params, overwrite, skip_existing): p for p in specs}
-        for f in as_completed(futures):
-            out[futures[f]] = f.result()
-            if on_done:
-                on_done(out[futures[f]])
+        try:
+            for f in as_completed(futures):
+                out[futures[f]] = f.result()
+                if on_done:
+                    on_done(out[futures[f]])
+        except KeyboardInterrupt:
+            # Ctrl-C reaches the workers too; had they taken it, each printed its traceback, and
+            # went on to train (and store) the specs queued to it: they ignore it, and end here
+            # (a model is renamed into place whole, or not at all)
+            for proc in list((getattr(pool, "_processes", None) or {}).values()):
+                proc.terminate()
+            pool.shutdown(wait=False, cancel_futures=True)
+            raise
     return out
+
+
+def _ignore_ctrl_c() -> None:
+    """A worker process's initializer: Ctrl-C is the parent's to handle (:func:`_local`)."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def _on_ray(specs, store, params, overwrite, skip_existing, address, on_done) -> dict[str, Trained]:
