@@ -473,6 +473,8 @@ def _run_models(args: argparse.Namespace) -> int:
     from quatrack.viewsets.store import delete_model, list_models, load_manifest, load_model, remove_stale, resolve_store
 
     store = resolve_store(args.store)
+    if store.exists() and not store.is_dir():  # (else listed as an empty store, exit 0)
+        raise UserError(f"--store {store}: not a directory")
     if args.action == "list":
         remove_stale(store)
         for name in list_models(store):

@@ -124,6 +124,16 @@ def test_cli_uses_quatrack_store_env(monkeypatch, tmp_path):
     assert list_models(tmp_path / "envstore") == ["cookie-box"]
 
 
+@pytest.mark.parametrize("action", [["list"], ["show", "cookie-box"], ["delete", "cookie-box"]])
+def test_models_on_a_store_that_is_a_file_is_one_line(tmp_path, capsys, action):
+    """`models list --store FILE` listed nothing, exit 0, as for an empty store (a typo'd path
+    looked like a store without models); train says "not a directory": so do the models commands."""
+    (tmp_path / "models").write_text("not a folder")
+    assert main(["models", *action, "--store", str(tmp_path / "models")]) == 2
+    err = capsys.readouterr().err
+    assert "not a directory" in err and err.count("\n") == 1
+
+
 @pytest.mark.parametrize("name", ["../x", "..", ".hidden", "a/b", "", "x" * 65, "a b"])
 def test_bad_names_cannot_escape(store, name):
     with pytest.raises(StoreError):
