@@ -18,6 +18,7 @@ from quatrack.viewsets.mesh import make_mesh, planar_groups
 from quatrack.viewsets.novel import render_textured_view
 from quatrack.viewsets.render import cast_rays, render, undistort_pixels
 from quatrack.tracking.pose import Pose
+from quatrack.viewsets.errors import SpecError
 from quatrack.viewsets.spec import load_spec
 from quatrack.viewsets.store import list_models, load_model
 from quatrack.viewsets.train import TrainParams, train_object
@@ -138,6 +139,23 @@ def test_a_16_bit_or_transparent_mask_is_read_as_stored(tmp_path, kind):
     spec = load_spec(tmp_path / "object.json")
     view = _prepare_view(load_mesh(spec.mesh_path), spec.views[0])
     np.testing.assert_array_equal(view.mask > 0, silhouette)
+
+
+def test_a_photo_turned_by_its_exif_orientation_is_named_as_such(tmp_path):
+    """A phone stores a portrait photo's pixels sideways with an EXIF tag to turn them; OpenCV
+    turns them, and the message said "image is 480×718 but the view's camera is 718×480" of a
+    file every tool shows as 718×480 stored pixels. Now it says why."""
+    tiff = (b"MM\x00\x2a\x00\x00\x00\x08" + b"\x00\x01"
+            + b"\x01\x12\x00\x03\x00\x00\x00\x01\x00\x06\x00\x00" + b"\x00\x00\x00\x00")  # Orientation = 6
+    app1 = b"Exif\x00\x00" + tiff
+    jpeg = (EXAMPLE / "resized_IMG_3875.JPG").read_bytes()
+    (tmp_path / "photo.jpg").write_bytes(jpeg[:2] + b"\xff\xe1" + (len(app1) + 2).to_bytes(2, "big") + app1 + jpeg[2:])
+    data = json.loads((EXAMPLE / "object.json").read_text())
+    data["mesh"] = str(EXAMPLE / data["mesh"])
+    data["views"][0]["image"] = "photo.jpg"
+    (tmp_path / "object.json").write_text(json.dumps(data))
+    with pytest.raises(SpecError, match="image is 480×718 as shown \\(its EXIF orientation turns the 718×480 pixels"):
+        train_object(load_spec(tmp_path / "object.json"), TrainParams(novel=None))
 
 
 @pytest.mark.parametrize("cut", [20000, -3000])

@@ -96,8 +96,14 @@ def _read_image(view: ViewSpec) -> np.ndarray:
     img = _read(view.image_path, cv2.IMREAD_COLOR, where)
     cam = view.camera
     if (img.shape[1], img.shape[0]) != (cam.width, cam.height):
+        turned, hint = "", ""  # (a phone's portrait photo: its pixels stored sideways, an EXIF tag to turn them)
+        if (img.shape[0], img.shape[1]) == (cam.width, cam.height):
+            stored = cv2.imread(str(view.image_path), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
+            if stored is not None and stored.shape[:2] != img.shape[:2]:
+                turned = f" as shown (its EXIF orientation turns the {stored.shape[1]}×{stored.shape[0]} pixels it stores)"
+                hint = ": give the camera and pose of the photo as shown"
         raise SpecError(
-            f"{where}: image is {img.shape[1]}×{img.shape[0]} but the view's camera is {cam.width}×{cam.height}"
+            f"{where}: image is {img.shape[1]}×{img.shape[0]}{turned} but the view's camera is {cam.width}×{cam.height}{hint}"
         )
     return img
 
