@@ -355,8 +355,8 @@ def _train_params(args: argparse.Namespace):
         rfch = dataclasses.replace(rfch, distance=args.rfch_distance)
     if args.rfch_scales is not None:
         rs = _floats(args.rfch_scales, "--rfch-scales")
-        if not rs or any(s <= 0 for s in rs):
-            raise UserError("--rfch-scales: give one or more positive scales")
+        if not rs or any(not 0 < s <= 100 for s in rs):  # (beyond, OpenCV's blur fails: a traceback, or all memory)
+            raise UserError("--rfch-scales: give one or more positive scales, up to 100 pixels")
         rfch = dataclasses.replace(rfch, scales=rs)
     vs = ViewsetParams(max_features=args.max_features, root_sift=args.root_sift)
     return TrainParams(rfch=rfch, viewsets=vs, novel=novel, jobs=args.jobs)

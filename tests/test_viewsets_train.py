@@ -52,6 +52,17 @@ def test_cli_train_end_to_end(trained_store, capsys):
     assert json.loads(capsys.readouterr().out)["name"] == "cookie-box"
 
 
+@pytest.mark.parametrize("scale", ["1e9", "0", "-1"])
+def test_rfch_scales_out_of_range_are_one_line(tmp_path, capsys, scale):
+    """`--rfch-scales 1e9` reached OpenCV's Gaussian blur: a cv2.error traceback (1e7: all the
+    memory, then std::bad_alloc). Scales are bounded as the pair distance is (100 px)."""
+    store = tmp_path / "store"
+    assert main(["train", str(EXAMPLE / "object.json"), "--store", str(store), "--rfch-scales", scale]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("quatrack train: error: --rfch-scales") and err.count("\n") == 1
+    assert not store.exists()
+
+
 def test_skip_existing_trains_only_what_is_missing_or_changed(tmp_path, capsys):
     store = tmp_path / "store"
     spec = tmp_path / "object.json"
