@@ -333,8 +333,8 @@ def _train_params(args: argparse.Namespace):
 
     if args.jobs < 1:
         raise UserError("--jobs must be at least 1")
-    if args.max_features < 1:
-        raise UserError("--max-features must be at least 1")
+    if not 1 <= args.max_features <= 1_000_000:  # (OpenCV's SIFT takes a C int: 2³¹ was a cv2.error traceback)
+        raise UserError("--max-features must be between 1 and 1000000")
     angles = _floats(args.novel_views, "--novel-views")
     scales = _floats(args.novel_scales, "--novel-scales")
     if any(s <= 0 for s in scales):

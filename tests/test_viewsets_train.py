@@ -52,14 +52,16 @@ def test_cli_train_end_to_end(trained_store, capsys):
     assert json.loads(capsys.readouterr().out)["name"] == "cookie-box"
 
 
-@pytest.mark.parametrize("scale", ["1e9", "0", "-1"])
-def test_rfch_scales_out_of_range_are_one_line(tmp_path, capsys, scale):
+@pytest.mark.parametrize("option, value", [("--rfch-scales", "1e9"), ("--rfch-scales", "0"), ("--rfch-scales", "-1"),
+                                           ("--max-features", str(2**31)), ("--max-features", "0")])
+def test_train_options_out_of_range_are_one_line(tmp_path, capsys, option, value):
     """`--rfch-scales 1e9` reached OpenCV's Gaussian blur: a cv2.error traceback (1e7: all the
-    memory, then std::bad_alloc). Scales are bounded as the pair distance is (100 px)."""
+    memory, then std::bad_alloc); `--max-features 2147483648` OpenCV's SIFT, which takes a C
+    int: a traceback too. Both are bounded, as the pair distance is."""
     store = tmp_path / "store"
-    assert main(["train", str(EXAMPLE / "object.json"), "--store", str(store), "--rfch-scales", scale]) == 2
+    assert main(["train", str(EXAMPLE / "object.json"), "--store", str(store), option, value]) == 2
     err = capsys.readouterr().err
-    assert err.startswith("quatrack train: error: --rfch-scales") and err.count("\n") == 1
+    assert err.startswith(f"quatrack train: error: {option}") and err.count("\n") == 1
     assert not store.exists()
 
 
