@@ -76,6 +76,21 @@ def test_camera_json_and_yaml(tmp_path):
     assert d2 == pytest.approx({k: v for k, v in cam.items() if k != "dist_coeffs"})
 
 
+def test_a_path_written_relative_to_the_current_folder_is_named_as_such(tmp_path, monkeypatch):
+    """The spec in a subfolder, its paths written from where the user stands: training said only
+    "<spec folder>/box.ply: mesh file not found" of a file the user sees right there."""
+    (tmp_path / "specs").mkdir()
+    (tmp_path / "box.ply").write_bytes((EXAMPLE / "box.ply").read_bytes())
+    data = json.loads((EXAMPLE / "object.json").read_text())
+    data["mesh"] = "box.ply"
+    data["views"][0]["image"] = str(EXAMPLE / "resized_IMG_3875.JPG")
+    (tmp_path / "specs" / "object.json").write_text(json.dumps(data))
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SpecError, match=r"field 'mesh': .*specs/box.ply not found; paths are relative to the "
+                                        r"spec's folder.*write '\.\./box.ply'"):
+        load_spec("specs/object.json")
+
+
 def test_fields_a_spec_does_not_know_are_warned_of(tmp_path):
     """A typo (``"mask_path"`` for ``"mask"``) trained silently without the mask: the fields are
     still ignored (a spec may carry more), but the CLI is told, one line per object or view."""

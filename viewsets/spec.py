@@ -9,6 +9,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -91,7 +92,12 @@ def parse_pose(data: Any, where: str = "pose") -> Pose:
 def _path(base: Path, value: Any, where: str, field: str) -> Path:
     if not isinstance(value, str) or not value:
         raise SpecError(f"{where}: field {field!r} must be a non-empty path string")
-    return (base / value).resolve()
+    path = (base / value).resolve()
+    here = Path(value).resolve()
+    if not path.exists() and here.exists() and here != path:  # (written relative to where the user stood)
+        raise SpecError(f"{where}: field {field!r}: {path} not found; paths are relative to the spec's folder, "
+                        f"and {value!r} is relative to the current one: write {os.path.relpath(here, base)!r}")
+    return path
 
 
 def _unknown(data: dict, known: tuple[str, ...], where: str, warn) -> None:
