@@ -380,6 +380,11 @@ def _run_train(args: argparse.Namespace) -> int:
     above = next((p for p in store.absolute().parents if p.exists()), None)
     if above is not None and not above.is_dir():
         raise UserError(f"--store {store}: {above} is a file, not a folder")
+    # (and writable: else the model, trained first, failed to save naming a temporary folder)
+    folder = store if store.exists() else above
+    if folder is not None and not os.access(folder, os.W_OK | os.X_OK):
+        ro = hasattr(os, "statvfs") and bool(os.statvfs(folder).f_flag & getattr(os, "ST_RDONLY", 1))
+        raise UserError(f"--store {store}: cannot write in {folder} ({'read-only file system' if ro else 'permission denied'})")
     if len(args.spec) > 1 or args.ray:
         return _run_train_many(args, params, store)
     spec_path = args.spec[0]

@@ -124,6 +124,26 @@ def test_cli_uses_quatrack_store_env(monkeypatch, tmp_path):
     assert list_models(tmp_path / "envstore") == ["cookie-box"]
 
 
+def test_a_store_that_cannot_be_written_is_refused_before_training(tmp_path, capsys, monkeypatch):
+    """A read-only store (a read-only mount, another user's folder): the whole training ran, then
+    saving failed with "[Errno 30] Read-only file system: 'store/.tmp-cookie-box-5spzihae'"."""
+    import quatrack.viewsets.train as train_mod
+
+    store = tmp_path / "store"
+    store.mkdir()
+    store.chmod(0o555)
+    real = os.access
+    monkeypatch.setattr(os, "access", lambda p, mode, **kw: False if Path(p) == store else real(p, mode, **kw))  # (root ignores 0o555)
+    monkeypatch.setattr(train_mod, "train_object", lambda *a, **kw: pytest.fail("trained"))
+    try:
+        for where in (store, store / "sub"):
+            assert main(["train", str(EXAMPLE / "object.json"), "--store", str(where), *FAST]) == 2
+            err = capsys.readouterr().err
+            assert f"cannot write in {store}" in err and err.count("\n") == 1
+    finally:
+        store.chmod(0o755)
+
+
 @pytest.mark.parametrize("action", [["list"], ["show", "cookie-box"], ["delete", "cookie-box"]])
 def test_models_on_a_store_that_is_a_file_is_one_line(tmp_path, capsys, action):
     """`models list --store FILE` listed nothing, exit 0, as for an empty store (a typo'd path
