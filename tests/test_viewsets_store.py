@@ -124,6 +124,21 @@ def test_cli_uses_quatrack_store_env(monkeypatch, tmp_path):
     assert list_models(tmp_path / "envstore") == ["cookie-box"]
 
 
+def test_delete_from_a_read_only_store_is_one_line_naming_the_object(store, capsys, monkeypatch):
+    """The message named the temporary folder: "[Errno 30] Read-only file system: 'S/.del-cookie-box-3b75fim5'"."""
+    import errno
+    import tempfile
+
+    def read_only(*a, **kw):
+        raise OSError(errno.EROFS, "Read-only file system", str(store / ".del-cookie-box-x"))
+
+    monkeypatch.setattr(tempfile, "mkdtemp", read_only)
+    assert main(["models", "delete", "cookie-box", "--store", str(store)]) == 2
+    err = capsys.readouterr().err
+    assert f"cannot delete 'cookie-box' from {store} (Read-only file system)" in err and ".del-" not in err
+    assert list_models(store) == ["cookie-box"]
+
+
 def test_a_store_that_cannot_be_written_is_refused_before_training(tmp_path, capsys, monkeypatch):
     """A read-only store (a read-only mount, another user's folder): the whole training ran, then
     saving failed with "[Errno 30] Read-only file system: 'store/.tmp-cookie-box-5spzihae'"."""

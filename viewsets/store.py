@@ -377,6 +377,9 @@ def delete_model(store: str | Path, name: str) -> None:
     final = model_path(store, name)
     if not (final / MANIFEST).is_file():
         raise StoreError(f"no object named {name!r} in {store}")
-    trash = Path(tempfile.mkdtemp(prefix=f".del-{name}-", dir=store))
+    try:
+        trash = Path(tempfile.mkdtemp(prefix=f".del-{name}-", dir=store))
+    except OSError as exc:  # (a read-only store: the message named the temporary folder)
+        raise StoreError(f"cannot delete {name!r} from {store} ({exc.strerror or exc})") from None
     os.replace(final, trash / "model")
     shutil.rmtree(trash, ignore_errors=True)
