@@ -420,7 +420,10 @@ def _run_train(args: argparse.Namespace) -> int:
         model = train_object(spec, params, progress=bar.update, warn=warn, on_total=set_total)
     finally:
         bar.close()
-    path = save_model(store, model, overwrite=not args.no_overwrite)
+    try:
+        path = save_model(store, model, overwrite=not args.no_overwrite)
+    except OSError as exc:  # (a full disk said "[Errno 28] No space left on device", naming nothing)
+        raise UserError(f"cannot save {spec.name!r} in {store}: {exc.strerror or exc}") from None
     s = model.manifest["training_summary"]
     counts = list(s["keypoints_per_viewset"].values())
     print(f"trained {spec.name!r} -> {path}")

@@ -124,6 +124,29 @@ def test_cli_uses_quatrack_store_env(monkeypatch, tmp_path):
     assert list_models(tmp_path / "envstore") == ["cookie-box"]
 
 
+@pytest.mark.parametrize("many", [False, True])
+def test_a_full_disk_is_one_line_naming_the_object_and_the_store(store, capsys, monkeypatch, many):
+    """The line said only "quatrack train: error: [Errno 28] No space left on device" (several
+    specs: "SPEC: [Errno 28] ...", from viewsets.batch.train_one)."""
+    import errno
+
+    from quatrack.viewsets.batch import train_one
+
+    def full(f, **arrays):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(store_mod.np, "savez_compressed", full)
+    before = snapshot(store)
+    if many:
+        err = train_one(str(EXAMPLE / "object.json"), str(store), TrainParams(novel=None)).error
+    else:
+        assert main(["train", str(EXAMPLE / "object.json"), "--store", str(store), *FAST]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1
+    assert f"cannot save 'cookie-box' in {store}: No space left on device" in err
+    assert snapshot(store) == before
+
+
 def test_delete_from_a_read_only_store_is_one_line_naming_the_object(store, capsys, monkeypatch):
     """The message named the temporary folder: "[Errno 30] Read-only file system: 'S/.del-cookie-box-3b75fim5'"."""
     import errno

@@ -65,7 +65,10 @@ def train_one(spec_path: str, store: str, params: TrainParams, overwrite: bool =
         if skip_existing and _up_to_date(Path(store), name, spec.checksum):
             return Trained(spec_path, name, str(model_path(store, name)), skipped=True)
         model = train_object(spec, params)
-        path = save_model(store, model, overwrite=overwrite)
+        try:
+            path = save_model(store, model, overwrite=overwrite)
+        except OSError as exc:  # (a full disk said "[Errno 28] No space left on device", naming nothing)
+            raise StoreError(f"cannot save {name!r} in {store}: {exc.strerror or exc}") from None
     except (SpecError, StoreError, ValueError, OSError) as exc:
         return Trained(spec_path, name, error=str(exc), seconds=time.perf_counter() - t0)
     return Trained(spec_path, name, str(path), model.manifest["training_summary"], time.perf_counter() - t0)
