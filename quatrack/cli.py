@@ -420,6 +420,8 @@ def _run_train(args: argparse.Namespace) -> int:
         model = train_object(spec, params, progress=bar.update, warn=warn, on_total=set_total)
     finally:
         bar.close()
+    for msg in _registration_doubts(spec, model.mesh.run_time):
+        warn(msg)
     try:
         path = save_model(store, model, overwrite=not args.no_overwrite)
     except OSError as exc:  # (a full disk said "[Errno 28] No space left on device", naming nothing)
@@ -434,6 +436,32 @@ def _run_train(args: argparse.Namespace) -> int:
     print(f"  RFCH: {r.n_clusters} clusters, {r.histogram.size} bins, d = {r.distance} px, scales {list(r.scales)}")
     print(f"  time: {time.perf_counter() - t0:.1f} s")
     return 0
+
+
+def _registration_doubts(spec, mesh) -> list[str]:
+    """One warning per registered view whose pose ``locate`` would not accept in its own photo:
+    the mesh's visible edges there must lie on the photo's edges as a found pose's must
+    (``PoseParams.min_edge_agreement``, ``min_edge_lead``). A pose given camera → object, a
+    rotation transposed, ``q`` as x, y, z, w or a mesh in other units than ``t`` trained a model
+    of the background without a word (the cookie box: 0.77 of its edges on the photo's, 0.22 by
+    chance; transposed: 0.16, 0.21)."""
+    import cv2
+
+    from quatrack.recognition.evidence import edge_agreement
+    from quatrack.recognition.pose import PoseParams
+
+    p = PoseParams()
+    out = []
+    for v in spec.views:
+        grey = cv2.imread(str(v.image_path), cv2.IMREAD_GRAYSCALE)  # (read and checked by the training already)
+        if grey is None or (grey.shape[1], grey.shape[0]) != (v.camera.width, v.camera.height):
+            continue
+        e = edge_agreement(grey, mesh, v.camera, v.pose)
+        if e.samples >= p.min_edge_samples and (e.agreement < p.min_edge_agreement or e.lead < p.min_edge_lead):
+            out.append(f"view {v.index}: the mesh's edges at its pose lie on the photo's edges for {e.agreement:.0%} of "
+                       f"their length ({e.chance:.0%} by chance; a pose locate finds needs {p.min_edge_agreement:.0%}, "
+                       f"{p.min_edge_lead:.0%} above chance): is the pose object → camera, in the mesh's units?")
+    return out
 
 
 def _run_train_many(args: argparse.Namespace, params, store) -> int:

@@ -475,3 +475,21 @@ def test_a_scanned_mesh_trains_synthetic_views_as_the_plain_one(tmp_path, subdiv
                 err = np.abs(synth[vi, ui].astype(float) - texture(vs.points3d)).max(axis=1)
                 assert np.median(err) < 25, vs.label
     assert kept["plain"] > 150 and kept["scan"] > (0.8 if subdivisions == 5 else 0.7) * kept["plain"]
+
+
+def test_a_pose_locate_would_not_accept_in_its_own_photo_is_warned_of(tmp_path, capsys):
+    """The registered rotation transposed (a camera → object rotation, or R written by columns):
+    training learned the background around the misplaced mesh without a word. Now a warning
+    says the mesh's edges miss the photo's; the correct pose gives none."""
+    data = json.loads((EXAMPLE / "object.json").read_text())
+    data["mesh"] = str(EXAMPLE / data["mesh"])
+    data["views"][0]["image"] = str(EXAMPLE / data["views"][0]["image"])
+    pose = data["views"][0]["pose"]
+    R = cv2.Rodrigues(np.array(pose["rvec"], float))[0]
+    data["views"][0]["pose"] = {"R": R.T.tolist(), "t": pose["tvec"]}
+    (tmp_path / "object.json").write_text(json.dumps(data))
+    args = ["--store", str(tmp_path / "store"), "--novel-views", "none", "--novel-scales", "none"]
+    assert main(["train", str(tmp_path / "object.json"), *args]) == 0
+    assert "view 0: the mesh's edges at its pose lie on the photo's edges for" in capsys.readouterr().err
+    assert main(["train", str(EXAMPLE / "object.json"), *args]) == 0
+    assert "edges" not in capsys.readouterr().err
