@@ -81,6 +81,18 @@ class _SessionError(Exception):
         self.code, self.message = code, message
 
 
+def _seconds(value) -> float | None:
+    """A JSON number as a finite float, else None (a boolean, a string, NaN, or an integer too
+    large for a float: ``math.isfinite(10**400)`` raises OverflowError, which ended the session)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return None
+    try:
+        value = float(value)
+    except OverflowError:
+        return None
+    return value if math.isfinite(value) else None
+
+
 class TrackSession:
     def __init__(self, ws: WebSocket, sid: str, name: str, model: tuple[ObjectModel, ModelIndex], settings: Settings,
                  executor: Executor, metrics: Metrics, clock: Callable[[], float] = time.monotonic,
@@ -254,8 +266,8 @@ class TrackSession:
         elif self.camera is None:
             await self.send_error("camera_required", "the first message must be the camera (JSON)")
         elif kind == "frame":
-            ts = msg.get("time_s")
-            if isinstance(ts, bool) or not isinstance(ts, (int, float)) or not math.isfinite(ts) or ts < 0:
+            ts = _seconds(msg.get("time_s"))
+            if ts is None or ts < 0:
                 await self.send_error("bad_message", "'time_s' must be a finite number of seconds ≥ 0")
             elif self.header_time is not None:
                 self.header_time = None
@@ -273,8 +285,7 @@ class TrackSession:
             except SpecError as exc:
                 await self.send_error("bad_pose", str(exc))
                 return
-            ts = msg.get("time_s")
-            ts = float(ts) if isinstance(ts, (int, float)) and not isinstance(ts, bool) and math.isfinite(ts) else None
+            ts = _seconds(msg.get("time_s"))
             self._control(("init", pose.t, pose.q_wxyz, ts))
         else:
             await self.send_error("bad_message", f"unknown message type {repr(kind)[:40]}; use camera, frame, reset or init")

@@ -133,6 +133,8 @@ def test_bad_messages_keep_the_session_usable(server, frames):
         for text, code in (("{oops", "bad_message"), ("[1, 2]", "bad_message"), ('{"type": "dance"}', "bad_message"),
                            ('{"type": "frame", "time_s": -1}', "bad_message"),
                            ('{"type": "frame", "time_s": "soon"}', "bad_message"),
+                           ('{"type": "frame", "time_s": 1' + "0" * 400 + "}", "bad_message"),  # (OverflowError: session ended)
+                           ('{"fx": 1' + "0" * 400 + ', "fy": 600, "cx": 320, "cy": 240}', "bad_camera"),
                            ('{"type": "init", "pose": {"foo": 1}}', "bad_pose"),
                            ('{"type": "init", "pose": {"q_wxyz": [0, 0, 0, 0], "t": [0, 0, 50]}}', "bad_pose")):
             ws.send(text)
