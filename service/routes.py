@@ -88,18 +88,22 @@ ops = APIRouter(tags=["operations"], dependencies=[Depends(require_token)])
 sockets = APIRouter(prefix="/v1")  # authenticated inside: HTTPBearer needs an HTTP request
 
 
-# (HEAD too: monitors and load balancers often probe with it; GET-only routes answered 405)
-@health.api_route("/healthz", methods=["GET", "HEAD"], response_model=Health, summary="the process is alive")
+@health.get("/healthz", response_model=Health, summary="the process is alive")
 async def healthz() -> Health:
     return Health()
 
 
-@health.api_route("/readyz", methods=["GET", "HEAD"], response_model=Ready, summary="models are loaded",
-                  responses={503: {"model": Ready}})
+@health.get("/readyz", response_model=Ready, summary="models are loaded", responses={503: {"model": Ready}})
 async def readyz(state: State):
     body = Ready(ready=state.registry.ready, models=state.registry.loaded(), tracker=TRACKER_KIND,
                  failed=state.registry.failed())
     return JSONResponse(body.model_dump(), status_code=200 if body.ready else 503)
+
+
+# HEAD too (monitors and load balancers often probe with it; GET-only routes answered 405), left
+# out of the OpenAPI schema: one operation per path there (two methods gave one duplicate id)
+for _path, _probe in (("/healthz", healthz), ("/readyz", readyz)):
+    health.add_api_route(_path, _probe, methods=["HEAD"], include_in_schema=False)
 
 
 @ops.get("/metrics", response_class=PlainTextResponse, summary="Prometheus metrics (text format 0.0.4)")
