@@ -55,7 +55,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="ude: constant velocity on R³×S³ (default); m1/m2: object/camera random walk; "
                              "m3: linear constant velocity (Kragic & Kyrki)")
     parser.add_argument("--motion-noise", metavar="K=V,...", default="",
-                        help="override the motion model's noise, e.g. a=2000,alpha=20 (ude) or sigma_p2=100,sigma_phi2=0.3")
+                        help="override the motion model's noise, e.g. a=2000,alpha=20 (ude) or sigma_p2=100,sigma_phi2=0.3 (m1, m2, m3)")
     parser.add_argument("--init-pose", metavar="POSE.json",
                         help="start from this pose (object → camera: {rvec,tvec}, {R,t} or {q_wxyz,t}) instead of recognition")
     parser.add_argument("--fps", type=float, default=None, metavar="F",
