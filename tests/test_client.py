@@ -139,6 +139,13 @@ def test_the_ros2_example_prints_messages_without_rclpy(server):
     msgs = [json.loads(x) for x in p.stdout.splitlines()]
     assert len(msgs) == 3 and all(len(m["pose"]["covariance"]) == 36 for m in msgs)
     assert all(set(m["pose"]["pose"]["orientation"]) == {"x", "y", "z", "w"} for m in msgs)
+    # the printed messages are what would be published: --frame-id and --now apply to them too
+    p = _run_example("ros2_republish.py", "--url", server.url, "--mesh-unit", "cm", "--max-frames", "2", "--dry-run",
+                     "--frame-id", "cam_optical", "--now")
+    assert p.returncode == 0, p.stderr
+    msgs = [json.loads(x) for x in p.stdout.splitlines()]
+    assert len(msgs) == 2 and all(m["header"]["frame_id"] == "cam_optical" for m in msgs)
+    assert all(m["header"]["stamp"]["sec"] > 1_000_000_000 for m in msgs)  # the clock, not the frames' 0 s
 
 
 # --- quatrack demo -----------------------------------------------------------------------------

@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import time
 
 from quatrack.client import Client, QuatrackError
 from quatrack.examples import example_dir
@@ -77,7 +78,11 @@ def main() -> int:
             for msg in client.track(frames, camera, ros_mesh_unit=args.mesh_unit):
                 if msg.ros is None:  # lost: nothing to publish
                     continue
-                if publish is None:
+                if publish is None:  # what would be published: the same frame_id and stamp
+                    msg.ros["header"]["frame_id"] = args.frame_id
+                    if args.now:
+                        ns = time.time_ns()
+                        msg.ros["header"]["stamp"] = {"sec": ns // 10**9, "nanosec": ns % 10**9}
                     print(json.dumps(msg.ros), flush=True)
                 else:
                     publish(msg.ros)
