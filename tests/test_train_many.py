@@ -72,6 +72,19 @@ def test_a_bad_spec_stops_the_batch_before_any_training(tmp_path, capsys):
     # two specs of one object name are refused too
     assert main(["train", str(EXAMPLE / "object.json"), str(EXAMPLE / "object.json"), "--store", str(store)]) == 2
     assert "both define object" in capsys.readouterr().err
+    # a spec whose mesh (or photo) path has a typo stops the batch as well (it trained the others)
+    for field in ("mesh", "image"):
+        typo = renamed_spec(tmp_path, f"typo-{field}")
+        d = json.loads(typo.read_text())
+        if field == "mesh":
+            d["mesh"] = str(tmp_path / "no_such_mesh.ply")
+        else:
+            d["views"][0]["image"] = str(tmp_path / "no_such_photo.jpg")
+        typo.write_text(json.dumps(d))
+        assert main(["train", str(EXAMPLE / "object.json"), str(typo), "--store", str(store), *CHEAP]) == 2
+        err = capsys.readouterr().err
+        assert "no_such_" in err and "file not found" in err and len(err.strip().splitlines()) == 1, err
+        assert not store.exists() or list_models(store) == []
 
 
 @pytest.fixture()

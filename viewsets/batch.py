@@ -75,13 +75,20 @@ def train_one(spec_path: str, store: str, params: TrainParams, overwrite: bool =
 
 
 def check_specs(spec_paths: list[str], store: Path, no_overwrite: bool, warn=None) -> list[str]:
-    """Absolute paths of the specs, after loading each (raises SpecError naming the culprit);
-    two specs of one object name, or an existing object with ``no_overwrite``, are refused.
+    """Absolute paths of the specs, after loading each and finding the mesh, photos and masks it
+    names (raises SpecError naming the culprit); two specs of one object name, or an existing object with ``no_overwrite``, are refused.
     ``warn``: as :func:`~.spec.load_spec`'s (fields a spec does not know)."""
     names: dict[str, str] = {}
     out = []
     for p in spec_paths:
         spec = load_spec(p, warn)
+        # the files it names must be there too (a typo in a path is the commonest bad spec; only
+        # looked up here, read when the object trains)
+        files = [("mesh", spec.mesh_path)] + [(f"view {v.index}: image", v.image_path) for v in spec.views] \
+            + [(f"view {v.index}: mask", v.mask_path) for v in spec.views if v.mask_path is not None]
+        for what, f in files:
+            if not f.is_file():
+                raise SpecError(f"{p}: {what}: {f}: {'not a file' if f.exists() else 'file not found'}")
         if spec.name in names:
             raise SpecError(f"{p} and {names[spec.name]} both define object {spec.name!r}")
         names[spec.name] = p
