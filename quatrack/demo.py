@@ -168,6 +168,9 @@ def _stream_video(plan: _Plan, args: argparse.Namespace):
 def _explain(exc, args) -> str:
     """A server's refusal as a one-line message naming the culprit."""
     if exc.code == "unauthorized":
+        if args.token or os.environ.get("QUATRACK_API_TOKEN"):  # (one was given: it is the wrong one)
+            source = "--token" if args.token else "QUATRACK_API_TOKEN"
+            return f"{args.url or 'the server'} refused the token of {source}: not the server's QUATRACK_API_TOKEN"
         return f"{args.url or 'the server'} needs a token: give --token or set QUATRACK_API_TOKEN"
     if exc.code == "unknown_object":
         return f"--object {args.object}: the server has no such object ({exc.message})"

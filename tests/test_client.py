@@ -167,6 +167,7 @@ def test_demo_against_a_server_from_any_folder(server, tmp_path, monkeypatch, ca
     ("unknown-object", "--object no-such-box: the server has no such object"),
     ("http-url-with-path", "without a path"),
     ("no-token", "needs a token"),
+    ("wrong-token", "refused the token of --token"),
     ("not-a-url", "give the server's address"),
     ("nobody-there", "no server answers there"),
     ("local-untrained", "train it first"),
@@ -182,6 +183,8 @@ def test_demo_errors_are_one_line(server, tmp_path, monkeypatch, capsys, case, m
         args[2] = server.url + "/v1/objects/cookie-box/track"
     elif case == "no-token":
         args = args[:3] + args[5:]
+    elif case == "wrong-token":  # (said "needs a token" when one was given)
+        args[4] = "not-" + TOKEN
     elif case == "not-a-url":
         args[2] = "127.0.0.1:8000"
     elif case == "nobody-there":
