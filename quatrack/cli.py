@@ -113,7 +113,8 @@ def _add_bench(parser: argparse.ArgumentParser) -> None:
     track.add_argument("--seconds", type=float, default=10.0, help="length of the rendered sequence (default 10)")
     track.add_argument("--locate-frames", type=int, default=150, metavar="N",
                        help="box.mp4 frames also given to per-frame recognition, for comparison (default 150)")
-    track.add_argument("--sheet", default="track_contact_sheet.png", metavar="PNG", help="contact sheet of overlays")
+    track.add_argument("--sheet", default="track_contact_sheet.png", metavar="PNG",
+                       help="contact sheet of overlays (default track_contact_sheet.png, in the current folder)")
     track.add_argument("--json", action="store_true", help="print one JSON object instead of the report")
     ab = sub.add_parser(
         "track-ab",
