@@ -114,11 +114,18 @@ class Settings(BaseSettings):
     def _expand(cls, v: Path) -> Path:
         return Path(v).expanduser()
 
+    @field_validator("tracker_sources", mode="after")
+    @classmethod
+    def _known_sources(cls, v):
+        # (raises ValueError naming what is unknown; checked on the field, so that the one-line
+        # error names QUATRACK_TRACKER_SOURCES, not "settings")
+        TrackerParams(sources=v)
+        return v
+
     @model_validator(mode="after")
     def _sane(self) -> "Settings":
         if not self.host.strip():
             raise ValueError("host must not be empty")
-        TrackerParams(sources=self.tracker_sources)  # (raises ValueError naming what is unknown)
         return self
 
     @classmethod

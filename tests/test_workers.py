@@ -200,8 +200,9 @@ def test_the_tracker_sources_are_a_setting(monkeypatch):
                            sources=s.tracker_sources)
     assert [src.name for src in tracker.sources] == ["trained", "mesh", "edges"]
     monkeypatch.setenv("QUATRACK_TRACKER_SOURCES", "trained,outline")
-    with pytest.raises(ValueError, match="outline"):
+    with pytest.raises(ValueError, match="outline") as err:
         Settings.from_env()
+    assert str(err.value).startswith("environment variable QUATRACK_TRACKER_SOURCES='trained,outline': ")  # (was "settings: ")
 
 
 def test_recognition_while_lost_is_spaced_by_a_setting(monkeypatch):
