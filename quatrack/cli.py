@@ -476,6 +476,8 @@ def _run_train_many(args: argparse.Namespace, params, store) -> int:
     t0 = time.perf_counter()
 
     def done(r) -> None:
+        for msg in r.warnings:  # (training's and the registered poses' doubts, as for one spec)
+            print(f"quatrack train: warning: {r.spec}: {msg}", file=sys.stderr)
         if r.error:
             print(f"quatrack train: error: {r.spec}: {r.error}", file=sys.stderr)
         elif r.skipped:
@@ -487,7 +489,8 @@ def _run_train_many(args: argparse.Namespace, params, store) -> int:
 
     results = train_many(args.spec, store, params, jobs=args.jobs, overwrite=not args.no_overwrite,
                          skip_existing=args.skip_existing, ray_address=args.ray, on_done=done,
-                         warn=lambda msg: print(f"quatrack train: warning: {msg}", file=sys.stderr))
+                         warn=lambda msg: print(f"quatrack train: warning: {msg}", file=sys.stderr),
+                         check=_registration_doubts)
     failed = sum(r.error is not None for r in results)
     where = f"on Ray ({args.ray})" if args.ray else f"locally, --jobs {args.jobs}"
     print(f"{len(results) - failed} of {len(results)} objects trained {where} in {time.perf_counter() - t0:.1f} s")

@@ -87,6 +87,26 @@ def test_a_bad_spec_stops_the_batch_before_any_training(tmp_path, capsys):
         assert not store.exists() or list_models(store) == []
 
 
+def test_several_specs_warn_as_one_does(tmp_path, capsys):
+    """A registered rotation transposed is warned of when trained with other specs too (the
+    warnings of training and of the registered poses were dropped in the worker processes),
+    naming the spec; the good spec gets none."""
+    import cv2
+    import numpy as np
+
+    bad = renamed_spec(tmp_path, "box-transposed")
+    d = json.loads(bad.read_text())
+    pose = d["views"][0]["pose"]
+    R = cv2.Rodrigues(np.array(pose["rvec"], float))[0]
+    d["views"][0]["pose"] = {"R": R.T.tolist(), "t": pose["tvec"]}
+    bad.write_text(json.dumps(d))
+    store = tmp_path / "store"
+    assert main(["train", str(EXAMPLE / "object.json"), str(bad), "--store", str(store), "--jobs", "2", *CHEAP]) == 0
+    err = [x for x in capsys.readouterr().err.splitlines() if "warning" in x]
+    assert len(err) == 1 and str(bad) in err[0], err
+    assert "view 0: the mesh's edges at its pose lie on the photo's edges for" in err[0]
+
+
 @pytest.fixture()
 def ray_head():
     """A Ray head node on loopback, started for this test and stopped after it."""

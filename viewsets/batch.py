@@ -42,6 +42,7 @@ class Trained:
     seconds: float = 0.0
     skipped: bool = False  # already trained from this very spec (skip_existing)
     error: str | None = None
+    warnings: tuple[str, ...] = ()  # training's own (weak texture, ...) and ``check``'s, in order
 
 
 def _up_to_date(store: Path, name: str, checksum: str) -> bool:
@@ -54,24 +55,31 @@ def _up_to_date(store: Path, name: str, checksum: str) -> bool:
 
 
 def train_one(spec_path: str, store: str, params: TrainParams, overwrite: bool = True,
-              skip_existing: bool = False) -> Trained:
+              skip_existing: bool = False, check: Callable | None = None) -> Trained:
     """Train one spec into ``store`` (atomically). Errors of the spec's content come back in
-    :attr:`Trained.error` rather than raised, so that one bad object does not stop the others."""
+    :attr:`Trained.error` rather than raised, so that one bad object does not stop the others.
+    Warnings come back in :attr:`Trained.warnings`: training's own, then ``check(spec, mesh)``'s
+    (a picklable function of the spec and the model's run-time mesh giving a list of messages:
+    the CLI's doubts about a registered pose, which this layer cannot judge)."""
     t0 = time.perf_counter()
     name = "?"
+    warnings: list[str] = []
     try:
         spec = load_spec(spec_path)
         name = spec.name
         if skip_existing and _up_to_date(Path(store), name, spec.checksum):
             return Trained(spec_path, name, str(model_path(store, name)), skipped=True)
-        model = train_object(spec, params)
+        model = train_object(spec, params, warn=warnings.append)
+        if check is not None:
+            warnings.extend(check(spec, model.mesh.run_time))
         try:
             path = save_model(store, model, overwrite=overwrite)
         except OSError as exc:  # (a full disk said "[Errno 28] No space left on device", naming nothing)
             raise StoreError(f"cannot save {name!r} in {store}: {exc.strerror or exc}") from None
     except (SpecError, StoreError, ValueError, OSError) as exc:
-        return Trained(spec_path, name, error=str(exc), seconds=time.perf_counter() - t0)
-    return Trained(spec_path, name, str(path), model.manifest["training_summary"], time.perf_counter() - t0)
+        return Trained(spec_path, name, error=str(exc), seconds=time.perf_counter() - t0, warnings=tuple(warnings))
+    return Trained(spec_path, name, str(path), model.manifest["training_summary"], time.perf_counter() - t0,
+                   warnings=tuple(warnings))
 
 
 def check_specs(spec_paths: list[str], store: Path, no_overwrite: bool, warn=None) -> list[str]:
@@ -101,13 +109,14 @@ def check_specs(spec_paths: list[str], store: Path, no_overwrite: bool, warn=Non
 def train_many(spec_paths: list[str], store: str | Path, params: TrainParams = TrainParams(), jobs: int = 2,
                overwrite: bool = True, skip_existing: bool = False, ray_address: str | None = None,
                on_done: Callable[[Trained], None] | None = None,
-               warn: Callable[[str], None] | None = None) -> list[Trained]:
+               warn: Callable[[str], None] | None = None, check: Callable | None = None) -> list[Trained]:
     """Train every spec into ``store``; results in the order of ``spec_paths``.
 
     ``jobs`` is the CPU budget (see the module docstring); ``ray_address`` sends each spec to a
     Ray cluster instead ("auto" finds a local one, "local" starts a private one for this call).
     ``on_done`` is called as each spec finishes (for progress lines); ``warn`` is told of fields
-    a spec does not know, as the specs are checked.
+    a spec does not know, as the specs are checked; ``check``: as :func:`train_one`'s (each
+    result's ``warnings``).
     """
     if jobs < 1:
         raise ValueError("jobs must be at least 1")
@@ -116,19 +125,19 @@ def train_many(spec_paths: list[str], store: str | Path, params: TrainParams = T
     Path(store).mkdir(parents=True, exist_ok=True)
     if ray_address is not None:
         results = _on_ray(specs, store, dataclasses.replace(params, jobs=jobs), overwrite, skip_existing,
-                          ray_address, on_done)
+                          ray_address, on_done, check)
     else:
         processes = min(jobs, len(specs))
         per = dataclasses.replace(params, jobs=max(1, jobs // processes))
-        results = _local(specs, store, per, overwrite, skip_existing, processes, on_done)
+        results = _local(specs, store, per, overwrite, skip_existing, processes, on_done, check)
     return [results[p] for p in specs]
 
 
-def _local(specs, store, params, overwrite, skip_existing, processes, on_done) -> dict[str, Trained]:
+def _local(specs, store, params, overwrite, skip_existing, processes, on_done, check=None) -> dict[str, Trained]:
     if processes == 1:
         out = {}
         for p in specs:
-            out[p] = train_one(p, store, params, overwrite, skip_existing)
+            out[p] = train_one(p, store, params, overwrite, skip_existing, check)
             if on_done:
                 on_done(out[p])
         return out
@@ -138,7 +147,7 @@ def _local(specs, store, params, overwrite, skip_existing, processes, on_done) -
     # spawn, not fork: the parent may hold OpenCV/BLAS thread pools that fork would copy mid-use
     with ProcessPoolExecutor(processes, mp_context=multiprocessing.get_context("spawn"),
                              initializer=_ignore_ctrl_c) as pool:
-        futures = {pool.submit(train_one, p, store, params, overwrite, skip_existing): p for p in specs}
+        futures = {pool.submit(train_one, p, store, params, overwrite, skip_existing, check): p for p in specs}
         try:
             for f in as_completed(futures):
                 out[futures[f]] = f.result()
@@ -162,7 +171,7 @@ def _ignore_ctrl_c() -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
-def _on_ray(specs, store, params, overwrite, skip_existing, address, on_done) -> dict[str, Trained]:
+def _on_ray(specs, store, params, overwrite, skip_existing, address, on_done, check=None) -> dict[str, Trained]:
     try:
         import ray
     except ImportError:
@@ -180,7 +189,7 @@ def _on_ray(specs, store, params, overwrite, skip_existing, address, on_done) ->
             raise ValueError(f"--ray {address}: cannot connect to a Ray cluster ({exc})") from None
     try:
         remote = ray.remote(num_cpus=params.jobs, max_retries=1)(train_one)
-        refs = {remote.remote(p, store, params, overwrite, skip_existing): p for p in specs}
+        refs = {remote.remote(p, store, params, overwrite, skip_existing, check): p for p in specs}
         out = {}
         pending = list(refs)
         while pending:
