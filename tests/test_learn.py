@@ -271,6 +271,13 @@ def test_retraining_says_it_replaces_learned_views(cube, run, tmp_path, capsys):
     spec = Z.write_spec(NAME, tmp_path / "spec", n_views=1, backgrounds=(clutter_background(4),))
     assert main(["train", str(spec), "--store", str(store), "--novel-views", "none", "--novel-scales", "none"]) == 0
     assert f"holds {added} view(s) learned while tracking; retraining replaces them" in capsys.readouterr().err
+    # and so with several specs in one call (the warning was the one-spec path's alone)
+    _, added, _ = L.merge_learned(store, NAME, run.learned, cube.model.mesh)
+    example = Path(__file__).resolve().parents[1] / "examples" / "cookie-box" / "object.json"
+    assert main(["train", str(spec), str(example), "--store", str(store), "--novel-views", "none",
+                 "--novel-scales", "none"]) == 0
+    err = capsys.readouterr().err
+    assert f"holds {added} view(s) learned while tracking; retraining replaces them" in err and str(spec) in err
 
 
 # -- the command line -----------------------------------------------------------------------------

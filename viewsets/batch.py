@@ -69,6 +69,14 @@ def train_one(spec_path: str, store: str, params: TrainParams, overwrite: bool =
         name = spec.name
         if skip_existing and _up_to_date(Path(store), name, spec.checksum):
             return Trained(spec_path, name, str(model_path(store, name)), skipped=True)
+        if model_path(store, name).exists():  # (retraining replaces the model, views learned by tracking too)
+            try:
+                n_learned = int(load_manifest(Path(store), name).get("learned_viewsets") or 0)
+            except (ValueError, TypeError):
+                n_learned = 0
+            if n_learned:
+                warnings.append(f"{name!r} in {store} holds {n_learned} view(s) learned while tracking; "
+                                f"retraining replaces them (track --learn learns them again)")
         model = train_object(spec, params, warn=warnings.append)
         if check is not None:
             warnings.extend(check(spec, model.mesh.run_time))
