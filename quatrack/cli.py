@@ -622,7 +622,7 @@ def _locate_all(args: argparse.Namespace, camera, params) -> int:
         try:
             models.append(load_model(store, n))
         except StoreError as exc:  # a broken model is skipped, said once; the others are searched
-            print(f"warning: {n}: {exc}", file=sys.stderr)
+            print(f"quatrack locate: warning: {exc}; skipped", file=sys.stderr)  # (exc names the object)
     if not models:
         raise UserError(f"no usable trained object in {store}")
     extent = {m.name: m.mesh.extent for m in models}

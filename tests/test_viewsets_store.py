@@ -452,6 +452,12 @@ def test_cli_reports_a_corrupt_model_in_one_line(store, tmp_path, capsys, how):
     assert len(lines) == 2 and lines[0].startswith("cookie-box\tBROKEN\t") and lines[1].startswith("other-box\t")
     assert "BROKEN" not in lines[1]
     assert main(["locate", "--object", "other-box", "--camera", cam, str(img), "--store", str(store)]) == 0
+    capsys.readouterr()
+    # --object all skips it with one warning line, as the other commands' warnings are written
+    assert main(["locate", "--object", "all", "--camera", cam, str(img), "--store", str(store)]) == 0
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and err.startswith("quatrack locate: warning: object 'cookie-box': ") and \
+        err.endswith("; skipped"), err
 
 
 def test_stale_temporaries_are_removed_when_the_store_opens(store):
