@@ -321,6 +321,8 @@ def main(args: argparse.Namespace) -> int:
         raise ValueError("--workers: numbers between 1 and 64")
     if not 0.5 <= args.seconds <= 600 or not 0 < args.fps <= 240 or (args.threads is not None and args.threads < 1) or args.rest_requests < 0:
         raise ValueError("--seconds must be 0.5-600, --fps 0-240, --threads ≥ 1, --rest-requests ≥ 0")
+    if not 0 <= (getattr(args, "stagger_s", 0.0) or 0.0) <= 600:  # (NaN too: a negative one ran as a burst)
+        raise ValueError("--stagger-s must be between 0 and 600 seconds")
     replicas = {"yes": True, "no": False}.get(args.replicas, find_nginx() is not None)
     if replicas and find_nginx() is None:
         raise ValueError("--replicas yes: nginx is not installed (Debian: apt-get install nginx)")
@@ -337,6 +339,12 @@ def main(args: argparse.Namespace) -> int:
 
         store = Path(tmp.name) / "store"
         save_model(store, train_object(load_spec(args.spec)))
+    from quatrack.viewsets.store import list_models
+
+    held = list_models(store)
+    if args.object not in held:  # (every stream was refused: a table of NaN, exit 0)
+        raise ValueError(f"--object {args.object}: not in {args.store or 'the model trained from ' + args.spec} "
+                         f"({'it holds ' + ', '.join(held) if held else 'no trained object there'})")
     report = {"cpu_count": cores, "load_average_at_start": os.getloadavg(), "threads_per_worker": args.threads,
               "frames_per_client": len(frames), "fps": args.fps, "setups": []}
     try:

@@ -211,3 +211,18 @@ def test_ctrl_c_while_the_commands_load_is_one_line(monkeypatch, capsys):
         pytest.fail("the KeyboardInterrupt left main(): a traceback")
     assert status == 130
     assert capsys.readouterr().err == "quatrack: interrupted\n"
+
+
+def test_bench_serve_refuses_an_object_not_in_the_store_and_a_negative_stagger(tmp_path, capsys):
+    # every stream was refused by the server: a table of NaN and exit status 0; a negative
+    # --stagger-s ran as a burst
+    from quatrack.cli import main
+
+    empty = tmp_path / "store"
+    empty.mkdir()
+    assert main(["bench", "serve", "--store", str(empty), "--replicas", "no", "--clients", "1", "--workers", "1",
+                 "--frames", "1"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("quatrack bench: error: --object cookie-box: not in") and "\n" not in err, err
+    assert main(["bench", "serve", "--stagger-s", "-1", "--replicas", "no"]) == 2
+    assert "--stagger-s" in capsys.readouterr().err
