@@ -226,6 +226,8 @@ def _run_bench(args: argparse.Namespace) -> int:
 
         if args.seeds < 2:
             raise UserError("--seeds must be at least 2")
+        if args.first_seed < 0:  # (numpy's "expected non-negative integer", naming no option)
+            raise UserError("--first-seed must be >= 0")
         if not 1 <= args.table_frame <= 180:
             raise UserError("--table-frame must be between 1 and 180")
         return ude_cube.main(args.seeds, args.first_seed, args.table_frame, args.json, args.variant)
@@ -240,8 +242,7 @@ def _run_bench(args: argparse.Namespace) -> int:
             raise UserError("--seconds must be between 1 and 120")
         if args.locate_frames < 0:
             raise UserError("--locate-frames must be >= 0")
-        if not args.sheet.lower().endswith(".png"):
-            raise UserError("--sheet must name a .png file")
+        _sheet(args.sheet)
         return track.main(args.json, args.seconds, args.locate_frames, args.sheet)
     if args.benchmark == "track-ab":
         from quatrack.bench import track_ab
@@ -282,8 +283,21 @@ def _run_bench(args: argparse.Namespace) -> int:
             return bench_locate.main_zoo(names, scenes, args.seed, args.json)
         if args.zoo_scenes is not None or args.zoo_objects:  # (were ignored, the other benchmark ran)
             raise UserError("--zoo-scenes and --zoo-objects need --zoo")
+        if args.sheet:  # (checked before the run: a .txt was a traceback, a folder under a file "File exists")
+            _sheet(args.sheet)
         return bench_locate.main(args.scenes, args.seed, args.every, args.sheet, args.json)
     raise UserError(f"unknown benchmark {args.benchmark!r}")
+
+
+def _sheet(path: str) -> None:
+    """A contact sheet's path: a .png whose folder exists or can be made (checked before the run)."""
+    from pathlib import Path
+
+    if not path.lower().endswith(".png"):
+        raise UserError("--sheet must name a .png file")
+    above = next((p for p in Path(path).absolute().parents if p.exists()), None)
+    if above is not None and not above.is_dir():
+        raise UserError(f"--sheet {path}: {above} is a file, not a folder")
 
 
 def _floats(text: str, option: str) -> tuple[float, ...]:

@@ -226,3 +226,19 @@ def test_bench_serve_refuses_an_object_not_in_the_store_and_a_negative_stagger(t
     assert err.startswith("quatrack bench: error: --object cookie-box: not in") and "\n" not in err, err
     assert main(["bench", "serve", "--stagger-s", "-1", "--replicas", "no"]) == 2
     assert "--stagger-s" in capsys.readouterr().err
+
+
+def test_bench_options_checked_before_the_run(tmp_path, capsys):
+    # bench locate --sheet x.txt ran the whole benchmark, then cv2.imwrite's traceback; a folder
+    # under a file failed after it with "[Errno 17] File exists"; --first-seed -1 was numpy's
+    # "expected non-negative integer", naming no option
+    from quatrack.cli import main
+
+    (tmp_path / "f").write_text("")
+    for argv, said in ((["locate", "--sheet", str(tmp_path / "x.txt")], "--sheet must name a .png file"),
+                       (["locate", "--sheet", str(tmp_path / "f" / "x.png")], "is a file, not a folder"),
+                       (["track", "--sheet", str(tmp_path / "f" / "x.png")], "is a file, not a folder"),
+                       (["ude-cube", "--first-seed", "-1"], "--first-seed must be >= 0")):
+        assert main(["bench", *argv]) == 2, argv
+        err = capsys.readouterr().err.strip()
+        assert said in err and "\n" not in err, err
