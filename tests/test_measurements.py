@@ -85,6 +85,21 @@ def test_camera_rejects_bad_intrinsics():
         PinholeCamera(500.0, 500.0, 320, 240, np.r_[np.zeros(8), 0.1])
 
 
+def test_cameras_compare_by_value_and_hash():
+    # the dataclass's __eq__ compared the numpy fields as a tuple: two equal cameras (a camera
+    # file loaded twice, a pickled copy) raised ValueError ("truth value ... ambiguous") and
+    # hash() TypeError
+    import copy
+    import pickle
+
+    a = PinholeCamera(800.0, 800.0, 320.0, 240.0, [0.1, 0.0, 0.0, 0.0, 0.0], width=640, height=480)
+    b = PinholeCamera(800, 800, 320, 240, np.array([0.1, -0.0, 0, 0, 0]), width=640, height=480)
+    assert a == b and a == pickle.loads(pickle.dumps(a)) and a == copy.deepcopy(a) and hash(a) == hash(b)
+    assert a != PinholeCamera(800.0, 800.0, 320.0, 240.0, [0.2, 0.0, 0.0, 0.0, 0.0], width=640, height=480)
+    assert a != a.scaled(0.5) and a != "camera" and len({a, b, a.scaled(0.5)}) == 2
+    assert a.cropped(0, 0, 640, 480) == a  # (crop_of is not compared)
+
+
 rig = PinholeCamera(650.0, 650.0, 320.0, 240.0, DIST["radial-tangential"], R_rig=rodrigues(np.array([0.02, -0.3, 0.01])), t_rig=np.array([-120.0, 3.0, 10.0]))
 
 

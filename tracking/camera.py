@@ -82,6 +82,19 @@ class PinholeCamera:
             self, "is_reference", bool(np.array_equal(self.R_rig, np.eye(3)) and not np.any(self.t_rig))
         )
 
+    def _key(self) -> tuple:
+        """What a camera is compared and hashed by (the fields; its arrays by value, -0.0 as 0.0)."""
+        return (self.fx, self.fy, self.cx, self.cy, tuple(self.dist_coeffs + 0.0), self.width, self.height,
+                tuple(self.R_rig.ravel() + 0.0), tuple(self.t_rig + 0.0))
+
+    # (the dataclass's own __eq__ compared the arrays as a tuple: two equal cameras raised "the truth
+    # value of an array ... is ambiguous", and hash() "unhashable type: 'numpy.ndarray'")
+    def __eq__(self, other: object) -> bool:
+        return self._key() == other._key() if isinstance(other, PinholeCamera) else NotImplemented
+
+    def __hash__(self) -> int:
+        return hash(self._key())
+
     @property
     def matrix(self) -> np.ndarray:
         """The 3×3 camera matrix ``K``."""
