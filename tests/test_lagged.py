@@ -117,3 +117,14 @@ def test_a_shrunk_re_anchoring_that_finds_too_little_is_redone_at_full_resolutio
     assert all(n >= params.min_anchor_matches for n, full in counted if not full)
     assert any(full and n < params.min_anchor_matches for n, full in counted)  # (the unseen sides)
     assert statuses.count("tracking") >= 20
+
+
+def test_for_live_streams_called_on_the_class_as_documented():
+    # README/contract write TrackerParams.for_live_streams(): on the class it raised "missing 1
+    # required positional argument: 'self'"; it is the defaults' live settings
+    from quatrack.recognition.video import TrackerParams
+
+    assert TrackerParams.for_live_streams() == TrackerParams().for_live_streams()
+    assert TrackerParams.for_live_streams().pipelined_refresh and not TrackerParams().pipelined_refresh
+    mine = TrackerParams(sigma_px=1.0).for_live_streams()  # (on an instance: its own fields kept)
+    assert mine.sigma_px == 1.0 and mine.audit_texture

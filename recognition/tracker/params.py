@@ -8,6 +8,7 @@ a die or a car, gives the same track up to the unit (tests/test_tracker_units.py
 
 from __future__ import annotations
 
+import types
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -46,6 +47,19 @@ def motion_noise(motion_model: str, diameter: float, overrides: dict | None = No
     out = {k: v * (diameter**2 if k in _TRANSLATION_NOISE else 1.0) for k, v in rel.items()}
     out.update({k: float(v) for k, v in (overrides or {}).items()})
     return out
+
+
+class _defaults_on_class:
+    """A method that, called on the class, runs on its defaults: ``TrackerParams.for_live_streams()``,
+    as the README and the contract write it (it raised "missing 1 required positional argument:
+    'self'"), is ``TrackerParams().for_live_streams()``."""
+
+    def __init__(self, f) -> None:
+        self.f = f
+        self.__doc__ = f.__doc__
+
+    def __get__(self, obj, cls=None):
+        return types.MethodType(self.f, cls() if obj is None else obj)
 
 
 @dataclass(frozen=True)
@@ -350,6 +364,7 @@ class TrackerParams:
         when that is None (Tracker._track's doubted frames, Tracker._edge_settled)."""
         return self.max_edge_shift if self.doubt_confirm_shift is None else self.doubt_confirm_shift
 
+    @_defaults_on_class
     def for_live_streams(self) -> "TrackerParams":
         """These settings as a live stream runs them (the service's sessions; ``bench track-zoo``'s
         live pass): re-anchoring and the lifting of views on the caller's executor beside the
