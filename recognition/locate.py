@@ -414,6 +414,8 @@ def locate(
     """
     t_start = time.perf_counter()
     check_inputs(camera, model)
+    if not isinstance(params, LocateParams):  # (a dict: AttributeError 'max_pixels' deep inside)
+        raise TypeError(f"params: a LocateParams (quatrack.recognition.locate), got {type(params).__name__}")
     prep = prepare_image(image, camera, params.max_pixels)
     img, cam = prep.image, prep.camera
     index = index or index_for(model)

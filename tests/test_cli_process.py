@@ -127,6 +127,35 @@ def test_library_inputs_of_the_wrong_kind_say_what_is_expected():
                 c.pose(image, camera, object=bad)
 
 
+def test_library_settings_and_times_of_the_wrong_kind_name_the_argument():
+    # a dict for params was AttributeError 'max_pixels' / 'motion_model' deep inside; sigma_px="1"
+    # numpy's "ufunc 'isfinite' not supported"; time_s "abc" or None float()'s own message
+    import numpy as np
+
+    from quatrack.recognition.locate import locate
+    from quatrack.recognition.video import Tracker, TrackerParams
+    from quatrack.testing.scenes import EXAMPLE, example_model
+    from quatrack.viewsets.camera import load_camera
+
+    camera, model = load_camera(EXAMPLE / "camera.json"), example_model()
+    image = np.zeros((camera.height, camera.width, 3), np.uint8)
+    with pytest.raises(TypeError, match="params: a LocateParams"):
+        locate(image, camera, model, {"use_window": False})
+    with pytest.raises(TypeError, match="params: a TrackerParams"):
+        Tracker(model, camera, {"motion_model": "m1"})
+    for field in ("sigma_px", "relocate_interval_s"):
+        with pytest.raises(ValueError, match=field):
+            TrackerParams(**{field: "1"})
+    tracker = Tracker(model, camera)
+    for bad in ("abc", None, float("nan")):
+        with pytest.raises(ValueError, match="time_s must be"):
+            tracker.step(image, bad)
+        with pytest.raises(ValueError, match="time_s must be"):
+            tracker.skip(bad, "unreadable")
+    with pytest.raises(ValueError, match="time_s must be"):
+        tracker.init_pose([0, 0, 70], [1, 0, 0, 0], time_s="later")
+
+
 def test_bench_zoo_options_need_zoo(capsys):
     from quatrack.cli import main
 

@@ -85,6 +85,17 @@ def _ms(t0: float) -> float:
     return (time.perf_counter() - t0) * 1e3
 
 
+def _seconds(time_s) -> float:
+    """A frame's time: a finite number of seconds (a string or None raised float()'s own error)."""
+    try:
+        t = float(time_s)
+    except (TypeError, ValueError):
+        raise ValueError(f"time_s must be a number of seconds, got {time_s!r}"[:120]) from None
+    if not np.isfinite(t):
+        raise ValueError("time_s must be finite")
+    return t
+
+
 def _check_pose(t, q) -> Pose:
     """The user's pose; Pose's own errors say what is wrong (a shape, not finite, a zero quaternion)."""
     if q is None:
@@ -101,6 +112,8 @@ class Tracker:
     def __init__(self, model: ObjectModel, camera: PinholeCamera, params: TrackerParams = TrackerParams(),
                  index: ModelIndex | None = None, executor: Executor | None = None) -> None:
         check_inputs(camera, model)  # (a camera's dict, a model's name: a TypeError that says so)
+        if not isinstance(params, TrackerParams):  # (a dict: AttributeError 'motion_model' deep inside)
+            raise TypeError(f"params: a TrackerParams (quatrack.recognition.video), got {type(params).__name__}")
         model = model.at_run_time()  # (a scan's mesh: tracked on its decimation, Mesh.run_time)
         self.model = model
         self.camera = camera
@@ -193,9 +206,7 @@ class Tracker:
         ``t`` (3 numbers) and ``q_wxyz`` (4), or a :class:`~quatrack.tracking.pose.Pose` as ``t``."""
         pose = t if isinstance(t, Pose) and q_wxyz is None else _check_pose(t, q_wxyz)
         if time_s is not None:
-            time_s = float(time_s)
-            if not np.isfinite(time_s):
-                raise ValueError("time_s must be finite")
+            time_s = _seconds(time_s)
         self.reset()
         self._pending = (pose, time_s)
 
@@ -204,9 +215,7 @@ class Tracker:
         file): counted, so the next frame keeps its own number, and answered ``lost`` with
         ``reason``. The track is kept: the next frame predicts across the gap, as after a
         dropped frame."""
-        time_s = float(time_s)
-        if not np.isfinite(time_s):
-            raise ValueError("time_s must be finite")
+        time_s = _seconds(time_s)
         self._frame += 1
         self._last_time = max(time_s, self._last_time if self._last_time is not None else time_s)
         return TrackStep(self._frame, time_s, "lost", reason=reason)
@@ -223,9 +232,7 @@ class Tracker:
     def step(self, image: np.ndarray, time_s: float) -> TrackStep:
         """Process one frame taken at ``time_s`` (seconds, non-decreasing)."""
         t_start = time.perf_counter()
-        time_s = float(time_s)
-        if not np.isfinite(time_s):
-            raise ValueError("time_s must be finite")
+        time_s = _seconds(time_s)
         img = to_bgr8(image)
         h, w = img.shape[:2]
         cam = self.camera

@@ -49,6 +49,11 @@ def motion_noise(motion_model: str, diameter: float, overrides: dict | None = No
     return out
 
 
+def _number(value) -> bool:
+    """A real number, not a bool or a string (np.isfinite raised a TypeError naming no field)."""
+    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
+
+
 class _defaults_on_class:
     """A method that, called on the class, runs on its defaults: ``TrackerParams.for_live_streams()``,
     as the README and the contract write it (it raised "missing 1 required positional argument:
@@ -337,7 +342,8 @@ class TrackerParams:
         if bad or not self.sources:
             raise ValueError(f"unknown measurement source(s) {sorted(bad)}; expected some of 'trained', 'mesh', "
                              "'edges', 'contour'")
-        if self.relocate_interval_s is not None and not (np.isfinite(self.relocate_interval_s)
+        if self.relocate_interval_s is not None and not (_number(self.relocate_interval_s)
+                                                          and np.isfinite(self.relocate_interval_s)
                                                           and self.relocate_interval_s >= 0):
             raise ValueError(f"relocate_interval_s must be None or a number of seconds >= 0, "
                              f"not {self.relocate_interval_s!r}")
@@ -348,7 +354,7 @@ class TrackerParams:
         for key, value in self.motion_noise.items():
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not (np.isfinite(value) and value >= 0):
                 raise ValueError(f"motion_noise[{key!r}] must be a finite number >= 0, not {value!r}")
-        if not (np.isfinite(self.sigma_px) and self.sigma_px > 0):
+        if not (_number(self.sigma_px) and np.isfinite(self.sigma_px) and self.sigma_px > 0):
             raise ValueError(f"sigma_px must be a number of pixels above 0, not {self.sigma_px!r}")
         for name in ("max_points", "min_points", "min_inliers"):
             if int(getattr(self, name)) < 1:
