@@ -257,3 +257,18 @@ def test_pose_constructors_refuse_what_is_not_a_pose():
     with pytest.raises(ValueError, match="q_wxyz must be 4 numbers"):
         Pose([1.0, 0.0, 0.0], [0.0, 0.0, 1.0])
     assert np.allclose(Pose.from_homogeneous(T[:3]).as_matrix(), T)
+
+
+def test_pose_from_rvec_and_compose_name_what_is_wrong():
+    # from_rvec([0, 0], t) said numpy's "cannot reshape array of size 2 into shape (3,)"; a pose
+    # composed with a 4×4 array (pose @ T) raised AttributeError 'q_wxyz'
+    from quatrack.tracking.pose import Pose
+
+    with pytest.raises(ValueError, match="rvec must be 3 numbers"):
+        Pose.from_rvec([0.0, 0.0], [0.0, 0.0, 1.0])
+    with pytest.raises(ValueError, match="tvec must be 3 numbers"):
+        Pose.from_rvec([0.0, 0.0, 0.0], "far")
+    p = Pose.from_rvec(np.array([[0.1], [0.2], [0.3]]), np.array([[1.0], [2.0], [3.0]]))  # (OpenCV's (3, 1))
+    assert np.array_equal(p.t, [1.0, 2.0, 3.0]) and np.array_equal(p.rvec.round(12), [0.1, 0.2, 0.3])
+    with pytest.raises(TypeError, match="composes with a Pose.*from_homogeneous"):
+        p @ p.as_matrix()

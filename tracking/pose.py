@@ -116,7 +116,7 @@ class Pose:
     @classmethod
     def from_rvec(cls, rvec: Any, tvec: Any) -> "Pose":
         """From OpenCV's ``rvec, tvec`` (Rodrigues: ``rvec`` = axis · angle, radians)."""
-        return cls(quat.from_rotvec(np.asarray(rvec, float).reshape(3)), np.asarray(tvec, float).reshape(3))
+        return cls(quat.from_rotvec(_numbers(rvec, 3, "rvec")), _numbers(tvec, 3, "tvec"))
 
     # -- views -------------------------------------------------------------------------------
     @cached_property
@@ -154,6 +154,9 @@ class Pose:
         >>> bool(np.allclose(a.compose(b).apply([1.0, 2.0, 3.0]), a.apply(b.apply([1.0, 2.0, 3.0]))))
         True
         """
+        if not isinstance(other, Pose):  # (a 4×4 array: AttributeError 'q_wxyz')
+            raise TypeError(f"a Pose composes with a Pose, got {type(other).__name__} "
+                            f"(Pose.from_homogeneous reads a 4×4 matrix)")
         return Pose(quat.multiply(self.q_wxyz, other.q_wxyz), self.R @ other.t + self.t)
 
     __matmul__ = compose
