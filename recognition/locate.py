@@ -488,6 +488,11 @@ def locate_all(
     than half), only the more confident one is reported found. The models share the whole-image
     SIFT passes of their fallbacks (:func:`shared_features`); a single model is searched exactly
     as :func:`locate` does."""
+    if isinstance(models, ObjectModel):  # (was "object of type 'ObjectModel' has no len()")
+        raise TypeError("models: a list of ObjectModels (locate() searches one)")
+    models = list(models)
+    for m in models:  # (a name among them was AttributeError 'viewsets' from index_for, before locate's check)
+        check_inputs(camera, m)
     shared: dict | None = {} if len(models) > 1 else None
     results = [locate(image, camera, m, params, index_for(m), shared) for m in models]
     found = sorted((r for r in results if r.found), key=lambda r: -r.confidence)

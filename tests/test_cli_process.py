@@ -132,7 +132,7 @@ def test_library_settings_and_times_of_the_wrong_kind_name_the_argument():
     # numpy's "ufunc 'isfinite' not supported"; time_s "abc" or None float()'s own message
     import numpy as np
 
-    from quatrack.recognition.locate import locate
+    from quatrack.recognition.locate import locate, locate_all
     from quatrack.recognition.video import Tracker, TrackerParams
     from quatrack.testing.scenes import EXAMPLE, example_model
     from quatrack.viewsets.camera import load_camera
@@ -143,6 +143,10 @@ def test_library_settings_and_times_of_the_wrong_kind_name_the_argument():
         locate(image, camera, model, {"use_window": False})
     with pytest.raises(TypeError, match="params: a TrackerParams"):
         Tracker(model, camera, {"motion_model": "m1"})
+    with pytest.raises(TypeError, match="models: a list of ObjectModels"):  # (was "has no len()")
+        locate_all(image, camera, model)
+    with pytest.raises(TypeError, match="model: an ObjectModel"):  # (was AttributeError 'viewsets')
+        locate_all(image, camera, [model, "cookie-box"])
     for field in ("sigma_px", "relocate_interval_s"):
         with pytest.raises(ValueError, match=field):
             TrackerParams(**{field: "1"})
