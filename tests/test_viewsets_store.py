@@ -192,6 +192,16 @@ def test_models_on_a_store_that_is_a_file_is_one_line(tmp_path, capsys, action):
     assert "not a directory" in err and err.count("\n") == 1
 
 
+def test_save_model_names_an_argument_of_the_wrong_kind(base_store, tmp_path):
+    # save_model(store, "cookie-box") was AttributeError 'name'; save_model(None, model) pathlib's
+    # "expected str, bytes or os.PathLike object, not NoneType"
+    model = load_model(base_store, "cookie-box")
+    with pytest.raises(TypeError, match="model: an ObjectModel"):
+        save_model(tmp_path, "cookie-box")
+    with pytest.raises(TypeError, match=r"store: a folder's path .*resolve_store"):
+        save_model(None, model)
+    assert not any(tmp_path.iterdir())
+
 @pytest.mark.parametrize("name", ["../x", "..", ".hidden", "a/b", "", "x" * 65, "a b"])
 def test_bad_names_cannot_escape(store, name):
     with pytest.raises(StoreError):

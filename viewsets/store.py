@@ -151,6 +151,12 @@ def _appearance(a: dict[str, np.ndarray]) -> list[TextureReference]:
 
 def save_model(store: str | Path, model: ObjectModel, overwrite: bool = True) -> Path:
     """Write ``model`` atomically as ``store/NAME``; refuses an existing name unless ``overwrite``."""
+    if not isinstance(model, ObjectModel):  # (a spec, a name: AttributeError 'name')
+        raise TypeError(f"model: an ObjectModel (quatrack.viewsets.train.train_object(spec) makes one), "
+                        f"got {type(model).__name__}")
+    if store is None or isinstance(store, bool) or not isinstance(store, (str, os.PathLike)):
+        raise TypeError(f"store: a folder's path (quatrack.viewsets.store.resolve_store(None) is the default "
+                        f"store), got {type(store).__name__}")
     store = Path(store)
     final = model_path(store, model.name)
     if final.exists() and not overwrite:
