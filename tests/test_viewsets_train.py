@@ -190,6 +190,13 @@ def test_a_truncated_photo_is_one_line_naming_it(tmp_path, capfd, cut):
     assert not store.exists() or list_models(store) == []
 
 
+def test_train_object_names_an_argument_of_the_wrong_kind():
+    # train_object("object.json") was AttributeError 'mesh_path', a dict of params AttributeError 'viewsets'
+    with pytest.raises(TypeError, match=r"spec: an ObjectSpec \(quatrack.viewsets.spec.load_spec"):
+        train_object(str(EXAMPLE / "object.json"))
+    with pytest.raises(TypeError, match="params: a TrainParams"):
+        train_object(load_spec(EXAMPLE / "object.json"), {"novel": None})
+
 def test_every_stored_point_reprojects_onto_its_keypoint(trained_store):
     model = load_model(trained_store, "cookie-box")
     for vs in model.viewsets:

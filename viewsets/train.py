@@ -244,6 +244,11 @@ def train_object(
     down to ``params.min_contrast_threshold``; one warning says so) — then the RFCH model, sized
     by the viewsets' boxes.
     """
+    if not isinstance(spec, ObjectSpec):  # (a spec file's path: AttributeError 'mesh_path')
+        raise TypeError(f"spec: an ObjectSpec (quatrack.viewsets.spec.load_spec(path) reads one), "
+                        f"got {type(spec).__name__}")
+    if not isinstance(params, TrainParams):  # (a dict: AttributeError 'viewsets')
+        raise TypeError(f"params: a TrainParams (quatrack.viewsets.train), got {type(params).__name__}")
     t0 = time.perf_counter()
     mesh = load_mesh(spec.mesh_path)
     views = [_prepare_view(mesh, v) for v in spec.views]
