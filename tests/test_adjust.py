@@ -242,6 +242,24 @@ def test_underdetermined_problems_are_refused():
         estimate_pose([PointMeasurements.create(CAM, X, observe(X), 1.0)], P_TRUE, Q_TRUE)
 
 
+def test_estimate_pose_checks_its_starting_guess():
+    # q0 = 0 came back as the answer (q = [0, 0, 0, 0]); q0 of norm 2 kept that norm through the
+    # geodesic steps and ended ~7 diameters away; p0 of 2 numbers was a broadcasting error
+    X = box_points(seed=1)
+    block = PointMeasurements.create(CAM, X, observe(X), 1.0)
+    unit = estimate_pose([block], P_TRUE + 5.0, Q_TRUE)
+    twice = estimate_pose([block], P_TRUE + 5.0, 2.0 * Q_TRUE)
+    assert twice.converged and np.allclose(twice.p, unit.p, atol=1e-9) and np.allclose(twice.q, unit.q, atol=1e-12)
+    with pytest.raises(ValueError, match="q0 must be a non-zero quaternion"):
+        estimate_pose([block], P_TRUE, [0.0, 0.0, 0.0, 0.0])
+    with pytest.raises(ValueError, match="q0 must be"):
+        estimate_pose([block], P_TRUE, Q_TRUE[:3])
+    with pytest.raises(ValueError, match="p0 must be 3 finite numbers"):
+        estimate_pose([block], P_TRUE[:2], Q_TRUE)
+    with pytest.raises(ValueError, match="model points: .*3 columns"):  # (X and uv swapped: was read as other points)
+        PointMeasurements.create(CAM, observe(X), X, 1.0)
+
+
 def test_options_are_validated():
     with pytest.raises(ValueError, match="method"):
         AdjustOptions(method="newton")

@@ -377,6 +377,20 @@ def adjust(
     )
 
 
+def _start(p0, q0) -> tuple[np.ndarray, np.ndarray]:
+    """``estimate_pose``'s guess, checked: a zero quaternion came back as the answer (q = 0), one of
+    another norm kept it (the geodesic steps preserve the norm) and led the fit astray; p0 of
+    another length was a broadcasting error. A unit ``q0`` (to 1e-9) is used as given."""
+    p = np.asarray(p0, dtype=float)
+    q = np.asarray(q0, dtype=float)
+    if p.shape != (3,) or not np.all(np.isfinite(p)):
+        raise ValueError(f"p0 must be 3 finite numbers, got {np.asarray(p0).tolist()!r}"[:120])
+    n = float(np.linalg.norm(q)) if q.shape == (4,) and np.all(np.isfinite(q)) else 0.0
+    if not n > 1e-12:
+        raise ValueError(f"q0 must be a non-zero quaternion [w, x, y, z], got {np.asarray(q0).tolist()!r}"[:120])
+    return p, (q if abs(n - 1.0) <= 1e-9 else q / n)
+
+
 def estimate_pose(
     blocks: Sequence[MeasurementBlock],
     p0: np.ndarray,
@@ -387,7 +401,8 @@ def estimate_pose(
 
     Its covariance ``(DᵀD)⁻¹`` initialises the filter (Ude, Section 5).
     """
+    p0, q0 = _start(p0, q0)
     problem = _Problem(blocks, options, POSE_DIM, None)
-    x0 = (np.asarray(p0, dtype=float), np.asarray(q0, dtype=float), np.zeros(3), np.zeros(3))
+    x0 = (p0, q0, np.zeros(3), np.zeros(3))
     x, cost, A, b, w, iterations, converged, _ = _minimise(problem, x0, options)
     return PoseEstimate(x[0], x[1], spd_inverse(A), iterations, converged, float(np.sqrt(b @ b)), cost, w)

@@ -160,8 +160,15 @@ class PointMeasurements:
         covariance: np.ndarray | float = 1.0,
     ) -> "PointMeasurements":
         """``covariance``: a pixel standard deviation (scalar), or per-point 2×2 matrices (n, 2, 2)."""
-        X = np.asarray(model_points, dtype=float).reshape(-1, 3)
-        y = np.asarray(image_points, dtype=float).reshape(-1, 2)
+        X = np.asarray(model_points, dtype=float)
+        y = np.asarray(image_points, dtype=float)
+        # (an (n, 2) array of model points, or image points of 3 columns — the two swapped — was
+        # reshaped into other points without a word)
+        if X.ndim > 2 or (X.ndim == 2 and X.shape[1] != 3):
+            raise ValueError(f"model points: an (n, 3) array, got shape {X.shape} (not 3 columns)")
+        if y.ndim > 2 or (y.ndim == 2 and y.shape[1] != 2):
+            raise ValueError(f"image points: an (n, 2) array, got shape {y.shape} (not 2 columns)")
+        X, y = X.reshape(-1, 3), y.reshape(-1, 2)
         if X.shape[0] != y.shape[0]:
             raise ValueError(f"{X.shape[0]} model points but {y.shape[0]} image points")
         if np.isscalar(covariance) or np.ndim(covariance) == 0:
