@@ -331,6 +331,13 @@ def test_filter_api_guards():
         f.update([])
     state = initial_state(0.0, P_TRUE, Q_TRUE, np.eye(6))
     assert state.covariance[6, 6] == 1e8 and state.pose_covariance.shape == (6, 6)
+    # the estimate itself for its pose was AttributeError 't'; a 3×3 covariance numpy's broadcast error
+    X = box_points(seed=2)
+    est = estimate_pose([PointMeasurements.create(CAM, X, observe(X), 1.0)], P_TRUE, Q_TRUE)
+    with pytest.raises(TypeError, match=r"pose: a Pose \(estimate_pose's result gives it as .pose\)"):
+        f.initialize(0.0, est, est.covariance)
+    with pytest.raises(ValueError, match="pose_covariance: 6×6"):
+        f.initialize(0.0, est.pose, np.eye(3))
 
 
 _unit_q = st.lists(st.floats(-1.0, 1.0), min_size=4, max_size=4).filter(lambda v: np.linalg.norm(v) > 1e-3).map(

@@ -41,6 +41,10 @@ class PoseFilter:
     ) -> FilterState:
         """Start from a pose estimate (covariance 6×6 over ``[p, δθ]``); velocities zero, with
         variance ``velocity_variance`` (and not estimated by zeroth-order models)."""
+        if not isinstance(pose, Pose):  # (an estimate itself, a (t, q) pair: AttributeError 't')
+            raise TypeError(f"pose: a Pose (estimate_pose's result gives it as .pose), got {type(pose).__name__}")
+        if np.shape(pose_covariance) != (6, 6):  # (numpy's "could not broadcast input array" before)
+            raise ValueError(f"pose_covariance: 6×6 over [p, δθ], got shape {np.shape(pose_covariance)}")
         state = initial_state(t, pose.t, pose.q_wxyz, pose_covariance, velocity_variance=velocity_variance)
         if not self.motion.estimates_velocity:
             state.covariance[6:, 6:] = 0.0
