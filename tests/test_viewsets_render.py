@@ -562,3 +562,21 @@ def test_planar_groups_equal_the_face_by_face_rule():
 
     for mesh in (box_mesh(), dense_cylinder(sections=64), noisy_box(subdivisions=2, noise=0.0003)):
         np.testing.assert_array_equal(planar_groups(mesh), every_pair(mesh))
+
+
+def test_make_mesh_refuses_arrays_of_other_shapes_naming_them():
+    # 2-D vertices (6 × 2 = 12 numbers) were reshaped into 4 other 3-D vertices without a word, a
+    # Trimesh for the vertices was float()'s TypeError
+    import trimesh
+
+    from quatrack.viewsets.errors import SpecError
+
+    tm = trimesh.creation.box(extents=(0.1, 0.2, 0.05))
+    square = np.array([[0, 0], [1, 0], [1, 1], [0, 1], [2, 0], [2, 1.0]])
+    with pytest.raises(SpecError, match=r"vertices must be an \(n, 3\) array of numbers, got shape \(6, 2\)"):
+        make_mesh(square, np.array([[0, 1, 2], [0, 2, 3]]))
+    with pytest.raises(SpecError, match=r"vertices must be .*a trimesh's .vertices"):
+        make_mesh(tm, tm.faces)
+    with pytest.raises(SpecError, match=r"faces must be an \(m, 3\) array"):
+        make_mesh(tm.vertices, np.array([[0, 1, 2, 3], [4, 5, 6, 7], [0, 1, 5, 4]]))
+    assert len(make_mesh(tm.vertices, tm.faces).faces) == 12

@@ -153,8 +153,19 @@ class Mesh:
 
 def make_mesh(vertices: np.ndarray, faces: np.ndarray, where: str = "mesh") -> Mesh:
     """Check and wrap arrays: finite vertices, valid indices, no zero-area triangles."""
-    V = np.asarray(vertices, dtype=float).reshape(-1, 3)
-    F = np.asarray(faces).reshape(-1, 3)
+    # (a Trimesh for vertices was float()'s TypeError; vertices or faces of other than 3 columns were
+    # reshaped into other points and triangles when their size allowed, else numpy's reshape error)
+    try:
+        V = np.asarray(vertices, dtype=float)
+    except (TypeError, ValueError):
+        raise SpecError(f"{where}: vertices must be an (n, 3) array of numbers (a trimesh's .vertices), "
+                        f"got {type(vertices).__name__}") from None
+    F = np.asarray(faces)
+    if V.ndim != 2 or V.shape[1] != 3:
+        raise SpecError(f"{where}: vertices must be an (n, 3) array of numbers, got shape {V.shape}")
+    if F.size and (F.ndim != 2 or F.shape[1] != 3):
+        raise SpecError(f"{where}: faces must be an (m, 3) array of vertex indices (triangles), got shape {F.shape}")
+    F = F.reshape(-1, 3)
     if F.size == 0:
         raise SpecError(f"{where}: the mesh has no faces (a point cloud cannot be rendered)")
     if not np.all(np.isfinite(V)):
