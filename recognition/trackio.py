@@ -32,6 +32,7 @@ import contextlib
 import glob as globlib
 import json
 import math
+import numbers
 import os
 import sys
 import tempfile
@@ -205,10 +206,13 @@ def open_frames(video: str | None = None, images: str | Sequence[str] | None = N
     (['b.png', 'a.png'], [(1, 0.03333333333333333)])
     >>> import shutil; shutil.rmtree(d)
     """
-    if fps is not None and not (math.isfinite(fps) and 0 < fps <= MAX_RATE):
-        raise SourceError(f"--fps must be a positive number (at most {MAX_RATE:g})")
-    if max_frames is not None and max_frames < 1:
-        raise SourceError("--max-frames must be at least 1")
+    # (a string was math.isfinite's "must be real number, not str", naming neither option)
+    if fps is not None and (isinstance(fps, (str, bytes, bool)) or not isinstance(fps, numbers.Real)
+                            or not (math.isfinite(fps) and 0 < fps <= MAX_RATE)):
+        raise SourceError(f"--fps must be a positive number (at most {MAX_RATE:g}), got {fps!r}"[:120])
+    if max_frames is not None and (isinstance(max_frames, bool) or not isinstance(max_frames, numbers.Integral)
+                                   or max_frames < 1):
+        raise SourceError(f"--max-frames must be at least 1 (a whole number), got {max_frames!r}"[:120])
     if (video is None) == (images is None):
         raise SourceError("give one of --video or --images")
     if images is not None:

@@ -54,6 +54,13 @@ def test_images_sorted_by_name(tmp_path):
     assert src.where(2).endswith("f10.png")
     with pytest.raises(trackio.SourceError, match="is a folder; give a glob of its images, e.g. '.*\\*.png'"):
         trackio.open_frames(images=str(tmp_path))  # (was "no file matches")
+    # a library caller's fps or max_frames of the wrong kind: math.isfinite's "must be real number,
+    # not str" / "'<' not supported", naming neither
+    with pytest.raises(trackio.SourceError, match=r"--fps must be a positive number .*got '30'"):
+        trackio.open_frames(images=str(tmp_path / "*.png"), fps="30")
+    with pytest.raises(trackio.SourceError, match=r"--max-frames must be at least 1 .*got '5'"):
+        trackio.open_frames(images=str(tmp_path / "*.png"), max_frames="5")
+    assert len(list(trackio.open_frames(images=str(tmp_path / "*.png"), fps=np.float32(10), max_frames=np.int64(2)))) == 2
 
 
 @pytest.mark.parametrize("video, message", [("missing.mp4", "no such file"), ("7", "cannot be opened as a camera"),
