@@ -67,6 +67,18 @@ def run_serve(args: argparse.Namespace) -> int:
 
     settings, run_dir, made = prepare_run_dir(settings)  # before uvicorn (and prometheus-client) start
     os.environ.update(settings.to_env())  # the workers rebuild the settings from these
+    # uvicorn re-raises the SIGTERM it caught once it has shut down; with the default handler that
+    # killed the process before the finally below, and every 1-worker run left its run directory
+    # in the temp dir (quatrack-run-*; `bench serve`'s 1-worker setups too). Exit status stays 143.
+    import signal
+    import threading
+
+    previous = None
+    if threading.current_thread() is threading.main_thread():
+        def _terminated(signum, frame):
+            raise SystemExit(128 + signum)
+
+        previous = signal.signal(signal.SIGTERM, _terminated)
     try:
         import uvicorn
 
@@ -92,4 +104,6 @@ def run_serve(args: argparse.Namespace) -> int:
     finally:
         if made:
             shutil.rmtree(run_dir, ignore_errors=True)
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
     return 0

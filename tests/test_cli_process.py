@@ -202,6 +202,46 @@ def test_metrics_of_a_one_worker_server(tmp_path):
         proc.wait(timeout=30)
 
 
+@pytest.mark.parametrize("workers", ["1", "2"])
+def test_a_server_stopped_by_sigterm_removes_its_run_directory(tmp_path, workers):
+    # uvicorn re-raises the SIGTERM it caught after shutting down: with one worker that killed
+    # `quatrack serve` before its finally, and the quatrack-run-* folder stayed in the temp dir
+    import os
+    import signal
+    import time
+
+    import httpx
+
+    from quatrack.service.server import free_port
+    from quatrack.testing.scenes import example_store
+
+    tmp = tmp_path / "tmp"
+    tmp.mkdir()
+    port = free_port()
+    env = {**os.environ, "XDG_DATA_HOME": str(tmp_path), "HOME": str(tmp_path), "TMPDIR": str(tmp)}
+    env.pop("QUATRACK_RUN_DIR", None)
+    proc = subprocess.Popen([sys.executable, "-m", "quatrack", "serve", "--store", str(example_store()), "--port",
+                             str(port), "--workers", workers], env=env, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+    try:
+        for _ in range(600):  # (up to 60 s: the models load first)
+            try:
+                if httpx.get(f"http://127.0.0.1:{port}/readyz", timeout=2).status_code == 200:
+                    break
+            except httpx.TransportError:
+                pass
+            assert proc.poll() is None, "the server exited"
+            time.sleep(0.1)
+        assert [p.name for p in tmp.iterdir() if p.name.startswith("quatrack-run-")], "no run directory made"
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=30) in (0, 143, -signal.SIGTERM)  # (1 worker: 143, several: 0, as before)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(timeout=30)
+    assert not [p.name for p in tmp.iterdir() if p.name.startswith("quatrack-run-")]
+
+
 def test_ctrl_c_while_trimesh_imports_is_not_swallowed(tmp_path):
     """trimesh wraps its optional imports (scipy: seconds on a cold disk) in ``except
     BaseException``: a Ctrl-C pressed meanwhile was swallowed and training went on, replacing the
