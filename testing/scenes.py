@@ -128,12 +128,16 @@ def example_store() -> Path:
     """A temporary model store holding the bundled example trained with the default parameters,
     trained once per process (benchmarks and tests must not depend on the user's store). Treat it
     as read-only: every caller in the process shares it."""
+    import atexit
+    import shutil
     import tempfile
 
     from quatrack.viewsets.store import save_model
     from quatrack.viewsets.train import train_object
 
     store = Path(tempfile.mkdtemp(prefix="quatrack-bench-"))
+    # (removed when the process ends: every bench locate/track run and test session left one behind)
+    atexit.register(shutil.rmtree, store, True)
     save_model(store, train_object(load_spec(EXAMPLE / "object.json")))
     return store
 

@@ -94,3 +94,21 @@ def test_backgrounds_are_frozen_files_installed_as_package_data(monkeypatch):
     for p in [*files, B.DATA / "README.md"]:
         rel = p.relative_to(root).as_posix()
         assert any(fnmatch.fnmatch(rel, pat) for pat in patterns), f"{rel} is not package data"
+
+
+def test_the_example_store_is_removed_when_the_process_ends(tmp_path):
+    # example_store() (bench locate / track, the tests) left a 2.6 MB quatrack-bench-* folder in
+    # the temp dir after every process
+    import os
+    import subprocess
+    import sys
+
+    tmp = tmp_path / "tmp"
+    tmp.mkdir()
+    r = subprocess.run([sys.executable, "-c", "from quatrack.testing.scenes import example_store as s; "
+                        "p = s(); print(p, (p / 'cookie-box').is_dir())"],
+                       env={**os.environ, "TMPDIR": str(tmp)}, cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-500:]
+    path, made = r.stdout.split()
+    assert made == "True" and path.startswith(str(tmp))
+    assert not list(tmp.iterdir())
