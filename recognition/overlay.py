@@ -66,6 +66,12 @@ def draw_overlay(image: np.ndarray, camera: PinholeCamera, mesh: Mesh | None, st
     overlay drawer of quatrack: ``track --overlay``, ``demo`` and the benchmarks use it. Either
     ``mesh`` or ``edges`` (k, 2, 3) must be given; the axes start at the corner of the edges'
     (or mesh's) bounding box and are 0.3 of its diagonal long."""
+    if not (isinstance(image, np.ndarray) and image.dtype == np.uint8 and (image.ndim == 2 or image.shape[-1] == 3)):
+        # (a 16-bit, float or BGRA frame, as the tracker takes them: OpenCV's "Assertion failed
+        # img.depth() == CV_8U in function 'putText'"); 8-bit grey and BGR are drawn on as before
+        from .images import to_bgr8
+
+        image = to_bgr8(image)
     out = image.copy()
     colour = STATUS_COLOURS.get(step.status, (255, 255, 255))
     if edges is None:

@@ -343,3 +343,16 @@ def test_images_given_as_files_and_globs_keep_their_order_and_skip_what_cannot_b
     odd = tmp_path / "frame[1].png"  # a file the shell listed, whose name is also a glob pattern
     cv2.imwrite(str(odd), np.full((40, 40, 3), 7, np.uint8))
     assert [int(img[0, 0, 0]) for _, _, img in trackio.open_frames(images=[str(odd)])] == [7]
+
+
+def test_the_overlay_draws_on_frames_of_any_depth_the_tracker_takes():
+    # a 16-bit, float or BGRA frame (the tracker takes them) was OpenCV's "Assertion failed
+    # img.depth() == CV_8U in function 'putText'"
+    cam = PinholeCamera(500.0, 500.0, 319.5, 239.5, width=640, height=480)
+    edges = np.array([[[-1.0, -1.0, 0.0], [1.0, 1.0, 0.0]]])
+    step = TrackStep(0, 0.0, "tracking", t=np.array([0.0, 0.0, 10.0]), q_wxyz=np.array([1.0, 0.0, 0.0, 0.0]))
+    ref = draw_overlay(np.zeros((480, 640, 3), np.uint8), cam, None, step, edges=edges)
+    for frame in (np.zeros((480, 640, 3), np.uint16), np.zeros((480, 640, 3), np.float32),
+                  np.zeros((480, 640, 4), np.uint8)):
+        assert np.array_equal(draw_overlay(frame, cam, None, step, edges=edges), ref), frame.dtype
+    assert draw_overlay(np.zeros((480, 640), np.uint8), cam, None, step, edges=edges).shape == (480, 640)
