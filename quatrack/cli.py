@@ -275,6 +275,8 @@ def _run_bench(args: argparse.Namespace) -> int:
 
         if args.scenes < 1 or args.every < 1:
             raise UserError("--scenes and --every must be at least 1")
+        if args.seed < 0:  # (numpy's "expected non-negative integer", naming no option)
+            raise UserError("--seed must be >= 0")
         if args.zoo:
             names = _zoo_names(args.zoo_objects, "--zoo-objects")
             scenes = 12 if args.zoo_scenes is None else args.zoo_scenes

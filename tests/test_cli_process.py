@@ -311,7 +311,9 @@ def test_bench_options_checked_before_the_run(tmp_path, capsys):
     for argv, said in ((["locate", "--sheet", str(tmp_path / "x.txt")], "--sheet must name a .png file"),
                        (["locate", "--sheet", str(tmp_path / "f" / "x.png")], "is a file, not a folder"),
                        (["track", "--sheet", str(tmp_path / "f" / "x.png")], "is a file, not a folder"),
-                       (["ude-cube", "--first-seed", "-1"], "--first-seed must be >= 0")):
+                       (["ude-cube", "--first-seed", "-1"], "--first-seed must be >= 0"),
+                       (["locate", "--seed", "-1"], "--seed must be >= 0"),
+                       (["locate", "--zoo", "--seed", "-1"], "--seed must be >= 0")):
         assert main(["bench", *argv]) == 2, argv
         err = capsys.readouterr().err.strip()
         assert said in err and "\n" not in err, err
