@@ -321,6 +321,8 @@ def main(args: argparse.Namespace) -> int:
         raise ValueError("--workers: numbers between 1 and 64")
     if not 0.5 <= args.seconds <= 600 or not 0 < args.fps <= 240 or (args.threads is not None and args.threads < 1) or args.rest_requests < 0:
         raise ValueError("--seconds must be 0.5-600, --fps 0-240, --threads ≥ 1, --rest-requests ≥ 0")
+    if not 1 <= getattr(args, "rest_concurrency", 4) <= 256:  # (0: no request sent, yet "40 requests" at ~1e6/s)
+        raise ValueError("--rest-concurrency must be between 1 and 256")
     if not 0 <= (getattr(args, "stagger_s", 0.0) or 0.0) <= 600:  # (NaN too: a negative one ran as a burst)
         raise ValueError("--stagger-s must be between 0 and 600 seconds")
     replicas = {"yes": True, "no": False}.get(args.replicas, find_nginx() is not None)

@@ -299,6 +299,8 @@ def test_bench_serve_refuses_an_object_not_in_the_store_and_a_negative_stagger(t
     assert err.startswith("quatrack bench: error: --object cookie-box: not in") and "\n" not in err, err
     assert main(["bench", "serve", "--stagger-s", "-1", "--replicas", "no"]) == 2
     assert "--stagger-s" in capsys.readouterr().err
+    assert main(["bench", "serve", "--rest-concurrency", "0", "--replicas", "no"]) == 2  # (reported 40 requests, none sent)
+    assert "--rest-concurrency must be between 1 and 256" in capsys.readouterr().err
 
 
 def test_bench_options_checked_before_the_run(tmp_path, capsys):
