@@ -97,3 +97,19 @@ def test_a_camera_built_in_python_is_checked_as_a_camera_file_is(change, message
     kw = {"fx": 600.0, "fy": 600.0, "cx": 320.0, "cy": 240.0, "width": 640, "height": 480, **change}
     with pytest.raises(ValueError, match=message):
         PinholeCamera(**kw)
+
+
+def test_a_camera_dict_built_from_numpy_values_is_read():
+    # numpy's numbers (K from cv2.calibrateCamera, a width from an array) were refused: an int64
+    # width "must be a positive integer, got np.int64(640)", a float32 focal length "must be a
+    # finite number", the (1, 5) distortion array "must be a list of numbers"
+    K = np.array([[600.0, 0.0, 320.0], [0.0, 600.0, 240.0], [0.0, 0.0, 1.0]])
+    data = {"fx": np.float32(K[0, 0]), "fy": K[1, 1], "cx": K[0, 2], "cy": K[1, 2], "width": np.int64(640),
+            "height": np.int32(480), "dist_coeffs": np.array([[-0.1, 0.01, 0.0, 0.0, 0.0]])}
+    cam = camera_from_dict(data)
+    assert cam == camera_from_dict({**CAMERA, "fx": 600.0, "fy": 600.0, "cx": 320.0, "cy": 240.0, "width": 640,
+                                    "height": 480, "dist_coeffs": [-0.1, 0.01, 0.0, 0.0, 0.0]})
+    with pytest.raises(SpecError, match="dist_coeffs"):
+        camera_from_dict({**data, "dist_coeffs": np.zeros((2, 5))})
+    with pytest.raises(SpecError, match="fx"):
+        camera_from_dict({**data, "fx": np.bool_(True)})

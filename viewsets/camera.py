@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import math
+import numbers
 import re
 from pathlib import Path
 from typing import Any
@@ -38,7 +39,8 @@ def _shown(value: Any) -> str:
 
 
 def _number(value: Any, where: str, field: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not isfinite(value):
+    # (numbers.Real: numpy's too — a float32 fx, an int64 width were refused as "not a number")
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real) or not isfinite(value):
         raise SpecError(f"{where}: field {field!r} must be a finite number, got {_shown(value)}")
     return float(value)
 
@@ -56,14 +58,16 @@ def camera_from_dict(data: Any, where: str = "camera") -> PinholeCamera:
     size = []
     for k in ("width", "height"):
         v = data[k]
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or v != int(v) or v <= 0:
+        if isinstance(v, (bool, np.bool_)) or not isinstance(v, numbers.Real) or not isfinite(v) or v != int(v) or v <= 0:
             raise SpecError(f"{where}: field {k!r} must be a positive integer, got {_shown(v)}")
         size.append(int(v))
     dist = data.get("dist_coeffs", [0.0] * 5)
     if dist is None:
         dist = [0.0] * 5
+    if isinstance(dist, (tuple, np.ndarray)) and np.ndim(dist) <= 2 and (np.ndim(dist) < 2 or 1 in np.shape(dist)):
+        dist = np.ravel(np.asarray(dist, dtype=object)).tolist()  # (cv2.calibrateCamera's (1, 5) array)
     if not isinstance(dist, list) or not all(
-        isinstance(x, (int, float)) and not isinstance(x, bool) and isfinite(x) for x in dist
+        isinstance(x, numbers.Real) and not isinstance(x, (bool, np.bool_)) and isfinite(x) for x in dist
     ):
         raise SpecError(f"{where}: field 'dist_coeffs' must be a list of numbers")
     if len(dist) not in (0, 4, 5, 8):
