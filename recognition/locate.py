@@ -79,6 +79,13 @@ class LocateParams:
     min_texture_ncc: float = 0.5
     max_pixels: int = DEFAULT_MAX_PIXELS
 
+    def __post_init__(self) -> None:
+        # (a string was "'<=' not supported" deep in prepare_image; 0 or less shrank every image to
+        # 32 px; at least 1, as QUATRACK_LOCATE_MAX_PIXELS)
+        v = self.max_pixels
+        if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)) or v < 1:
+            raise ValueError(f"max_pixels must be a whole number of pixels, at least 1, got {v!r}"[:120])
+
 
 @dataclass
 class Located:

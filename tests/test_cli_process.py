@@ -132,7 +132,7 @@ def test_library_settings_and_times_of_the_wrong_kind_name_the_argument():
     # numpy's "ufunc 'isfinite' not supported"; time_s "abc" or None float()'s own message
     import numpy as np
 
-    from quatrack.recognition.locate import locate, locate_all
+    from quatrack.recognition.locate import LocateParams, locate, locate_all
     from quatrack.recognition.video import Tracker, TrackerParams
     from quatrack.testing.scenes import EXAMPLE, example_model
     from quatrack.viewsets.camera import load_camera
@@ -143,6 +143,9 @@ def test_library_settings_and_times_of_the_wrong_kind_name_the_argument():
         locate(image, camera, model, {"use_window": False})
     with pytest.raises(TypeError, match="params: a TrackerParams"):
         Tracker(model, camera, {"motion_model": "m1"})
+    for bad in ("4000000", 0, 4e6):  # (a string: "'<=' not supported" in prepare_image; 0 shrank images to 32 px)
+        with pytest.raises(ValueError, match="max_pixels must be a whole number"):
+            LocateParams(max_pixels=bad)
     with pytest.raises(TypeError, match="models: a list of ObjectModels"):  # (was "has no len()")
         locate_all(image, camera, model)
     with pytest.raises(TypeError, match="model: an ObjectModel"):  # (was AttributeError 'viewsets')
