@@ -204,3 +204,53 @@ def test_a_deeply_nested_spec_is_not_valid_json(tmp_path):
     path.write_text("[" * 100_000 + "]" * 100_000)
     with pytest.raises(SpecError, match="nested too deeply"):
         load_spec(path)
+
+
+def _yaml_camera(path: Path, camera: dict, size: tuple | None) -> Path:
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+    for key, value in zip(("image_width", "image_height"), size or ()):
+        if value is not None:
+            fs.write(key, value)
+    K = np.array([[camera["fx"], 0, camera["cx"]], [0, camera["fy"], camera["cy"]], [0, 0, 1]], float)
+    fs.write("camera_matrix", K)
+    fs.write("distortion_coefficients", np.array(camera["dist_coeffs"], float).reshape(1, -1))
+    fs.release()
+    return path
+
+
+def test_an_opencv_yaml_without_its_image_size_is_accepted_and_sized_by_its_images(tmp_path):
+    """The shared contract: "An OpenCV YAML with camera_matrix / distortion_coefficients is also
+    accepted" — one without image_width / image_height was refused ("fields ... are required").
+    It is now a camera sized by its images: training sizes it by its photo (and checks it there),
+    ``locate`` by the query, and the model and the pose are those of the sized JSON camera. One
+    size without the other is still refused."""
+    from quatrack.recognition.locate import locate
+    from quatrack.viewsets.train import TrainParams, train_object
+
+    data = json.loads((EXAMPLE / "object.json").read_text())
+    cam = data["views"][0]["camera"]
+    yml = _yaml_camera(tmp_path / "cam.yml", cam, None)
+    sizeless = load_camera(yml)
+    assert (sizeless.width, sizeless.height, sizeless.fx, sizeless.cx) == (None, None, cam["fx"], cam["cx"])
+    with pytest.raises(SpecError, match="'image_width' and 'image_height' must both be given"):
+        load_camera(_yaml_camera(tmp_path / "half.yml", cam, (718, None)))
+    with pytest.raises(SpecError, match="not the focal lengths"):
+        load_camera(_yaml_camera(tmp_path / "bad.yml", {**cam, "fx": 1.0, "fy": 5000.0}, None))
+
+    data["mesh"] = str(EXAMPLE / data["mesh"])
+    data["views"][0]["image"] = str(EXAMPLE / data["views"][0]["image"])
+    models = []
+    for name, camera in (("json", cam), ("yaml", str(yml))):
+        data["views"][0]["camera"] = camera
+        (tmp_path / f"{name}.json").write_text(json.dumps(data))
+        models.append(train_object(load_spec(tmp_path / f"{name}.json"), TrainParams()))
+    a, b = (m.viewsets[0].camera for m in models)
+    assert (b.width, b.height) == (a.width, a.height) == (718, 480) and b.fx == a.fx
+    # a query with the sizeless camera: sized by the image, the same pose as with the sized one
+    video = cv2.VideoCapture(str(EXAMPLE / "box.mp4"))
+    ok, frame = video.read()
+    video.release()
+    query = load_camera(EXAMPLE / "camera.json")
+    q_yml = load_camera(_yaml_camera(tmp_path / "q.yml", camera_to_dict(query), None))
+    r1, r2 = locate(frame, query, models[0]), locate(frame, q_yml, models[0])
+    assert r1.found and r2.found and np.allclose(r1.t, r2.t) and np.allclose(r1.q_wxyz, r2.q_wxyz)

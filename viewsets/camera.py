@@ -85,13 +85,20 @@ MAX_ASPECT = 8.0
 MAX_SIDE = 100_000  # pixels
 
 
-def check_plausible(fx: float, fy: float, cx: float, cy: float, width: int, height: int, where: str = "camera") -> None:
+def check_plausible(fx: float, fy: float, cx: float, cy: float, width: int | None, height: int | None,
+                    where: str = "camera") -> None:
     """Raise :class:`SpecError` (naming ``where`` and the field) unless the intrinsics can be a
-    real camera's for a ``width`` × ``height`` image. The one place both the CLI and the service
+    real camera's for a ``width`` × ``height`` image (both None: a camera sized by its images,
+    whose focal lengths alone are checked here; training checks it again at its photo's size).
+    The one place both the CLI and the service
     check a camera: every parser ends here."""
     for name, v in (("fx", fx), ("fy", fy), ("cx", cx), ("cy", cy)):
         if isinstance(v, bool) or not isinstance(v, (int, float, np.floating, np.integer)) or not isfinite(v):
             raise SpecError(f"{where}: field {name!r} must be a finite number, got {_shown(v)}")
+    if width is None and height is None:  # (a camera sized by its images: an OpenCV YAML without its size)
+        if not (fx > 0 and fy > 0 and 1 / MAX_ASPECT <= fx / fy <= MAX_ASPECT):
+            raise SpecError(f"{where}: fx = {fx:g}, fy = {fy:g} are not the focal lengths of a camera")
+        return
     for name, v in (("width", width), ("height", height)):
         if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not 0 < v <= MAX_SIDE:
             raise SpecError(f"{where}: field {name!r} must be an integer 1..{MAX_SIDE}, got {_shown(v)}")
@@ -151,8 +158,9 @@ def _camera_from_yaml(path: Path) -> PinholeCamera:
         h = fs.getNode("image_height")
         # (a string's real() is 1.8e308: "'width' must be an integer 1..100000, got 17976931348623157...")
         not_numbers = [k for k, n in (("image_width", w), ("image_height", h)) if not (n.empty() or n.isInt() or n.isReal())]
-        width = int(w.real()) if not w.empty() else 0
-        height = int(h.real()) if not h.empty() else 0
+        w_empty, h_empty = w.empty(), h.empty()
+        width = int(w.real()) if not w_empty else 0
+        height = int(h.real()) if not h_empty else 0
     except (cv2.error, SystemError, TypeError, ValueError) as exc:
         raise SpecError(f"{path}: not a valid OpenCV camera file: 'camera_matrix', 'distortion_coefficients', "
                         f"'image_width' and 'image_height' must be a 3×3 matrix, a vector and two numbers"
@@ -163,8 +171,10 @@ def _camera_from_yaml(path: Path) -> PinholeCamera:
         raise SpecError(f"{path}: field {not_numbers[0]!r} must be a number of pixels")
     if K is None or K.shape != (3, 3):
         raise SpecError(f"{path}: field 'camera_matrix' missing or not 3×3")
-    if width <= 0 or height <= 0:
-        raise SpecError(f"{path}: fields 'image_width' and 'image_height' are required")
+    if (width > 0) != (height > 0) or min(width, height) < 0 or (width == 0 and not (w_empty and h_empty)):
+        raise SpecError(f"{path}: fields 'image_width' and 'image_height' must both be given (positive), or neither")
+    if width == 0:  # neither: the contract's "camera_matrix / distortion_coefficients" alone (the size
+        width = height = None  # is the images' own, checked for plausibility when the first one comes)
     dist = [] if D is None else [float(x) for x in D.ravel()]
     fx, fy, cx, cy = (float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))
     if not all(math.isfinite(v) for v in (fx, fy, cx, cy)) or fx <= 0 or fy <= 0:

@@ -17,6 +17,7 @@ from typing import Callable
 import cv2
 import numpy as np
 
+from .camera import check_plausible
 from .errors import SpecError
 from .mesh import Mesh, load_mesh
 from .novel import NovelViewParams, novel_poses, render_textured_view
@@ -95,6 +96,8 @@ def _read_image(view: ViewSpec) -> np.ndarray:
     where = f"view {view.index}: image {view.image_path}"
     img = _read(view.image_path, cv2.IMREAD_COLOR, where)
     cam = view.camera
+    if cam.width is None and cam.height is None:  # (a camera sized by its images: _sized_by)
+        return img
     if (img.shape[1], img.shape[0]) != (cam.width, cam.height):
         turned, hint = "", ""  # (a phone's portrait photo: its pixels stored sideways, an EXIF tag to turn them)
         if (img.shape[0], img.shape[1]) == (cam.width, cam.height):
@@ -149,8 +152,21 @@ def _within_pixels(view: ViewSpec, image: np.ndarray) -> tuple[ViewSpec, np.ndar
     return dataclasses.replace(view, camera=view.camera.scaled(nw / w, nw, nh)), small
 
 
+def _sized_by(view: ViewSpec, image: np.ndarray) -> ViewSpec:
+    """The view with its camera sized by its photo when the camera file gives no size (an OpenCV
+    YAML with only ``camera_matrix`` / ``distortion_coefficients``, as the contract allows),
+    checked for plausibility at that size."""
+    cam = view.camera
+    if cam.width is not None or cam.height is not None:
+        return view
+    h, w = image.shape[:2]
+    check_plausible(cam.fx, cam.fy, cam.cx, cam.cy, w, h, f"view {view.index}: camera")
+    return dataclasses.replace(view, camera=dataclasses.replace(cam, width=w, height=h))
+
+
 def _prepare_view(mesh: Mesh, view: ViewSpec) -> _View:
     image = _read_image(view)
+    view = _sized_by(view, image)
     full = image.shape[:2]
     view, image = _within_pixels(view, image)
     buffers = check_pose(mesh, view)
