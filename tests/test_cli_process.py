@@ -175,11 +175,11 @@ def test_metrics_of_a_one_worker_server(tmp_path):
     # there before the multiprocess directory was set, kept its counters in memory while /metrics
     # read the empty directory — every metric but one was missing
     import os
-    import time
 
     import httpx
 
     from quatrack.service.server import free_port
+    from quatrack.testing.loopback import wait_for_http
     from quatrack.testing.scenes import example_store
 
     port = free_port()
@@ -188,14 +188,7 @@ def test_metrics_of_a_one_worker_server(tmp_path):
                              "--workers", "1"], env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         url = f"http://127.0.0.1:{port}"
-        for _ in range(600):  # (up to 60 s: the models load first)
-            try:
-                if httpx.get(f"{url}/readyz", timeout=2).status_code == 200:
-                    break
-            except httpx.TransportError:
-                pass
-            assert proc.poll() is None, "the server exited"
-            time.sleep(0.1)
+        wait_for_http(f"{url}/readyz", "quatrack serve", 60.0, alive=lambda: proc.poll() is None)  # (models load first)
         assert httpx.get(f"{url}/v1/objects", timeout=10).status_code == 200
         text = httpx.get(f"{url}/metrics", timeout=10).text
         for name in ("quatrack_http_requests_total", "quatrack_models_loaded", "quatrack_ws_sessions_active"):
@@ -211,11 +204,9 @@ def test_a_server_stopped_by_sigterm_removes_its_run_directory(tmp_path, workers
     # `quatrack serve` before its finally, and the quatrack-run-* folder stayed in the temp dir
     import os
     import signal
-    import time
-
-    import httpx
 
     from quatrack.service.server import free_port
+    from quatrack.testing.loopback import wait_for_http
     from quatrack.testing.scenes import example_store
 
     tmp = tmp_path / "tmp"
@@ -227,14 +218,7 @@ def test_a_server_stopped_by_sigterm_removes_its_run_directory(tmp_path, workers
                              str(port), "--workers", workers], env=env, stdout=subprocess.DEVNULL,
                             stderr=subprocess.DEVNULL)
     try:
-        for _ in range(600):  # (up to 60 s: the models load first)
-            try:
-                if httpx.get(f"http://127.0.0.1:{port}/readyz", timeout=2).status_code == 200:
-                    break
-            except httpx.TransportError:
-                pass
-            assert proc.poll() is None, "the server exited"
-            time.sleep(0.1)
+        wait_for_http(f"http://127.0.0.1:{port}/readyz", "quatrack serve", 60.0, alive=lambda: proc.poll() is None)
         assert [p.name for p in tmp.iterdir() if p.name.startswith("quatrack-run-")], "no run directory made"
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(timeout=30) in (0, 143, -signal.SIGTERM)  # (1 worker: 143, several: 0, as before)
