@@ -44,7 +44,7 @@ def sniff(data: bytes) -> str | None:
     """The format from the magic bytes (never from a client's content type)."""
     if data[:3] == b"\xff\xd8\xff":
         return "jpeg"
-    if data[:8] == b"\x89PNG\r\n\x1a\n":
+    if data[:8] == _PNG_SIGNATURE:
         return "png"
     if data[:4] == b"RIFF" and data[8:12] == b"WEBP":
         return "webp"
@@ -134,10 +134,10 @@ def decode_image(data: bytes) -> np.ndarray:
     if size is not None and size[0] * size[1] > MAX_DECODE_PIXELS:
         # (read from the header: a 120-megapixel file took ~700 MB to decode before it was refused)
         raise ImageError(f"the image is too large ({size[0]}×{size[1]} px; at most {MAX_DECODE_PIXELS} pixels)")
-    if data[:8] == _PNG_SIGNATURE and data.rfind(b"IEND") < 0:
+    if fmt == "png" and data.rfind(b"IEND") < 0:
         # (libpng would say "PNG input buffer is incomplete" on stderr, beside this message)
         raise ImageError("the image cannot be decoded (a PNG without its end: truncated)")
-    if data[:8] == _PNG_SIGNATURE and (bad := _png_damaged_chunk(data)) is not None:
+    if fmt == "png" and (bad := _png_damaged_chunk(data)) is not None:
         # (libpng would say "libpng error: bad adaptive filter value" on stderr, beside this message)
         raise ImageError(f"the image cannot be decoded (a damaged PNG: its {bad} chunk fails its checksum)")
     buf = np.frombuffer(data, dtype=np.uint8)
