@@ -119,7 +119,8 @@ class TrackSession:
         self.send_lock = asyncio.Lock()
         self.closed = False
         # token bucket: max_fps per second, bursts up to 1 s — and at least one frame (max_fps < 1)
-        self.tokens = max(settings.max_fps, 1.0)
+        self.burst = max(settings.max_fps, 1.0)
+        self.tokens = self.burst
         self.clock = clock
         self.token_time = clock()
         # owned by the processor (worker thread, one job at a time):
@@ -188,7 +189,7 @@ class TrackSession:
     def _take_token(self) -> bool:
         now = self.clock()
         rate = self.settings.max_fps
-        self.tokens = min(max(rate, 1.0), self.tokens + (now - self.token_time) * rate)
+        self.tokens = min(self.burst, self.tokens + (now - self.token_time) * rate)
         self.token_time = now
         if self.tokens < 1.0:
             return False
