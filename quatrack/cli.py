@@ -291,15 +291,22 @@ def _run_bench(args: argparse.Namespace) -> int:
     raise UserError(f"unknown benchmark {args.benchmark!r}")
 
 
-def _sheet(path: str) -> None:
-    """A contact sheet's path: a .png whose folder exists or can be made (checked before the run)."""
+def _nearest_folder(path, option: str):
+    """The nearest existing folder above ``path`` (None if none exists), refusing a file there:
+    a path under a file can never be made (checked before a run that would write to it)."""
     from pathlib import Path
 
-    if not path.lower().endswith(".png"):
-        raise UserError("--sheet must name a .png file")
     above = next((p for p in Path(path).absolute().parents if p.exists()), None)
     if above is not None and not above.is_dir():
-        raise UserError(f"--sheet {path}: {above} is a file, not a folder")
+        raise UserError(f"{option} {path}: {above} is a file, not a folder")
+    return above
+
+
+def _sheet(path: str) -> None:
+    """A contact sheet's path: a .png whose folder exists or can be made (checked before the run)."""
+    if not path.lower().endswith(".png"):
+        raise UserError("--sheet must name a .png file")
+    _nearest_folder(path, "--sheet")
 
 
 def _floats(text: str, option: str) -> tuple[float, ...]:
@@ -385,7 +392,7 @@ def _run_train(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from quatrack.viewsets.spec import load_spec
-    from quatrack.viewsets.store import load_manifest, model_path, resolve_store, save_model
+    from quatrack.viewsets.store import learned_views_warning, model_path, resolve_store, save_model, trained_from
     from quatrack.viewsets.train import train_object
 
     t0 = time.perf_counter()
@@ -394,9 +401,7 @@ def _run_train(args: argparse.Namespace) -> int:
     if store.exists() and not store.is_dir():
         raise UserError(f"--store {store}: not a directory")
     # (its nearest existing folder must be one: else the model, trained first, could not be saved)
-    above = next((p for p in store.absolute().parents if p.exists()), None)
-    if above is not None and not above.is_dir():
-        raise UserError(f"--store {store}: {above} is a file, not a folder")
+    above = _nearest_folder(store, "--store")
     # (and writable: else the model, trained first, failed to save naming a temporary folder)
     folder = store if store.exists() else above
     if folder is not None and not os.access(folder, os.W_OK | os.X_OK):
@@ -405,25 +410,14 @@ def _run_train(args: argparse.Namespace) -> int:
     if len(args.spec) > 1 or args.ray:
         return _run_train_many(args, params, store)
     spec_path = args.spec[0]
-    spec = load_spec(spec_path, warn=lambda msg: print(f"quatrack train: warning: {msg}", file=sys.stderr))
+    spec = load_spec(spec_path, warn=_train_warning)
     if args.no_overwrite and model_path(store, spec.name).exists():
         raise UserError(f"object {spec.name!r} already exists in {store} (and --no-overwrite was given)")
-    if args.skip_existing and model_path(store, spec.name).exists():
-        try:
-            trained_from = load_manifest(store, spec.name).get("spec", {}).get("sha256")
-        except ValueError:
-            trained_from = None  # unreadable: train it again
-        if trained_from == spec.checksum:
-            print(f"{spec.name!r} is already trained from {spec_path} in {store}: nothing to do")
-            return 0
-    if model_path(store, spec.name).exists():  # (retraining replaces the model, views learned by tracking too)
-        try:
-            n_learned = int(load_manifest(store, spec.name).get("learned_viewsets") or 0)
-        except (ValueError, TypeError):
-            n_learned = 0
-        if n_learned:
-            print(f"quatrack train: warning: {spec.name!r} in {store} holds {n_learned} view(s) learned while tracking; "
-                  f"retraining replaces them (track --learn learns them again)", file=sys.stderr)
+    if args.skip_existing and trained_from(store, spec.name, spec.checksum):
+        print(f"{spec.name!r} is already trained from {spec_path} in {store}: nothing to do")
+        return 0
+    if (learned := learned_views_warning(store, spec.name)) is not None:  # (retraining replaces them)
+        _train_warning(learned)
     bar = tqdm(total=0, desc=f"training {spec.name}", unit="view", file=sys.stderr, disable=None, leave=False)
 
     def set_total(n: int) -> None:
@@ -481,6 +475,10 @@ def _registration_doubts(spec, mesh) -> list[str]:
     return out
 
 
+def _train_warning(msg: str) -> None:
+    print(f"quatrack train: warning: {msg}", file=sys.stderr)
+
+
 def _run_train_many(args: argparse.Namespace, params, store) -> int:
     """Several specs (or --ray): :func:`quatrack.viewsets.batch.train_many`, one line per object.
     Every spec is checked before any training; an object that fails is reported and the others
@@ -505,7 +503,7 @@ def _run_train_many(args: argparse.Namespace, params, store) -> int:
 
     results = train_many(args.spec, store, params, jobs=args.jobs, overwrite=not args.no_overwrite,
                          skip_existing=args.skip_existing, ray_address=args.ray, on_done=done,
-                         warn=lambda msg: print(f"quatrack train: warning: {msg}", file=sys.stderr),
+                         warn=_train_warning,
                          check=_registration_doubts)
     failed = sum(r.error is not None for r in results)
     where = f"on Ray ({args.ray})" if args.ray else f"locally, --jobs {args.jobs}"

@@ -27,7 +27,7 @@ from typing import Callable
 
 from .errors import SpecError, StoreError
 from .spec import load_spec
-from .store import load_manifest, model_path, save_model
+from .store import learned_views_warning, model_path, save_model, trained_from
 from .train import TrainParams, train_object
 
 
@@ -45,15 +45,6 @@ class Trained:
     warnings: tuple[str, ...] = ()  # training's own (weak texture, ...) and ``check``'s, in order
 
 
-def _up_to_date(store: Path, name: str, checksum: str) -> bool:
-    if not model_path(store, name).exists():
-        return False
-    try:
-        return load_manifest(store, name).get("spec", {}).get("sha256") == checksum
-    except ValueError:
-        return False  # unreadable: train it again
-
-
 def train_one(spec_path: str, store: str, params: TrainParams, overwrite: bool = True,
               skip_existing: bool = False, check: Callable | None = None) -> Trained:
     """Train one spec into ``store`` (atomically). Errors of the spec's content come back in
@@ -67,16 +58,10 @@ def train_one(spec_path: str, store: str, params: TrainParams, overwrite: bool =
     try:
         spec = load_spec(spec_path)
         name = spec.name
-        if skip_existing and _up_to_date(Path(store), name, spec.checksum):
+        if skip_existing and trained_from(store, name, spec.checksum):
             return Trained(spec_path, name, str(model_path(store, name)), skipped=True)
-        if model_path(store, name).exists():  # (retraining replaces the model, views learned by tracking too)
-            try:
-                n_learned = int(load_manifest(Path(store), name).get("learned_viewsets") or 0)
-            except (ValueError, TypeError):
-                n_learned = 0
-            if n_learned:
-                warnings.append(f"{name!r} in {store} holds {n_learned} view(s) learned while tracking; "
-                                f"retraining replaces them (track --learn learns them again)")
+        if (learned := learned_views_warning(store, name)) is not None:  # (retraining replaces them)
+            warnings.append(learned)
         model = train_object(spec, params, warn=warnings.append)
         if check is not None:
             warnings.extend(check(spec, model.mesh.run_time))

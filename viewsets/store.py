@@ -216,6 +216,33 @@ def load_manifest(store: str | Path, name: str) -> dict:
     return manifest
 
 
+def trained_from(store: str | Path, name: str, checksum: str) -> bool:
+    """Whether the stored model ``name`` was trained from the spec whose SHA-256 is ``checksum``
+    (``train --skip-existing``); False when there is none or its manifest is unreadable (train it
+    again)."""
+    if not model_path(Path(store), name).exists():
+        return False
+    try:
+        return load_manifest(store, name).get("spec", {}).get("sha256") == checksum
+    except ValueError:
+        return False
+
+
+def learned_views_warning(store: str | Path, name: str) -> str | None:
+    """The warning a retraining of ``name`` owes when the stored model holds views learned while
+    tracking (retraining replaces them), else None."""
+    if not model_path(Path(store), name).exists():
+        return None
+    try:
+        n_learned = int(load_manifest(store, name).get("learned_viewsets") or 0)
+    except (ValueError, TypeError):
+        return None
+    if not n_learned:
+        return None
+    return (f"{name!r} in {store} holds {n_learned} view(s) learned while tracking; "
+            f"retraining replaces them (track --learn learns them again)")
+
+
 # What model.npz must hold: name -> (number of dimensions, trailing shape or None, kind).
 # "n" is the number of viewsets, "K" the number of keypoints over all of them.
 _ARRAY_SPEC = {
