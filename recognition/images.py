@@ -15,6 +15,7 @@ import cv2
 import numpy as np
 
 from quatrack.tracking.camera import PinholeCamera
+from quatrack.viewsets.camera import within_pixels
 
 MIN_SIDE = 32
 DEFAULT_MAX_PIXELS = 4_000_000  # beyond this an image is downscaled (e.g. 8000×6000 → 2309×1732)
@@ -199,10 +200,4 @@ def prepare_image(image: np.ndarray, camera: PinholeCamera, max_pixels: int = DE
         raise ImageError(
             f"the camera is for {camera.width}×{camera.height} px images but the image is {w}×{h} px"
         )
-    cam = replace(camera, width=w, height=h)
-    if w * h <= max_pixels:
-        return PreparedImage(img, cam, 1.0)
-    s = float(np.sqrt(max_pixels / (w * h)))
-    nw, nh = max(MIN_SIDE, int(w * s)), max(MIN_SIDE, int(h * s))
-    small = cv2.resize(img, (nw, nh), interpolation=cv2.INTER_AREA)
-    return PreparedImage(small, cam.scaled(nw / w, nw, nh), nw / w)
+    return PreparedImage(*within_pixels(img, replace(camera, width=w, height=h), max_pixels, MIN_SIDE))

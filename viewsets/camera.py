@@ -182,6 +182,23 @@ def _camera_from_yaml(path: Path) -> PinholeCamera:
     return _make(fx, fy, cx, cy, dist, width, height, str(path))
 
 
+def within_pixels(image: np.ndarray, camera: PinholeCamera, max_pixels: int,
+                  min_side: int = 1) -> tuple[np.ndarray, PinholeCamera, float]:
+    """``image`` and its ``camera`` brought to at most ``max_pixels`` pixels: ``(image, camera,
+    scale)``, downscaled (area averaging) by ``scale`` = new width / old, each side at least
+    ``min_side``, the camera scaled with it (:meth:`PinholeCamera.scaled`: pixel centres kept);
+    as given, scale 1, when it has no more. One rule for what training keeps of a large photo and
+    what recognition keeps of a large query."""
+    import cv2
+
+    h, w = image.shape[:2]
+    if w * h <= max_pixels:
+        return image, camera, 1.0
+    s = float(np.sqrt(max_pixels / (w * h)))
+    nw, nh = max(min_side, int(w * s)), max(min_side, int(h * s))
+    return cv2.resize(image, (nw, nh), interpolation=cv2.INTER_AREA), camera.scaled(nw / w, nw, nh), nw / w
+
+
 def load_camera(path: str | Path) -> PinholeCamera:
     """A camera from a JSON file (contract format) or an OpenCV YAML/XML calibration file."""
     path = Path(path)

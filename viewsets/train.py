@@ -17,7 +17,7 @@ from typing import Callable
 import cv2
 import numpy as np
 
-from .camera import check_plausible
+from .camera import check_plausible, within_pixels
 from .errors import SpecError
 from .mesh import Mesh, load_mesh
 from .novel import NovelViewParams, novel_poses, render_textured_view
@@ -142,14 +142,10 @@ MAX_PHOTO_PIXELS = 4_000_000
 
 
 def _within_pixels(view: ViewSpec, image: np.ndarray) -> tuple[ViewSpec, np.ndarray]:
-    """The view and its photo, downscaled with its camera when over :data:`MAX_PHOTO_PIXELS`."""
-    h, w = image.shape[:2]
-    if w * h <= MAX_PHOTO_PIXELS:
-        return view, image
-    s = float(np.sqrt(MAX_PHOTO_PIXELS / (w * h)))
-    nw, nh = int(w * s), int(h * s)
-    small = cv2.resize(image, (nw, nh), interpolation=cv2.INTER_AREA)
-    return dataclasses.replace(view, camera=view.camera.scaled(nw / w, nw, nh)), small
+    """The view and its photo, downscaled with its camera when over :data:`MAX_PHOTO_PIXELS`
+    (:func:`~.camera.within_pixels`, as recognition reads a query)."""
+    small, camera, _ = within_pixels(image, view.camera, MAX_PHOTO_PIXELS)
+    return dataclasses.replace(view, camera=camera), small
 
 
 def _sized_by(view: ViewSpec, image: np.ndarray) -> ViewSpec:
