@@ -666,13 +666,14 @@ def test_a_doubted_pose_is_reported_again_only_on_stronger_evidence(box, monkeyp
 
 @pytest.mark.parametrize("confirm", [0.25, None])
 def test_a_pose_settled_on_the_edges_must_be_where_they_converge(box, monkeypatch, confirm):
-    """Tracker._edge_settled on scripted edge refits (shift of the first refit, then of the second
-    from the refitted pose): a first refit within ``max_edge_shift`` (0.5) keeps the pose; one
-    beyond recognition's tolerance (1.0) refuses it; otherwise the refitted pose is taken only if
-    a second refit from it moves it by at most ``doubt_confirm_shift`` (0.25; None: 0.5) and by at
-    most half the first. Why 0.25: the zoo's wide box re-found 10.4 % off was refitted to 6.9 %,
-    and a second refit moving it by 0.34 (half the first, 0.72, is 0.36) passed it: the edges were
-    still converging, and the track reported two poses 7 % off (bench/RESULTS.md, session 40)."""
+    """Tracker._edge_settled (:func:`recognition.tracker.edge_tests.settle_on_edges`) on scripted
+    edge refits (shift of the first refit, then of the second from the refitted pose): a first
+    refit within ``max_edge_shift`` (0.5) keeps the pose; one beyond recognition's tolerance (1.0)
+    refuses it; otherwise the refitted pose is taken only if a second refit from it moves it by at
+    most ``doubt_confirm_shift`` (0.25; None: 0.5) and by at most half the first. Why 0.25: the
+    zoo's wide box re-found 10.4 % off was refitted to 6.9 %, and a second refit moving it by 0.34
+    (half the first, 0.72, is 0.36) passed it: the edges were still converging, and the track
+    reported two poses 7 % off (bench/RESULTS.md, session 40)."""
     from quatrack.recognition.evidence import EdgeFit
 
     model, camera, poses, _ = box
@@ -681,8 +682,16 @@ def test_a_pose_settled_on_the_edges_must_be_where_they_converge(box, monkeypatc
 
     def settle(*shifts):
         fits = iter([EdgeFit(200, shift=shifts[0], pose=refitted)] + [EdgeFit(200, shift=s, pose=poses[2]) for s in shifts[1:]])
-        monkeypatch.setattr(Tracker, "_edge_refit", lambda self, gray, pose, agreement=True, points=True: next(fits))
-        return tracker._edge_settled(None, start)
+        asked = []
+
+        def scripted(self, gray, pose, agreement=True, points=True):
+            asked.append((pose, points))
+            return next(fits)
+
+        monkeypatch.setattr(Tracker, "_edge_refit", scripted)
+        settled = tracker._edge_settled(None, start)
+        assert [p for p, _ in asked] == [start, refitted][:len(asked)] and not any(pts for _, pts in asked)  # (edges alone)
+        return settled
 
     assert settle(0.4) is start
     assert settle(1.2) is None

@@ -67,14 +67,15 @@ from ..images import ImageError, to_bgr8
 from ..klt import Frame, make_frame
 from ..locate import check_inputs, locate
 from ..match import ModelIndex, index_for
-from ..evidence import EdgeFit, edge_fit, measure_edges, pose_shift, silhouette_inside
-from ..pose import PoseParams, edges_agree, plausible
+from ..evidence import pose_shift, silhouette_inside
+from ..pose import PoseParams, plausible
 from ..visibility import merge_points
 from .anchor import Anchor, AnchorJob
 from .params import INITIAL_VELOCITY_SIGMA, TrackerParams, TrackStep
 from .points import PointBlock, Tracks, mahalanobis2, score_statistic
 from .contour import Contour
-from .edges import ModelEdges, fit_image
+from .edge_tests import edge_refit, edges_agree_at, settle_on_edges
+from .edges import ModelEdges
 from .keyframes import Capture, Keyframe, Keyframes, object_crop
 from .mesh_points import MeshPoints, birth_mask, confident
 from .reacquire import LastSeen, hull_mask, object_shift, shifted_pose
@@ -924,83 +925,37 @@ class Tracker:
         self.index, self._anchor = None, None  # rebuilt with the learned view when next needed
 
     def _edges_confirm(self, gray: np.ndarray, pose: Pose, strict: bool = False, limit: float | None = None) -> bool:
-        """The model's visible edges at ``pose`` lie on aligned image gradients, well above this
-        image's chance level (:func:`recognition.evidence.edge_agreement` with recognition's
-        thresholds, :class:`~..pose.PoseParams`): the evidence a pose carried by points born on
-        the mesh must show. That test accepts an edge within a few pixels, which a pose several
-        per cent or degrees off may still pass; ``strict`` (a re-acquired pose, a view about to
-        be kept, a track on probation) also asks that the edge refit move it by at most
-        ``TrackerParams.max_edge_shift`` of the 5 % / 5° criterion (:meth:`_edge_shift`), or
-        ``limit`` if given."""
+        """The evidence a pose carried by points born on the mesh must show (:mod:`.edge_tests`):
+        its edges agree with the image; ``strict`` (a re-acquired pose, a view about to be kept, a
+        track on probation) also asks that the edge refit move it by at most ``max_edge_shift`` of
+        the 5 % / 5° criterion (:meth:`_edge_shift`), or ``limit`` if given."""
         if strict:
             return self._edge_shift(gray, pose) <= (self.params.max_edge_shift if limit is None else limit)
-        pp = PoseParams()
-        return edges_agree(measure_edges(gray, self.model.mesh, self.camera, pose, pp.edges)[0], pp)
+        return edges_agree_at(gray, self.model.mesh, self.camera, pose)
 
     def _edge_settled(self, gray: np.ndarray, pose: Pose) -> Pose | None:
         """A pose re-found on this run's keyframes, settled on the model's edges alone (no point
-        may vouch for it: :meth:`_start_on_mesh`): ``pose`` itself when the edge refit moves it by
-        at most ``max_edge_shift`` of the 5 %/5° criterion; else the refitted pose, when a second
-        refit from there moves it by at most ``doubt_confirm_shift`` (0.25; ``max_edge_shift``
-        when None) and by at most half as far as the first (the edges converge on it); else None.
-
-        Why: the keyframes' points were lifted at the tracker's own poses, and a synthetic view
-        turned 40° from its keyframe adds its own error, so a right re-finding can be a few per
-        cent off, which the strict test refuses — and the object is then lost for good on sides
-        no view shows. The edges, evidence those points cannot fake, put it right: on the zoo
-        flat box after the slide out of the frame, re-found 3.6 % / 2.4° off, refitted to 0.3 % /
-        0.1°, and the next refit moved it 0.04 of the criterion. A refit that is not converging
-        slides along what the edges alone cannot tell apart: the zoo cube (rendering 1) re-found
-        1.75 %/1.3° off was refitted by 0.57 to 4.6 %/3.4°, the next refit moved it 0.41 further
-        (6.6 %/5.1°), and the track started there reported 17 poses beyond 5 %/5°. A refitted
-        pose is one the edges doubted, so it needs the evidence a doubted pose needs to be
-        reported again (:meth:`_doubt`): the zoo wide box #2, re-found on a synthetic view
-        10.4 %/4.9° off, was refitted to 6.9 %/3.4°, and the second refit moved it by 0.34 —
-        within 0.5 and half the first (0.72) — towards the truth (5.6 % after it): the edges were
-        still converging, and the track reported two poses 7 % off (bench/RESULTS.md, session 40)."""
-        limit = self.params.max_edge_shift
-        fit = self._edge_refit(gray, pose, points=False)
-        if fit is None or not np.isfinite(fit.shift):
-            return None
-        if fit.shift <= limit:
-            return pose
-        if fit.pose is None or fit.shift > PoseParams().max_edge_shift:  # (beyond recognition's own tolerance)
-            return None
-        again = self._edge_refit(gray, fit.pose, points=False)
-        if again is None or not again.shift <= min(self.params.doubted_shift, 0.5 * fit.shift):
-            return None  # (not converging: sliding along what the edges cannot tell apart)
-        return fit.pose
+        may vouch for it: :meth:`_start_on_mesh`): :func:`.edge_tests.settle_on_edges` with
+        ``max_edge_shift`` and ``doubted_shift``."""
+        p = self.params
+        return settle_on_edges(lambda q: self._edge_refit(gray, q, points=False), pose, p.max_edge_shift,
+                               p.doubted_shift)
 
     def _edge_shift(self, gray: np.ndarray, pose: Pose, agreement: bool = True, points: bool = True) -> float | None:
-        """How far recognition's edge refit (:func:`recognition.evidence.edge_fit`: the pose refitted
-        to the tracked points and to the model's edges found precisely along their normals)
-        moves ``pose``, as a share of the 5 % / 5° criterion: a right pose barely moves (≤ 0.26
-        on every zoo walk), a wrong one moves towards where its edges are. ``inf`` when the edges
-        do not agree with the image at all (with ``agreement``); None when too few edge samples
-        are found to judge (an occluded or blurred object: no evidence either way). Without
-        ``points`` the refit uses the edges alone (no tracked point vouches for the pose)."""
+        """How far the edge refit (:meth:`_edge_refit`) moves ``pose``, as a share of the 5 % / 5°
+        criterion; ``inf`` when the edges do not agree with the image at all (with ``agreement``);
+        None when too few edge samples are found to judge."""
         fit = self._edge_refit(gray, pose, agreement, points)
         if fit is None:
             return np.inf if agreement else None
         return fit.shift
 
     def _edge_refit(self, gray: np.ndarray, pose: Pose, agreement: bool = True, points: bool = True):
-        """The edge refit of :meth:`_edge_shift` (:class:`~..evidence.EdgeFit`, with the refitted
-        pose); its ``shift`` is ``inf`` when the edges do not agree with the image (with
-        ``agreement``); None when too few edge samples are found to judge."""
-        pp = PoseParams()
-        mesh = self.model.mesh
-        if agreement:
-            ev, image = measure_edges(gray, mesh, self.camera, pose, pp.edges)
-            if not edges_agree(ev, pp):
-                return EdgeFit(ev.samples, shift=np.inf)
-        else:  # (the audit: only the refit, on the gradients it reads: the same fit, edges.fit_image)
-            image = fit_image(gray, mesh, self.camera, pose, pp.edges, pp.edge_fit_reach)
+        """:func:`.edge_tests.edge_refit` with the points that may vouch for the pose — the trained
+        ones and the mesh points born where the pose was vouched for — or, without ``points``,
+        the edges alone."""
         tracks = self.trained.tracks + self.mesh_points.tracks.keep(self.mesh_points.vouched) if points else Tracks.empty()
-        fit = edge_fit(image, mesh, self.camera, pose, tracks.X, tracks.uv, pp.edges, pp.edge_fit_reach)
-        if fit.samples < pp.min_edge_samples:
-            return None
-        return fit
+        return edge_refit(gray, self.model.mesh, self.camera, pose, tracks.X, tracks.uv, agreement)
 
     def _recentred(self, ctx: FrameContext, point_blocks: list[PointBlock], timings: dict) -> FrameContext:
         """Where the outline's sources search: at the prediction, unless the points say it is off.
