@@ -218,21 +218,36 @@ def _track_frames(s: _Setup, rows, video, progress) -> tuple[list, bool]:
     return steps, False
 
 
+@dataclass
+class _Stop:
+    """What stopped the tracking loop early: ``"Ctrl-C"`` unless a signal handler says otherwise."""
+
+    cause: str = "Ctrl-C"
+
+
 @contextlib.contextmanager
 def _terminate_as_interrupt():
     """SIGTERM (``timeout``, ``docker stop``, systemd) ends the tracking loop as Ctrl-C does:
     outputs complete, learned views stored. Without it the process died at once, the views
-    were lost and a temporary output file was left beside the output. Only in the main thread
-    (signal handlers cannot be set elsewhere); the previous handler comes back afterwards."""
+    were lost and a temporary output file was left beside the output. Yields a :class:`_Stop`
+    whose ``cause`` becomes ``"SIGTERM"`` when that signal stopped the run (the closing line
+    said "stopped (Ctrl-C)" for a ``docker stop`` as well). Only in the main thread (signal
+    handlers cannot be set elsewhere); the previous handler comes back afterwards."""
     import signal
     import threading
 
+    stop = _Stop()
     if threading.current_thread() is not threading.main_thread():
-        yield
+        yield stop
         return
-    previous = signal.signal(signal.SIGTERM, signal.default_int_handler)
+
+    def terminated(signum, frame):
+        stop.cause = signal.Signals(signum).name
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, terminated)
     try:
-        yield
+        yield stop
     finally:
         signal.signal(signal.SIGTERM, previous)
 
@@ -254,7 +269,7 @@ def run(args: argparse.Namespace) -> int:
         with open(tmp_out, "w", newline="", encoding="utf-8") as f:
             rows = RowWriter(f, args.format, args.mesh_unit, args.obj_id)
             try:
-                with _terminate_as_interrupt():
+                with _terminate_as_interrupt() as stop:
                     steps, interrupted = _track_frames(s, rows, video, progress)
             finally:
                 progress.close()
@@ -268,7 +283,7 @@ def run(args: argparse.Namespace) -> int:
                 if not cv2.imwrite(tmp_png, plot_track(steps)):
                     raise UserError(f"--plot {args.plot}: cannot write the PNG")
     if interrupted:
-        print(f"quatrack track: stopped (Ctrl-C) after {len(steps)} frames; outputs complete", file=sys.stderr)
+        print(f"quatrack track: stopped ({stop.cause}) after {len(steps)} frames; outputs complete", file=sys.stderr)
     for k, _, why in s.source.skipped[:5]:
         print(f"quatrack track: frame {k} cannot be read, written as lost: {why}", file=sys.stderr)
     if len(s.source.skipped) > 5:

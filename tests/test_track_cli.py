@@ -284,6 +284,8 @@ def test_sigterm_ends_a_run_as_ctrl_c_does(monkeypatch, tmp_path, capsys):
     before = signal.getsignal(signal.SIGTERM)
     rc = _track(tmp_path, "--video", "0", "--out", str(out))
     err = capsys.readouterr().err
-    assert rc == 0 and "stopped (Ctrl-C) after" in err, err
+    # (it said "stopped (Ctrl-C)": the user pressed nothing, a service manager stopped it)
+    assert rc == 0 and "stopped (SIGTERM) after 5 frames; outputs complete" in err and "Ctrl-C" not in err, err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["poses.csv"]  # complete, no temporary left
+    assert [r[0] for r in csv.reader(out.open())][1:] == ["0", "1", "2", "3", "4"]
     assert signal.getsignal(signal.SIGTERM) is before  # (the handler is the caller's again)
