@@ -184,7 +184,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--collect-only", metavar="SEED", type=int,
                     help="only collect the rows of this seed into PREFIX-SEED.jsonl (--rows) and stop")
     a = ap.parse_args(argv)
-    objects = a.zoo_objects.split(",") if a.zoo_objects else None
+    objects = a.zoo_objects.split(",") if a.zoo_objects is not None else None
+    if objects is not None and not all(o.strip() for o in objects):  # ('' ran every object)
+        ap.error(f"--zoo-objects: give zoo object names separated by commas, got {a.zoo_objects!r}")
     if a.collect_only is not None:
         if not a.rows:
             ap.error("--collect-only needs --rows PREFIX")

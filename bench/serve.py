@@ -311,7 +311,7 @@ def main(args: argparse.Namespace) -> int:
     try:
         counts = [int(x) for x in args.clients.split(",") if x.strip()]
         workers = [x.strip() if x.strip().startswith("p") else int(x) for x in args.workers.split(",") if x.strip()] \
-            if args.workers else sorted({1, cores})
+            if args.workers is not None else sorted({1, cores})  # ('' is no default: refused below)
         sizes = [int(w[1:]) if isinstance(w, str) else w for w in workers]
     except ValueError:
         raise ValueError("--clients and --workers: comma-separated whole numbers (pN: the pool prototype)") from None

@@ -142,6 +142,10 @@ def main(variants: list[str], video: str | None, camera: str | None, spec: str |
 
     if max_frames < 2:
         raise ValueError("--frames must be at least 2")
+    from quatrack.recognition.video import TrackerParams
+
+    for v in variants:  # (the text checked before the video is read and the object trained: ~5 s, then the error)
+        parse_variant(v, TrackerParams().for_live_streams())
     example = example_dir()  # defaults that do not depend on the working directory
     cam = load_camera(camera or str(example / "camera.json"))
     source = open_frames(video=video or str(example / "box.mp4"), max_frames=max_frames)

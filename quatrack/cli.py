@@ -202,8 +202,13 @@ def _zoo_names(text: str | None, option: str) -> list[str] | None:
     from quatrack.testing import zoo
 
     known = [o.name for o in zoo.ZOO]
-    names = text.split(",") if text else None
-    for n in names or ():
+    if text is None:
+        return None
+    names = [n.strip() for n in text.split(",")]
+    if not any(names) or not all(names):  # ('' or 'a,,b': an empty selection ran every object, for minutes)
+        raise UserError(f"{option}: give zoo object names separated by commas, got {text!r} "
+                        f"(known: {', '.join(known)}; leave the option out for the default)")
+    for n in names:
         if n not in known:
             raise UserError(f"{option}: no zoo object {n!r} (known: {', '.join(known)})")
     return names
@@ -283,7 +288,7 @@ def _run_bench(args: argparse.Namespace) -> int:
             if scenes < 1:
                 raise UserError("--zoo-scenes must be at least 1")
             return bench_locate.main_zoo(names, scenes, args.seed, args.json)
-        if args.zoo_scenes is not None or args.zoo_objects:  # (were ignored, the other benchmark ran)
+        if args.zoo_scenes is not None or args.zoo_objects is not None:  # (were ignored, the other benchmark ran)
             raise UserError("--zoo-scenes and --zoo-objects need --zoo")
         if args.sheet:  # (checked before the run: a .txt was a traceback, a folder under a file "File exists")
             _sheet(args.sheet)

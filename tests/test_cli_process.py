@@ -306,3 +306,23 @@ def test_bench_options_checked_before_the_run(tmp_path, capsys):
         assert main(["bench", *argv]) == 2, argv
         err = capsys.readouterr().err.strip()
         assert said in err and "\n" not in err, err
+
+
+@pytest.mark.parametrize("argv, said", [
+    (["track-zoo", "--sequences", ""], "--sequences: give zoo object names separated by commas, got ''"),
+    (["track-zoo", "--sequences", "a,,b"], "--sequences: give zoo object names"),
+    (["edge-judge", "--sequences", ","], "--sequences: give zoo object names"),
+    (["locate", "--zoo", "--zoo-objects", ""], "--zoo-objects: give zoo object names"),
+    (["locate", "--zoo-objects", ""], "need --zoo"),
+    (["serve", "--workers", "", "--replicas", "no"], "--workers: numbers between 1 and 64"),
+    (["serve", "--clients", "", "--replicas", "no"], "--clients: numbers between 1 and 64"),
+    (["track-ab", "nonsense"], "write NAME=JSON"),
+])
+def test_bench_empty_selections_are_refused(capsys, argv, said):
+    # `--sequences ''` (an empty shell variable) ran all six walks, ~9 min; `serve --workers ''` the
+    # default worker counts; track-ab read the video and trained the object before refusing a variant
+    from quatrack.cli import main
+
+    assert main(["bench", *argv]) == 2, argv
+    err = capsys.readouterr().err.strip()
+    assert said in err and "\n" not in err, err
