@@ -733,10 +733,30 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+#: the options (argparse ``dest``) of every command that name files or folders: a leading ``~`` is
+#: expanded in them, as a shell does in an unquoted word. The shell leaves ``--out=~/poses.csv`` and
+#: a quoted ``'~/box.mp4'`` as they are: ``track`` said "--video ~/box.mp4: no such file" and
+#: "--out ~/poses.csv: the folder .../~ does not exist" (``--store`` and ``--images`` were expanded).
+PATH_OPTIONS = ("video", "images", "camera", "out", "overlay", "plot", "store", "init_pose", "sheet", "spec",
+                "mesh", "out_dir")
+
+
+def _expand_user(args: argparse.Namespace) -> None:
+    """``~`` and ``~user`` expanded in the :data:`PATH_OPTIONS` of ``args``, in place (a camera
+    index, a URL or ``none`` is left as it is: they do not start with ``~``)."""
+    for name in PATH_OPTIONS:
+        value = getattr(args, name, None)
+        if isinstance(value, str):
+            setattr(args, name, os.path.expanduser(value))
+        elif isinstance(value, list):
+            setattr(args, name, [os.path.expanduser(v) if isinstance(v, str) else v for v in value])
+
+
 def main(argv: list[str] | None = None) -> int:
     try:  # (building the parser imports the commands' modules: a Ctrl-C then is no traceback either)
         parser = build_parser()
         args = parser.parse_args(argv)
+        _expand_user(args)
     except KeyboardInterrupt:
         print("quatrack: interrupted", file=sys.stderr)
         return 130

@@ -289,3 +289,32 @@ def test_sigterm_ends_a_run_as_ctrl_c_does(monkeypatch, tmp_path, capsys):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["poses.csv"]  # complete, no temporary left
     assert [r[0] for r in csv.reader(out.open())][1:] == ["0", "1", "2", "3", "4"]
     assert signal.getsignal(signal.SIGTERM) is before  # (the handler is the caller's again)
+
+
+def test_a_tilde_in_quoted_or_equals_paths_is_the_home_folder(tmp_path, capsys, monkeypatch):
+    # the shell leaves '~/box.mp4' (quoted) and --out=~/poses.csv as they are: track said
+    # "--video ~/box.mp4: no such file", then "--out ~/poses.csv: the folder .../~ does not exist"
+    import shutil
+
+    from quatrack.testing.scenes import example_store
+
+    home = tmp_path / "home"
+    (home / "in").mkdir(parents=True)
+    shutil.copy(EXAMPLE / "box.mp4", home / "in" / "box.mp4")
+    shutil.copy(EXAMPLE / "camera.json", home / "in" / "camera.json")
+    monkeypatch.setenv("HOME", str(home))
+    monkeypatch.chdir(tmp_path)
+    rc = main(["track", "--object", "cookie-box", "--camera", "~/in/camera.json", "--store", str(example_store()),
+               "--quiet", "--video", "~/in/box.mp4", "--max-frames", "2", "--out=~/poses.csv",
+               "--overlay=~/overlay.mp4", "--plot=~/plot.png"])
+    assert rc == 0, capsys.readouterr().err
+    assert sorted(p.name for p in home.iterdir()) == ["in", "overlay.mp4", "plot.png", "poses.csv"]
+    assert len((home / "poses.csv").read_text().splitlines()) == 3 and not (tmp_path / "~").exists()
+    frame = home / "in" / "frame.png"
+    import cv2
+
+    assert cv2.imwrite(str(frame), _box_frames(1)[0])
+    rc = main(["locate", "--object", "cookie-box", "--camera", "~/in/camera.json", "--store", str(example_store()),
+               "~/in/frame.png", "--json"])
+    line = json.loads(capsys.readouterr().out)
+    assert rc == 0 and line["found"] and line["image"] == str(frame)
