@@ -284,6 +284,8 @@ def run(args: argparse.Namespace) -> int:
                     raise UserError(f"--plot {args.plot}: cannot write the PNG")
     if interrupted:
         print(f"quatrack track: stopped ({stop.cause}) after {len(steps)} frames; outputs complete", file=sys.stderr)
+    for note in video.notes() if video is not None else ():  # (an odd size padded, a rate MP4 cannot store)
+        print(f"quatrack track: note: {note}", file=sys.stderr)
     for k, _, why in s.source.skipped[:5]:
         print(f"quatrack track: frame {k} cannot be read, written as lost: {why}", file=sys.stderr)
     if len(s.source.skipped) > 5:

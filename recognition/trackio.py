@@ -52,6 +52,7 @@ BOP_COLUMNS = ("scene_id", "im_id", "obj_id", "score", "R", "t", "time")
 FORMATS = ("csv", "jsonl", "bop")
 DEFAULT_RATE = 30.0
 MAX_RATE = 1000.0
+MIN_RATE = 1e-6  # frames/s: one frame in 11.6 days
 #: metres per mesh unit, for the outputs with fixed units (BOP: mm, ROS: m)
 UNIT_METRES = {"mm": 1e-3, "cm": 1e-2, "m": 1.0}
 
@@ -207,9 +208,10 @@ def open_frames(video: str | None = None, images: str | Sequence[str] | None = N
     >>> import shutil; shutil.rmtree(d)
     """
     # (a string was math.isfinite's "must be real number, not str", naming neither option)
+    # (a rate below MIN_RATE put frame 2 of --fps 1e-308 at an infinite time_s: the run ended at the tracker's error)
     if fps is not None and (isinstance(fps, (str, bytes, bool)) or not isinstance(fps, numbers.Real)
-                            or not (math.isfinite(fps) and 0 < fps <= MAX_RATE)):
-        raise SourceError(f"--fps must be a positive number (at most {MAX_RATE:g}), got {fps!r}"[:120])
+                            or not (math.isfinite(fps) and MIN_RATE <= fps <= MAX_RATE)):
+        raise SourceError(f"--fps must be a positive number (from {MIN_RATE:g} to {MAX_RATE:g}), got {fps!r}"[:120])
     if max_frames is not None and (isinstance(max_frames, bool) or not isinstance(max_frames, numbers.Integral)
                                    or max_frames < 1):
         raise SourceError(f"--max-frames must be at least 1 (a whole number), got {max_frames!r}"[:120])
@@ -532,20 +534,65 @@ def atomic_path(target: str | os.PathLike, option: str = "") -> Iterator[str]:
 
 
 class VideoOut:
-    """An MP4 (``mp4v``) written frame by frame to ``path``, opened at the first frame's size."""
+    """An MP4 (``mp4v``) written frame by frame to ``path``, opened at the first frame's size.
+
+    MPEG-4 stores what OpenCV's writer cannot be asked for, and it said nothing: an odd width or
+    height came out one pixel smaller (639×479 frames as a 638×478 video, rescaled), and a rate
+    whose time base does not fit MPEG-4 (below ~0.0015 frames/s, or one such as 77.777 that needs
+    a denominator over 65535) failed with OpenCV's error lines on stderr. Now an odd-sized frame
+    is padded with one black column at the right and/or one black row at the bottom (its pixels
+    and their coordinates unchanged; :attr:`padded` holds ``(w, h) → (W, H)``), and such a rate is
+    written as the nearest one MPEG-4 stores (:attr:`written_rate`; the frames' own times are the
+    caller's business). The caller can say so (:meth:`notes`)."""
 
     def __init__(self, path: str, rate: float, option: str = "--overlay") -> None:
         self.path, self.rate, self.option, self.writer = path, rate, option, None
+        self.size: tuple[int, int] | None = None  # (width, height) written
+        self.padded: tuple[tuple[int, int], tuple[int, int]] | None = None
+        self.written_rate: float | None = None
+
+    def _open(self, size: tuple[int, int]):
+        import cv2
+
+        log = cv2.utils.logging  # (a refused rate printed "[ERROR:0@0.03] ... Could not open codec mpeg4")
+        previous = log.getLogLevel()
+        log.setLogLevel(log.LOG_LEVEL_SILENT)
+        try:
+            for rate in dict.fromkeys((self.rate, max(float(f"{self.rate:.3g}"), 0.002), DEFAULT_RATE)):
+                writer = cv2.VideoWriter(self.path, cv2.VideoWriter_fourcc(*"mp4v"), rate, size)
+                if writer.isOpened():
+                    return writer, rate
+                writer.release()
+        finally:
+            log.setLogLevel(previous)
+        raise SourceError(f"{self.option}: cannot write a {size[0]}×{size[1]} MP4 video here")
 
     def write(self, image: np.ndarray) -> None:
         import cv2
 
+        h, w = image.shape[:2]
         if self.writer is None:
-            h, w = image.shape[:2]
-            self.writer = cv2.VideoWriter(self.path, cv2.VideoWriter_fourcc(*"mp4v"), self.rate, (w, h))
-            if not self.writer.isOpened():
-                raise SourceError(f"{self.option}: cannot write an MP4 video here")
+            self.size = (w + w % 2, h + h % 2)
+            if self.size != (w, h):
+                self.padded = ((w, h), self.size)
+            self.writer, self.written_rate = self._open(self.size)
+        W, H = self.size
+        if (w, h) != (W, H) and W - 1 <= w <= W and H - 1 <= h <= H:  # (an odd size: padded, not rescaled)
+            image = cv2.copyMakeBorder(image, 0, H - h, 0, W - w, cv2.BORDER_CONSTANT, value=0)
         self.writer.write(image)
+
+    def notes(self) -> list[str]:
+        """What the video is not as asked, one line each (none when it is): its size, its rate."""
+        out = []
+        if self.padded is not None:
+            (w, h), (W, H) = self.padded
+            out.append(f"{self.option} is {W}×{H}: MP4 stores even sizes only, so the {w}×{h} frames have a black "
+                       f"{'column at the right' if W != w else ''}{' and a ' if W != w and H != h else ''}"
+                       f"{'row at the bottom' if H != h else ''} (pixel coordinates unchanged)")
+        if self.written_rate is not None and self.written_rate != self.rate:
+            out.append(f"{self.option} plays at {self.written_rate:g} frames/s: MP4 cannot store {self.rate:g} "
+                       f"(the poses' time_s is unchanged)")
+        return out
 
     def close(self) -> None:
         """Finish the video; without a frame written (Ctrl-C before the first) there is no video:

@@ -318,3 +318,69 @@ def test_a_tilde_in_quoted_or_equals_paths_is_the_home_folder(tmp_path, capsys, 
                "~/in/frame.png", "--json"])
     line = json.loads(capsys.readouterr().out)
     assert rc == 0 and line["found"] and line["image"] == str(frame)
+
+
+def _overlay_size_and_count(path) -> tuple[int, int, int]:
+    import cv2
+
+    cap = cv2.VideoCapture(str(path))
+    frames = []
+    while True:
+        ok, frame = cap.read()
+        if not ok:
+            break
+        frames.append(frame)
+    cap.release()
+    return frames[0].shape[1], frames[0].shape[0], len(frames)
+
+
+@pytest.mark.parametrize("fps, written", [("0.001", "0.002"), ("77.777", "77.8")])
+def test_an_overlay_at_a_rate_mp4_cannot_store_is_written_at_the_nearest_it_can(tmp_path, capsys, fps, written):
+    # --fps 0.001 (a time-lapse) or 77.777 with --overlay: OpenCV's "Could not open codec mpeg4" lines,
+    # then "--overlay: cannot write an MP4 video here", exit 2 and no poses
+    out, overlay = tmp_path / "poses.csv", tmp_path / "overlay.mp4"
+    rc = _track(tmp_path, "--video", str(EXAMPLE / "box.mp4"), "--max-frames", "3", "--fps", fps,
+                "--out", str(out), "--overlay", str(overlay))
+    err = capsys.readouterr().err
+    assert rc == 0, err
+    assert err.strip() == (f"quatrack track: note: --overlay plays at {written} frames/s: MP4 cannot store {fps} "
+                           f"(the poses' time_s is unchanged)"), err
+    times = [float(r[1]) for r in list(csv.reader(out.open()))[1:]]
+    assert np.allclose(times, np.arange(3) / float(fps), rtol=0, atol=1e-6)  # (the CSV has 6 decimals)
+    assert _overlay_size_and_count(overlay) == (640, 480, 3)
+
+
+def test_an_absurd_frame_rate_is_a_one_line_error(tmp_path, capsys):
+    # --fps 1e-308: time_s of frame 2 was infinite, the run failed there with the tracker's error
+    out = tmp_path / "poses.csv"
+    assert _track(tmp_path, "--video", str(EXAMPLE / "box.mp4"), "--fps", "1e-308", "--out", str(out)) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("quatrack track: error: --fps must be a positive number (from 1e-06 to 1000)"), err
+    assert "\n" not in err and not out.exists()
+
+
+def test_an_overlay_of_odd_sized_frames_keeps_every_pixel(tmp_path, capsys):
+    # 639×479 frames came out as a 638×478 overlay, rescaled, without a word; MP4 stores even sizes
+    # only, so they are padded by a black column and row, and a note says so
+    import cv2
+
+    camera = json.loads((EXAMPLE / "camera.json").read_text())
+    camera.update(width=639, height=479)
+    (tmp_path / "camera.json").write_text(json.dumps(camera))
+    for k, frame in enumerate(_box_frames(3)):
+        assert cv2.imwrite(str(tmp_path / f"{k:04d}.png"), frame[:479, :639])
+    out, overlay = tmp_path / "poses.csv", tmp_path / "overlay.mp4"
+    rc = main(["track", "--object", "cookie-box", "--camera", str(tmp_path / "camera.json"), "--store",
+               str(example_store()), "--quiet", "--images", str(tmp_path / "*.png"), "--out", str(out),
+               "--overlay", str(overlay)])
+    err = capsys.readouterr().err
+    assert rc == 0, err
+    assert ("--overlay is 640×480: MP4 stores even sizes only, so the 639×479 frames have a black column at the "
+            "right and a row at the bottom (pixel coordinates unchanged)") in err
+    assert _overlay_size_and_count(overlay) == (640, 480, 3)
+    cap = cv2.VideoCapture(str(overlay))
+    frame = cap.read()[1]
+    cap.release()
+    assert frame[:, -1].mean() < 12 and frame[-1].mean() < 12  # the padding: black (MPEG-4 blurs it a little)
+    assert frame[100:400, 300:600].mean() > 40  # the picture where it was
+    assert [r[2] for r in list(csv.reader(out.open()))[1:]] == ["init", "tracking", "tracking"]
