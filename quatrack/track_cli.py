@@ -198,10 +198,11 @@ def _track_frames(s: _Setup, rows, video, progress) -> tuple[list, bool]:
             try:
                 step = s.tracker.step(image, t)
             except ImageError as exc:
-                if not (s.source.names and stepped):  # (a video, or the camera wrong for the first frame already)
+                if not stepped:  # (the camera wrong for the first frame already)
                     raise UserError(f"{s.source.where(i)}: {exc}") from None
-                # one image of another size among thousands (a stray thumbnail) ended the run with nothing
-                # written: it is skipped as an unreadable one is
+                # one image of another size among thousands (a stray thumbnail), or a video frame (a stream
+                # changing resolution mid-run), ended the run with nothing written: it is skipped as an
+                # unreadable one is
                 s.source.skipped.append((i, t, f"{s.source.where(i)}: {exc}"))
                 skipped_until(i + 1)
                 continue

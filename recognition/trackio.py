@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import contextlib
 import glob as globlib
+import itertools
 import json
 import math
 import numbers
@@ -246,24 +247,62 @@ def open_frames(video: str | None = None, images: str | Sequence[str] | None = N
         cap.release()
         kind = "camera" if isinstance(target, int) else "stream" if live else "video"
         raise SourceError(f"--video {video}: cannot be opened as a {kind}")
-    ok, first = cap.read()
-    if not ok or first is None:
-        cap.release()
-        raise SourceError(f"--video {video}: no frame can be decoded")
     import cv2
 
+    listed = cap.get(cv2.CAP_PROP_FRAME_COUNT)
+    frames = decoded_frames(cap, f"--video {video}", live,
+                            int(listed) if math.isfinite(listed) and listed > 0 else 0)
+    head: list[np.ndarray | SourceError] = []  # up to the first frame that decodes (a bad file fails here)
+    for item in frames:
+        head.append(item)
+        if not isinstance(item, Exception):
+            break
+    else:
+        cap.release()
+        raise SourceError(f"--video {video}: no frame can be decoded")
     rate = frame_rate(fps, cap.get(cv2.CAP_PROP_FPS))
-
-    def frames() -> Iterator[np.ndarray]:
-        frame = first
-        while frame is not None:
-            yield frame
-            ok, frame = cap.read()
-            if not ok:
-                return
-
     return FrameSource(f"--video {video}", rate, live=live and fps is None, max_frames=max_frames,
-                       _frames=frames(), _close=cap.release)
+                       _frames=itertools.chain(head, frames), _close=cap.release)
+
+
+#: consecutive frames of a video file that may fail to decode beyond the count its container lists
+#: before the failures are taken for its end (a count the container only estimates may be short)
+BAD_RUN_PAST_COUNT = 2
+#: ... and at most, whatever the count says (a duration in the header an hour too long)
+MAX_BAD_RUN = 1000
+
+
+def decoded_frames(cap, label: str, live: bool = False, listed: int = 0) -> Iterator[np.ndarray | SourceError]:
+    """The frames of an open capture, in order; a frame of a file that fails to decode is a
+    :class:`SourceError` in its place (a ``lost`` row), not the end of the video.
+
+    Why: OpenCV's FFmpeg reader answers ``read() → False`` for a frame whose data cannot be
+    decoded (an MJPG/AVI frame zeroed or cut by a failing disk or a dropped USB packet) and
+    goes on with the next frame at the next call; ``track`` took the first ``False`` for the
+    end, and the rest of the video was silently not tracked. Failures followed by a frame are
+    frames that failed (one each: FFmpeg's AVI and MP4 readers keep each frame's place); failures
+    not followed by one are the end. A live source (camera, stream) ends at its first failure,
+    as before. ``listed``: the frame count the container states (0: unknown), which bounds how
+    long a run of failures may be before it is the end.
+
+    What OpenCV does not tell, and this cannot see: a frame whose data is damaged but decodes
+    (FFmpeg conceals the damage: a garbled picture, and with inter-frame codecs such as H.264
+    the frames after it until the next keyframe too), and a frame the container itself lost (an
+    AVI chunk cut short swallows the next frame: the frames after it come one index early).
+    Such frames are tracked as given; the tracker's own checks usually lose a garbled one.
+    """
+    failed = n = 0
+    while True:
+        ok, frame = cap.read()
+        if ok and frame is not None:
+            for _ in range(failed):
+                yield SourceError(f"{label}: its data cannot be decoded (a damaged file?)")
+            n, failed = n + failed + 1, 0
+            yield frame
+            continue
+        failed += 1
+        if live or failed > MAX_BAD_RUN or (failed > BAD_RUN_PAST_COUNT and n + failed >= listed):
+            return
 
 
 def jpeg_frames(source: FrameSource, quality: int = 90) -> Iterator[tuple[int, float, bytes]]:

@@ -384,3 +384,72 @@ def test_an_overlay_of_odd_sized_frames_keeps_every_pixel(tmp_path, capsys):
     assert frame[:, -1].mean() < 12 and frame[-1].mean() < 12  # the padding: black (MPEG-4 blurs it a little)
     assert frame[100:400, 300:600].mean() > 40  # the picture where it was
     assert [r[2] for r in list(csv.reader(out.open()))[1:]] == ["init", "tracking", "tracking"]
+
+
+def _mjpg_avi(path, frames, damaged=()) -> None:
+    """An MJPG AVI of ``frames`` with the JPEG data of the frames in ``damaged`` zeroed (a failing
+    disk, a dropped USB packet): the container keeps each frame's place, the frame cannot be decoded."""
+    import cv2
+
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 30.0, frames[0].shape[1::-1])
+    for frame in frames:
+        writer.write(frame)
+    writer.release()
+    data = bytearray(path.read_bytes())
+    chunks, at = [], 0
+    while (at := data.find(b"00dc", at + 1)) > 0:
+        size = int.from_bytes(data[at + 4:at + 8], "little")
+        if data[at + 8:at + 10] == b"\xff\xd8":  # (a frame's chunk; "00dc" also appears in the index)
+            chunks.append((at + 8, size))
+    assert len(chunks) == len(frames)
+    for k in damaged:
+        start, size = chunks[k]
+        data[start:start + size] = bytes(size)
+    path.write_bytes(data)
+
+
+def test_a_frame_of_a_video_that_cannot_be_decoded_is_a_lost_row_and_the_track_goes_on(tmp_path, capsys):
+    # OpenCV's read() says False for a frame whose data cannot be decoded, and goes on at the next
+    # call: the first damaged frame ended the run, the rest of the video silently not tracked (and a
+    # damaged first frame was "no frame can be decoded")
+    video = tmp_path / "damaged.avi"
+    _mjpg_avi(video, _box_frames(8), damaged=(0, 3, 4))
+    out, overlay = tmp_path / "poses.jsonl", tmp_path / "overlay.mp4"
+    assert _track(tmp_path, "--video", str(video), "--format", "jsonl", "--out", str(out),
+                  "--overlay", str(overlay)) == 0
+    err = capsys.readouterr().err
+    msgs = [json.loads(line) for line in out.read_text().splitlines()]
+    assert [m["frame"] for m in msgs] == list(range(8))
+    assert np.allclose([m["time_s"] for m in msgs], np.arange(8) / 30.0)
+    assert [m["status"] for m in msgs] == ["lost", "init", "tracking", "lost", "lost", "tracking", "tracking", "tracking"]
+    for k in (0, 3, 4):
+        assert msgs[k]["pose"] is None and "cannot be decoded" in msgs[k]["reason"]
+        assert f"frame {k} cannot be read, written as lost: --video {video}: its data cannot be decoded" in err
+    assert _overlay_size_and_count(overlay) == (640, 480, 8)  # one overlay frame per row
+
+
+def test_a_video_whose_frames_all_fail_to_decode_is_a_one_line_error(tmp_path, capsys):
+    video = tmp_path / "damaged.avi"
+    _mjpg_avi(video, _box_frames(3), damaged=(0, 1, 2))
+    out = tmp_path / "poses.csv"
+    assert _track(tmp_path, "--video", str(video), "--out", str(out)) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == f"quatrack track: error: --video {video}: no frame can be decoded" and not out.exists()
+
+
+def test_a_video_frame_of_another_size_is_a_lost_row(monkeypatch, tmp_path, capsys):
+    # a stream that changes resolution mid-run: exit 2 and nothing written, as a stray image of
+    # another size in a sequence was; now its row says lost, as that image's does
+    import cv2
+
+    class Resized(LoopedCamera):
+        def read(self):
+            ok, frame = super().read()
+            return ok, cv2.resize(frame, (320, 240)) if len(self.frames) == 3 and self.k == 0 else frame
+
+    monkeypatch.setattr(trackio, "open_capture", Resized)
+    out = tmp_path / "poses.csv"
+    assert _track(tmp_path, "--video", "0", "--max-frames", "5", "--out", str(out)) == 0
+    err = capsys.readouterr().err
+    assert [r[2] for r in list(csv.reader(out.open()))[1:]] == ["init", "tracking", "lost", "tracking", "tracking"]
+    assert "frame 2 cannot be read" in err and "320×240" in err, err
