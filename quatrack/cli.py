@@ -569,6 +569,22 @@ def _add_locate(parser: argparse.ArgumentParser) -> None:
                         help="larger images are downscaled to this many pixels (default 4000000)")
 
 
+def _image_arguments(images: list[str]) -> list[str]:
+    """``locate``'s IMAGE arguments with a glob the shell left alone (quoted, or in a script) expanded
+    as ``track --images`` expands its own: its files sorted by name. ``locate 'frames/*.png'`` said
+    "cannot read image frames/*.png: No such file". A file that exists is taken as named (``[1].png``
+    is no pattern then); a pattern matching no file stays, to be reported on its line."""
+    import glob
+
+    out = []
+    for arg in images:
+        if os.path.exists(arg) or not any(c in arg for c in "*?["):
+            out.append(arg)
+        else:
+            out += sorted(p for p in glob.glob(arg) if os.path.isfile(p)) or [arg]
+    return out
+
+
 def _run_locate(args: argparse.Namespace) -> int:
     """Recognition + initial pose per image. A bad image is reported on its own line (``error``
     in JSON) and the others still run; the exit status is 1 if any image failed."""
@@ -582,6 +598,7 @@ def _run_locate(args: argparse.Namespace) -> int:
 
     if args.max_pixels < 32 * 32:
         raise UserError("--max-pixels must be at least 1024")
+    args.images = _image_arguments(args.images)
     camera = load_camera(args.camera)
     params = LocateParams(use_window=not args.whole_image, max_pixels=args.max_pixels)
     if args.object == "all":

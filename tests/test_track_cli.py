@@ -453,3 +453,17 @@ def test_a_video_frame_of_another_size_is_a_lost_row(monkeypatch, tmp_path, caps
     err = capsys.readouterr().err
     assert [r[2] for r in list(csv.reader(out.open()))[1:]] == ["init", "tracking", "lost", "tracking", "tracking"]
     assert "frame 2 cannot be read" in err and "320×240" in err, err
+
+
+def test_locate_expands_a_quoted_glob_as_track_does(tmp_path, capsys):
+    # locate 'frames/*.png' (quoted, as track --images takes it): "cannot read image frames/*.png"
+    import cv2
+
+    for k, frame in enumerate(_box_frames(2)):
+        assert cv2.imwrite(str(tmp_path / f"{k:04d}.png"), frame)
+    rc = main(["locate", "--object", "cookie-box", "--camera", str(EXAMPLE / "camera.json"), "--store",
+               str(example_store()), "--json", str(tmp_path / "*.png"), str(tmp_path / "none*.jpg")])
+    lines = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    assert [line["image"] for line in lines] == [str(tmp_path / "0000.png"), str(tmp_path / "0001.png"),
+                                                 str(tmp_path / "none*.jpg")]
+    assert lines[0]["found"] and lines[1]["found"] and "No such file" in lines[2]["error"] and rc == 1
