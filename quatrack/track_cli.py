@@ -257,9 +257,12 @@ def run(args: argparse.Namespace) -> int:
     import cv2
 
     from quatrack.recognition.overlay import plot_track
-    from quatrack.recognition.trackio import Progress, RowWriter, VideoOut, atomic_path
+    from quatrack.recognition.trackio import Progress, RowWriter, VideoOut, atomic_path, misordered
 
     s = _setup(args)
+    if args.images and (pair := misordered(args.images)) is not None:
+        print(f"quatrack track: warning: --images are read in order of name, so {pair[0]} comes before {pair[1]}: "
+              f"number the files with leading zeros (0002 for 2), or give them in order", file=sys.stderr)
     progress = Progress("tracking", enabled=False if args.quiet else None)
     with ExitStack() as stack:
         stack.callback(s.source.close)

@@ -35,6 +35,7 @@ import json
 import math
 import numbers
 import os
+import re
 import sys
 import tempfile
 import time
@@ -187,6 +188,36 @@ def image_paths(patterns: str | Sequence[str]) -> list[str]:
         else:
             paths += sorted(p for p in globlib.glob(path) if os.path.isfile(p))
     return list(dict.fromkeys(paths))
+
+
+def _numbered(path: str) -> list:
+    """A sort key reading the numbers in a path as numbers: ``frame_2`` before ``frame_10``."""
+    return [(int(part), "") if part.isdigit() else (-1, part) for part in re.split(r"(\d+)", path)]
+
+
+def misordered(patterns: str | Sequence[str]) -> tuple[str, str] | None:
+    """The first two files of a glob of ``--images`` that its order by name (the contract's
+    order) puts otherwise than their numbers do — ``frame_10.png`` before ``frame_2.png``, as
+    numbered without leading zeros — or None. The frames are read by name as the contract says;
+    the caller warns, since such a sequence is tracked in a jumbled order.
+
+    >>> import tempfile
+    >>> d = tempfile.mkdtemp()
+    >>> for n in (1, 2, 10):
+    ...     _ = open(os.path.join(d, f"f{n}.png"), "w")
+    >>> [os.path.basename(p) for p in misordered(os.path.join(d, "*.png"))]
+    ['f10.png', 'f2.png']
+    >>> import shutil; shutil.rmtree(d)
+    """
+    for pattern in [patterns] if isinstance(patterns, str) else patterns:
+        path = os.path.expanduser(pattern)
+        if os.path.isfile(path):
+            continue
+        matches = sorted(p for p in globlib.glob(path) if os.path.isfile(p))
+        for a, b in zip(matches, matches[1:]):
+            if _numbered(b) < _numbered(a):
+                return a, b
+    return None
 
 
 def open_frames(video: str | None = None, images: str | Sequence[str] | None = None, fps: float | None = None,

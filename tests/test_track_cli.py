@@ -467,3 +467,23 @@ def test_locate_expands_a_quoted_glob_as_track_does(tmp_path, capsys):
     assert [line["image"] for line in lines] == [str(tmp_path / "0000.png"), str(tmp_path / "0001.png"),
                                                  str(tmp_path / "none*.jpg")]
     assert lines[0]["found"] and lines[1]["found"] and "No such file" in lines[2]["error"] and rc == 1
+
+
+def test_frames_numbered_without_leading_zeros_are_warned_of(tmp_path, capsys):
+    # frame_1 … frame_10: by name (the contract's order) frame_10 comes second, and the track jumped
+    # back and forth through the sequence without a word
+    import cv2
+
+    frame = _box_frames(1)[0]
+    for n in (1, 2, 10):
+        assert cv2.imwrite(str(tmp_path / f"frame_{n}.png"), frame)
+    out = tmp_path / "poses.csv"
+    assert _track(tmp_path, "--images", str(tmp_path / "frame_*.png"), "--max-frames", "1", "--out", str(out)) == 0
+    err = capsys.readouterr().err.strip()
+    assert err == (f"quatrack track: warning: --images are read in order of name, so {tmp_path / 'frame_10.png'} "
+                   f"comes before {tmp_path / 'frame_2.png'}: number the files with leading zeros (0002 for 2), "
+                   f"or give them in order"), err
+    for n in (1, 2, 10):
+        (tmp_path / f"frame_{n}.png").rename(tmp_path / f"frame_{n:04d}.png")
+    assert _track(tmp_path, "--images", str(tmp_path / "frame_*.png"), "--max-frames", "1", "--out", str(out)) == 0
+    assert capsys.readouterr().err == ""
