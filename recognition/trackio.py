@@ -120,6 +120,8 @@ def capture_target(video: str) -> int | str:
                           f"{os.path.join(video, '*.png')!r}")
     if not os.path.isfile(text):
         raise SourceError(f"--video {video}: no such file (give a file, a camera index such as 0, or a stream URL)")
+    if os.path.getsize(text) == 0:  # (was "cannot be opened as a video": an interrupted copy or recording)
+        raise SourceError(f"--video {video}: the file is empty (0 bytes)")
     return text
 
 
@@ -176,14 +178,34 @@ class FrameSource:
         self.close()
 
 
+#: an ``--images`` file with one of these endings lists the images, one per line
+LIST_SUFFIXES = (".txt", ".lst")
+
+
+def list_file(path: str) -> list[str]:
+    """The images a list file names, one per line, in its order (``--images frames.txt``: it was
+    read as an image, "no frame can be read"). Blank lines and lines starting with ``#`` are
+    skipped; a relative path is relative to the list's folder (as a spec's paths are to the spec);
+    ``~`` is expanded. A listed file that is missing stays: its row says ``lost``."""
+    try:
+        with open(path, encoding="utf-8-sig") as f:
+            lines = [line.strip() for line in f]
+    except (OSError, UnicodeDecodeError) as exc:
+        raise SourceError(f"--images {path}: cannot read the list ({exc.__class__.__name__}: {exc})"[:300]) from None
+    folder = os.path.dirname(path)
+    return [os.path.join(folder, os.path.expanduser(line)) for line in lines if line and not line.startswith("#")]
+
+
 def image_paths(patterns: str | Sequence[str]) -> list[str]:
     """The files of ``--images``: each glob (``~`` expanded) sorted by name, in the order given, or
-    a file as the shell gave it (``[1].png`` is no pattern then); each file once, first place
-    kept. :func:`open_frames` reads these; ``track`` checks its outputs against them."""
+    a file as the shell gave it (``[1].png`` is no pattern then), or the files a list file names
+    (``.txt``, ``.lst``: :func:`list_file`); each file once, first place kept. :func:`open_frames` reads these; ``track`` checks its outputs against them."""
     paths: list[str] = []
     for pattern in [patterns] if isinstance(patterns, str) else patterns:
         path = os.path.expanduser(pattern)
-        if os.path.isfile(path):
+        if os.path.isfile(path) and path.lower().endswith(LIST_SUFFIXES):
+            paths += list_file(path)
+        elif os.path.isfile(path):
             paths.append(path)
         else:
             paths += sorted(p for p in globlib.glob(path) if os.path.isfile(p))

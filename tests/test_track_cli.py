@@ -487,3 +487,29 @@ def test_frames_numbered_without_leading_zeros_are_warned_of(tmp_path, capsys):
         (tmp_path / f"frame_{n}.png").rename(tmp_path / f"frame_{n:04d}.png")
     assert _track(tmp_path, "--images", str(tmp_path / "frame_*.png"), "--max-frames", "1", "--out", str(out)) == 0
     assert capsys.readouterr().err == ""
+
+
+def test_an_image_list_file(tmp_path, capsys):
+    # --images frames.txt (one file per line, as many tools write them) was read as an image: "no frame
+    # can be read"; relative lines are relative to the list, a missing one is a lost row
+    import cv2
+
+    (tmp_path / "f").mkdir()
+    for k, frame in enumerate(_box_frames(3)):
+        assert cv2.imwrite(str(tmp_path / "f" / f"{k}.png"), frame)
+    listing = tmp_path / "frames.txt"
+    listing.write_text(f"# frames\nf/0.png\n\n{tmp_path / 'f' / '1.png'}\nf/missing.png\nf/2.png\n")
+    out = tmp_path / "poses.csv"
+    assert _track(tmp_path, "--images", str(listing), "--out", str(out)) == 0
+    err = capsys.readouterr().err
+    assert [r[2] for r in list(csv.reader(out.open()))[1:]] == ["init", "tracking", "lost", "tracking"]
+    assert "frame 2 cannot be read" in err and "missing.png" in err
+    # an output on a listed image is refused as on a globbed one
+    assert _track(tmp_path, "--images", str(listing), "--out", str(tmp_path / "f" / "2.png")) == 2
+    assert "is the input" in capsys.readouterr().err
+
+
+def test_an_empty_video_file_says_so(tmp_path, capsys):
+    (tmp_path / "rec.mp4").write_bytes(b"")
+    assert _track(tmp_path, "--video", str(tmp_path / "rec.mp4"), "--out", str(tmp_path / "p.csv")) == 2
+    assert capsys.readouterr().err.strip() == f"quatrack track: error: --video {tmp_path / 'rec.mp4'}: the file is empty (0 bytes)"
