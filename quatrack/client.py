@@ -34,6 +34,7 @@ from urllib.parse import urlsplit, urlunsplit
 
 import numpy as np
 
+from quatrack.service.codes import REFUSED_FRAME
 from quatrack.service.schemas import LocateOut, ObjectList, TrackMessage
 
 
@@ -363,10 +364,6 @@ class StreamResult:
     local_port: int | None = None  # the socket's own port (which server process holds it: bench serve)
 
 
-# errors for a frame refused on arrival, before the server numbers it (service/sessions.py)
-_REFUSED = frozenset({"too_large", "unsupported_image", "rate_limited", "camera_required"})
-
-
 class _Session:
     """One open socket's bookkeeping: the caller's index of each server frame number, send times."""
 
@@ -388,7 +385,7 @@ class _Session:
         rate) gets no number there, so its own is dropped here: the next frame's answer, numbered
         as the server counts, was filed under the refused one's index, and lock-step waited for a
         number that never came (until the server's idle timeout)."""
-        if msg.get("type") == "error" and "frame" not in msg and msg.get("error", {}).get("code") in _REFUSED \
+        if msg.get("type") == "error" and "frame" not in msg and msg.get("error", {}).get("code") in REFUSED_FRAME \
                 and self.numbers:
             # (the frame just sent — lock-step: the only one in flight; real time: refusals come back
             # at once, before the next frame is sent at any usual rate)

@@ -17,6 +17,8 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
+from .codes import error_body
+
 log = logging.getLogger("quatrack.service")
 
 _CODES = {400: "bad_request", 401: "unauthorized", 403: "forbidden", 404: "not_found", 405: "method_not_allowed",
@@ -31,10 +33,6 @@ class ApiError(StarletteHTTPException):
         super().__init__(status_code=status, detail=message, headers=headers)
         self.code = code
         self.message = message
-
-
-def error_body(code: str, message: str) -> dict:
-    return {"error": {"code": code, "message": message}}
 
 
 def _json(status: int, code: str, message: str, headers=None) -> JSONResponse:

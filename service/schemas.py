@@ -15,8 +15,6 @@ from quatrack.tracking.camera import PinholeCamera
 from quatrack.viewsets.camera import camera_from_dict
 from quatrack.viewsets.errors import SpecError
 
-from .errors import ApiError
-
 Vec3 = list[float]
 CAMERA_EXAMPLE = {"width": 640, "height": 480, "fx": 669.7, "fy": 667.8, "cx": 320.0, "cy": 240.0,
                   "dist_coeffs": [0, 0, 0, 0, 0]}
@@ -83,6 +81,8 @@ class CameraIn(BaseModel):
 
     def to_camera(self, image_size: tuple[int, int] | None = None) -> PinholeCamera:
         """The project's camera; the image's (width, height) fills a missing size."""
+        from .errors import ApiError  # (here: the client imports these schemas, without the server's stack)
+
         data = self.model_dump(exclude={"guessed"})
         if data["width"] is None or data["height"] is None:
             if image_size is None:

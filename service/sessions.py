@@ -34,7 +34,8 @@ from quatrack.viewsets.store import ObjectModel
 from quatrack.viewsets.errors import SpecError
 from quatrack.viewsets.spec import parse_pose
 
-from .errors import ApiError, error_body
+from .codes import CAMERA_REQUIRED, RATE_LIMITED, TOO_LARGE, UNSUPPORTED_IMAGE, error_body
+from .errors import ApiError
 from .imagein import decode_upload, sniff
 from .learning import learns, store_session_views
 from .metrics import Metrics
@@ -197,24 +198,27 @@ class TrackSession:
         return True
 
     async def _on_frame(self, data: bytes) -> None:
+        """A binary frame: refused on arrival, unnumbered, with one of ``codes.REFUSED_FRAME``
+        (the client's bookkeeping relies on that set: add a new refusal's code there), else
+        numbered, timed and put in the mailbox."""
         arrival = time.perf_counter()
         if self.camera is None:
-            await self.send_error("camera_required", "send the camera as a JSON text message before any frame")
+            await self.send_error(CAMERA_REQUIRED, "send the camera as a JSON text message before any frame")
             return
         if len(data) > self.settings.max_body_bytes:
             self.header_time = None
             self.metrics.frames.labels("error").inc()
-            await self.send_error("too_large", f"a frame may have at most {self.settings.max_body_bytes} bytes")
+            await self.send_error(TOO_LARGE, f"a frame may have at most {self.settings.max_body_bytes} bytes")
             return
         if sniff(data) is None:  # cheap, and keeps garbage from using a frame number or a time
             self.header_time = None
             self.metrics.frames.labels("error").inc()
-            await self.send_error("unsupported_image", "a binary message must be a JPEG, PNG or WebP frame")
+            await self.send_error(UNSUPPORTED_IMAGE, "a binary message must be a JPEG, PNG or WebP frame")
             return
         if not self._take_token():
             self.header_time = None
             self.metrics.frames.labels("rate_limited").inc()
-            await self.send_error("rate_limited", f"more than {self.settings.max_fps:g} frames per second; frame dropped")
+            await self.send_error(RATE_LIMITED, f"more than {self.settings.max_fps:g} frames per second; frame dropped")
             return
         now = self.clock()
         if self.header_time is not None:
