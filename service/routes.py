@@ -210,9 +210,7 @@ def _camera_from_json(text: str) -> CameraIn:
     try:
         return CameraIn.model_validate_json(text)
     except ValidationError as exc:
-        e = exc.errors()[0]
-        where = ".".join(map(str, e["loc"]))
-        raise ApiError(422, "bad_camera", f"camera{'.' + where if where else ''}: {e['msg']}") from None
+        raise ApiError(422, "bad_camera", CameraIn.error_message(exc)) from None
 
 
 def _client_left() -> ApiError:

@@ -9,13 +9,23 @@ from __future__ import annotations
 import math
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic_core import PydanticCustomError
 
 from quatrack.tracking.camera import PinholeCamera
 from quatrack.viewsets.camera import camera_from_dict
 from quatrack.viewsets.errors import SpecError
 
 Vec3 = list[float]
+
+
+def _strict_bool(v):
+    """A JSON boolean only (pydantic's lax mode takes ``"yes"``, ``1``, ``"on"`` as true)."""
+    if not isinstance(v, bool):
+        raise PydanticCustomError("bool_expected", "expected true or false, got {got}", {"got": repr(v)[:40]})
+    return v
+
+
 CAMERA_EXAMPLE = {"width": 640, "height": 480, "fx": 669.7, "fy": 667.8, "cx": 320.0, "cy": 240.0,
                   "dist_coeffs": [0, 0, 0, 0, 0]}
 
@@ -58,12 +68,7 @@ class CameraIn(BaseModel):
             raise ValueError(f"must be a number, got {type(v).__name__}")
         return v
 
-    @field_validator("guessed", mode="before")
-    @classmethod
-    def _a_bool(cls, v):
-        if not isinstance(v, bool):
-            raise ValueError(f"expected true or false, got {repr(v)[:40]}")
-        return v
+    _a_bool = field_validator("guessed", mode="before")(_strict_bool)
 
     @field_validator("dist_coeffs", mode="before")
     @classmethod
@@ -83,7 +88,7 @@ class CameraIn(BaseModel):
         """The project's camera; the image's (width, height) fills a missing size."""
         from .errors import ApiError  # (here: the client imports these schemas, without the server's stack)
 
-        data = self.model_dump(exclude={"guessed"})
+        data = self.model_dump(include=set(CameraIn.model_fields) - {"guessed"})
         if data["width"] is None or data["height"] is None:
             if image_size is None:
                 raise ApiError(422, "bad_camera", "camera: width and height are required")
@@ -94,6 +99,33 @@ class CameraIn(BaseModel):
             return camera_from_dict(data, "camera")
         except (SpecError, ValueError) as exc:
             raise ApiError(422, "bad_camera", str(exc)) from None
+
+    @staticmethod
+    def error_message(exc: ValidationError) -> str:
+        """A refused camera's ``bad_camera`` message, REST field and WebSocket message alike:
+        ``camera.FIELD: what is wrong`` (the first problem), ``camera: ...`` when it is not an object."""
+        e = exc.errors()[0]
+        where = ".".join(map(str, e["loc"]))
+        return f"camera{'.' + where if where else ''}: {e['msg']}"
+
+
+class CameraMessage(CameraIn):
+    """The WebSocket's camera message: the contract's camera object, or the typed
+    ``{"type": "camera", "camera": {...}}``; ``"ack": true`` (beside the camera or inside it) asks
+    for the ``{"type": "ready"}`` answer. Anything else is ``bad_camera`` with
+    :meth:`CameraIn.error_message`'s message."""
+
+    ack: bool = False
+
+    _ack_bool = field_validator("ack", mode="before")(_strict_bool)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _typed(cls, data):
+        if isinstance(data, dict) and data.get("type") == "camera" and "camera" in data:
+            cam = data["camera"]
+            return {**cam, "ack": data["ack"]} if isinstance(cam, dict) and "ack" in data else cam
+        return data
 
 
 class PoseOut(BaseModel):

@@ -40,7 +40,7 @@ from .imagein import decode_upload, sniff
 from .learning import learns, store_session_views
 from .metrics import Metrics
 from .ros import add_to_track_message
-from .schemas import CameraIn
+from .schemas import CameraIn, CameraMessage
 from .settings import Settings
 from .tracker_factory import TRACKER_KIND, make_tracker
 
@@ -264,10 +264,7 @@ class TrackSession:
             return
         kind = msg.get("type")
         if kind is None and "fx" in msg or kind == "camera":
-            cam = msg.get("camera", msg) if kind == "camera" else msg
-            if cam is not msg and isinstance(cam, dict) and "ack" in msg:  # {"type": "camera", "camera": {...}, "ack": true}
-                cam = {**cam, "ack": msg["ack"]}
-            await self._on_camera(cam)
+            await self._on_camera(msg)
         elif self.camera is None:
             await self.send_error("camera_required", "the first message must be the camera (JSON)")
         elif kind == "frame":
@@ -300,21 +297,16 @@ class TrackSession:
             self.controls.pop(0)  # keep the newest; a client flooding controls loses the oldest
         self.controls.append(op)
 
-    async def _on_camera(self, data) -> None:
+    async def _on_camera(self, msg: dict) -> None:
         # The contract's exchange is one message per frame; a client that wants the camera
-        # acknowledged asks for it with "ack": true (then {"type": "ready", ...} answers).
-        ack = isinstance(data, dict) and data.get("ack") is True
-        if isinstance(data, dict) and "ack" in data and not isinstance(data["ack"], bool):
-            # ("ack": "yes" was ignored: no ready, no error, and the client waited for the answer)
-            await self.send_error("bad_camera", f"camera.ack: expected true or false, got {repr(data['ack'])[:40]}")
-            return
+        # acknowledged asks for it with "ack": true (then {"type": "ready", ...} answers). The
+        # message's forms and fields are schemas.CameraMessage's to check, "ack" included.
         try:
-            cam = CameraIn.model_validate(data)
+            cam = CameraMessage.model_validate(msg)
             if cam.width is not None and cam.height is not None:
                 cam.to_camera()  # the project's own checks (plausibility); else at the first frame
         except ValidationError as exc:
-            e = exc.errors()[0]
-            await self.send_error("bad_camera", f"camera.{'.'.join(map(str, e['loc']))}: {e['msg']}")
+            await self.send_error("bad_camera", CameraIn.error_message(exc))
             return
         except ApiError as exc:
             await self.send_error(exc.code, exc.message)
@@ -322,7 +314,7 @@ class TrackSession:
         first = self.camera is None
         self.camera = cam
         self._control(("camera", cam))
-        if ack:
+        if cam.ack:
             await self.send({"type": "ready", "session": self.sid, "object": self.name, "tracker": TRACKER_KIND,
                              "camera_replaced": not first, "learns": self._learns(cam)})
 

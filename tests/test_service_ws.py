@@ -494,3 +494,55 @@ def test_a_typed_camera_message_with_ack_is_answered(server):
     with connect(f"{server.ws_url}/v1/objects/cookie-box/track", open_timeout=20) as ws:
         ws.send(json.dumps({"type": "camera", "camera": CAMERA, "ack": "yes"}))
         assert recv(ws, timeout=20)["error"]["code"] == "bad_camera"
+
+
+class _Outbox:
+    """A stand-in for the session's socket: what it sends, as JSON."""
+
+    def __init__(self) -> None:
+        self.sent: list[dict] = []
+
+    async def send_text(self, text: str) -> None:
+        self.sent.append(json.loads(text))
+
+
+def test_the_camera_message_is_checked_by_its_schema_alone(tmp_path):
+    """The camera message's forms and fields, ``ack`` included, are :class:`schemas.CameraMessage`'s
+    to check (``ack`` was checked by hand in the session, beside the schema's ``guessed``): the
+    same answers as before, one place."""
+    import ast
+    import asyncio
+    import inspect
+
+    from quatrack.service import sessions
+
+    literals = {n.value for n in ast.walk(ast.parse(inspect.getsource(sessions))) if isinstance(n, ast.Constant)}
+    assert "ack" not in literals  # (no second reading of the message)
+
+    def answers(*msgs) -> list[dict]:
+        session = sessions.TrackSession(_Outbox(), "sid", "cookie-box", None, Settings(store=tmp_path), None, None)
+
+        async def run():
+            for m in msgs:
+                await session._on_text(json.dumps(m))
+        asyncio.run(run())
+        return session.ws.sent
+
+    cases = [({**CAMERA, "ack": "yes"}, "camera.ack: expected true or false, got 'yes'"),
+             ({**CAMERA, "ack": 1}, "camera.ack: expected true or false, got 1"),
+             ({"type": "camera", "camera": CAMERA, "ack": "yes"}, "camera.ack: expected true or false, got 'yes'"),
+             ({"type": "camera", "camera": {**CAMERA, "ack": None}}, "camera.ack: expected true or false, got None"),
+             ({**CAMERA, "guessed": "yes"}, "camera.guessed: expected true or false, got 'yes'"),
+             ({"type": "camera", "camera": [1, 2]}, "camera: Input should be a valid dictionary"),
+             ({**CAMERA, "fx": "600"}, "camera.fx: ")]
+    for msg, message in cases:
+        (err,) = answers(msg)
+        assert err["type"] == "error" and err["error"]["code"] == "bad_camera", (msg, err)
+        assert err["error"]["message"].startswith(message), (msg, err)
+    for msg in ({**CAMERA, "ack": True}, {"type": "camera", "camera": CAMERA, "ack": True},
+                {"type": "camera", "camera": {**CAMERA, "ack": True}}, {"type": "camera", **CAMERA, "ack": True}):
+        (ready,) = answers(msg)
+        assert ready["type"] == "ready" and ready["camera_replaced"] is False and ready["learns"] is False, (msg, ready)
+    assert answers(CAMERA, {**CAMERA, "ack": False}) == []  # no ack: nothing but per-frame answers
+    first, second = answers({**CAMERA, "ack": True}, {**CAMERA, "guessed": True, "ack": True})
+    assert second["camera_replaced"] is True
