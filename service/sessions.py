@@ -20,7 +20,7 @@ import threading
 import time
 import uuid
 from concurrent.futures import Executor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable
 
 from pydantic import ValidationError
@@ -47,6 +47,12 @@ from .tracker_factory import TRACKER_KIND, make_tracker
 log = logging.getLogger("quatrack.service")
 MAX_CONTROLS = 32  # control messages waiting for a frame; more is a misbehaving client
 MAX_TEXT = 65_536  # characters in one text message: a camera or a control is a few hundred
+# answers owed to frames that newer ones replaced (``dropped``) before the session stops reading:
+# a client that sends without reading the answers (they wait in the socket's buffers, the
+# processor's send waits for them) is then not read either — TCP pushes back on its sending —
+# until it reads; one that reads nothing for ``idle_timeout_s`` is closed ("stalled")
+MAX_UNANSWERED = 64
+CLOSE_TIMEOUT_S = 5.0  # the session's closing frame, sent at its end: waited for this long at most
 
 
 class SessionLimiter:
@@ -110,7 +116,8 @@ class TrackSession:
         self.pending: _PendingFrame | None = None
         self.skipped = 0
         # frames replaced by newer ones before their turn, not yet answered (_answer_dropped)
-        self.dropped: list[_PendingFrame] = []
+        self.dropped: list[_PendingFrame] = []  # (without their image bytes)
+        self.answered = asyncio.Event()  # set when dropped frames were answered (_answer_dropped)
         self.next_frame = 0
         self.last_time: float | None = None
         self.last_clock = 0.0  # the session clock at the latest frame's arrival
@@ -119,6 +126,7 @@ class TrackSession:
         self.wakeup = asyncio.Event()
         self.send_lock = asyncio.Lock()
         self.closed = False
+        self.stalled = False  # closed because the client read nothing (_stall)
         # token bucket: max_fps per second, bursts up to 1 s — and at least one frame (max_fps < 1)
         self.burst = max(settings.max_fps, 1.0)
         self.tokens = self.burst
@@ -134,10 +142,19 @@ class TrackSession:
         if self.closed:
             return
         async with self.send_lock:
-            try:
-                await self.ws.send_text(json.dumps(payload))
+            try:  # (bounded: a client reading nothing would hold the session, and what waits to be sent, forever)
+                await asyncio.wait_for(self.ws.send_text(json.dumps(payload)), self.settings.idle_timeout_s)
+            except asyncio.TimeoutError:
+                self._stall()
             except (WebSocketDisconnect, RuntimeError, OSError):
                 self.closed = True
+
+    def _stall(self) -> None:
+        """The client read nothing for ``idle_timeout_s``: the session ends ("stalled")."""
+        if not self.closed:
+            log.info("session %s: the client read no answer for %g s; closing", self.sid, self.settings.idle_timeout_s)
+        self.closed = self.stalled = True
+        self.answered.set()  # (wakes a receive loop waiting for the answers to be read)
 
     async def send_error(self, code: str, message: str, frame: int | None = None) -> None:
         body = {"type": "error", **error_body(code, message)}
@@ -153,6 +170,8 @@ class TrackSession:
         outcome = "closed"
         try:
             while not self.closed:
+                if not await self._answers_read():
+                    break
                 try:
                     msg = await asyncio.wait_for(self.ws.receive(), self.settings.idle_timeout_s)
                 except asyncio.TimeoutError:
@@ -172,6 +191,8 @@ class TrackSession:
         except (WebSocketDisconnect, RuntimeError):  # receive() after the client left
             outcome = "disconnected"
         finally:
+            if self.stalled:
+                outcome = "stalled"
             self.closed = True
             self.wakeup.set()
             processor.cancel()
@@ -180,12 +201,25 @@ class TrackSession:
             except (asyncio.CancelledError, Exception):
                 pass
             if self.ws.client_state == WebSocketState.CONNECTED:
-                try:
-                    await self.ws.close(1000)
-                except (RuntimeError, OSError):
+                try:  # (a client that reads nothing never lets the close frame out: not waited for)
+                    await asyncio.wait_for(self.ws.close(1000), CLOSE_TIMEOUT_S)
+                except (RuntimeError, OSError, asyncio.TimeoutError):
                     pass
             await store_session_views(self)  # QUATRACK_LEARN_VIEWS (service/learning.py)
         return outcome
+
+    async def _answers_read(self) -> bool:
+        """Whether the session may read the next message: fewer than :data:`MAX_UNANSWERED`
+        frames wait for their ``dropped`` answer, now or within ``idle_timeout_s`` (False: the
+        client reads nothing). Without it, a client sending frames and reading no answers grew
+        ``dropped`` by one frame — its image bytes included — per frame, for as long as it sent."""
+        while len(self.dropped) >= MAX_UNANSWERED and not self.closed:
+            self.answered.clear()
+            try:
+                await asyncio.wait_for(self.answered.wait(), self.settings.idle_timeout_s)
+            except asyncio.TimeoutError:
+                self._stall()
+        return not self.closed
 
     def _take_token(self) -> bool:
         now = self.clock()
@@ -241,7 +275,7 @@ class TrackSession:
             if stale is not None:  # not started yet: the newer frame wins
                 self.skipped += 1
                 controls = stale.controls + controls
-                self.dropped.append(stale)
+                self.dropped.append(replace(stale, data=b"", controls=[]))  # (answered, never decoded)
             self.pending = _PendingFrame(number, time_s, data, arrival, controls)
         if stale is not None:
             self.metrics.frames.labels("skipped").inc()
@@ -363,6 +397,8 @@ class TrackSession:
             msg = {**_message(d, TrackStep(d.number, d.time_s, "lost", reason=why)), "dropped": True, "skipped": 0,
                    "latency_ms": round((time.perf_counter() - d.arrival) * 1e3, 2)}
             await self.send(add_to_track_message(msg, self.ros_unit))
+        if early:
+            self.answered.set()
 
     def _process_newest(self) -> tuple[_PendingFrame, int, dict | _SessionError] | None:
         """Worker thread: take the session's newest frame *now*, when a thread is free, and

@@ -546,3 +546,50 @@ def test_the_camera_message_is_checked_by_its_schema_alone(tmp_path):
     assert answers(CAMERA, {**CAMERA, "ack": False}) == []  # no ack: nothing but per-frame answers
     first, second = answers({**CAMERA, "ack": True}, {**CAMERA, "guessed": True, "ack": True})
     assert second["camera_replaced"] is True
+
+
+def test_a_client_that_reads_no_answers_is_not_read_either(tmp_path, frames, monkeypatch):
+    """A client that sends frames and never reads the answers: the processor's send waits for the
+    socket to drain, so every later frame is replaced before its turn and owed a ``dropped``
+    answer — kept, image bytes included, in a list that grew for as long as the client sent
+    (memory without bound). Now the session stops reading (TCP pushes back on the client) while
+    ``MAX_UNANSWERED`` answers are owed, keeps no image bytes for them, and closes a session
+    whose client reads nothing for ``idle_timeout_s`` ("stalled")."""
+    import asyncio
+    from concurrent.futures import ThreadPoolExecutor
+
+    from quatrack.service import sessions
+    from quatrack.service.metrics import Metrics
+    from starlette.websockets import WebSocketState
+
+    class Unread:
+        client_state = WebSocketState.CONNECTED
+
+        def __init__(self) -> None:
+            self.received = 0
+
+        async def receive(self) -> dict:
+            self.received += 1
+            if self.received == 1:
+                return {"type": "websocket.receive", "text": CAM_TEXT}
+            if self.received > 5000:  # (the client gives up: before, all of it had been read)
+                return {"type": "websocket.disconnect"}
+            await asyncio.sleep(0)
+            return {"type": "websocket.receive", "bytes": frames[0]}
+
+        async def send_text(self, text: str) -> None:
+            await asyncio.Event().wait()  # nobody reads: the socket never drains
+
+        async def close(self, code: int = 1000) -> None:
+            await asyncio.Event().wait()  # (nor lets the close frame out)
+
+    ws = Unread()
+    with ThreadPoolExecutor(1) as pool:
+        session = sessions.TrackSession(ws, "sid", "cookie-box", None,
+                                        Settings(store=tmp_path, max_fps=1e6, idle_timeout_s=0.5), pool, Metrics())
+        session._process = lambda item: {"type": "pose", "frame": item.number, "time_s": item.time_s}
+        monkeypatch.setattr(sessions, "CLOSE_TIMEOUT_S", 0.1, raising=False)
+        outcome = asyncio.run(asyncio.wait_for(session.run(), 60))  # (before: it never ended)
+    assert outcome == "stalled"
+    assert ws.received <= sessions.MAX_UNANSWERED + 3, ws.received
+    assert len(session.dropped) <= sessions.MAX_UNANSWERED and not any(d.data for d in session.dropped)
