@@ -274,7 +274,7 @@ class TrackSession:
             stale = self.pending
             if stale is not None:  # not started yet: the newer frame wins
                 self.skipped += 1
-                controls = stale.controls + controls
+                controls = _bounded(stale.controls + controls)  # (frame after frame replaced: still bounded)
                 self.dropped.append(replace(stale, data=b"", controls=[]))  # (answered, never decoded)
             self.pending = _PendingFrame(number, time_s, data, arrival, controls)
         if stale is not None:
@@ -327,9 +327,7 @@ class TrackSession:
             await self.send_error("bad_message", f"unknown message type {repr(kind)[:40]}; use camera, frame, reset or init")
 
     def _control(self, op: tuple) -> None:
-        if len(self.controls) >= MAX_CONTROLS:
-            self.controls.pop(0)  # keep the newest; a client flooding controls loses the oldest
-        self.controls.append(op)
+        self.controls = _bounded([*self.controls, op])
 
     async def _on_camera(self, msg: dict) -> None:
         # The contract's exchange is one message per frame; a client that wants the camera
@@ -467,6 +465,19 @@ class TrackSession:
         self.metrics.observe_stages(self.metrics.stages, getattr(step, "timings_ms", None))
         self.last_status = step.status
         return _message(item, step)
+
+
+def _bounded(controls: list) -> list:
+    """Controls waiting for a frame, at most :data:`MAX_CONTROLS`: only the newest camera (the
+    one the next frame is tracked with), then the newest of the others. A client flooding
+    controls loses the oldest — never the camera: lost, the frames were tracked with the
+    previous camera while the session held the new one."""
+    cameras = [i for i, c in enumerate(controls) if c[0] == "camera"]
+    if len(cameras) > 1:
+        controls = [c for i, c in enumerate(controls) if c[0] != "camera" or i == cameras[-1]]
+    while len(controls) > MAX_CONTROLS:
+        controls.pop(next(i for i, c in enumerate(controls) if c[0] != "camera"))
+    return controls
 
 
 def _message(item: _PendingFrame, step) -> dict:

@@ -593,3 +593,23 @@ def test_a_client_that_reads_no_answers_is_not_read_either(tmp_path, frames, mon
     assert outcome == "stalled"
     assert ws.received <= sessions.MAX_UNANSWERED + 3, ws.received
     assert len(session.dropped) <= sessions.MAX_UNANSWERED and not any(d.data for d in session.dropped)
+
+
+def test_a_flood_of_controls_never_loses_the_camera(tmp_path):
+    """Controls wait for the next frame, at most ``MAX_CONTROLS`` of them, the oldest dropped: a
+    camera change followed by as many resets was dropped, and the frames that followed were
+    tracked with the previous camera (the session's ``camera`` said the new one)."""
+    from quatrack.service import sessions
+    from quatrack.service.schemas import CameraMessage
+
+    session = sessions.TrackSession(None, "sid", "cookie-box", None, Settings(store=tmp_path), None, None)
+    old, new = CameraMessage(**CAMERA), CameraMessage(**{**CAMERA, "fx": CAMERA["fx"] * 1.1})
+    session._control(("camera", old))
+    session._control(("camera", new))
+    for _ in range(2 * sessions.MAX_CONTROLS):
+        session._control(("reset",))
+    assert len(session.controls) == sessions.MAX_CONTROLS
+    assert [c[1] for c in session.controls if c[0] == "camera"] == [new]
+    # frames replaced before their turn pass their controls on to the newer one: still bounded
+    merged = sessions._bounded(session.controls + [("camera", old)] + [("reset",)] * sessions.MAX_CONTROLS)
+    assert len(merged) == sessions.MAX_CONTROLS and [c[1] for c in merged if c[0] == "camera"] == [old]
