@@ -207,8 +207,10 @@ CameraQuery = Annotated[CameraIn | None, Depends(camera_query)]
 
 
 def _camera_from_json(text: str) -> CameraIn:
+    """The multipart field ``camera``; a camera file saved with a UTF-8 byte order mark (Windows
+    editors) is read, as ``quatrack`` reads camera files (it was 422 "Invalid JSON")."""
     try:
-        return CameraIn.model_validate_json(text)
+        return CameraIn.model_validate_json(text.removeprefix("\ufeff"))
     except ValidationError as exc:
         raise ApiError(422, "bad_camera", CameraIn.error_message(exc)) from None
 

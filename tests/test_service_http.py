@@ -377,3 +377,14 @@ def test_a_client_leaving_mid_upload_is_not_a_server_error(server, client):
                       + start + b"a" * 1000)
     assert wait_until(lambda: count("499") == before[0] + 3), (count("499"), count("500"), before)
     assert count("500") == before[1]
+
+
+def test_a_camera_file_with_a_byte_order_mark_is_read(client, frame_jpeg):
+    """A camera JSON saved with a UTF-8 byte order mark (Windows editors), uploaded as the
+    multipart field ``camera`` (a file or a text field): read, as ``quatrack`` reads camera files
+    (it was 422 bad_camera "Invalid JSON"); the field's order does not matter either."""
+    text = "\ufeff" + json.dumps(CAMERA)
+    for camera in ((None, text), ("camera.json", text.encode("utf-8"), "application/json")):
+        files = [("camera", camera), ("image", ("f.jpg", frame_jpeg, "image/jpeg"))]  # (the camera first)
+        r = client.post("/v1/objects/cookie-box/pose", files=files)
+        assert r.status_code == 200 and r.json()["found"], r.text[:300]
