@@ -112,13 +112,18 @@ def _error_of(status: int, body: bytes | str) -> QuatrackError:
 @contextlib.contextmanager
 def _typed_stream_errors(url: str, timeout: float) -> Iterator[None]:
     """A stream's failures after the handshake raised as QuatrackError: ``"closed"`` (the
-    connection lost), ``"timeout"`` (no answer within ``timeout``); any other exception as it is.
+    connection lost), ``"too_large"`` (a frame so large the server closed it: 1009),
+    ``"timeout"`` (no answer within ``timeout``); any other exception as it is.
     (A plain context manager: it wraps the blocking and the asyncio streams alike.)"""
     from websockets.exceptions import ConnectionClosed
 
     try:
         yield
     except ConnectionClosed as exc:
+        if exc.rcvd is not None and exc.rcvd.code == 1009:  # (RFC 6455: "message too big")
+            # a frame over twice the server's QUATRACK_MAX_BODY_BYTES is not read: the server closes
+            # the socket; a smaller one over the limit is answered too_large, as REST answers 413
+            raise QuatrackError("too_large", f"{url}: the server closed the connection: {exc.rcvd.reason}") from None
         why = f" ({exc.rcvd.code} {exc.rcvd.reason})".rstrip() if exc.rcvd is not None else ""
         raise QuatrackError("closed", f"{url}: the connection was closed{why}") from None
     except TimeoutError:

@@ -260,3 +260,27 @@ def test_a_silent_server_is_a_timeout_not_unreachable(frames):
             with pytest.raises(QuatrackError) as e:
                 c.objects()
         assert e.value.code == "timeout", e.value
+
+
+def test_a_frame_too_large_for_the_socket_is_too_large_not_closed():
+    """A frame over twice the server's ``QUATRACK_MAX_BODY_BYTES`` is not read: the server closes
+    the socket with 1009 ("message too big"). It was ``"closed"``, as if the server had gone away;
+    it is ``"too_large"``, as a smaller frame over the limit (an error message) and REST's 413 are."""
+    import threading
+
+    from websockets.sync.server import serve
+
+    def handler(ws):  # as the service: the camera answered, then frames over max_size close (1009)
+        ws.recv()
+        ws.send(json.dumps({"type": "ready"}))
+        for _ in ws:
+            pass
+
+    with serve(handler, "127.0.0.1", 0, max_size=10_000) as ws_server:
+        threading.Thread(target=ws_server.serve_forever, daemon=True).start()
+        port = ws_server.socket.getsockname()[1]
+        with Client(f"http://127.0.0.1:{port}", object="cookie-box", timeout=30) as c:
+            with pytest.raises(QuatrackError) as e:
+                next(c.track([b"\xff\xd8\xff" + b"0" * 20_000], CAMERA))
+        ws_server.shutdown()
+    assert e.value.code == "too_large" and "exceeds" in e.value.message, e.value
