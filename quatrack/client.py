@@ -431,16 +431,21 @@ async def _realtime(s: _Session, frames, fps: float, timeout: float) -> None:
             s.take(json.loads(await s.ws.recv()))
 
     receiver = asyncio.create_task(receive())
-    t0 = time.perf_counter()
-    for k, (idx, t, data) in enumerate(frames):
-        delay = t0 + k / fps - time.perf_counter()
-        if delay > 0:
-            await asyncio.sleep(delay)
-        await s.send(idx, t, data)
-    deadline = time.perf_counter() + timeout  # the newest frame is always answered: wait for it
-    while s.numbers and not s.last_answered() and time.perf_counter() < deadline and not receiver.done():
-        await asyncio.sleep(0.01)
-    receiver.cancel()
+    try:
+        t0 = time.perf_counter()
+        for k, (idx, t, data) in enumerate(frames):
+            delay = t0 + k / fps - time.perf_counter()
+            if delay > 0:
+                await asyncio.sleep(delay)
+            await s.send(idx, t, data)
+        deadline = time.perf_counter() + timeout  # the newest frame is always answered: wait for it
+        while s.numbers and not s.last_answered() and time.perf_counter() < deadline and not receiver.done():
+            await asyncio.sleep(0.01)
+        if receiver.done():  # the connection lost before the last answer: raised (as lock-step raises),
+            receiver.result()  # not returned as if complete, with "Task exception was never retrieved" on stderr
+    finally:
+        receiver.cancel()
+        await asyncio.gather(receiver, return_exceptions=True)
 
 
 async def stream(url: str, camera: Any, frames: Iterable[tuple[int, float, bytes]], fps: float | None = None,

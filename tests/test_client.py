@@ -284,3 +284,30 @@ def test_a_frame_too_large_for_the_socket_is_too_large_not_closed():
                 next(c.track([b"\xff\xd8\xff" + b"0" * 20_000], CAMERA))
         ws_server.shutdown()
     assert e.value.code == "too_large" and "exceeds" in e.value.message, e.value
+
+
+def test_a_real_time_stream_cut_by_the_server_is_closed_not_complete():
+    """``stream(..., fps=F)``: the server closing the socket before the last answer (a restart:
+    1012) returned the answers so far as if the stream were complete, and the receiving task's
+    exception went to stderr as a traceback ("Task exception was never retrieved"). It is a
+    QuatrackError ``"closed"``, as in lock-step."""
+    import asyncio
+    import threading
+
+    from websockets.sync.server import serve
+
+    from quatrack.client import stream
+
+    def handler(ws):  # the camera answered, one frame read, then the server restarts
+        ws.recv()
+        ws.send(json.dumps({"type": "ready"}))
+        ws.recv(), ws.recv()
+        ws.close(1012, "service restart")
+
+    with serve(handler, "127.0.0.1", 0) as ws_server:
+        threading.Thread(target=ws_server.serve_forever, daemon=True).start()
+        url = f"ws://127.0.0.1:{ws_server.socket.getsockname()[1]}/v1/objects/cookie-box/track"
+        with pytest.raises(QuatrackError) as e:
+            asyncio.run(stream(url, CAMERA, [(0, 0.0, b"\xff\xd8\xff")], fps=10.0, timeout=30.0))
+        ws_server.shutdown()
+    assert e.value.code == "closed" and "1012" in e.value.message, e.value
