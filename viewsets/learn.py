@@ -52,7 +52,7 @@ from .features import RUN_TIME_STRETCH
 from .mesh import Mesh
 from .render import RenderBuffers, footprint, render_window
 from .rfch import RFCHModel, cooccurrence, descriptor_planes, label_planes
-from .store import ObjectModel, load_model, model_path, save_model
+from .store import ObjectModel, load_model, model_lock, model_path, save_model
 from .viewset import Viewset, ViewsetParams, build_viewset
 
 MAX_LEARNED = 24  # learned viewsets per model at most
@@ -192,8 +192,10 @@ def with_learned(model: ObjectModel, viewsets, max_learned: int = MAX_LEARNED,
 
 @contextlib.contextmanager
 def store_lock(store: str | Path, name: str):
-    """An exclusive lock on ``store/.learn-NAME.lock`` (``flock``; released when the holder
-    exits, even killed), so that read-merge-write sequences on one object never interleave."""
+    """The lock a merge of learned views holds (see :func:`merge_learned`): an exclusive ``flock``
+    on ``store/.learn-NAME.lock`` — what older versions' merges take, so that they and this one
+    still exclude each other — and the store's own :func:`~.store.model_lock`, which trainings and
+    deletions take too."""
     store = Path(store)
     store.mkdir(parents=True, exist_ok=True)
     path = store / f".learn-{model_path(store, name).name}.lock"
@@ -205,7 +207,8 @@ def store_lock(store: str | Path, name: str):
             fcntl = None
         if fcntl is not None:
             fcntl.flock(fd, fcntl.LOCK_EX)
-        yield
+        with model_lock(store, name):
+            yield
     finally:
         os.close(fd)  # closing releases the flock
 
@@ -237,7 +240,7 @@ def merge_learned(store: str | Path, name: str, viewsets, mesh: Mesh | None = No
         merged = with_learned(model, viewsets, max_learned, min_angle_deg)
         n_added = len(merged.viewsets) - len(model.viewsets)
         if n_added:
-            save_model(store, merged, overwrite=True)
+            save_model(store, merged, overwrite=True, locked=True)
         return folder, n_added, sum(vs.learned for vs in merged.viewsets)
 
 

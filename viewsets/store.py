@@ -9,10 +9,16 @@ place only when complete, so readers never see a partial model and a failed retr
 the old one intact. Folders whose names start with ``.`` are temporary and never listed; those
 an interrupted write left behind are removed after an hour (:func:`remove_stale`) when the store
 is opened (training, listing, serving).
+
+Every change of a model — a (re)training's rename, a deletion, the merge of views learned while
+tracking (read, merge, write) — holds the store's lock (:func:`model_lock`), so none of them comes
+between another's read and write: a model retrained or deleted while a ``track --learn`` run
+stored its views was put back as it was before.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import shutil
@@ -73,6 +79,31 @@ def resolve_store(store: str | Path | None) -> Path:
 
 def model_path(store: Path, name: str) -> Path:
     return Path(store) / check_object_name(name)
+
+
+@contextlib.contextmanager
+def model_lock(store: str | Path, name: str | None = None):
+    """An exclusive lock on the store's changes (``flock`` on the store's folder itself: no file
+    is added to the store; released when its holder exits, even killed): replacing, deleting
+    and merging views into a model never interleave. Not re-entrant: code that holds it calls
+    :func:`save_model` with ``locked=True``. ``name`` is the object about to change (checked;
+    the lock covers the store). Where the filesystem cannot lock a folder (some network ones),
+    the writes go on unlocked, each still atomic, as before the lock existed."""
+    store = Path(store)
+    if name is not None:
+        model_path(store, name)
+    store.mkdir(parents=True, exist_ok=True)
+    fd = os.open(store, os.O_RDONLY)
+    try:
+        try:
+            import fcntl
+
+            fcntl.flock(fd, fcntl.LOCK_EX)
+        except (ImportError, OSError):  # (not POSIX, or a folder that cannot be locked here)
+            pass
+        yield
+    finally:
+        os.close(fd)  # closing releases the flock
 
 
 def _camera_row(c: PinholeCamera) -> np.ndarray:
@@ -149,8 +180,10 @@ def _appearance(a: dict[str, np.ndarray]) -> list[TextureReference]:
     return out
 
 
-def save_model(store: str | Path, model: ObjectModel, overwrite: bool = True) -> Path:
-    """Write ``model`` atomically as ``store/NAME``; refuses an existing name unless ``overwrite``."""
+def save_model(store: str | Path, model: ObjectModel, overwrite: bool = True, locked: bool = False) -> Path:
+    """Write ``model`` atomically as ``store/NAME``; refuses an existing name unless ``overwrite``.
+    The files are written first, then put in place under the store's :func:`model_lock` (taken
+    here unless ``locked``: the caller holds it)."""
     if not isinstance(model, ObjectModel):  # (a spec, a name: AttributeError 'name')
         raise TypeError(f"model: an ObjectModel (quatrack.viewsets.train.train_object(spec) makes one), "
                         f"got {type(model).__name__}")
@@ -185,12 +218,13 @@ def save_model(store: str | Path, model: ObjectModel, overwrite: bool = True) ->
             json.dump(manifest, f, indent=1)
             f.flush()
             os.fsync(f.fileno())
-        if final.exists():
-            if not overwrite:
-                raise StoreError(f"object {model.name!r} already exists in {store} (and --no-overwrite was given)")
-            old = Path(tempfile.mkdtemp(prefix=f".old-{model.name}-", dir=store))
-            os.replace(final, old / "model")
-        os.replace(tmp, final)
+        with contextlib.nullcontext() if locked else model_lock(store, model.name):
+            if final.exists():
+                if not overwrite:
+                    raise StoreError(f"object {model.name!r} already exists in {store} (and --no-overwrite was given)")
+                old = Path(tempfile.mkdtemp(prefix=f".old-{model.name}-", dir=store))
+                os.replace(final, old / "model")
+            os.replace(tmp, final)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         if old is not None and not final.exists():
@@ -414,5 +448,10 @@ def delete_model(store: str | Path, name: str) -> None:
         trash = Path(tempfile.mkdtemp(prefix=f".del-{name}-", dir=store))
     except OSError as exc:  # (a read-only store: the message named the temporary folder)
         raise StoreError(f"cannot delete {name!r} from {store} ({exc.strerror or exc})") from None
-    os.replace(final, trash / "model")
-    shutil.rmtree(trash, ignore_errors=True)
+    try:
+        with model_lock(store, name):  # (not between a merge's read and its write: the model came back)
+            if not (final / MANIFEST).is_file():
+                raise StoreError(f"no object named {name!r} in {store}")
+            os.replace(final, trash / "model")
+    finally:
+        shutil.rmtree(trash, ignore_errors=True)

@@ -1,0 +1,94 @@
+"""The model store under changes users make while it is in use: a retraining or a deletion while
+a ``track --learn`` run (or a service session) stores its views, a model folder renamed by hand,
+a manifest whose SIFT settings this version cannot use. Built on the cookie box trained without
+synthetic views (about 2 s); its learned views here are its trained view seen from new directions
+(the store's rules, not recognition, are under test)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import shutil
+import threading
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from quatrack.cli import main
+from quatrack.tracking.pose import Pose
+from quatrack.viewsets import learn as L
+from quatrack.viewsets import store as S
+
+EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "cookie-box"
+NAME = "cookie-box"
+
+
+@pytest.fixture(scope="module")
+def base_store(tmp_path_factory):
+    store = tmp_path_factory.mktemp("base")
+    assert main(["train", str(EXAMPLE / "object.json"), "--store", str(store),
+                 "--novel-views", "none", "--novel-scales", "none"]) == 0
+    return store
+
+
+@pytest.fixture
+def store(base_store, tmp_path):
+    s = tmp_path / "store"
+    shutil.copytree(base_store, s)
+    return s
+
+
+def turned_views(model, degrees=(60.0, 120.0)) -> list:
+    """The model's first view as seen from cameras turned about the object's centre: new directions."""
+    vs, c = model.viewsets[0], model.mesh.centre
+    out = []
+    for k, deg in enumerate(degrees):
+        R = cv2.Rodrigues(np.array([0.0, np.radians(deg), 0.0]))[0]
+        pose = Pose.from_matrix(vs.pose.R @ R, vs.pose.R @ (c - R @ c) + vs.pose.t)  # turned about the centre
+        out.append(dataclasses.replace(vs, label=f"learned{k + 1}", learned=True, pose=pose))
+    assert all(L.is_new_direction(v.pose, c, model.viewsets) for v in out)
+    return out
+
+
+def _during_merge(monkeypatch, action):
+    """Run ``action`` in another thread right after merge_learned has read the stored model, and
+    give it a moment to finish before the merge writes (it finishes unless a lock holds it back)."""
+    real = L.load_model
+    threads = []
+
+    def load_then_act(store, name):
+        model = real(store, name)
+        t = threading.Thread(target=action)
+        t.start()
+        threads.append(t)
+        t.join(timeout=1.5)  # (held back by the object's lock: the merge goes on and writes first)
+        return model
+
+    monkeypatch.setattr(L, "load_model", load_then_act)
+    return threads
+
+
+def test_a_retraining_while_views_are_stored_is_not_undone(store, monkeypatch):
+    """A model retrained while a `track --learn` run stored its views: the merge wrote the model
+    it had read, with its views, over the retrained one (the retraining was lost, silently)."""
+    model = S.load_model(store, NAME)
+    retrained = dataclasses.replace(model, manifest={**model.manifest, "created": "the retraining"})
+    threads = _during_merge(monkeypatch, lambda: S.save_model(store, retrained))
+    _, added, _ = L.merge_learned(store, NAME, turned_views(model), model.mesh)
+    for t in threads:
+        t.join()
+    assert added == 2
+    back = S.load_model(store, NAME)
+    assert back.manifest["created"] == "the retraining"  # the later write stands, whole
+    assert not [p for p in store.iterdir() if p.name.startswith((".tmp-", ".old-"))]
+
+
+def test_a_model_deleted_while_views_are_stored_stays_deleted(store, monkeypatch):
+    model = S.load_model(store, NAME)
+    threads = _during_merge(monkeypatch, lambda: S.delete_model(store, NAME))
+    L.merge_learned(store, NAME, turned_views(model), model.mesh)
+    for t in threads:
+        t.join()
+    assert S.list_models(store) == []  # (it came back with the merge's write)
