@@ -92,3 +92,43 @@ def test_a_model_deleted_while_views_are_stored_stays_deleted(store, monkeypatch
     for t in threads:
         t.join()
     assert S.list_models(store) == []  # (it came back with the merge's write)
+
+
+@pytest.fixture(scope="module")
+def frame(tmp_path_factory):
+    path = tmp_path_factory.mktemp("frame") / "frame.png"
+    ok, img = cv2.VideoCapture(str(EXAMPLE / "box.mp4")).read()
+    assert ok and cv2.imwrite(str(path), img)
+    return path
+
+
+def _copy(store: Path, name: str, edit) -> None:
+    shutil.copytree(store / NAME, store / name)
+    m = json.loads((store / name / S.MANIFEST).read_text())
+    m["name"] = name
+    edit(m)
+    (store / name / S.MANIFEST).write_text(json.dumps(m))
+
+
+@pytest.mark.parametrize("edit", [lambda m: m["parameters"]["viewsets"].update(future_knob=3),
+                                  lambda m: m["parameters"]["viewsets"].update(max_features="1500"),
+                                  lambda m: m["parameters"]["viewsets"].update(root_sift=None)],
+                         ids=["unknown-setting", "string", "null"])
+def test_sift_settings_this_version_cannot_use_make_that_model_broken_not_locate(store, frame, capsys, edit):
+    """A model whose manifest holds SIFT settings this version cannot describe images with (a
+    newer version's setting, a hand edit) loaded, then failed inside every query with a TypeError
+    traceback — `locate --object all` too, for every object of the store."""
+    _copy(store, "odd-box", edit)
+    cam = str(EXAMPLE / "camera.json")
+    with pytest.raises(S.StoreError, match="'odd-box'"):
+        S.load_model(store, "odd-box")
+    assert main(["locate", "--object", "odd-box", "--camera", cam, str(frame), "--store", str(store)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "'odd-box'" in err and "Traceback" not in err, err
+    assert main(["locate", "--object", "all", "--camera", cam, str(frame), "--store", str(store), "--json"]) == 0
+    out, err = capsys.readouterr()
+    assert err.strip().startswith("quatrack locate: warning: object 'odd-box': ") and err.count("\n") == 1, err
+    line = json.loads(out)
+    assert [o["object"] for o in line["objects"]] == [NAME]  # the others are still searched
+    assert main(["models", "list", "--store", str(store)]) == 0
+    assert "odd-box\tBROKEN\t" in capsys.readouterr().out

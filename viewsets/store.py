@@ -19,7 +19,9 @@ stored its views was put back as it was before.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
+import math
 import os
 import shutil
 import tempfile
@@ -37,7 +39,7 @@ from .names import check_object_name
 from .rfch import RFCHModel
 from quatrack.tracking.pose import Pose
 from .texture import TextureReference
-from .viewset import Viewset
+from .viewset import Viewset, ViewsetParams
 
 SCHEMA_VERSION = 1
 MANIFEST = "manifest.json"
@@ -342,11 +344,37 @@ def load_model(store: str | Path, name: str) -> ObjectModel:
         raise StoreError(f"object {name!r}: corrupt model in {path.parent} ({what}); retrain it"[:500]) from None
 
 
+def _check_sift_settings(manifest: dict) -> None:
+    """Raise ValueError unless ``parameters.viewsets`` are SIFT settings this version describes
+    images with (:func:`~.viewset.params_from_manifest`, which every query calls): a key it does
+    not know (a model from a newer version, a hand edit) or a value of the wrong kind was a
+    TypeError traceback out of ``locate`` — out of ``locate --object all`` for every object."""
+    p = manifest["parameters"]["viewsets"]
+    if not isinstance(p, dict):
+        raise ValueError("manifest 'parameters.viewsets' is not an object")
+    known = {f.name for f in dataclasses.fields(ViewsetParams)}
+    unknown = sorted(set(p) - known)
+    if unknown:
+        raise ValueError(f"its SIFT settings hold {', '.join(map(repr, unknown))}, which this version does not "
+                         f"know (trained by a newer quatrack?)")
+    default = ViewsetParams()
+    for key, value in p.items():
+        d = getattr(default, key)
+        if isinstance(d, bool):
+            ok = isinstance(value, bool)
+        else:
+            ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and value >= 0 \
+                and (isinstance(value, int) or not isinstance(d, int))
+        if not ok:
+            raise ValueError(f"manifest 'parameters.viewsets.{key}' is {value!r}"[:200])
+
+
 def _build_model(name: str, manifest: dict, a: dict[str, np.ndarray]) -> ObjectModel:
     metas = manifest["viewsets"]
     if not isinstance(metas, list):
         raise ValueError("manifest 'viewsets' is not a list")
     _check_arrays(a, len(metas))
+    _check_sift_settings(manifest)
     p = manifest["parameters"]["rfch"]
     info = manifest["rfch"]
     rfch = RFCHModel(
