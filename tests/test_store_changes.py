@@ -132,3 +132,22 @@ def test_sift_settings_this_version_cannot_use_make_that_model_broken_not_locate
     assert [o["object"] for o in line["objects"]] == [NAME]  # the others are still searched
     assert main(["models", "list", "--store", str(store)]) == 0
     assert "odd-box\tBROKEN\t" in capsys.readouterr().out
+
+
+def test_a_model_folder_renamed_by_hand_is_that_object(store, frame, capsys):
+    """`mv STORE/cookie-box STORE/my-box` (the store has no rename command): the model was
+    'corrupt ... (manifest names object 'cookie-box'); retrain it' everywhere."""
+    (store / NAME).rename(store / "my-box")
+    shutil.copytree(store / "my-box", store / "my-box-copy")
+    model = S.load_model(store, "my-box")
+    assert model.name == "my-box" and model.manifest["name"] == "my-box"
+    assert main(["models", "list", "--store", str(store)]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("my-box\t1 viewsets") and "my-box-copy\t1 viewsets" in out and "BROKEN" not in out, out
+    cam = str(EXAMPLE / "camera.json")
+    assert main(["locate", "--object", "my-box", "--camera", cam, str(frame), "--store", str(store), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["object"] == "my-box"
+    # the next write (views learned into it) records the new name
+    L.merge_learned(store, "my-box", turned_views(model), model.mesh)
+    assert json.loads((store / "my-box" / S.MANIFEST).read_text())["name"] == "my-box"
+    assert S.load_model(store, "my-box").name == "my-box"

@@ -395,7 +395,9 @@ def _build_model(name: str, manifest: dict, a: dict[str, np.ndarray]) -> ObjectM
         ))
     mesh = Mesh(a["mesh_vertices"], a["mesh_faces"])
     if manifest.get("name", name) != name:
-        raise ValueError(f"manifest names object {manifest.get('name')!r}")
+        # a folder renamed (or copied) by hand: the object is named by its folder, as it is listed
+        # and asked for (it was "corrupt model ... retrain it"); the manifest follows at the next write
+        manifest = {**manifest, "name": name}
     return ObjectModel(name, rfch, viewsets, mesh, manifest, _appearance(a))
 
 
