@@ -150,6 +150,9 @@ def _setup(args: argparse.Namespace) -> _Setup:
     init = _load_init_pose(args.init_pose) if args.init_pose else None
     store = resolve_store(args.store)
     model = load_model(store, args.object)
+    if params.learn:  # (a store that cannot take the views: said now, not after the whole walk)
+        from quatrack.viewsets.learn import check_can_store
+        check_can_store(store, args.object)
     source = open_frames(args.video, args.images, args.fps, args.max_frames)
     tracker = Tracker(model, camera, params, index=index_for(model))
     if init is not None:

@@ -151,3 +151,28 @@ def test_a_model_folder_renamed_by_hand_is_that_object(store, frame, capsys):
     L.merge_learned(store, "my-box", turned_views(model), model.mesh)
     assert json.loads((store / "my-box" / S.MANIFEST).read_text())["name"] == "my-box"
     assert S.load_model(store, "my-box").name == "my-box"
+
+
+@pytest.mark.parametrize("where", ["store", "model"])
+def test_track_learn_into_a_store_it_cannot_write_is_refused_before_the_first_frame(store, tmp_path, capsys,
+                                                                                    monkeypatch, where):
+    """A read-only store (or model folder): the whole walk was tracked, then the learned views
+    were lost at the end ('--learn: the 3 learned view(s) were not saved ...')."""
+    import os
+
+    from quatrack.recognition.video import Tracker
+
+    ro = store if where == "store" else store / NAME
+    real, real_step = os.access, Tracker.step
+    monkeypatch.setattr(os, "access", lambda p, mode, **kw: False if Path(p) == ro else real(p, mode, **kw))  # (root ignores modes)
+    monkeypatch.setattr(Tracker, "step", lambda *a, **kw: pytest.fail("tracked a frame"))
+    out = tmp_path / "poses.csv"
+    args = ["track", "--object", NAME, "--camera", str(EXAMPLE / "camera.json"), "--video", str(EXAMPLE / "box.mp4"),
+            "--max-frames", "2", "--out", str(out), "--store", str(store), "--quiet"]
+    assert main([*args, "--learn"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"cannot store learned views in {ro} (" in err and "without --learn" in err, err
+    assert not out.exists()
+    monkeypatch.setattr(Tracker, "step", real_step)
+    assert main(args) == 0  # without --learn the store is only read
+    assert out.exists()

@@ -213,6 +213,20 @@ def store_lock(store: str | Path, name: str):
         os.close(fd)  # closing releases the flock
 
 
+def check_can_store(store: str | Path, name: str) -> None:
+    """Raise :class:`StoreError` when the stored model ``name`` cannot take learned views: its
+    store or its folder is read-only to this process (a read-only mount, another user's store).
+    ``track --learn`` asks before its first frame — it found out at the end, after the whole
+    walk, and the views were lost."""
+    store = Path(store)
+    for folder in (store, model_path(store, name)):  # (the store gains a new folder; the old one is moved away)
+        if folder.is_dir() and not os.access(folder, os.W_OK | os.X_OK):
+            ro = hasattr(os, "statvfs") and bool(os.statvfs(folder).f_flag & getattr(os, "ST_RDONLY", 1))
+            raise StoreError(f"--learn: cannot store learned views in {folder} "
+                             f"({'read-only file system' if ro else 'permission denied'}): "
+                             f"track without --learn, or copy the model to a store you can write in")
+
+
 def merge_learned(store: str | Path, name: str, viewsets, mesh: Mesh | None = None, max_learned: int = MAX_LEARNED,
                   min_angle_deg: float = MIN_ANGLE_DEG, learned_on: ObjectModel | None = None) -> tuple[Path, int, int]:
     """Merge ``viewsets`` into the *stored* model ``name`` (re-read under :func:`store_lock`, so a
@@ -266,5 +280,5 @@ def same_mesh(a: Mesh, b: Mesh) -> bool:
 
 
 __all__ = ["MAX_LEARNED", "MIN_ANGLE_DEG", "MIN_COS", "view_angles_deg", "is_new_direction",
-           "learned_viewset", "with_learned", "merge_learned", "save_learned", "store_lock", "same_mesh",
+           "learned_viewset", "with_learned", "check_can_store", "merge_learned", "save_learned", "store_lock", "same_mesh",
            "same_description"]
