@@ -176,3 +176,26 @@ def test_track_learn_into_a_store_it_cannot_write_is_refused_before_the_first_fr
     monkeypatch.setattr(Tracker, "step", real_step)
     assert main(args) == 0  # without --learn the store is only read
     assert out.exists()
+
+
+def test_a_model_deleted_during_a_learning_run_says_the_views_were_not_saved(store, tmp_path, capsys, monkeypatch):
+    """The run ended 'error: no object named ...': nothing said the learned views were lost."""
+    from quatrack.recognition.video import Tracker
+
+    views = turned_views(S.load_model(store, NAME))
+    real_step, calls = Tracker.step, []
+
+    def step(self, image, t):
+        calls.append(t)
+        self.learned = list(views)
+        if len(calls) == 2:
+            S.delete_model(store, NAME)
+        return real_step(self, image, t)
+
+    monkeypatch.setattr(Tracker, "step", step)
+    out = tmp_path / "poses.csv"
+    assert main(["track", "--object", NAME, "--camera", str(EXAMPLE / "camera.json"), "--video", str(EXAMPLE / "box.mp4"),
+                 "--max-frames", "3", "--out", str(out), "--store", str(store), "--quiet", "--learn"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"no object named '{NAME}'" in err and "the 2 learned view(s) were not saved" in err, err
+    assert len(out.read_text().splitlines()) == 4  # the poses are kept

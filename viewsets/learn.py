@@ -239,7 +239,12 @@ def merge_learned(store: str | Path, name: str, viewsets, mesh: Mesh | None = No
     would never match, and their colours would be counted in the wrong clusters)."""
     viewsets = list(viewsets)
     with store_lock(store, name):
-        model = load_model(store, name)
+        try:
+            model = load_model(store, name)
+        except StoreError as exc:  # (deleted or renamed meanwhile, broken: the message said nothing of the views)
+            if not viewsets:
+                raise
+            raise StoreError(f"{exc}; the {len(viewsets)} learned view(s) were not saved") from None
         folder = model_path(Path(store), name)
         # (the views were lifted on the mesh the tracker ran on: the stored one, or its run-time
         # decimation, Mesh.run_time, which lies on it; the stored model keeps its full mesh)
