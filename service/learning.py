@@ -14,16 +14,33 @@ from __future__ import annotations
 import asyncio
 import logging
 
-from quatrack.viewsets.learn import merge_learned
+from quatrack.viewsets.errors import StoreError
+from quatrack.viewsets.learn import check_can_store, merge_learned
 
 from .settings import Settings
 
 log = logging.getLogger("quatrack.service")
 
 
+_UNSTORABLE: set[tuple[str, str]] = set()  # (store, object) already logged as unable to take views
+
+
 def learns(settings: Settings, name: str) -> bool:
-    """Whether sessions of object ``name`` learn views (``QUATRACK_LEARN_VIEWS``: names or ``*``)."""
-    return "*" in settings.learn_views or name in settings.learn_views
+    """Whether sessions of object ``name`` learn views (``QUATRACK_LEARN_VIEWS``: names or ``*``),
+    and their store can take them: with a store (or model folder) the server cannot write in,
+    sessions learned for nothing — the views were refused at each session's end, and the
+    ``ready`` message said ``"learns": true`` — so they do not learn, and the log says why once."""
+    if not ("*" in settings.learn_views or name in settings.learn_views):
+        return False
+    try:
+        check_can_store(settings.store, name)
+    except StoreError as exc:
+        key = (str(settings.store), name)
+        if key not in _UNSTORABLE:
+            _UNSTORABLE.add(key)
+            log.warning("object %s: QUATRACK_LEARN_VIEWS names it, but its sessions learn nothing: %s", name, exc)
+        return False
+    return True
 
 
 def store_views(settings: Settings, name: str, tracker) -> int:

@@ -199,3 +199,22 @@ def test_a_model_deleted_during_a_learning_run_says_the_views_were_not_saved(sto
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and f"no object named '{NAME}'" in err and "the 2 learned view(s) were not saved" in err, err
     assert len(out.read_text().splitlines()) == 4  # the poses are kept
+
+
+def test_the_service_does_not_learn_into_a_store_it_cannot_write(store, monkeypatch, caplog):
+    """QUATRACK_LEARN_VIEWS with a read-only store: sessions learned, told the client
+    '"learns": true', and every session's views were refused at its end."""
+    import logging
+    import os
+
+    from quatrack.service import learning
+    from quatrack.service.settings import Settings
+
+    settings = Settings(store=store, learn_views=(NAME,))
+    assert learning.learns(settings, NAME) and not learning.learns(settings, "other")
+    real = os.access
+    monkeypatch.setattr(os, "access", lambda p, mode, **kw: False if Path(p) == store else real(p, mode, **kw))
+    with caplog.at_level(logging.WARNING, logger="quatrack.service"):
+        assert not learning.learns(settings, NAME) and not learning.learns(settings, NAME)
+    said = [r.getMessage() for r in caplog.records if "learn nothing" in r.getMessage()]
+    assert len(said) == 1 and f"cannot store learned views in {store}" in said[0], said  # once, not per session
