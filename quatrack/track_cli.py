@@ -313,7 +313,8 @@ def _store_learned(s: _Setup, name: str) -> None:
     learned = s.tracker.learned_viewsets()
     folder = model_path(s.store, name)
     if not learned:  # (nothing to write: the store is not touched, not even its lock — it may be read-only)
-        print(f"quatrack track: learned no new views (none seen from a new direction with a confident pose); "
+        from quatrack.viewsets.learn import why_none_learned
+        print(f"quatrack track: learned no new views ({why_none_learned(s.model, s.tracker.params.learn_max_views)}); "
               f"{folder} unchanged", file=sys.stderr)
         return
     try:

@@ -218,3 +218,27 @@ def test_the_service_does_not_learn_into_a_store_it_cannot_write(store, monkeypa
         assert not learning.learns(settings, NAME) and not learning.learns(settings, NAME)
     said = [r.getMessage() for r in caplog.records if "learn nothing" in r.getMessage()]
     assert len(said) == 1 and f"cannot store learned views in {store}" in said[0], said  # once, not per session
+
+
+def test_a_model_holding_the_most_learned_views_says_so(store, tmp_path, capsys):
+    """The line said 'none seen from a new direction with a confident pose' whatever the walk
+    showed, once the model held its 24 learned views."""
+    from quatrack.testing import zoo as Z
+
+    model = S.load_model(store, NAME)
+    vs, c = model.viewsets[0], model.mesh.centre
+    dist = np.linalg.norm(vs.pose.inverse().t - c)
+    k = np.arange(60) + 0.5
+    dirs = np.stack([np.cos(np.pi * (1 + 5 ** 0.5) * k) * np.sin(np.arccos(1 - 2 * k / 60)),
+                     np.sin(np.pi * (1 + 5 ** 0.5) * k) * np.sin(np.arccos(1 - 2 * k / 60)), 1 - 2 * k / 60], 1)
+    views = [dataclasses.replace(vs, learned=True, pose=Z.look_at(c + dist * d, c, up=(1.0, 0.0, 0.0) if abs(d[2]) > 0.9
+                                                                                        else (0.0, 0.0, 1.0)))
+             for d in dirs]
+    full = L.with_learned(model, views)
+    assert sum(v.learned for v in full.viewsets) == L.MAX_LEARNED
+    S.save_model(store, full)
+    assert main(["track", "--object", NAME, "--camera", str(EXAMPLE / "camera.json"), "--video", str(EXAMPLE / "box.mp4"),
+                 "--max-frames", "2", "--out", str(tmp_path / "poses.csv"), "--store", str(store), "--quiet",
+                 "--learn"]) == 0
+    err = capsys.readouterr().err
+    assert f"learned no new views (the model holds {L.MAX_LEARNED} learned views, the most it keeps; " in err, err

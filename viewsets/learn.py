@@ -213,6 +213,15 @@ def store_lock(store: str | Path, name: str):
         os.close(fd)  # closing releases the flock
 
 
+def why_none_learned(model: ObjectModel, max_learned: int = MAX_LEARNED) -> str:
+    """Why a run learned no view of ``model`` (the CLI's line): the bound reached, else no
+    confident frame from a new direction (that one said so, too, when the bound was the cause)."""
+    n = sum(vs.learned for vs in model.viewsets)
+    if n >= max_learned:
+        return f"the model holds {n} learned views, the most it keeps; retrain it to learn afresh"
+    return "none seen from a new direction with a confident pose"
+
+
 def check_can_store(store: str | Path, name: str) -> None:
     """Raise :class:`StoreError` when the stored model ``name`` cannot take learned views: its
     store or its folder is read-only to this process (a read-only mount, another user's store).
@@ -285,5 +294,5 @@ def same_mesh(a: Mesh, b: Mesh) -> bool:
 
 
 __all__ = ["MAX_LEARNED", "MIN_ANGLE_DEG", "MIN_COS", "view_angles_deg", "is_new_direction",
-           "learned_viewset", "with_learned", "check_can_store", "merge_learned", "save_learned", "store_lock", "same_mesh",
+           "learned_viewset", "with_learned", "why_none_learned", "check_can_store", "merge_learned", "save_learned", "store_lock", "same_mesh",
            "same_description"]
