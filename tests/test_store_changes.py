@@ -242,3 +242,30 @@ def test_a_model_holding_the_most_learned_views_says_so(store, tmp_path, capsys)
                  "--learn"]) == 0
     err = capsys.readouterr().err
     assert f"learned no new views (the model holds {L.MAX_LEARNED} learned views, the most it keeps; " in err, err
+
+
+def test_a_store_shared_by_a_group_takes_every_members_learned_views(store, monkeypatch):
+    """The first merge created .learn-NAME.lock as 0644 whatever the umask, and another member
+    of the group sharing the store (a server run by a service user, a colleague's track --learn)
+    could not open it for writing: 'the N learned view(s) were not saved ...: Permission denied'."""
+    import os
+
+    model = S.load_model(store, NAME)
+    views = turned_views(model)
+    old = os.umask(0o002)
+    try:
+        L.merge_learned(store, NAME, views[:1], model.mesh)
+    finally:
+        os.umask(old)
+    lock = store / f".learn-{NAME}.lock"
+    assert lock.stat().st_mode & 0o777 == 0o664  # (the group may open it as the models' folders)
+    real = os.open
+
+    def not_ours(path, flags, *a, **kw):  # (root opens anything: the other user's 0644 file, simulated)
+        if str(path) == str(lock) and flags & (os.O_WRONLY | os.O_RDWR):
+            raise PermissionError(13, "Permission denied", str(path))
+        return real(path, flags, *a, **kw)
+
+    monkeypatch.setattr(os, "open", not_ours)
+    _, added, total = L.merge_learned(store, NAME, views[1:], model.mesh)
+    assert (added, total) == (1, 2)

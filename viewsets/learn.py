@@ -199,14 +199,17 @@ def store_lock(store: str | Path, name: str):
     store = Path(store)
     store.mkdir(parents=True, exist_ok=True)
     path = store / f".learn-{model_path(store, name).name}.lock"
-    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    try:  # (0o666 less the umask, as the models' folders: a store shared by a group stays usable by all)
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
+    except PermissionError:  # another user's lock file, not writable to us: flock needs only an open file
+        fd = os.open(path, os.O_RDONLY)
     try:
         try:
             import fcntl
-        except ImportError:  # (not POSIX: no lock; the write is still atomic)
-            fcntl = None
-        if fcntl is not None:
+
             fcntl.flock(fd, fcntl.LOCK_EX)
+        except (ImportError, OSError):  # (not POSIX, or a file system that cannot lock it: the write is still atomic)
+            pass
         with model_lock(store, name):
             yield
     finally:
