@@ -495,6 +495,22 @@ def pose_from_bop(line: str, mesh_unit: str) -> Pose:
     return Pose.from_matrix(R, np.array([float(x) for x in parts[5].split()]) / _unit_scale(mesh_unit, 1e-3))
 
 
+def ros_stamp(time_s: float) -> tuple[int, int]:
+    """``(sec, nanosec)`` of ROS's ``builtin_interfaces/Time`` for ``time_s``, to the nearest
+    nanosecond, ``0 ≤ nanosec < 10⁹``. A fraction that rounds up to a whole second carries into
+    ``sec`` (it was wrapped to 0 with ``sec`` kept: 2.9999999997 s was stamped 2 s, a second
+    early and before the previous frame's stamp).
+
+    >>> ros_stamp(12.25), ros_stamp(2.9999999997), ros_stamp(0.0)
+    ((12, 250000000), (3, 0), (0, 0))
+    """
+    sec = int(math.floor(time_s))
+    nanosec = int(round((time_s - sec) * 1e9))
+    if nanosec >= 1_000_000_000:
+        sec, nanosec = sec + 1, nanosec - 1_000_000_000
+    return sec, nanosec
+
+
 def ros_pose_with_covariance(step_or_msg, mesh_unit: str, frame_id: str = "camera") -> dict | None:
     """``geometry_msgs/PoseWithCovarianceStamped`` as JSON (the field names of ROS 2's message):
     ``header.stamp`` from ``time_s``, position in metres, ``orientation`` in ROS order ``x, y,
@@ -514,10 +530,9 @@ def ros_pose_with_covariance(step_or_msg, mesh_unit: str, frame_id: str = "camer
     else:
         cov = np.zeros(36)  # unknown; ROS says -1 in [0] means "unknown"
         cov[0] = -1.0
-    sec = int(math.floor(step.time_s))
+    sec, nanosec = ros_stamp(step.time_s)
     return {
-        "header": {"stamp": {"sec": sec, "nanosec": int(round((step.time_s - sec) * 1e9)) % 1_000_000_000},
-                   "frame_id": frame_id},
+        "header": {"stamp": {"sec": sec, "nanosec": nanosec}, "frame_id": frame_id},
         "pose": {"pose": {"position": {"x": float(t[0]), "y": float(t[1]), "z": float(t[2])},
                           "orientation": {"x": x, "y": y, "z": z, "w": w}},
                  "covariance": [float(c) for c in cov]},

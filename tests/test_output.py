@@ -208,6 +208,20 @@ def test_ros_message_round_trip(unit):
     assert pose.allclose(Pose(s.q_wxyz, s.t), atol=1e-9) and np.allclose(cov_back, s.covariance)
 
 
+def test_a_ros_stamp_whose_fraction_rounds_to_a_second_carries_into_sec():
+    # 2.9999999997 s: the fraction rounds to 10⁹ ns, which was wrapped to 0 with sec kept at 2 —
+    # the frame stamped a second early, before the frame that came before it
+    stamps = []
+    for t in (2.9999999990, 2.9999999997, 3.0000000004):
+        s = _step(seed=6)
+        s.time_s = t
+        st = trackio.ros_pose_with_covariance(s, "m")["header"]["stamp"]
+        assert 0 <= st["nanosec"] < 1_000_000_000
+        stamps.append((st["sec"], st["nanosec"]))
+    assert stamps == [(2, 999_999_999), (3, 0), (3, 0)]
+    assert stamps == sorted(stamps)
+
+
 def test_row_writer_formats():
     f = io.StringIO()
     w = trackio.RowWriter(f, "csv")
