@@ -222,6 +222,34 @@ def test_a_ros_stamp_whose_fraction_rounds_to_a_second_carries_into_sec():
     assert stamps == sorted(stamps)
 
 
+@pytest.mark.parametrize("unit", ["mm", "cm", "m"])
+def test_one_step_in_every_format_holds_the_same_numbers(unit):
+    # the CSV rounded to 6 significant digits (a pose at 12 m in a mesh in metres: 10 µm off;
+    # the quaternion ~1e-6) and BOP to 9: the same run's files disagreed with its JSON lines
+    import csv
+
+    s = _step(seed=11)
+    s.t = np.array([1.2345678912345, -0.00012345678912, 12.345678912345])  # metres, say
+    msg = json.loads(trackio.jsonl_row(s))
+    f = io.StringIO()
+    w = trackio.RowWriter(f, "csv")
+    w.write(s)
+    w.write(TrackStep(frame=4, time_s=0.5, status="lost", inliers=2))
+    rows = list(csv.DictReader(io.StringIO(f.getvalue())))
+    assert [float(rows[0][c]) for c in ("tx", "ty", "tz")] == msg["pose"]["t"] == list(s.t)
+    assert [float(rows[0][c]) for c in ("qw", "qx", "qy", "qz")] == msg["pose"]["q_wxyz"]
+    assert [float(rows[0][c]) for c in ("vx", "vy", "vz")] == msg["velocity"]["v"]
+    assert [float(rows[0][c]) for c in ("wx", "wy", "wz")] == msg["velocity"]["omega"]
+    assert rows[1]["status"] == "lost" and all(rows[1][c] == "" for c in trackio.CSV_COLUMNS[3:16])
+    k_mm, k_m = trackio.UNIT_METRES[unit] / 1e-3, trackio.UNIT_METRES[unit]
+    bop = dict(zip(trackio.BOP_COLUMNS, trackio.bop_row(s, unit).split(",")))
+    assert [float(x) for x in bop["t"].split()] == [x * k_mm for x in msg["pose"]["t"]]  # exactly × the factor
+    assert [float(x) for x in bop["R"].split()] == list(quat.to_matrix(np.array(msg["pose"]["q_wxyz"])).ravel())
+    ros = trackio.ros_pose_with_covariance(msg, unit)["pose"]["pose"]
+    assert [ros["position"][a] for a in "xyz"] == [x * k_m for x in msg["pose"]["t"]]
+    assert [ros["orientation"][a] for a in "wxyz"] == msg["pose"]["q_wxyz"]
+
+
 def test_row_writer_formats():
     f = io.StringIO()
     w = trackio.RowWriter(f, "csv")
