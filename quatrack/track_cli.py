@@ -48,7 +48,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="csv: the contract's columns (default); jsonl: one JSON message per frame (pose, "
                              "velocity, covariance); bop: BOP results (scene_id,im_id,obj_id,score,R,t,time; t in mm)")
     parser.add_argument("--mesh-unit", choices=sorted(UNIT_METRES), default=None,
-                        help="the unit of the object's mesh; needed by --format bop (BOP's t is in mm)")
+                        help="the unit of the object's mesh; needed by --format bop (BOP's t is in mm); "
+                             "csv and jsonl stay in the mesh's units")
     parser.add_argument("--obj-id", type=int, default=1, metavar="N", help="BOP obj_id (default 1)")
     parser.add_argument("--store", metavar="DIR", help="model store (default: $QUATRACK_STORE or the user data directory)")
     parser.add_argument("--motion-model", default="ude", choices=["ude", "m1", "m2", "m3"],
@@ -266,6 +267,9 @@ def run(args: argparse.Namespace) -> int:
     if args.images and (pair := misordered(args.images)) is not None:
         print(f"quatrack track: warning: --images are read in order of name, so {pair[0]} comes before {pair[1]}: "
               f"number the files with leading zeros (0002 for 2), or give them in order", file=sys.stderr)
+    if args.mesh_unit is not None and args.format != "bop":  # (ignored in silence: a CSV read as metres was in mm)
+        print(f"quatrack track: warning: --mesh-unit is for --format bop only; the {args.format} output is in the "
+              f"mesh's own units ({args.mesh_unit}), unconverted", file=sys.stderr)
     progress = Progress("tracking", enabled=False if args.quiet else None)
     with ExitStack() as stack:
         stack.callback(s.source.close)

@@ -96,6 +96,21 @@ def test_bop_format(camera, tmp_path):
         assert 300 < t_mm[2] < 1500  # the box ~65 cm in front of the camera, in millimetres
 
 
+def test_mesh_unit_with_a_format_that_does_not_convert_is_warned_of(camera, tmp_path, capsys):
+    # --format csv --mesh-unit m: the CSV is in the mesh's units (cm here), as the contract says,
+    # but nothing told the user, who read the centimetres as metres
+    out = tmp_path / "poses.csv"
+    assert _track(tmp_path, "--video", "0", "--fps", "30", "--max-frames", "2", "--out", str(out),
+                  "--mesh-unit", "m") == 0
+    err = capsys.readouterr().err
+    assert "--mesh-unit is for --format bop only" in err and "csv" in err
+    rows = list(csv.DictReader(out.open()))
+    assert 30 < float(rows[0]["tz"]) < 150  # the box ~65 cm away, in the mesh's centimetres
+    assert _track(tmp_path, "--video", "0", "--fps", "30", "--max-frames", "1", "--out", str(out),
+                  "--format", "bop", "--mesh-unit", "cm") == 0
+    assert "--mesh-unit" not in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("extra, message", [
     (["--format", "bop"], "--mesh-unit"),
     (["--max-frames", "0"], "--max-frames"),
