@@ -398,3 +398,34 @@ def test_the_overlay_draws_on_frames_of_any_depth_the_tracker_takes():
                   np.zeros((480, 640, 4), np.uint8)):
         assert np.array_equal(draw_overlay(frame, cam, None, step, edges=edges), ref), frame.dtype
     assert draw_overlay(np.zeros((480, 640), np.uint8), cam, None, step, edges=edges).shape == (480, 640)
+
+
+def test_the_covariance_rotation_block_is_about_the_camera_axes_as_documented():
+    # independent of quatrack's rotation code (scipy): poses fitted to noisy projections scatter
+    # as the reported covariance says for δθ with R_true = exp([δθ]×) R (camera axes: what the
+    # contract and the ROS message say), not for the object-axes R_true = R exp([δθ]×)
+    from scipy.spatial.transform import Rotation
+
+    from quatrack.recognition.pose import refine
+
+    rng = np.random.default_rng(0)
+    cam = PinholeCamera(width=640, height=480, fx=600.0, fy=600.0, cx=320.0, cy=240.0)
+    X = rng.uniform(-8, 8, size=(30, 3))
+    R_true, t_true = Rotation.from_rotvec([0.9, -1.2, 0.5]), np.array([3.0, -2.0, 60.0])
+    Xc = R_true.apply(X) + t_true
+    uv0 = 600 * Xc[:, :2] / Xc[:, 2:] + [320, 240]
+    x, y, z, w = R_true.as_quat()
+    camera_axes, object_axes, reported = [], [], []
+    for _ in range(400):
+        p, q, cov = refine(cam, X, uv0 + rng.normal(0, 0.5, uv0.shape), t_true, np.array([w, x, y, z]))
+        R_est = Rotation.from_quat([*q[1:], q[0]])
+        camera_axes.append(np.r_[p - t_true, (R_est * R_true.inv()).as_rotvec()])
+        object_axes.append(np.r_[p - t_true, (R_true.inv() * R_est).as_rotvec()])
+        reported.append(cov)
+    C = np.mean(reported, axis=0)
+    sd = np.sqrt(np.diag(C))
+
+    def off(errors):  # the largest difference, in units of the reported standard deviations
+        return (np.abs(np.cov(np.array(errors).T) - C) / np.outer(sd, sd)).max()
+
+    assert off(camera_axes) < 0.25 and off(object_axes) > 1.0, (off(camera_axes), off(object_axes))
