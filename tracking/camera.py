@@ -25,6 +25,19 @@ from quatrack.tracking.jit import lazily_compiled
 _MAX_DIST = 8  # k1 k2 p1 p2 k3 k4 k5 k6 (thin-prism and tilt terms are not supported)
 
 
+def _rig_array(value, shape: tuple, name: str) -> np.ndarray:
+    """A rig transform's array of ``shape``, or a ValueError naming it (numpy said "cannot
+    reshape array of size 4 into shape (3,3)")."""
+    try:
+        a = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be numbers, got {value!r}"[:120]) from None
+    if a.size != int(np.prod(shape)) or not np.all(np.isfinite(a)):
+        raise ValueError(f"{name} must be {'a 3×3 matrix' if len(shape) == 2 else '3'} of finite numbers, "
+                         f"got shape {a.shape}")
+    return a.reshape(shape)
+
+
 @dataclass(frozen=True)
 class PinholeCamera:
     """Intrinsics (pixels), distortion, image size (pixels) and rig extrinsics of one camera."""
@@ -70,11 +83,20 @@ class PinholeCamera:
             raise ValueError(f"the principal point must be finite, got cx={self.cx}, cy={self.cy}")
         for name in ("width", "height"):
             v = getattr(self, name)
-            if v is not None and (isinstance(v, bool) or not float(v).is_integer() or v <= 0):
-                raise ValueError(f"{name} must be a whole number of pixels above 0, got {v!r}")
+            # (a string "640" passed float() and failed later at "'<=' not supported"; a float 640.0
+            # was kept as a float and ended in OpenCV's "Can't parse 'dsize'" inside the tracker)
+            if v is not None and (isinstance(v, (str, bytes, bool, np.bool_)) or np.ndim(v) != 0
+                                  or not isinstance(v, (int, float, np.integer, np.floating))
+                                  or not np.isfinite(v) or not float(v).is_integer() or v <= 0):
+                raise ValueError(f"{name} must be a whole number of pixels above 0, got {v!r}"[:120])
+            if v is not None:
+                object.__setattr__(self, name, int(v))
         object.__setattr__(self, "dist_coeffs", d)
-        object.__setattr__(self, "R_rig", np.asarray(self.R_rig, dtype=float).reshape(3, 3))
-        object.__setattr__(self, "t_rig", np.asarray(self.t_rig, dtype=float).reshape(3))
+        object.__setattr__(self, "R_rig", _rig_array(self.R_rig, (3, 3), "R_rig"))
+        object.__setattr__(self, "t_rig", _rig_array(self.t_rig, (3,), "t_rig"))
+        if not np.allclose(self.R_rig @ self.R_rig.T, np.eye(3), atol=1e-3) or np.linalg.det(self.R_rig) <= 0:
+            raise ValueError("R_rig must be a rotation matrix (orthonormal, det +1): it maps the reference "
+                             "camera's frame into this camera's")
         # True when there are distortion terms to apply
         object.__setattr__(self, "has_distortion", bool(np.any(d != 0.0)))
         # True when this camera *is* the reference frame (no rig transform to apply)

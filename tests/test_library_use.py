@@ -1,0 +1,44 @@
+"""quatrack as a robotics/AR engineer's Python library: what such a user passes (cameras built in
+code, frames from numpy in odd layouts, a tracker reused, results copied) is either used as meant
+or refused naming the argument — never a traceback from deep inside numpy or OpenCV."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from quatrack.tracking.camera import PinholeCamera
+
+
+def _camera(**kw) -> PinholeCamera:
+    return PinholeCamera(**{"fx": 669.7, "fy": 667.8, "cx": 320.0, "cy": 240.0, "width": 640, "height": 480, **kw})
+
+
+def test_a_camera_size_given_as_floats_or_numpy_ints_is_kept_as_ints():
+    # width=640.0 was kept as a float: Tracker.step ended in OpenCV's "Can't parse 'dsize'"
+    for w, h in ((640.0, 480.0), (np.int64(640), np.int32(480)), (np.float32(640), 480)):
+        cam = _camera(width=w, height=h)
+        assert (cam.width, cam.height) == (640, 480)
+        assert type(cam.width) is int and type(cam.height) is int
+    assert _camera(width=None, height=None).width is None
+
+
+@pytest.mark.parametrize("bad", ["640", 640.5, 0, -3, True, float("nan"), float("inf"), [640]])
+def test_a_camera_size_that_is_no_whole_number_is_refused_naming_it(bad):
+    # "640" passed float() and failed later with "'<=' not supported between instances of 'str' and 'int'"
+    with pytest.raises(ValueError, match="width must be a whole number of pixels"):
+        _camera(width=bad)
+
+
+def test_a_rig_transform_of_the_wrong_shape_or_not_a_rotation_is_refused_naming_it():
+    with pytest.raises(ValueError, match="R_rig must be a 3×3 matrix"):  # (numpy: "cannot reshape array of size 4")
+        _camera(R_rig=np.eye(2))
+    with pytest.raises(ValueError, match="t_rig must be 3"):
+        _camera(t_rig=[1.0, 2.0])
+    with pytest.raises(ValueError, match="R_rig must be a rotation"):  # (a reflection was used as given)
+        _camera(R_rig=np.diag([1.0, 1.0, -1.0]))
+    with pytest.raises(ValueError, match="R_rig must be numbers"):
+        _camera(R_rig="identity")
+    c, s = np.cos(0.3), np.sin(0.3)
+    cam = _camera(R_rig=[[c, 0, s], [0, 1, 0], [-s, 0, c]], t_rig=[-100, 0, 0])
+    assert cam.R_rig.shape == (3, 3) and not cam.is_reference
