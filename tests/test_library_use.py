@@ -42,3 +42,38 @@ def test_a_rig_transform_of_the_wrong_shape_or_not_a_rotation_is_refused_naming_
     c, s = np.cos(0.3), np.sin(0.3)
     cam = _camera(R_rig=[[c, 0, s], [0, 1, 0], [-s, 0, c]], t_rig=[-100, 0, 0])
     assert cam.R_rig.shape == (3, 3) and not cam.is_reference
+
+
+@pytest.mark.parametrize("field, bad", [("min_points", "5"), ("max_points", 2.5), ("refresh_every", -1),
+                                        ("audit_every_anchored", "6"), ("min_inliers", True)])
+def test_tracker_settings_that_are_no_whole_numbers_are_refused_naming_them(field, bad):
+    # min_points="5" ended in "'<' not supported between instances of 'int' and 'str'" at the
+    # first refresh; refresh_every=2.5 and -1 were run as given
+    from quatrack.recognition.video import TrackerParams
+
+    with pytest.raises(ValueError, match=f"{field} must be a whole number >= 0"):
+        TrackerParams(**{field: bad})
+
+
+def test_tracker_settings_of_the_wrong_kind_are_refused_naming_them():
+    from quatrack.recognition.video import TrackerParams
+
+    with pytest.raises(ValueError, match="gate_chi2 must be a finite number"):  # (a numpy UFuncTypeError in the step)
+        TrackerParams(gate_chi2="13")
+    with pytest.raises(ValueError, match="systematic_px must be a finite number"):
+        TrackerParams(systematic_px=float("nan"))
+    with pytest.raises(ValueError, match="keyframe_synthetic_deg must be a tuple of numbers"):
+        TrackerParams(keyframe_synthetic_deg=20.0)
+    with pytest.raises(TypeError, match="klt: a KLTParams"):
+        TrackerParams(klt={"win": 17})
+    with pytest.raises(ValueError, match="motion_noise must be a dict"):
+        TrackerParams(motion_noise=[("a", 1.0)])
+
+
+def test_tracker_settings_in_other_number_types_are_read_as_meant():
+    from quatrack.recognition.video import TrackerParams
+
+    p = TrackerParams(max_points=150.0, refresh_every=np.int64(5), systematic_px=None, motion_noise=None)
+    assert p == TrackerParams(max_points=150, refresh_every=5, systematic_px=None)
+    assert type(p.max_points) is int and type(p.refresh_every) is int and p.motion_noise == {}
+    assert TrackerParams().for_live_streams().anchor_max_side == 320

@@ -9,7 +9,8 @@ a die or a car, gives the same track up to the unit (tests/test_tracker_units.py
 from __future__ import annotations
 
 import types
-from dataclasses import dataclass, field, replace
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 
@@ -37,6 +38,10 @@ _TRANSLATION_NOISE = {"a", "sigma_p2"}  # the terms in length², scaled by the d
 INITIAL_VELOCITY_SIGMA = 100.0
 
 STATUSES = ("init", "tracking", "lost")
+
+# TrackerParams' fields holding settings objects, by their annotation (TrackerParams._check_kinds)
+_SETTINGS = {"KLTParams": KLTParams, "VisibilityParams": VisibilityParams, "LocateParams": LocateParams,
+             "AdjustOptions": AdjustOptions}
 
 
 def motion_noise(motion_model: str, diameter: float, overrides: dict | None = None) -> dict[str, float]:
@@ -333,6 +338,7 @@ class TrackerParams:
     )
 
     def __post_init__(self) -> None:
+        self._check_kinds()
         noise = DEFAULT_MOTION_NOISE.get(self.motion_model)
         if noise is None:
             raise ValueError(f"unknown motion model {self.motion_model!r}; expected one of {sorted(DEFAULT_MOTION_NOISE)}")
@@ -359,6 +365,36 @@ class TrackerParams:
         for name in ("max_points", "min_points", "min_inliers"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"{name} must be at least 1, not {getattr(self, name)!r}")
+
+    def _check_kinds(self) -> None:
+        """Every field of the kind its annotation says, or a ValueError (TypeError for a settings
+        object) naming it: ``min_points="5"`` ended in "'<' not supported between 'int' and 'str'"
+        at the first refresh, ``gate_chi2="13"`` in a numpy UFuncTypeError, ``refresh_every=2.5``
+        and ``-1`` were run as given, ``motion_noise=None`` was "'NoneType' object is not iterable".
+        ``motion_noise=None`` now means no overrides, as ``{}``."""
+        if self.motion_noise is None:
+            object.__setattr__(self, "motion_noise", {})
+        if not isinstance(self.motion_noise, Mapping):
+            raise ValueError(f"motion_noise must be a dict of noise parameters (mesh units), "
+                             f"not {type(self.motion_noise).__name__}")
+        for f in fields(self):
+            kind, value = f.type, getattr(self, f.name)
+            if value is None and kind.endswith("| None"):
+                continue
+            kind = kind.removesuffix(" | None")
+            if kind == "int":
+                if not (_number(value) and np.isfinite(value) and float(value).is_integer() and value >= 0):
+                    raise ValueError(f"{f.name} must be a whole number >= 0, not {value!r}"[:120])
+                object.__setattr__(self, f.name, int(value))  # (150.0, numpy's ints: Python's int)
+            elif kind == "float":
+                if not (_number(value) and np.isfinite(value)):
+                    raise ValueError(f"{f.name} must be a finite number, not {value!r}"[:120])
+            elif kind == "tuple[float, ...]":
+                if isinstance(value, (str, bytes)) or not isinstance(value, Iterable) \
+                        or not all(_number(v) and np.isfinite(v) for v in value):
+                    raise ValueError(f"{f.name} must be a tuple of numbers, e.g. (20.0,), not {value!r}"[:120])
+            elif kind in _SETTINGS and not isinstance(value, _SETTINGS[kind]):
+                raise TypeError(f"{f.name}: a {kind}, got {type(value).__name__}")
 
     def motion_noise_params(self, diameter: float) -> dict[str, float]:
         """The motion model's noise parameters (mesh units) for an object of this diameter."""
