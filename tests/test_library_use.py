@@ -77,3 +77,103 @@ def test_tracker_settings_in_other_number_types_are_read_as_meant():
     assert p == TrackerParams(max_points=150, refresh_every=5, systematic_px=None)
     assert type(p.max_points) is int and type(p.refresh_every) is int and p.motion_noise == {}
     assert TrackerParams().for_live_streams().anchor_max_side == 320
+
+
+# --- the tracker on the bundled example's video ------------------------------------------------
+
+@pytest.fixture(scope="module")
+def box():
+    """(model, camera, the video's first 6 frames) of the bundled example."""
+    import cv2
+
+    from quatrack.testing.scenes import EXAMPLE, example_model
+    from quatrack.viewsets.camera import load_camera
+
+    cap = cv2.VideoCapture(str(EXAMPLE / "box.mp4"))
+    frames = [cap.read()[1] for _ in range(6)]
+    cap.release()
+    return example_model(), load_camera(EXAMPLE / "camera.json"), frames
+
+
+def test_a_track_step_gives_its_pose_as_a_pose_and_survives_pickling(box):
+    import copy
+    import pickle
+
+    from quatrack.recognition.video import Tracker
+
+    model, camera, frames = box
+    tracker = Tracker(model, camera)
+    steps = [tracker.step(f, k / 30) for k, f in enumerate(frames[:3])]
+    s = steps[-1]
+    assert s.status == "tracking" and s.has_pose
+    np.testing.assert_array_equal(s.pose.t, s.t)
+    np.testing.assert_allclose(s.pose.q_wxyz, s.q_wxyz, rtol=0, atol=1e-12)  # (Pose renormalises)
+    T = s.pose.as_matrix()  # (object → camera, as Located.pose)
+    np.testing.assert_allclose(T[:3, :3] @ [1.0, 2.0, 3.0] + T[:3, 3], s.pose.apply([1.0, 2.0, 3.0]))
+    C = s.covariance
+    assert C.shape == (6, 6) and np.allclose(C, C.T, rtol=0, atol=1e-15) and np.linalg.eigvalsh(C).min() > 0
+    again = pickle.loads(pickle.dumps(s))
+    assert again.pose.allclose(s.pose, atol=0) and copy.deepcopy(s).status == "tracking"
+    lost = tracker.skip(0.2, "unreadable")
+    assert lost.pose is None and not lost.has_pose
+
+
+def test_a_skipped_frame_may_not_go_back_in_time_as_a_stepped_one_may_not(box):
+    # skip(0.0) after a frame at 0.1 s was answered, a step earlier than the one before it
+    from quatrack.recognition.video import Tracker
+
+    model, camera, frames = box
+    tracker = Tracker(model, camera)
+    tracker.step(frames[0], 0.1)
+    with pytest.raises(ValueError, match="time goes backwards"):
+        tracker.skip(0.0, "unreadable")
+    assert tracker.skip(0.1, "unreadable").frame == 1  # (a repeated time is no step back)
+    with pytest.raises(ValueError, match="time goes backwards"):
+        tracker.step(frames[1], 0.05)
+    tracker.reset()  # (a new stream: its clock may start again)
+    assert tracker.skip(0.0, "unreadable").time_s == 0.0
+
+
+def test_a_tracker_refuses_to_be_copied_or_pickled_saying_why(box):
+    # (copy.deepcopy and pickle said "cannot pickle '_thread._local' object")
+    import copy
+    import pickle
+
+    from quatrack.recognition.video import Tracker
+
+    model, camera, _ = box
+    tracker = Tracker(model, camera)
+    for how in (copy.copy, copy.deepcopy, pickle.dumps):
+        with pytest.raises(TypeError, match="a Tracker cannot be copied or pickled.*make another Tracker"):
+            how(tracker)
+
+
+def test_a_step_while_another_thread_is_inside_step_is_refused(box, monkeypatch):
+    # two threads stepping one tracker (a ROS multi-threaded executor's callbacks) interleaved
+    # their frames in one filter without a word
+    import threading
+
+    from quatrack.recognition.tracker import machine
+    from quatrack.recognition.video import Tracker
+
+    model, camera, frames = box
+    tracker = Tracker(model, camera)
+    inside, go_on = threading.Event(), threading.Event()
+    convert = machine.to_bgr8
+
+    def slow_convert(image):
+        inside.set()
+        go_on.wait(30)
+        return convert(image)
+
+    monkeypatch.setattr(machine, "to_bgr8", slow_convert)
+    answers: list = []
+    first = threading.Thread(target=lambda: answers.append(tracker.step(frames[0], 0.0)))
+    first.start()
+    assert inside.wait(30)
+    with pytest.raises(RuntimeError, match="another call of it"):
+        tracker.step(frames[1], 1 / 30)
+    go_on.set()
+    first.join(60)
+    monkeypatch.setattr(machine, "to_bgr8", convert)
+    assert answers[0].frame == 0 and tracker.step(frames[1], 1 / 30).frame == 1  # (the refused call counted nothing)

@@ -43,6 +43,7 @@ States and transitions (Kragic & Kyrki's Fig. 1 loop):
 from __future__ import annotations
 
 import copy
+import threading
 import time
 from concurrent.futures import Executor
 from dataclasses import replace
@@ -161,6 +162,7 @@ class Tracker:
         # (TrackerParams.relocate_interval_s), None once a track holds: the first frame of the
         # next loss searches at once; _last_time, the latest frame's time)
         self.reset()
+        self._stepping = threading.Lock()  # held by step(): a second thread's call is refused
         if params.pipelined_refresh and params.refresh_every and executor is not None:
             executor.submit(lambda: self._index()._matcher())  # warm the anchor thread's index
 
@@ -217,12 +219,16 @@ class Tracker:
         ``reason``. The track is kept: the next frame predicts across the gap, as after a
         dropped frame."""
         time_s = _seconds(time_s)
+        last = self.filter.state.t if self.filter.state is not None else self._last_time
+        if last is not None and time_s < last:  # (as step: a skipped frame went back in time unnoticed)
+            raise ValueError(f"time goes backwards ({time_s} s after {last} s)")
         self._frame += 1
-        self._last_time = max(time_s, self._last_time if self._last_time is not None else time_s)
+        self._last_time = time_s
         return TrackStep(self._frame, time_s, "lost", reason=reason)
 
     @property
     def tracking(self) -> bool:
+        """Whether a track is held (the filter has a state): the next frame is predicted from it."""
         return self.filter.state is not None
 
     @property
@@ -231,7 +237,37 @@ class Tracker:
         return "tracking" if self.tracking else "init"
 
     def step(self, image: np.ndarray, time_s: float) -> TrackStep:
-        """Process one frame taken at ``time_s`` (seconds, non-decreasing)."""
+        """Process one frame taken at ``time_s`` (seconds, non-decreasing; a repeated time is a
+        second look at the same instant) and answer it (:class:`TrackStep`).
+
+        ``image``: a numpy array (H, W, 3) in OpenCV's **BGR** order, as ``cv2.VideoCapture`` and
+        ``cv2.imread`` give it — convert RGB frames (PIL, imageio, ROS ``rgb8``) with
+        ``cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)`` or ``rgb[..., ::-1]``: nothing can tell them apart
+        and the colours the tracker learns are then swapped; or grey (H, W) or (H, W, 1), or BGRA.
+        ``uint8``; ``uint16`` as full-range 16-bit (its top 8 bits: scale a 10- or 12-bit camera's
+        values to 16 bits first, ``img << 4`` for 12 bits, else it reads as nearly black);
+        ``float32``/``float64`` in 0..1 (or 0..255 when a value exceeds 1). Any strides (slices,
+        views, Fortran order) are fine. The image must be the camera's size (a camera without one
+        takes the first frame's). Raises :class:`~quatrack.recognition.images.ImageError` (a
+        ValueError) for an image it cannot use, ValueError for a time that is not a finite number
+        or goes back (call :meth:`reset` between two streams), and RuntimeError when called while
+        another thread is inside ``step`` of the same tracker (one tracker per stream, one call at
+        a time)."""
+        if not self._stepping.acquire(blocking=False):
+            raise RuntimeError("Tracker.step was called while another call of it (another thread) is running: "
+                               "a tracker follows one stream, one frame at a time; use one Tracker per thread")
+        try:
+            return self._step(image, time_s)
+        finally:
+            self._stepping.release()
+
+    def __getstate__(self):
+        # (copy, deepcopy and pickle failed with "cannot pickle '_thread._local' object" from the
+        # matching index's per-thread matchers)
+        raise TypeError("a Tracker cannot be copied or pickled (it holds per-thread matchers and the "
+                        "stream's frames); make another Tracker(model, camera, params) for another stream")
+
+    def _step(self, image: np.ndarray, time_s: float) -> TrackStep:
         t_start = time.perf_counter()
         time_s = _seconds(time_s)
         img = to_bgr8(image)

@@ -15,6 +15,7 @@ from dataclasses import dataclass, field, fields, replace
 import numpy as np
 
 from quatrack.tracking.adjust import AdjustOptions
+from quatrack.tracking.pose import Pose
 
 from ..klt import KLTParams
 from ..locate import LocateParams
@@ -418,9 +419,11 @@ class TrackerParams:
 
 @dataclass
 class TrackStep:
-    """One frame's answer. Pose object → camera (``t`` mesh units, ``q_wxyz`` with w ≥ 0),
-    ``v`` mesh units/s and ``omega`` rad/s in the camera frame; ``covariance`` 6×6 over
-    ``[p, δθ]``. Pose fields are None when ``status`` is ``lost``."""
+    """One frame's answer. Pose object → camera (``t`` mesh units, ``q_wxyz`` with w ≥ 0; both
+    as :attr:`pose`), ``v`` mesh units/s and ``omega`` rad/s in the camera frame; ``covariance``
+    6×6 over ``[p, δθ]`` (``δθ`` the rotation error in the camera frame: ``q_true = exp(δθ/2) ⊗
+    q``), symmetric positive definite (to rounding). Pose fields are None when ``status`` is ``lost``.
+    Picklable and copyable; ``timings_ms`` is the step's time per stage (milliseconds)."""
 
     frame: int
     time_s: float
@@ -436,4 +439,12 @@ class TrackStep:
 
     @property
     def has_pose(self) -> bool:
+        """Whether the step carries a pose (``status`` is ``init`` or ``tracking``, not ``lost``)."""
         return self.status != "lost"
+
+    @property
+    def pose(self) -> Pose | None:
+        """The pose as a :class:`~quatrack.tracking.pose.Pose` (object → camera; ``as_matrix()``,
+        ``inverse()``, ``@``), as :attr:`Located.pose <quatrack.recognition.locate.Located.pose>`
+        gives it; None when there is none (``lost``)."""
+        return None if self.t is None or self.q_wxyz is None else Pose(self.q_wxyz, self.t)
