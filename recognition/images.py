@@ -162,7 +162,9 @@ def read_image(path: str) -> np.ndarray:
 
 
 def to_bgr8(image: np.ndarray) -> np.ndarray:
-    """8-bit, 3-channel BGR from grey, BGRA, 16-bit or float images."""
+    """8-bit, 3-channel BGR from grey, BGRA, 16-bit or float images: ``uint16`` as full-range
+    16-bit (its top 8 bits), floats as 0..1 (0..255 when a value exceeds 1). Colour is taken as
+    OpenCV's BGR order: an RGB image cannot be told apart and passes as it is."""
     if image is None or isinstance(image, (str, bytes, os.PathLike)):
         raise ImageError(f"expected an image array (numpy), got {type(image).__name__}"
                          + ("" if image is None else ": read the file first (cv2.imread)"))
@@ -170,14 +172,17 @@ def to_bgr8(image: np.ndarray) -> np.ndarray:
     if img.ndim == 3 and img.shape[2] == 1:
         img = img[..., 0]
     if img.ndim not in (2, 3) or (img.ndim == 3 and img.shape[2] not in (3, 4)):
-        raise ImageError(f"unsupported image shape {img.shape}: expected grey, BGR or BGRA")
+        raise ImageError(f"unsupported image shape {img.shape}: expected grey (H, W) or (H, W, 1), BGR or BGRA "
+                         f"(H, W, 3|4)" + (" (channels first? image.transpose(1, 2, 0))"
+                                           if img.ndim == 3 and img.shape[0] in (1, 3, 4) else ""))
     if img.dtype == np.uint16:
         img = (img >> 8).astype(np.uint8)
     elif img.dtype in (np.float32, np.float64):
         finite = np.nan_to_num(img, nan=0.0, posinf=1.0, neginf=0.0)
         img = np.clip(finite * 255.0 if finite.max() <= 1.0 else finite, 0, 255).astype(np.uint8)
     elif img.dtype != np.uint8:
-        raise ImageError(f"unsupported pixel type {img.dtype}")
+        raise ImageError(f"unsupported pixel type {img.dtype}: expected uint8, uint16, or float32/float64 in 0..1 "
+                         f"(convert with image.astype(np.uint8) when the values are 0..255)")
     if img.ndim == 2:
         return cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
     if img.shape[2] == 4:

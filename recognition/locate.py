@@ -367,7 +367,8 @@ def locate(
     image: np.ndarray, camera: PinholeCamera, model: ObjectModel, params: LocateParams = LocateParams(),
     index: ModelIndex | None = None, shared: dict | None = None, prefer=None,
 ) -> Located:
-    """Find ``model`` in ``image`` (any bit depth/channels) seen by ``camera``; never raises for
+    """Find ``model`` in ``image`` (BGR as OpenCV reads it, grey or BGRA; ``uint8``, full-range
+    ``uint16`` or float 0..1: :func:`~quatrack.recognition.images.to_bgr8`) seen by ``camera``; never raises for
     an image without the object (``found`` is False), raises ImageError for an unusable image
     (and TypeError for a camera or model of the wrong type: :func:`check_inputs`).
 

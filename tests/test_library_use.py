@@ -177,3 +177,32 @@ def test_a_step_while_another_thread_is_inside_step_is_refused(box, monkeypatch)
     first.join(60)
     monkeypatch.setattr(machine, "to_bgr8", convert)
     assert answers[0].frame == 0 and tracker.step(frames[1], 1 / 30).frame == 1  # (the refused call counted nothing)
+
+
+def test_frames_from_numpy_in_other_layouts_give_the_same_track_and_the_rest_say_what_is_expected(box):
+    # float 0..1, 16-bit, strided views and Fortran order are the same frame as OpenCV's uint8 BGR;
+    # an int64 array (np.array of a nested list) or channels-first said only "unsupported pixel
+    # type int64" / "unsupported image shape (3, 480, 640)"
+    from quatrack.recognition.images import ImageError
+    from quatrack.recognition.video import Tracker
+
+    model, camera, frames = box
+
+    def track(convert):
+        tracker = Tracker(model, camera)
+        return [tracker.step(convert(f), k / 30) for k, f in enumerate(frames[:3])]
+
+    ref = track(lambda f: f)
+    assert ref[-1].status == "tracking"
+    for convert in (lambda f: f.astype(np.float32) / 255, lambda f: f.astype(np.uint16) * 257,
+                    lambda f: np.ascontiguousarray(f[..., ::-1])[..., ::-1], np.asfortranarray,
+                    lambda f: np.pad(f, ((0, 0), (0, 0), (0, 1)))[..., :3]):
+        got = track(convert)
+        assert [s.status for s in got] == [s.status for s in ref]
+        np.testing.assert_array_equal(got[-1].t, ref[-1].t)
+        np.testing.assert_array_equal(got[-1].q_wxyz, ref[-1].q_wxyz)
+    tracker = Tracker(model, camera)
+    with pytest.raises(ImageError, match="int64: expected uint8, uint16, or float32/float64 in 0..1"):
+        tracker.step(frames[0].astype(np.int64), 0.0)
+    with pytest.raises(ImageError, match=r"channels first\? image.transpose\(1, 2, 0\)"):
+        tracker.step(frames[0].transpose(2, 0, 1), 0.0)
