@@ -23,3 +23,27 @@ def test_library_example_runs_and_recovers_the_motion(capsys):
     assert lines[0].startswith("Pose(q_wxyz=[")
     sigma = np.array(lines[1].strip("[]").split(), float)
     assert sigma.shape == (6,) and np.all(sigma > 0) and np.all(sigma[:3] < 5.0) and np.all(sigma[3:] < 0.05)
+
+
+def test_the_finding_and_tracking_example_runs_and_its_conversions_agree(capsys):
+    from scipy.spatial.transform import Rotation
+
+    text = README.read_text(encoding="utf-8")
+    section = text[text.index("### Finding and tracking a trained object"):]
+    code = re.search(r"```python\n(.*?)```", section, re.S).group(1)
+    scope: dict = {}
+    try:
+        exec(compile(code, "README.md", "exec"), scope)  # noqa: S102 - our own documentation
+    finally:
+        if "store" in scope:
+            import shutil
+
+            shutil.rmtree(scope["store"], ignore_errors=True)
+    found, step = scope["found"], scope["step"]
+    assert found.found and step.status == "tracking"
+    assert 60 < np.linalg.norm(step.pose.t) < 80  # (cm: the box is about 70 cm away)
+    R = Rotation.from_quat(scope["q_xyzw"]).as_matrix()
+    np.testing.assert_allclose(R, scope["T"][:3, :3], atol=1e-12)
+    np.testing.assert_allclose(scope["T"][:3, 3], step.t)
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].startswith("True Pose(q_wxyz=[") and lines[1].startswith("tracking [")
