@@ -22,6 +22,8 @@ import numpy as np
 
 from quatrack.tracking.jit import lazily_compiled
 
+__all__ = ["PinholeCamera"]
+
 _MAX_DIST = 8  # k1 k2 p1 p2 k3 k4 k5 k6 (thin-prism and tilt terms are not supported)
 
 

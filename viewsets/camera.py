@@ -19,6 +19,8 @@ from quatrack.tracking.camera import PinholeCamera
 
 from .errors import SpecError
 
+__all__ = ["load_camera", "camera_from_dict", "camera_to_dict", "check_plausible", "within_pixels"]
+
 _KEYS = ("fx", "fy", "cx", "cy")
 
 

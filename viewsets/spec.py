@@ -25,6 +25,8 @@ from .camera import camera_from_dict, isfinite, load_camera
 from .errors import SpecError, StoreError
 from .names import check_object_name
 
+__all__ = ["ObjectSpec", "ViewSpec", "load_spec", "parse_pose"]
+
 
 @dataclass(frozen=True)
 class ViewSpec:

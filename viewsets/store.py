@@ -41,6 +41,10 @@ from quatrack.tracking.pose import Pose
 from .texture import TextureReference
 from .viewset import Viewset, ViewsetParams
 
+__all__ = ["ObjectModel", "StoreError", "load_model", "save_model", "list_models", "delete_model",
+           "model_lock", "default_store", "resolve_store", "model_path", "load_manifest", "model_stamp",
+           "trained_from", "learned_views_warning", "remove_stale"]
+
 SCHEMA_VERSION = 1
 MANIFEST = "manifest.json"
 ARRAYS = "model.npz"
@@ -79,7 +83,9 @@ def resolve_store(store: str | Path | None) -> Path:
     return Path(store).expanduser() if store else default_store()
 
 
-def model_path(store: Path, name: str) -> Path:
+def model_path(store: str | Path, name: str) -> Path:
+    """The folder of object ``name`` in ``store`` (it may not exist); a name that is not a valid
+    object name (a path, ``..``) is a :class:`StoreError`."""
     return Path(store) / check_object_name(name)
 
 
@@ -240,6 +246,8 @@ def save_model(store: str | Path, model: ObjectModel, overwrite: bool = True, lo
 
 
 def load_manifest(store: str | Path, name: str) -> dict:
+    """The stored model's ``manifest.json`` (training parameters, views, versions) without loading
+    its arrays; :class:`StoreError` when there is no such object or the manifest is unreadable."""
     path = model_path(Path(store), name) / MANIFEST
     if not path.is_file():
         raise StoreError(f"no object named {name!r} in {store}")

@@ -28,6 +28,8 @@ from .store import ObjectModel
 from .texture import crop_reference
 from .viewset import Viewset, ViewsetParams, build_viewset
 
+__all__ = ["TrainParams", "train_object", "check_pose", "keypoint_density"]
+
 
 @dataclass(frozen=True)
 class TrainParams:

@@ -82,6 +82,8 @@ from .mesh_points import MeshPoints, birth_mask, confident
 from .reacquire import LastSeen, hull_mask, object_shift, shifted_pose
 from .sources import FrameContext, MeasurementSource, TrainedPoints, follow_together
 
+__all__ = ["Tracker"]
+
 
 def _ms(t0: float) -> float:
     return (time.perf_counter() - t0) * 1e3

@@ -22,6 +22,9 @@ from ..locate import LocateParams
 from ..pose import PoseParams
 from ..visibility import VisibilityParams
 
+__all__ = ["TrackerParams", "TrackStep", "motion_noise", "DEFAULT_MOTION_NOISE", "STATUSES",
+           "INITIAL_VELOCITY_SIGMA"]
+
 # Plant noise per motion model, free of units: translation terms are per diameter² of the object,
 # rotation terms in rad². A noise in diameters moves the object's image by the same share of its
 # apparent size whatever the mesh unit, the object's size, its distance or the focal length.
