@@ -228,3 +228,21 @@ def test_the_library_modules_say_what_is_public_and_document_it(name):
     own = {n for n, o in vars(module).items() if not n.startswith("_") and (inspect.isfunction(o) or inspect.isclass(o))
            and o.__module__ == module.__name__}
     assert own <= set(module.__all__) | {"isfinite"}, f"{name}: public but not in __all__: {own - set(module.__all__)}"
+
+
+def test_training_settings_of_the_wrong_kind_are_refused_naming_them():
+    # min_keypoints="20" trained every viewset and then failed with "'<' not supported between
+    # instances of 'int' and 'str'"; jobs=2.5 was truncated without a word
+    from quatrack.viewsets.train import TrainParams
+
+    for field, bad in (("min_keypoints", "20"), ("jobs", 2.5), ("jobs", -1)):
+        with pytest.raises(ValueError, match=f"{field} must be a whole number"):
+            TrainParams(**{field: bad})
+    with pytest.raises(ValueError, match="min_contrast_threshold must be a number above 0"):
+        TrainParams(min_contrast_threshold=0)
+    with pytest.raises(TypeError, match="rfch: a RFCHParams"):
+        TrainParams(rfch={"n_clusters": 16})
+    with pytest.raises(TypeError, match="novel: a NovelViewParams or None"):
+        TrainParams(novel=False)
+    p = TrainParams(jobs=np.int64(2), min_keypoints=20.0, novel=None)
+    assert p == TrainParams(jobs=2, novel=None) and type(p.jobs) is int and type(p.min_keypoints) is int

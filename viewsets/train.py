@@ -48,6 +48,31 @@ class TrainParams:
     min_keypoint_density: float | None = 10.0
     min_contrast_threshold: float = 0.01
 
+    def __post_init__(self) -> None:
+        # (min_keypoints="20" ended in "'<' not supported between 'int' and 'str'" after the
+        # viewsets were built; a dict for rfch in AttributeError 'n_clusters' deep in training)
+        for name, kind in (("rfch", RFCHParams), ("viewsets", ViewsetParams)):
+            if not isinstance(getattr(self, name), kind):
+                raise TypeError(f"{name}: a {kind.__name__}, got {type(getattr(self, name)).__name__}")
+        if self.novel is not None and not isinstance(self.novel, NovelViewParams):
+            raise TypeError(f"novel: a NovelViewParams or None, got {type(self.novel).__name__}")
+        for name in ("jobs", "min_keypoints"):
+            v = getattr(self, name)
+            if not (_real(v) and float(v).is_integer() and v >= 0):
+                raise ValueError(f"{name} must be a whole number >= 0, not {v!r}"[:120])
+            object.__setattr__(self, name, int(v))
+        if self.min_keypoint_density is not None and not (_real(self.min_keypoint_density)
+                                                          and self.min_keypoint_density >= 0):
+            raise ValueError(f"min_keypoint_density must be None or a number >= 0, not {self.min_keypoint_density!r}"[:120])
+        if not (_real(self.min_contrast_threshold) and self.min_contrast_threshold > 0):
+            raise ValueError(f"min_contrast_threshold must be a number above 0, not {self.min_contrast_threshold!r}"[:120])
+
+
+def _real(v) -> bool:
+    """A finite real number, not a bool or a string."""
+    return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, (bool, np.bool_)) \
+        and bool(np.isfinite(v))
+
 
 @dataclass(frozen=True)
 class _View:
