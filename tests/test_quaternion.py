@@ -272,3 +272,48 @@ def test_pose_from_rvec_and_compose_name_what_is_wrong():
     assert np.array_equal(p.t, [1.0, 2.0, 3.0]) and np.array_equal(p.rvec.round(12), [0.1, 0.2, 0.3])
     with pytest.raises(TypeError, match="composes with a Pose.*from_homogeneous"):
         p @ p.as_matrix()
+
+
+@st.composite
+def rotations_near_half_turns(draw):
+    """Unit quaternions anywhere on S³, and ones within 1e-12…1e-2 rad of a half-turn (w ≈ 0),
+    where a from_matrix dividing by 4w² loses every digit."""
+    axis = draw(vec3)
+    n = np.linalg.norm(axis)
+    if n < 1e-6:
+        axis, n = np.array([0.0, 0.0, 1.0]), 1.0
+    axis = axis / n
+    near = draw(st.booleans())
+    angle = (np.pi - draw(st.one_of(st.just(0.0), st.floats(1e-12, 1e-2)))) if near else draw(st.floats(0.0, np.pi))
+    return quat.from_rotvec(angle * axis)
+
+
+@given(st.one_of(unit_quaternions(), rotations_near_half_turns()))
+def test_from_matrix_inverts_to_matrix_for_every_rotation_including_half_turns(q):
+    R = quat.to_matrix(q)
+    back = quat.from_matrix(R)
+    assert back[0] >= 0.0 and abs(quat.norm(back) - 1.0) < 1e-15
+    assert float(quat.angle_between(back, q)) < 1e-12  # the same rotation, to double precision
+    np.testing.assert_allclose(quat.to_matrix(back), R, atol=1e-14)
+    if abs(q[0]) > 1e-12:  # (at w = 0 the sign is canonical's choice, not q's)
+        np.testing.assert_allclose(back, quat.canonical(q), atol=1e-14)
+
+
+@pytest.mark.parametrize("R, q", [(np.diag([1.0, -1.0, -1.0]), [0.0, 1.0, 0.0, 0.0]),
+                                  (np.diag([-1.0, 1.0, -1.0]), [0.0, 0.0, 1.0, 0.0]),
+                                  (np.diag([-1.0, -1.0, 1.0]), [0.0, 0.0, 0.0, 1.0]),
+                                  (np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]]),  # about x + y
+                                   [0.0, np.sqrt(0.5), np.sqrt(0.5), 0.0])])
+def test_half_turns_give_their_canonical_quaternion(R, q):
+    np.testing.assert_allclose(quat.from_matrix(R), q, atol=1e-15)
+
+
+@pytest.mark.parametrize("R", [-np.eye(3), np.diag([1.0, 1.0, -1.0]), np.zeros((3, 3)), 2.0 * np.eye(3),
+                               np.full((3, 3), np.nan)], ids=["minus-I", "reflection", "zero", "scaled", "nan"])
+def test_from_matrix_refuses_what_is_not_a_rotation(R):
+    # -I (a reflection through the origin) came back as a half-turn about x, a zero matrix as the
+    # identity: a rotation reported for something that is none
+    with pytest.raises(ValueError, match="not a rotation matrix"):
+        quat.from_matrix(R)
+    with pytest.raises(ValueError, match="not a rotation matrix"):  # (in a stack too)
+        quat.from_matrix(np.stack([np.eye(3), R]))

@@ -174,9 +174,24 @@ def from_matrix(R: np.ndarray) -> np.ndarray:
     """Unit quaternion (``w ≥ 0``) of a rotation matrix, by Shepperd's method.
 
     Picks, per matrix, the largest of ``4w², 4x², 4y², 4z²`` to divide by, so no branch loses
-    precision. The result is renormalised only to absorb a slightly non-orthogonal input.
+    precision: a half-turn (``w = 0``, e.g. ``diag(1, −1, −1)``) is as exact as any other
+    rotation, and its quaternion is made canonical by :func:`canonical`. The result is
+    renormalised only to absorb a slightly non-orthogonal input (``RRᵀ = I`` within 1e-3).
+
+    Anything else is not a rotation and has no quaternion: a ``ValueError`` (``−I`` or another
+    reflection, ``det R < 0``, was read as a half-turn; a zero matrix as the identity).
+
+    >>> from_matrix(np.diag([1.0, -1.0, -1.0]))                  # a half-turn about x
+    array([0., 1., 0., 0.])
+    >>> from_matrix(-np.eye(3))
+    Traceback (most recent call last):
+    ...
+    ValueError: not a rotation matrix (orthonormal within 0.001, det +1): det = -1
     """
     R = _f(R)
+    if R.shape[-2:] != (3, 3):
+        raise ValueError(f"a rotation matrix is 3×3, got shape {R.shape}")
+    _check_rotation(R)
     m00, m11, m22 = R[..., 0, 0], R[..., 1, 1], R[..., 2, 2]
     tr = m00 + m11 + m22
     cand = np.stack(
@@ -191,6 +206,21 @@ def from_matrix(R: np.ndarray) -> np.ndarray:
     k = np.argmax(np.stack([1 + tr, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22], -1), axis=-1)
     q = np.take_along_axis(cand, k[..., None, None], axis=-2)[..., 0, :]
     return canonical(q / np.linalg.norm(q, axis=-1, keepdims=True))
+
+
+def _check_rotation(R: np.ndarray, atol: float = 1e-3) -> None:
+    """ValueError unless every matrix of ``R`` (..., 3, 3) is finite, orthonormal within ``atol``
+    and of determinant +1 (the tolerance of :meth:`tracking.pose.Pose.from_matrix`)."""
+    if not np.all(np.isfinite(R)):
+        raise ValueError("not a rotation matrix: it holds a NaN or an infinity")
+    det = np.linalg.det(R)
+    off = np.abs(R @ np.swapaxes(R, -1, -2) - np.eye(3)).max(axis=(-2, -1))
+    bad = (off > atol) | (det <= 0.0)
+    if np.any(bad):
+        first = np.argwhere(np.atleast_1d(bad))[0]
+        d = float(np.atleast_1d(det)[tuple(first)])
+        where = "" if R.ndim == 2 else f" at index {tuple(int(i) for i in first)}"
+        raise ValueError(f"not a rotation matrix (orthonormal within {atol:g}, det +1){where}: det = {d:.4g}")
 
 
 def left_matrix(q: np.ndarray) -> np.ndarray:
