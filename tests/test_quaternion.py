@@ -317,3 +317,20 @@ def test_from_matrix_refuses_what_is_not_a_rotation(R):
         quat.from_matrix(R)
     with pytest.raises(ValueError, match="not a rotation matrix"):  # (in a stack too)
         quat.from_matrix(np.stack([np.eye(3), R]))
+
+
+def test_poses_compare_by_value_and_hash_alike():
+    # Pose was a dataclass with eq=False: two poses made alike were unequal (identity), and an
+    # eq=True dataclass would have raised on its arrays ("truth value ... is ambiguous")
+    from quatrack.tracking.pose import Pose
+
+    a = Pose.from_rvec([0.1, -0.2, 0.3], [1.0, 2.0, 3.0])
+    b = Pose.from_rvec([0.1, -0.2, 0.3], [1.0, 2.0, 3.0])
+    assert a is not b and a == b and not (a != b) and hash(a) == hash(b)
+    assert Pose(-a.q_wxyz, a.t) == a and hash(Pose(-a.q_wxyz, a.t)) == hash(a)  # q and −q: one rotation
+    assert Pose.identity() == Pose([1.0, -0.0, 0.0, -0.0], [0.0, -0.0, 0.0])  # −0.0 == 0.0, and hashes alike
+    assert hash(Pose.identity()) == hash(Pose([1.0, -0.0, 0.0, -0.0], [0.0, -0.0, 0.0]))
+    c = Pose(a.q_wxyz, a.t + np.array([0.0, 0.0, 1e-12]))  # exact: no tolerance (allclose has one)
+    assert c != a and c.allclose(a)
+    assert a != a.as_matrix().tolist() and a != "pose"  # (other types: unequal, no error)
+    assert len({a, b, Pose.identity()}) == 2 and {a: 1}[b] == 1

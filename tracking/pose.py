@@ -60,7 +60,8 @@ class Pose:
 
     ``q_wxyz`` is normalised and made canonical (``w ≥ 0``) on construction; both arrays are
     read-only, so a pose can be shared freely. Construct from other forms with
-    :meth:`from_matrix`, :meth:`from_rvec` or :meth:`from_homogeneous`.
+    :meth:`from_matrix`, :meth:`from_rvec` or :meth:`from_homogeneous`. Poses compare by value,
+    exactly (``==``; :meth:`allclose` with a tolerance), and hash alike when equal.
     """
 
     q_wxyz: np.ndarray
@@ -191,6 +192,28 @@ class Pose:
     def allclose(self, other: "Pose", atol: float = 1e-9) -> bool:
         """Same transform within ``atol`` (translation and quaternion components; ``q ≡ −q``)."""
         return bool(np.allclose(self.t, other.t, atol=atol) and np.allclose(self.q_wxyz, other.q_wxyz, atol=atol))
+
+    def __eq__(self, other: object) -> bool:
+        """Exact value equality: the same ``q_wxyz`` and ``t``, number for number (both are
+        canonical, so one transform has one representation; ``−0.0 == 0.0``). Not a tolerance:
+        for "the same within rounding" use :meth:`allclose` or :meth:`distance`. (It was the
+        dataclass's identity: two poses made alike compared unequal.)
+
+        >>> Pose.from_rvec([0.0, 0.0, 0.5], [1.0, 2.0, 3.0]) == Pose.from_rvec([0.0, 0.0, 0.5], [1.0, 2.0, 3.0])
+        True
+        >>> Pose.identity() == Pose(-quat.IDENTITY, [0.0, 0.0, 0.0])    # q and −q: one rotation
+        True
+        >>> len({Pose.identity(), Pose.identity()})                     # hashable, by value
+        1
+        """
+        if not isinstance(other, Pose):
+            return NotImplemented
+        return self is other or (np.array_equal(self.q_wxyz, other.q_wxyz) and np.array_equal(self.t, other.t))
+
+    def __hash__(self) -> int:
+        """Consistent with ``==``: equal floats hash alike (``hash(−0.0) == hash(0.0)``); a pose
+        is immutable (frozen, read-only arrays), so it may be a dict key or a set member."""
+        return hash((*self.q_wxyz.tolist(), *self.t.tolist()))
 
     def __repr__(self) -> str:
         return f"Pose(q_wxyz={np.round(self.q_wxyz, 6).tolist()}, t={np.round(self.t, 6).tolist()})"
