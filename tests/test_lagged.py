@@ -128,3 +128,23 @@ def test_for_live_streams_called_on_the_class_as_documented():
     assert TrackerParams.for_live_streams().pipelined_refresh and not TrackerParams().pipelined_refresh
     mine = TrackerParams(sigma_px=1.0).for_live_streams()  # (on an instance: its own fields kept)
     assert mine.sigma_px == 1.0 and mine.audit_texture
+
+
+@pytest.mark.parametrize("lag", [1.5, 0.5, 2.25, float("nan"), float("inf"), True, "2", None, -1])
+def test_a_lag_that_is_not_a_whole_number_of_steps_is_refused(lag):
+    # jobs run between steps: LaggedExecutor(lag=1.5) ran them at the next step (int(1.5)), silently
+    with pytest.raises(ValueError, match="whole number of steps"):
+        LaggedExecutor(lag=lag)
+
+
+def test_a_whole_lag_of_any_number_type_is_that_many_steps():
+    import numpy as np
+
+    for lag in (3, 3.0, np.int64(3), np.float32(3.0)):
+        ex = LaggedExecutor(lag=lag)
+        f = ex.submit(lambda: 1)
+        assert type(ex.lag) is int and ex.lag == 3
+        ex.tick(), ex.tick()
+        assert not f.done()
+        ex.tick()
+        assert f.result() == 1

@@ -24,6 +24,8 @@ A job still queued can be cancelled, as with a thread pool:
 """
 from __future__ import annotations
 
+import math
+import numbers
 import time
 from concurrent.futures import Executor, Future
 
@@ -32,12 +34,15 @@ class LaggedExecutor(Executor):
     """Runs each submitted job at the ``lag``-th :meth:`tick` after its submission, in the
     caller's thread; :meth:`tick` returns the CPU milliseconds that tick's jobs took.
 
-    ``lag`` ≥ 1: with 1 a job's result is there at the very next step (a background core that
-    keeps up with the frame rate); 2 (the default) is a ~45 ms job at 30 fps."""
+    ``lag`` ≥ 1, a whole number of steps: with 1 a job's result is there at the very next step
+    (a background core that keeps up with the frame rate); 2 (the default) is a ~45 ms job at
+    30 fps (``2.0`` is 2). A fraction of a step has no meaning here (jobs run between steps) and
+    is refused: ``lag=1.5`` was taken as 1 without a word."""
 
     def __init__(self, lag: int = 2) -> None:
-        if lag < 1:
-            raise ValueError("lag must be at least one step")
+        whole = isinstance(lag, numbers.Real) and not isinstance(lag, bool) and math.isfinite(lag) and float(lag).is_integer()
+        if not whole or lag < 1:
+            raise ValueError(f"lag must be a whole number of steps, at least 1, got {lag!r}")
         self.lag = int(lag)
         self._queue: list[tuple[int, Future, object, tuple, dict]] = []
         self._ticks = 0
