@@ -16,10 +16,14 @@ import numpy as np
 
 from quatrack.tracking.camera import PinholeCamera
 from quatrack.viewsets.camera import within_pixels
+from quatrack.viewsets.imagefile import FORMAT_NAMES, sniff, truncated
 
 MIN_SIDE = 32
 DEFAULT_MAX_PIXELS = 4_000_000  # beyond this an image is downscaled (e.g. 8000×6000 → 2309×1732)
 MAX_DECODE_PIXELS = 100_000_000  # refuse to even decode images larger than this
+
+__all__ = ["DEFAULT_MAX_PIXELS", "MAX_DECODE_PIXELS", "MIN_SIDE", "ImageError", "PreparedImage", "decode_image", "header_size",
+           "prepare_image", "read_image", "sniff", "to_bgr8", "truncated"]
 
 
 class ImageError(ValueError):
@@ -36,20 +40,6 @@ class PreparedImage:
     image: np.ndarray
     camera: PinholeCamera
     scale: float
-
-
-_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
-
-
-def sniff(data: bytes) -> str | None:
-    """The format from the magic bytes (never from a client's content type)."""
-    if data[:3] == b"\xff\xd8\xff":
-        return "jpeg"
-    if data[:8] == _PNG_SIGNATURE:
-        return "png"
-    if data[:4] == b"RIFF" and data[8:12] == b"WEBP":
-        return "webp"
-    return None
 
 
 def _jpeg_size(data: bytes) -> tuple[int, int] | None:
@@ -135,9 +125,10 @@ def decode_image(data: bytes) -> np.ndarray:
     if size is not None and size[0] * size[1] > MAX_DECODE_PIXELS:
         # (read from the header: a 120-megapixel file took ~700 MB to decode before it was refused)
         raise ImageError(f"the image is too large ({size[0]}×{size[1]} px; at most {MAX_DECODE_PIXELS} pixels)")
-    if fmt == "png" and data.rfind(b"IEND") < 0:
-        # (libpng would say "PNG input buffer is incomplete" on stderr, beside this message)
-        raise ImageError("the image cannot be decoded (a PNG without its end: truncated)")
+    if fmt is not None and truncated(data, fmt):
+        # (libpng would say "PNG input buffer is incomplete" on stderr, libjpeg "Premature end of
+        # JPEG file", beside this message; and OpenCV decoded a JPEG cut short, its end grey)
+        raise ImageError(f"the image cannot be decoded (a {FORMAT_NAMES[fmt]} without its end: truncated)")
     if fmt == "png" and (bad := _png_damaged_chunk(data)) is not None:
         # (libpng would say "libpng error: bad adaptive filter value" on stderr, beside this message)
         raise ImageError(f"the image cannot be decoded (a damaged PNG: its {bad} chunk fails its checksum)")

@@ -2,15 +2,16 @@
 
 The pixel count is read from the file's header *before* decoding, so a 20-byte PNG that claims
 50 000 × 50 000 pixels (a decompression bomb) costs nothing. OpenCV decodes a truncated JPEG
-silently (grey bottom rows), so a JPEG must end with its EOI marker. Only JPEG, PNG and WebP are
-accepted: the formats the contract names, with small and well-tested decoders.
+silently (grey bottom rows), so a JPEG must have its EOI marker after its scan (the one test of
+training, ``locate`` and the service: ``recognition.images.truncated``). Only JPEG, PNG and WebP
+are accepted: the formats the contract names, with small and well-tested decoders.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from quatrack.recognition.images import ImageError, decode_image, header_size, sniff
+from quatrack.recognition.images import ImageError, decode_image, header_size, sniff, truncated
 
 from .errors import ApiError
 
@@ -32,7 +33,7 @@ def decode_upload(data: bytes, max_pixels: int) -> np.ndarray:
     w, h = size
     if w * h > max_pixels:
         raise ApiError(413, "image_too_large", f"the image has {w}×{h} pixels; at most {max_pixels} are accepted")
-    if fmt == "jpeg" and not data.rstrip(b"\x00").endswith(b"\xff\xd9"):
+    if fmt == "jpeg" and truncated(data, fmt):  # (a PNG's or a WebP's: decode_image says so)
         raise ApiError(400, "bad_image", "the JPEG is truncated (no end-of-image marker)")
     try:
         img = decode_image(data)

@@ -19,6 +19,7 @@ import numpy as np
 
 from .camera import check_plausible, within_pixels
 from .errors import SpecError
+from .imagefile import truncated
 from .mesh import Mesh, load_mesh
 from .novel import NovelViewParams, novel_poses, render_textured_view
 from .render import RenderBuffers, render
@@ -82,26 +83,6 @@ class _View:
     buffers: RenderBuffers
 
 
-def _truncated(data: bytes) -> bool:
-    """Whether a JPEG or PNG file lacks its end (a copy or download cut short). OpenCV decodes
-    such a file anyway, its missing part grey, and only libjpeg's "Premature end of JPEG file" on
-    stderr says so: the model would learn the grey. A JPEG's end-of-image marker must follow its
-    first scan (an EXIF thumbnail, before it, has its own); a PNG ends with its IEND chunk."""
-    if data[:8] == b"\x89PNG\r\n\x1a\n":
-        return data.rfind(b"IEND") < 0
-    if data[:2] != b"\xff\xd8":
-        return False
-    i = 2
-    while i + 4 <= len(data) and data[i] == 0xFF:  # the segments before the first scan (SOS)
-        if data[i + 1] == 0xDA:
-            return data.find(b"\xff\xd9", i) < 0
-        if data[i + 1] == 0xFF:  # (fill byte)
-            i += 1
-            continue
-        i += 2 + int.from_bytes(data[i + 2:i + 4], "big")
-    return True
-
-
 def _read(path, flags: int, where: str) -> np.ndarray:
     """An image file decoded by OpenCV (``flags``: as ``cv2.imread``'s, EXIF orientation applied),
     or a :class:`SpecError` naming ``where``: missing, not a file, truncated, not an image."""
@@ -111,7 +92,7 @@ def _read(path, flags: int, where: str) -> np.ndarray:
         data = path.read_bytes()
     except OSError as exc:
         raise SpecError(f"{where}: cannot read ({exc.strerror or exc})") from None
-    if _truncated(data):
+    if truncated(data):  # (OpenCV decodes it anyway, its missing part grey: the model would learn the grey)
         raise SpecError(f"{where}: the file is truncated (its end is missing)")
     img = cv2.imdecode(np.frombuffer(data, np.uint8), flags) if data else None
     if img is None:
