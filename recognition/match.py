@@ -60,6 +60,35 @@ class Matches:
         return np.bincount(self.viewset, minlength=n_viewsets)
 
 
+def _seeded_forest(descriptors: np.ndarray, trees: int) -> cv2.flann_Index:
+    """FLANN's k-d forest over ``descriptors``, the same in every thread and every run, built
+    without touching the caller's random numbers.
+
+    The forest's random splits come from OpenCV's RNG, which is per thread: seeded (0), every
+    thread and every run builds the same forest, so the same image gives the same matches (an
+    unseeded forest turned a benchmark's wrong-pose count with what ran before it). FLANN takes
+    no seed of its own, and OpenCV's Python API can set its RNG but not read it back (no
+    ``theRNG``), so the seed cannot be restored afterwards: the forest is built in a thread of
+    its own, whose RNG is seeded and then discarded. (It was seeded in the caller's thread: a
+    ``cv2.setRNGSeed`` of the caller's, for its own ``cv2.kmeans`` or RANSAC, was silently reset by
+    the first match.) The forest is then queried only by the thread that asked for it."""
+    out: dict = {}
+
+    def build() -> None:
+        try:
+            cv2.setRNGSeed(0)
+            out["forest"] = cv2.flann_Index(descriptors, {"algorithm": _FLANN_KDTREE, "trees": trees})
+        except BaseException as exc:  # (raised in the caller's thread, below)
+            out["error"] = exc
+
+    worker = threading.Thread(target=build, name="quatrack-flann-build", daemon=True)
+    worker.start()
+    worker.join()
+    if "error" in out:
+        raise out["error"]
+    return out["forest"]
+
+
 class ModelIndex:
     """One FLANN index over every viewset of an object; thread-safe to query."""
 
@@ -90,11 +119,7 @@ class ModelIndex:
         """This thread's FLANN k-d forest over all descriptors (built on first use)."""
         m = getattr(self._local, "matcher", None)
         if m is None:
-            # the forest's random splits come from OpenCV's thread-local RNG: seeded, every thread
-            # and every run builds the same forest, so the same image gives the same matches (an
-            # unseeded forest turned a benchmark's wrong-pose count with what ran before it)
-            cv2.setRNGSeed(0)
-            m = cv2.flann_Index(self.descriptors, {"algorithm": _FLANN_KDTREE, "trees": self.params.trees})
+            m = _seeded_forest(self.descriptors, self.params.trees)
             self._local.matcher = m
         return m
 

@@ -462,3 +462,34 @@ def test_an_image_too_large_is_refused_from_its_header_before_decoding(tmp_path,
     cv2.imwrite(str(good), np.full((480, 640, 3), 90, np.uint8))
     assert I.read_image(str(good)).shape == (480, 640, 3) and calls
     assert I.header_size(png(12000, 10000), I.sniff(png(12000, 10000))) == (12000, 10000)
+
+
+def test_matching_leaves_the_callers_opencv_rng_alone_and_matches_as_before(model, scenes):
+    # ModelIndex seeded OpenCV's (per-thread) RNG with 0 in the caller's thread to build its FLANN
+    # forest: a caller's own cv2.setRNGSeed (for its kmeans, its RANSAC) was reset by the first
+    # match. OpenCV's Python API cannot read the RNG back to restore it, and FLANN takes no seed:
+    # the forest is built, seeded, in a thread of its own — the same forest as before, bit for bit.
+    from quatrack.recognition.match import _FLANN_KDTREE, ModelIndex
+
+    def draws():
+        a = np.zeros(8)
+        cv2.randu(a, 0.0, 1.0)
+        return a
+
+    cv2.setRNGSeed(1234)
+    expected = draws()
+    cv2.setRNGSeed(1234)
+    index = ModelIndex(model)
+    feats = index.describe(scenes[0][0].image)
+    m = index.match(feats)
+    assert len(m) > 0
+    assert np.array_equal(draws(), expected)  # (was the draws after seed 0 and the forest's splits)
+
+    # the forest is the one a seed of 0 in this thread built (the matches of every result so far)
+    cv2.setRNGSeed(0)
+    old = cv2.flann_Index(index.descriptors, {"algorithm": _FLANN_KDTREE, "trees": index.params.trees})
+    q = np.ascontiguousarray(feats.descriptors, np.float32)
+    k = min(index.params.k, len(index.descriptors))
+    for a, b in zip(old.knnSearch(q, k, params={"checks": index.params.checks}),
+                    index._matcher().knnSearch(q, k, params={"checks": index.params.checks})):
+        assert np.array_equal(a, b)
