@@ -92,6 +92,9 @@ class Located:
     """The answer for one image (pixels of the original image; pose in mesh units)."""
 
     found: bool
+    # (x, y, w, h): the RFCH window the pose was found in, or the one searched when nothing was
+    # found; the found object's projected box when the pose came from the whole image (no window
+    # searched, or after the window's search failed); None without a window and a pose
     bbox: tuple[float, float, float, float] | None = None
     chi2: float | None = None
     viewset: str | None = None
@@ -472,12 +475,15 @@ def locate(
     timer["total"] = (time.perf_counter() - t_start) * 1e3
     inv = 1.0 / prep.scale
     bbox = None
-    if win is not None:
+    if win is not None and (est is None or searched == "window"):
         bbox = tuple(float((v + 0.5) * inv - 0.5) if i < 2 else float(v * inv) for i, v in enumerate(win.bbox))
     if est is None:
         return Located(False, bbox, None if win is None else win.chi2, res.viewset, res.matches, 0, None,
                        time_ms=timer, reason=res.reason, searched=searched, verification=ver, object=model.name)
-    if bbox is None:  # (no window searched: the found object's projected box, in the image — the contract's bbox)
+    if bbox is None:
+        # no window searched, or a pose found in the whole image after the window's search failed
+        # (the window's box was reported: a place the object is not): the found object's
+        # projected box, in the image — the contract's bbox. chi2 stays the window's.
         h0, w0 = np.shape(image)[:2]
         bbox = _image_box(camera, (w0, h0), model.mesh.vertices, np.array(est.t), np.array(est.q))
     return Located(

@@ -493,3 +493,27 @@ def test_matching_leaves_the_callers_opencv_rng_alone_and_matches_as_before(mode
     for a, b in zip(old.knnSearch(q, k, params={"checks": index.params.checks}),
                     index._matcher().knnSearch(q, k, params={"checks": index.params.checks})):
         assert np.array_equal(a, b)
+
+
+def test_a_pose_found_in_the_whole_image_after_the_window_failed_has_the_objects_box(model, scenes, monkeypatch):
+    # the window looked like the object but held no pose; the whole image, searched next, did:
+    # the bbox reported was the failed window's — a place the object is not. It is the found
+    # object's projected box, as without a window; the pose is the whole image's, unchanged.
+    import quatrack.recognition.locate as L
+    from quatrack.recognition.window_search import Window
+
+    sc = scenes[0][0]
+    h, w = sc.image.shape[:2]
+    cx, cy = sc.bbox[0] + sc.bbox[2] / 2, sc.bbox[1] + sc.bbox[3] / 2
+    corner = (0.0 if cx > w / 2 else w - 80.0, 0.0 if cy > h / 2 else h - 80.0, 80.0, 80.0)
+    assert iou(corner, sc.bbox) == 0.0
+    monkeypatch.setattr(L, "search_window", lambda *a, **k: Window(corner, 0.1, 0.9, True))
+    r = locate(sc.image, CAMERA, model)
+    assert r.found and r.searched == "image" and r.chi2 == 0.1  # (chi2: still the window's)
+    assert iou(r.bbox, sc.bbox) > 0.7, (r.bbox, sc.bbox)  # (was the corner: iou 0)
+    whole = locate(sc.image, CAMERA, model, LocateParams(use_window=False))
+    assert whole.found and iou(r.bbox, whole.bbox) > 0.9
+    # not found in the whole image either: the window stays the bbox, with its chi2
+    blank = np.full_like(sc.image, 127)
+    miss = locate(blank, CAMERA, model)
+    assert not miss.found and miss.searched == "image" and miss.bbox == corner
