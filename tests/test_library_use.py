@@ -35,7 +35,7 @@ def test_a_rig_transform_of_the_wrong_shape_or_not_a_rotation_is_refused_naming_
         _camera(R_rig=np.eye(2))
     with pytest.raises(ValueError, match="t_rig must be 3"):
         _camera(t_rig=[1.0, 2.0])
-    with pytest.raises(ValueError, match="R_rig must be a rotation"):  # (a reflection was used as given)
+    with pytest.raises(ValueError, match="R_rig is not a rotation"):  # (a reflection was used as given)
         _camera(R_rig=np.diag([1.0, 1.0, -1.0]))
     with pytest.raises(ValueError, match="R_rig must be numbers"):
         _camera(R_rig="identity")

@@ -85,6 +85,31 @@ def test_camera_rejects_bad_intrinsics():
         PinholeCamera(500.0, 500.0, 320, 240, np.r_[np.zeros(8), 0.1])
 
 
+@pytest.mark.parametrize("kwargs, match", [
+    ({"width": "640"}, "width must be a whole number"),  # (TypeError '<=' not supported)
+    ({"height": 480.5}, "height must be a whole number"),
+    ({"width": True}, "width must be a whole number"),
+    ({"t_rig": [1.0, 2.0]}, "t_rig must be 3 numbers"),  # (numpy's "cannot reshape array of size 2")
+    ({"R_rig": np.eye(2)}, "R_rig must be a 3×3 matrix"),
+    ({"R_rig": "identity"}, "R_rig must be numbers"),
+    ({"R_rig": 2.0 * np.eye(3)}, "R_rig is not a rotation"),  # (accepted: every projection scaled)
+    ({"R_rig": np.diag([1.0, 1.0, -1.0])}, "R_rig is not a rotation"),  # (a mirror, accepted)
+    ({"t_rig": [np.nan, 0.0, 0.0]}, "t_rig must be finite"),  # (accepted: every projection NaN)
+])
+def test_camera_names_what_is_wrong_with_its_size_and_rig(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        PinholeCamera(800.0, 800.0, 320.0, 240.0, **{"width": 640, "height": 480, **kwargs})
+
+
+def test_a_camera_size_given_as_whole_floats_is_kept_as_ints():
+    # width=640.0 (a size read from YAML or computed) stayed a float: np.zeros((height, width))
+    # and range(width) refused it, and JSON wrote 640.0
+    cam = PinholeCamera(800.0, 800.0, 320.0, 240.0, width=640.0, height=np.float32(480.0))
+    assert (cam.width, cam.height) == (640, 480) and type(cam.width) is int and type(cam.height) is int
+    assert cam == PinholeCamera(800.0, 800.0, 320.0, 240.0, width=640, height=480)
+    assert np.zeros((cam.height, cam.width)).shape == (480, 640)
+
+
 def test_cameras_compare_by_value_and_hash():
     # the dataclass's __eq__ compared the numpy fields as a tuple: two equal cameras (a camera
     # file loaded twice, a pickled copy) raised ValueError ("truth value ... ambiguous") and

@@ -16,6 +16,7 @@ array([[360., 220.]])
 
 from __future__ import annotations
 
+import numbers
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -28,15 +29,14 @@ _MAX_DIST = 8  # k1 k2 p1 p2 k3 k4 k5 k6 (thin-prism and tilt terms are not supp
 
 
 def _rig_array(value, shape: tuple, name: str) -> np.ndarray:
-    """A rig transform's array of ``shape``, or a ValueError naming it (numpy said "cannot
-    reshape array of size 4 into shape (3,3)")."""
+    """``value`` as a float array of ``shape``, or a ValueError naming ``name`` (numpy's own said
+    "cannot reshape array of size 2 into shape (3,)")."""
     try:
         a = np.asarray(value, dtype=float)
     except (TypeError, ValueError):
         raise ValueError(f"{name} must be numbers, got {value!r}"[:120]) from None
-    if a.size != int(np.prod(shape)) or not np.all(np.isfinite(a)):
-        raise ValueError(f"{name} must be {'a 3×3 matrix' if len(shape) == 2 else '3'} of finite numbers, "
-                         f"got shape {a.shape}")
+    if a.size != int(np.prod(shape)):
+        raise ValueError(f"{name} must be {'3 numbers' if len(shape) == 1 else 'a 3×3 matrix'}, got shape {a.shape}")
     return a.reshape(shape)
 
 
@@ -85,26 +85,30 @@ class PinholeCamera:
             raise ValueError(f"the principal point must be finite, got cx={self.cx}, cy={self.cy}")
         for name in ("width", "height"):
             v = getattr(self, name)
-            # (a string "640" passed float() and failed later at "'<=' not supported"; a float 640.0
-            # was kept as a float and ended in OpenCV's "Can't parse 'dsize'" inside the tracker)
-            if v is not None and (isinstance(v, (str, bytes, bool, np.bool_)) or np.ndim(v) != 0
-                                  or not isinstance(v, (int, float, np.integer, np.floating))
-                                  or not np.isfinite(v) or not float(v).is_integer() or v <= 0):
+            if v is None:
+                continue
+            # (a string or a float was kept as given: width "640" raised TypeError '<=' not supported,
+            # and 640.0 stayed a float, which np.zeros((height, width)) refuses)
+            whole = (isinstance(v, numbers.Real) and not isinstance(v, bool) and np.isfinite(v)
+                     and float(v).is_integer() and v > 0)
+            if not whole:
                 raise ValueError(f"{name} must be a whole number of pixels above 0, got {v!r}"[:120])
-            if v is not None:
-                object.__setattr__(self, name, int(v))
+            object.__setattr__(self, name, int(v))
         object.__setattr__(self, "dist_coeffs", d)
         object.__setattr__(self, "R_rig", _rig_array(self.R_rig, (3, 3), "R_rig"))
         object.__setattr__(self, "t_rig", _rig_array(self.t_rig, (3,), "t_rig"))
-        if not np.allclose(self.R_rig @ self.R_rig.T, np.eye(3), atol=1e-3) or np.linalg.det(self.R_rig) <= 0:
-            raise ValueError("R_rig must be a rotation matrix (orthonormal, det +1): it maps the reference "
-                             "camera's frame into this camera's")
         # True when there are distortion terms to apply
         object.__setattr__(self, "has_distortion", bool(np.any(d != 0.0)))
         # True when this camera *is* the reference frame (no rig transform to apply)
         object.__setattr__(
             self, "is_reference", bool(np.array_equal(self.R_rig, np.eye(3)) and not np.any(self.t_rig))
         )
+        if not self.is_reference:  # (a rig's pose: a rotation and a finite shift, as a Pose's)
+            R, t = self.R_rig, self.t_rig
+            if not (np.all(np.isfinite(R)) and np.allclose(R @ R.T, np.eye(3), atol=1e-3) and np.linalg.det(R) > 0):
+                raise ValueError("R_rig is not a rotation matrix (orthonormal, det +1)")
+            if not np.all(np.isfinite(t)):
+                raise ValueError(f"t_rig must be finite, got {t.tolist()}")
 
     def _key(self) -> tuple:
         """What a camera is compared and hashed by (the fields; its arrays by value, -0.0 as 0.0)."""
