@@ -385,6 +385,9 @@ class Tracker:
             cov = cov + image_floor(self.camera, s.R, s.p, self._floor_points, p.systematic_px)
         if self._birth is not None and not self._anchored:
             cov = cov + carried_covariance(s.R, *self._birth)
+        # exactly symmetric, as the written outputs were made (recognition/trackio._covariance6):
+        # the filter's products leave it off by ~1e-17, and a caller's C == C.T (or ROS's) failed
+        cov = (cov + cov.T) / 2
         return TrackStep(self._frame, time_s, status, s.p.copy(), quat.canonical(s.q), s.v.copy(), s.omega.copy(),
                          cov, inliers, reason=reason)
 
