@@ -338,6 +338,24 @@ def test_filter_api_guards():
         f.initialize(0.0, est, est.covariance)
     with pytest.raises(ValueError, match="pose_covariance: 6×6"):
         f.initialize(0.0, est.pose, np.eye(3))
+    f.initialize(0.0, est.pose, est.covariance)  # (an estimate's own: finite, symmetric, positive definite)
+
+
+@pytest.mark.parametrize("bad, match", [
+    (np.diag([1.0, 1.0, -1.0, 1.0, 1.0, 1.0]), "positive semi-definite"),  # a negative variance
+    (np.eye(6) + np.triu(np.full((6, 6), 0.1), 1), "symmetric"),  # one triangle only
+    (np.diag([1.0, 1.0, np.nan, 1.0, 1.0, 1.0]), "finite"),
+    (np.full((6, 6), 1.0) - 2.0 * np.eye(6), "positive semi-definite"),  # symmetric, indefinite
+])
+def test_filter_refuses_a_pose_covariance_that_is_none(bad, match):
+    # filtered on without a word before: its (DᵀD)⁻¹ and 1σ went NaN or negative later
+    f = PoseFilter(make_motion_model("ude"))
+    with pytest.raises(ValueError, match=f"pose_covariance must be {match}"):
+        f.initialize(0.0, Pose(Q_TRUE, P_TRUE), bad)
+    with pytest.raises(ValueError, match="velocity_variance"):
+        f.initialize(0.0, Pose(Q_TRUE, P_TRUE), np.eye(6), velocity_variance=-1.0)
+    f.initialize(0.0, Pose(Q_TRUE, P_TRUE), np.eye(6) + 1e-19 * np.triu(np.ones((6, 6)), 1))  # (rounding: taken)
+    f.initialize(0.0, Pose(Q_TRUE, P_TRUE), np.zeros((6, 6)))  # (a pose taken as exact: allowed)
 
 
 _unit_q = st.lists(st.floats(-1.0, 1.0), min_size=4, max_size=4).filter(lambda v: np.linalg.norm(v) > 1e-3).map(

@@ -45,6 +45,9 @@ class PoseFilter:
             raise TypeError(f"pose: a Pose (estimate_pose's result gives it as .pose), got {type(pose).__name__}")
         if np.shape(pose_covariance) != (6, 6):  # (numpy's "could not broadcast input array" before)
             raise ValueError(f"pose_covariance: 6×6 over [p, δθ], got shape {np.shape(pose_covariance)}")
+        _check_covariance(np.asarray(pose_covariance, dtype=float))
+        if not (np.isfinite(velocity_variance) and velocity_variance >= 0.0):
+            raise ValueError(f"velocity_variance must be finite and ≥ 0, got {velocity_variance!r}")
         state = initial_state(t, pose.t, pose.q_wxyz, pose_covariance, velocity_variance=velocity_variance)
         if not self.motion.estimates_velocity:
             state.covariance[6:, 6:] = 0.0
@@ -70,3 +73,17 @@ class PoseFilter:
         result = adjust(self.prior, blocks, self.options, self.motion.estimates_velocity)
         self.state = result.state
         return result
+
+
+def _check_covariance(C: np.ndarray) -> None:
+    """ValueError unless ``C`` is a covariance: finite, symmetric and positive semi-definite
+    (within rounding: 1e-9 of its largest entry). One with a negative variance, or standard
+    deviations where variances belong, was filtered on without a word: its (DᵀD)⁻¹ and 1σ NaN."""
+    if not np.all(np.isfinite(C)):
+        raise ValueError("pose_covariance must be finite")
+    scale = float(np.abs(C).max())
+    if np.abs(C - C.T).max() > 1e-9 * scale:
+        raise ValueError("pose_covariance must be symmetric")
+    lowest = float(np.linalg.eigvalsh(0.5 * (C + C.T)).min())
+    if lowest < -1e-9 * scale:
+        raise ValueError(f"pose_covariance must be positive semi-definite (an eigenvalue is {lowest:.3g})")
