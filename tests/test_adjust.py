@@ -434,3 +434,19 @@ def test_newton_decrement_stops_within_its_tolerance_of_the_minimum(seed, robust
                         exact.state.v - early.state.v, exact.state.omega - early.state.omega])
     m2 = float(d @ np.linalg.solve(early.state.covariance, d))
     assert m2 < (1.5 if robust == "none" else 4.0) * tol, (m2, tol)
+
+
+def test_estimate_pose_names_a_measurement_that_is_not_finite():
+    # a NaN image point (a lost track's, a failed undistortion) was "the measurements do not
+    # constrain every estimated parameter": it names the block, the array and the row now, and is
+    # still a SingularProblemError for callers that catch that
+    from quatrack.tracking.adjust import NonFiniteMeasurementError
+
+    X = box_points(seed=2)
+    uv = observe(X)
+    uv[3, 0] = np.nan
+    with pytest.raises(NonFiniteMeasurementError, match=r"block 0 \(PointMeasurements\): its image_points .* \(row 3\)"):
+        estimate_pose([PointMeasurements.create(CAM, X, uv, 1.0)], P_TRUE, Q_TRUE)
+    X[5, 2] = np.inf
+    with pytest.raises(SingularProblemError, match="model_points"):
+        estimate_pose([PointMeasurements.create(CAM, X, observe(box_points(seed=2)), 1.0)], P_TRUE, Q_TRUE)

@@ -113,6 +113,24 @@ class SingularProblemError(ValueError):
     """The measurements (and prior) do not constrain every estimated parameter."""
 
 
+class NonFiniteMeasurementError(SingularProblemError):
+    """A measurement holds a NaN or an infinity: nothing can be estimated from it. (A
+    :class:`SingularProblemError`, which it was reported as — "the measurements do not constrain
+    every estimated parameter" — so that callers catching that see no change.)"""
+
+
+def _check_finite(blocks: Sequence[MeasurementBlock]) -> None:
+    """:class:`NonFiniteMeasurementError` naming the first block and field (its arrays: points,
+    segments, weights) holding a NaN or an infinity."""
+    for i, block in enumerate(blocks):
+        for name, value in getattr(block, "__dict__", {}).items():
+            if isinstance(value, np.ndarray) and value.dtype.kind == "f" and not np.all(np.isfinite(value)):
+                rows = np.flatnonzero(~np.isfinite(value.reshape(len(value), -1)).all(axis=1)) if value.ndim else []
+                where = f" (row {int(rows[0])}{f' and {len(rows) - 1} more' if len(rows) > 1 else ''})" if len(rows) else ""
+                raise NonFiniteMeasurementError(f"measurement block {i} ({type(block).__name__}): its {name} hold a NaN "
+                                                f"or an infinity{where}")
+
+
 def _scaled(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Jacobi scaling ``A = D⁻¹ C D⁻¹``: pose variances (~1e-6) and velocity variances (~1e8)
     differ by 14 orders, far beyond what an unscaled solve keeps exact."""
@@ -402,6 +420,7 @@ def estimate_pose(
     Its covariance ``(DᵀD)⁻¹`` initialises the filter (Ude, Section 5).
     """
     p0, q0 = _start(p0, q0)
+    _check_finite(blocks)
     problem = _Problem(blocks, options, POSE_DIM, None)
     x0 = (p0, q0, np.zeros(3), np.zeros(3))
     x, cost, A, b, w, iterations, converged, _ = _minimise(problem, x0, options)
