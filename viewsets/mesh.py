@@ -234,17 +234,27 @@ def _trimesh():
     return trimesh
 
 
+# the mesh files load_mesh reads (trimesh's formats with faces), as its messages name them
+MESH_FORMATS = "PLY, OBJ, STL, OFF, GLB or glTF"
+
+
 def load_mesh(path: str | Path) -> Mesh:
-    """Load a PLY or OBJ mesh (polygons are triangulated by trimesh); faces are required."""
+    """Load a PLY or OBJ mesh (polygons are triangulated by trimesh; also STL, OFF, GLB/glTF);
+    faces are required."""
     trimesh = _trimesh()
 
     path = Path(path)
+    if path.is_dir():  # (was "mesh file not found" of a folder the user sees right there)
+        raise SpecError(f"{path}: a folder, not a mesh file (name the mesh file in it)")
     if not path.is_file():
         raise SpecError(f"{path}: mesh file not found")
     try:
         loaded = trimesh.load(str(path), process=False)
         if isinstance(loaded, trimesh.Scene):  # e.g. an OBJ with several objects: merge them
             loaded = trimesh.load(str(path), process=False, force="mesh")
+    except NotImplementedError:  # (trimesh's "file_type 'png' not supported": a photo named as the mesh)
+        raise SpecError(f"{path}: not a mesh file format quatrack reads ({path.suffix or 'no extension'}; "
+                        f"use {MESH_FORMATS})") from None
     except Exception as exc:  # trimesh raises many types on malformed files
         raise SpecError(f"{path}: cannot read mesh ({exc.__class__.__name__}: {exc})") from None
     faces = getattr(loaded, "faces", None)
