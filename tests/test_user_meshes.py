@@ -39,3 +39,41 @@ def test_a_file_of_another_kind_named_as_the_mesh_says_which_formats_are_read(tm
     msg = str(info.value)
     assert "not a mesh file format" in msg and ".png" in msg and "PLY, OBJ" in msg
     assert "NotImplementedError" not in msg
+
+
+def _rotation(seed=3):
+    return cv2.Rodrigues(np.random.default_rng(seed).normal(size=(3, 1)))[0]
+
+
+def test_a_4x4_matrix_for_a_pose_is_told_how_to_give_it():
+    R, t = _rotation(), [1.0, 2.0, 30.0]
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, t
+    with pytest.raises(SpecError, match="'R' is a 4×4 matrix; give its top-left 3×3 as 'R'"):
+        parse_pose({"R": T.tolist(), "t": t}, "view 0: pose")
+    with pytest.raises(SpecError, match="'T' is a 4×4 matrix; give its top-left 3×3 as 'R'"):
+        parse_pose({"T": T.tolist()}, "view 0: pose")
+    done = parse_pose({"R": T[:3, :3].tolist(), "t": T[:3, 3].tolist()})  # (as the message says)
+    np.testing.assert_allclose(done.R, R, atol=1e-12)
+
+
+def test_a_rotation_written_with_three_decimals_is_taken():
+    """Rounded to 3 decimals, R·Rᵀ is up to 1.5e-3 off the identity: one in five such matrices
+    was refused as 'not a rotation matrix'."""
+    worst = max(range(200), key=lambda s: np.abs(np.round(_rotation(s), 3) @ np.round(_rotation(s), 3).T - np.eye(3)).max())
+    Rr = np.round(_rotation(worst), 3)
+    assert np.abs(Rr @ Rr.T - np.eye(3)).max() > 1e-3  # (what was refused)
+    pose = parse_pose({"R": Rr.tolist(), "t": [0, 0, 1]})
+    np.testing.assert_allclose(pose.R, _rotation(worst), atol=2e-3)
+    assert np.allclose(pose.R @ pose.R.T, np.eye(3), atol=1e-12)
+
+
+@pytest.mark.parametrize("change, words", [
+    (lambda R: 10 * R, "it scales by 10"),
+    (lambda R: -R, "determinant is -1 (a mirror"),
+    (lambda R: R + [[0, 0.2, 0], [0, 0, 0], [0, 0, 0]], "differs from the identity by up to"),
+])
+def test_a_matrix_that_is_no_rotation_is_said_what_it_is(change, words):
+    with pytest.raises(SpecError) as info:
+        parse_pose({"R": change(_rotation()).tolist(), "t": [0, 0, 1]}, "view 2: pose")
+    assert "view 2: pose: field 'R' is not a rotation matrix" in str(info.value) and words in str(info.value)

@@ -69,11 +69,13 @@ def parse_pose(data: Any, where: str = "pose") -> Pose:
         t = _vector(data["tvec"], 3, where, "tvec")
     elif {"R", "t"} <= keys:
         rows = data["R"]
+        if _homogeneous(rows):
+            raise SpecError(f"{where}: field 'R' is a 4×4 matrix; {_FROM_4X4}")
         if not isinstance(rows, list) or len(rows) != 3:
             raise SpecError(f"{where}: field 'R' must be 3 rows of 3 numbers")
         R = np.stack([_vector(r, 3, where, "R") for r in rows])
-        if not np.allclose(R @ R.T, np.eye(3), atol=1e-3) or np.linalg.det(R) <= 0:
-            raise SpecError(f"{where}: field 'R' is not a rotation matrix (orthonormal, det +1)")
+        if (why := _not_rotation(R)) is not None:
+            raise SpecError(f"{where}: field 'R' is not a rotation matrix (orthonormal, det +1): {why}")
         U, _, Vt = np.linalg.svd(R)
         R = U @ Vt
         t = _vector(data["t"], 3, where, "t")
@@ -85,10 +87,44 @@ def parse_pose(data: Any, where: str = "pose") -> Pose:
         R = quat.to_matrix(q / n)
         t = _vector(data["t"], 3, where, "t")
     else:
+        square = [k for k in sorted(keys) if _homogeneous(data[k])]
+        hint = f" ({square[0]!r} is a 4×4 matrix; {_FROM_4X4})" if square else ""
         raise SpecError(
-            f"{where}: unknown pose format with keys {sorted(keys)}; use {{rvec, tvec}}, {{R, t}} or {{q_wxyz, t}}"
+            f"{where}: unknown pose format with keys {sorted(keys)}; use {{rvec, tvec}}, {{R, t}} or {{q_wxyz, t}}{hint}"
         )
     return Pose.from_matrix(R, t)
+
+
+# how far R·Rᵀ may be from the identity: a rotation written with three decimals is up to 1.5e-3
+# off (1e-3 refused one in five as "not a rotation"); it is then made exactly orthonormal
+ROTATION_TOLERANCE = 5e-3
+_FROM_4X4 = "give its top-left 3×3 as 'R' and the first three numbers of its last column as 't'"
+
+
+def _homogeneous(value: Any) -> bool:
+    """Whether ``value`` is 4 lists of 4 (a homogeneous transform ``[R t; 0 0 0 1]``)."""
+    return isinstance(value, list) and len(value) == 4 and all(isinstance(r, list) and len(r) == 4 for r in value)
+
+
+def _not_rotation(R: np.ndarray) -> str | None:
+    """None for a rotation matrix (within :data:`ROTATION_TOLERANCE`), else what it is instead:
+    a mirror, a scaled rotation (a unit change put into R), or how far from orthonormal.
+
+    >>> _not_rotation(np.eye(3)) is None, _not_rotation(np.diag([1.0, 1, -1])), _not_rotation(10 * np.eye(3))
+    (True, 'its determinant is -1 (a mirror: a left-handed frame?)', 'it scales by 10 (its rows are 10 long, not 1): a change of units belongs in the mesh or t, not in R')
+    """
+    det = float(np.linalg.det(R))
+    err = float(np.abs(R @ R.T - np.eye(3)).max())
+    if det > 0 and err <= ROTATION_TOLERANCE:
+        return None
+    lengths = np.linalg.norm(R, axis=1)
+    scaled = lengths.min() > 0 and np.allclose(R @ R.T / lengths.mean() ** 2, np.eye(3), atol=ROTATION_TOLERANCE)
+    if scaled and det < 0:
+        return f"its determinant is {det:.3g} (a mirror: a left-handed frame?)"
+    if scaled:
+        return (f"it scales by {lengths.mean():.3g} (its rows are {lengths.mean():.3g} long, not 1): "
+                "a change of units belongs in the mesh or t, not in R")
+    return f"R·Rᵀ differs from the identity by up to {err:.3g} (at most {ROTATION_TOLERANCE:g} is taken)"
 
 
 def _path(base: Path, value: Any, where: str, field: str) -> Path:
