@@ -125,3 +125,56 @@ def test_two_separate_parts_and_a_moebius_strip_are_left_to_trimesh():
     faces = np.array(faces)
     faces[1] = faces[1, ::-1]
     assert _rewound(trimesh.Trimesh(np.array(V, float), faces, process=False)) is None
+
+
+def _write_obj(path, texture=False):
+    lines = ["mtllib box.mtl"] if texture else []
+    lines += ["v %g %g %g" % tuple(v) for v in CORNERS]
+    if texture:
+        lines += ["vt 0 0", "vt 1 0", "vt 1 1", "vt 0 1", "usemtl paper"]
+    lines += ["f " + " ".join(f"{i + 1}/{k + 1}" if texture else str(i + 1) for k, i in enumerate(q)) for q in QUADS]
+    path.write_text("\n".join(lines) + "\n")
+    if texture:
+        (path.parent / "box.mtl").write_text("newmtl paper\nmap_Kd paper.png\n")
+        cv2.imwrite(str(path.parent / "paper.png"), np.full((8, 8, 3), 200, np.uint8))
+
+
+def test_a_textured_obj_of_quads_loads_as_its_box_and_says_its_texture_is_not_used(tmp_path):
+    _write_obj(tmp_path / "box.obj", texture=True)
+    said = []
+    mesh = load_mesh(tmp_path / "box.obj", warn=said.append)
+    assert len(mesh.faces) == 12 and mesh.closed_outward
+    np.testing.assert_allclose(mesh.vertices.max(axis=0), [2, 3, 1])
+    assert len(said) == 1 and "texture is not used" in said[0] and "registered photos" in said[0]
+    _write_obj(tmp_path / "plain.obj")
+    said.clear()
+    load_mesh(tmp_path / "plain.obj", warn=said.append)
+    assert said == []
+
+
+def test_vertex_colours_of_a_binary_ply_are_said_to_be_unused(tmp_path):
+    import trimesh
+
+    tm = trimesh.Trimesh(CORNERS, _triangles(QUADS), vertex_colors=np.tile([255, 0, 0, 255], (8, 1)), process=False)
+    tm.export(str(tmp_path / "box.ply"), encoding="binary")
+    said = []
+    assert len(load_mesh(tmp_path / "box.ply", warn=said.append).faces) == 12
+    assert len(said) == 1 and "colours are not used" in said[0]
+
+
+def test_a_glb_scene_of_two_parts_is_one_object_placed_by_its_transforms_and_says_so(tmp_path):
+    import trimesh
+
+    T = np.eye(4)
+    T[:3, 3] = [10.0, 0, 0]
+    scene = trimesh.Scene()
+    scene.add_geometry(trimesh.Trimesh(CORNERS, _triangles(QUADS), process=False), node_name="body")
+    scene.add_geometry(trimesh.Trimesh(CORNERS - [10.0, 0, 0], _triangles(QUADS), process=False), node_name="lid",
+                       transform=T)  # (its vertices at -10, its node moves them back by +10: a second box on the first)
+    scene.export(str(tmp_path / "parts.glb"))
+    said = []
+    mesh = load_mesh(tmp_path / "parts.glb", warn=said.append)
+    assert len(mesh.faces) == 24
+    np.testing.assert_allclose(mesh.vertices.min(axis=0), [0, 0, 0], atol=1e-6)
+    np.testing.assert_allclose(mesh.vertices.max(axis=0), [2, 3, 1], atol=1e-6)
+    assert len(said) == 1 and "its 2 meshes" in said[0] and "one object" in said[0] and "scene transforms" in said[0]

@@ -238,9 +238,11 @@ def _trimesh():
 MESH_FORMATS = "PLY, OBJ, STL, OFF, GLB or glTF"
 
 
-def load_mesh(path: str | Path) -> Mesh:
+def load_mesh(path: str | Path, warn=None) -> Mesh:
     """Load a PLY or OBJ mesh (polygons are triangulated by trimesh; also STL, OFF, GLB/glTF);
-    faces are required."""
+    faces are required. ``warn`` (optional) is told what of the file is not used or is combined:
+    its texture or colours (training takes the object's look from the photos alone), and the
+    meshes of a scene merged into one object (:func:`mesh_notes`)."""
     trimesh = _trimesh()
 
     path = Path(path)
@@ -250,6 +252,9 @@ def load_mesh(path: str | Path) -> Mesh:
         raise SpecError(f"{path}: mesh file not found")
     try:
         loaded = trimesh.load(str(path), process=False)
+        if warn is not None:
+            for note in mesh_notes(loaded, path):
+                warn(note)
         if isinstance(loaded, trimesh.Scene):  # e.g. an OBJ with several objects: merge them
             loaded = trimesh.load(str(path), process=False, force="mesh")
     except NotImplementedError:  # (trimesh's "file_type 'png' not supported": a photo named as the mesh)
@@ -271,6 +276,31 @@ def load_mesh(path: str | Path) -> Mesh:
     if len(used) == len(mesh.vertices):
         return mesh
     return Mesh(mesh.vertices[used], faces.reshape(mesh.faces.shape).astype(np.int32))
+
+
+def mesh_notes(loaded, path) -> list[str]:
+    """What a user may expect of the loaded file (a trimesh Trimesh or Scene) that training does
+    not do: a texture or vertex colours are not used (the synthetic views are textured from the
+    registered photos), and a scene's several meshes become one object (each placed by its
+    node's transform). Without a word, a textured OBJ or a GLB of parts trained as if the
+    texture or the split meant something."""
+    import trimesh
+
+    parts = list(loaded.geometry.items()) if isinstance(loaded, trimesh.Scene) else [(None, loaded)]
+    out = []
+    kinds = {getattr(getattr(g, "visual", None), "kind", None) for _, g in parts}
+    if "texture" in kinds:
+        out.append(f"{path}: the mesh's texture is not used: training takes the object's look from the registered "
+                   f"photos alone")
+    elif kinds & {"vertex", "face"}:
+        out.append(f"{path}: the mesh's colours are not used: training takes the object's look from the registered "
+                   f"photos alone")
+    meshes = [name for name, g in parts if len(getattr(g, "faces", ()))]
+    if isinstance(loaded, trimesh.Scene) and len(meshes) > 1:
+        named = ", ".join(map(repr, meshes[:5])) + (", ..." if len(meshes) > 5 else "")
+        out.append(f"{path}: its {len(meshes)} meshes ({named}) are trained as one object, each placed by the "
+                   f"file's scene transforms")
+    return out
 
 
 def outward_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:

@@ -270,7 +270,7 @@ def train_object(
     if not isinstance(params, TrainParams):  # (a dict: AttributeError 'viewsets')
         raise TypeError(f"params: a TrainParams (quatrack.viewsets.train), got {type(params).__name__}")
     t0 = time.perf_counter()
-    mesh = load_mesh(spec.mesh_path)
+    mesh = load_mesh(spec.mesh_path, warn=warn)
     views = [_prepare_view(mesh, v) for v in spec.views]
     asked = params.viewsets.contrast_threshold
     viewsets, params, weak = _viewsets_for_texture(mesh, _tasks(mesh, views, params.novel), params, progress, on_total)
