@@ -178,3 +178,25 @@ def test_a_glb_scene_of_two_parts_is_one_object_placed_by_its_transforms_and_say
     np.testing.assert_allclose(mesh.vertices.min(axis=0), [0, 0, 0], atol=1e-6)
     np.testing.assert_allclose(mesh.vertices.max(axis=0), [2, 3, 1], atol=1e-6)
     assert len(said) == 1 and "its 2 meshes" in said[0] and "one object" in said[0] and "scene transforms" in said[0]
+
+
+def test_a_photo_named_by_two_views_is_warned_of(tmp_path):
+    from quatrack.viewsets.spec import load_spec
+
+    spec = json.loads((EXAMPLE / "object.json").read_text())
+    view = spec["views"][0]
+    view["image"] = str(EXAMPLE / view["image"])
+    moved = json.loads(json.dumps(view))
+    moved["pose"]["tvec"][2] += 5.0
+    spec["mesh"] = str(EXAMPLE / "box.ply")
+    spec["views"] = [view, json.loads(json.dumps(view)), moved]
+    (tmp_path / "twice.json").write_text(json.dumps(spec))
+    said = []
+    load_spec(tmp_path / "twice.json", warn=said.append)
+    assert len(said) == 2
+    assert "view 1 repeats view 0 (the same photo at the same pose)" in said[0]
+    assert "view 2 gives view 0's photo another pose (0° and 5 mesh units apart)" in said[1]
+    spec["views"] = [view]
+    (tmp_path / "once.json").write_text(json.dumps(spec))
+    load_spec(tmp_path / "once.json", warn=said.append)
+    assert len(said) == 2

@@ -146,6 +146,28 @@ def _unknown(data: dict, known: tuple[str, ...], where: str, warn) -> None:
         warn(f"{where}: unknown field(s) {', '.join(map(repr, extra))} ignored (known: {', '.join(known)})")
 
 
+def _repeated_photos(views: list[ViewSpec], path: Path) -> list[str]:
+    """One message per view whose photo an earlier view names too: with the same pose it adds
+    nothing but training time (a copied view), with another pose one of the two is wrong (one
+    photo shows the object at one pose). Both trained without a word."""
+    out = []
+    first: dict[Path, ViewSpec] = {}
+    for v in views:
+        w = first.setdefault(v.image_path, v)
+        if w is v:
+            continue
+        apart = v.pose.inverse() @ w.pose
+        turn = float(np.degrees(np.linalg.norm(apart.rvec)))
+        shift = float(np.linalg.norm(v.pose.t - w.pose.t))
+        if turn < 1e-6 and shift <= 1e-9 * max(1.0, float(np.linalg.norm(w.pose.t))):
+            out.append(f"{path}: view {v.index} repeats view {w.index} (the same photo at the same pose): it adds "
+                       f"nothing but training time")
+        else:
+            out.append(f"{path}: view {v.index} gives view {w.index}'s photo another pose ({turn:.3g}° and "
+                       f"{shift:.3g} mesh units apart): one photo shows the object at one pose; is one of them wrong?")
+    return out
+
+
 def load_spec(path: str | Path, warn=None) -> ObjectSpec:
     """Parse and check an object spec file; cameras given as paths are loaded too. ``warn``
     (optional) receives one message per object or view with fields the spec does not know."""
@@ -193,4 +215,7 @@ def load_spec(path: str | Path, warn=None) -> ObjectSpec:
         pose = parse_pose(v["pose"], f"{where}: pose")
         mask = _path(base, v["mask"], where, "mask") if v.get("mask") is not None else None
         views.append(ViewSpec(i, image, camera, pose, mask))
+    if warn:
+        for msg in _repeated_photos(views, path):
+            warn(msg)
     return ObjectSpec(name, path.resolve(), mesh_path, tuple(views), hashlib.sha256(raw).hexdigest())
