@@ -62,6 +62,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--fps", type=float, default=None, metavar="F",
                         help="frame rate for time_s (default: the video's own rate; 30 for images; "
                              "the clock for a camera or stream)")
+    parser.add_argument("--stall-timeout", type=float, default=None, metavar="S",
+                        help="a camera or stream that gives no frame for S seconds has stalled: the run ends "
+                             "there, saying so, with complete outputs (default 30; also the wait for a stream "
+                             "to answer when opened)")
     parser.add_argument("--max-frames", type=int, default=None, metavar="N",
                         help="stop after N frames (Ctrl-C also stops cleanly, with complete outputs)")
     parser.add_argument("--overlay", metavar="OUT.mp4", help="also write the video with the wireframe, axes and status")
@@ -154,7 +158,7 @@ def _setup(args: argparse.Namespace) -> _Setup:
     if params.learn:  # (a store that cannot take the views: said now, not after the whole walk)
         from quatrack.viewsets.learn import check_can_store
         check_can_store(store, args.object)
-    source = open_frames(args.video, args.images, args.fps, args.max_frames)
+    source = open_frames(args.video, args.images, args.fps, args.max_frames, getattr(args, "stall_timeout", None))
     tracker = Tracker(model, camera, params, index=index_for(model))
     if init is not None:
         from quatrack.tracking import quaternion as quat
@@ -301,6 +305,9 @@ def run(args: argparse.Namespace) -> int:
         print(f"quatrack track: frame {k} cannot be read, written as lost: {why}", file=sys.stderr)
     if len(s.source.skipped) > 5:
         print(f"quatrack track: ... {len(s.source.skipped)} frames in all cannot be read", file=sys.stderr)
+    if s.source.ended and not interrupted:  # (a stream that stalled or dropped ended the run with exit 0, not a word)
+        print(f"quatrack track: {s.source.label}: {s.source.ended}; stopped after {len(steps)} frames; "
+              f"outputs complete", file=sys.stderr)
     if s.tracker.params.learn:
         _store_learned(s, args.object)
     if not args.quiet:

@@ -13,6 +13,11 @@ hold everywhere:
   30. Per-frame container timestamps are not used (with B-frames they come out of order). A live
   source (camera index or URL) without ``--fps`` is timed by the clock instead: ``time_s`` =
   monotonic seconds since its first frame, since a camera drops and delays frames.
+- **Live sources** are read in a thread of their own (:class:`LiveCapture`), one frame at a time
+  as the consumer asks: a read blocked in OpenCV (a stalled stream) no longer holds off Ctrl-C or
+  SIGTERM, and a source that gives no frame for ``stall_timeout_s`` (default
+  :data:`STALL_TIMEOUT_S`) ends, saying so (:attr:`FrameSource.ended`). A frame that fails to
+  decode (a corrupt JPEG part of an MJPEG stream) followed by another is skipped, not the end.
 - FFmpeg's decoder warnings (``[h264 @ ...] A non-intra slice ...``) are kept out of the user's
   terminal: ``OPENCV_FFMPEG_LOGLEVEL`` is set (unless the user set it) before the first capture.
 - **Rows**: one in-memory record per frame, :class:`~recognition.video.TrackStep`; the service's
@@ -35,9 +40,11 @@ import json
 import math
 import numbers
 import os
+import queue
 import re
 import sys
 import tempfile
+import threading
 import time
 from dataclasses import dataclass, field
 from typing import Any, Callable, Iterator, Sequence
@@ -63,6 +70,24 @@ class SourceError(ValueError):
     """A frame source that cannot be used; the message names it (one line for the user)."""
 
 
+class SourceEnded(SourceError):
+    """The last item of a live source's frames when it ended by itself: the message says why."""
+
+
+class SourceStalled(SourceError):
+    """A live source gave no frame (or no answer to its opening) within its timeout."""
+
+
+#: seconds a live source may give no frame before it is taken for stalled and the run ends
+#: (``--stall-timeout``); FFmpeg's own network timeout is set a little above it, so the thread
+#: left blocked in a read comes back and lets the capture go
+STALL_TIMEOUT_S = 30.0
+#: consecutive failed reads of a live source before it is taken for ended: one corrupt JPEG part
+#: of an MJPEG stream fails one read and the next frame comes (the run ended there, silently);
+#: a stream closed or dropped fails every read at once
+LIVE_BAD_RUN = 5
+
+
 # --- frame sources ------------------------------------------------------------------------------
 
 def quiet_ffmpeg() -> None:
@@ -72,9 +97,10 @@ def quiet_ffmpeg() -> None:
     os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")  # AV_LOG_QUIET
 
 
-def open_capture(target: int | str):
+def open_capture(target: int | str, timeout_s: float | None = None):
     """``cv2.VideoCapture(target)``: the one place captures are made (tests replace it to fake a
-    camera)."""
+    camera). ``timeout_s``: for a URL, FFmpeg's network timeout for opening and for each read
+    (its default is 30 s)."""
     import cv2
 
     quiet_ffmpeg()
@@ -84,9 +110,94 @@ def open_capture(target: int | str):
     previous = log.getLogLevel()
     log.setLogLevel(min(previous, log.LOG_LEVEL_ERROR))
     try:
+        if timeout_s is not None and isinstance(target, str) and "://" in target:
+            ms = int(min(timeout_s, 86400) * 1000)
+            return cv2.VideoCapture(target, cv2.CAP_ANY,
+                                    [cv2.CAP_PROP_OPEN_TIMEOUT_MSEC, ms, cv2.CAP_PROP_READ_TIMEOUT_MSEC, ms])
         return cv2.VideoCapture(target)
     finally:
         log.setLogLevel(previous)
+
+
+class LiveCapture:
+    """A live source's capture, every call of it (open, ``read``, ``get``, ``release``) run in one
+    daemon thread of its own while the caller waits at most ``timeout_s`` for it.
+
+    Why: a read of a stalled stream blocks inside OpenCV (FFmpeg gives up after 30 s), where
+    Python runs no signal handler: Ctrl-C and SIGTERM took effect only when the read returned,
+    and the stall itself ended the run without a word (and with OpenCV's "Stream timeout
+    triggered" warning on stderr). Here the caller waits in Python, so a signal stops it at
+    once, and a call that does not return in time raises :class:`SourceStalled`. Calls run one
+    at a time, in order: :meth:`release` while a read is blocked is queued behind it (a capture
+    released under a running read is a crash), so it happens when the read comes back. The
+    frames are read as the caller asks, one at a time, as a capture of its own would be (no
+    read-ahead: the same frames, and a stop after ``N`` frames reads no more). An exception of the
+    call (a test's camera raising ``KeyboardInterrupt``) is raised in the caller."""
+
+    def __init__(self, target: int | str, timeout_s: float = STALL_TIMEOUT_S) -> None:
+        self.target, self.timeout_s = target, timeout_s
+        self._calls: queue.SimpleQueue = queue.SimpleQueue()
+        self._released = False
+        threading.Thread(target=self._serve, name=f"capture {target}", daemon=True).start()
+        # FFmpeg's own timeout a little after ours: the thread left in a blocked read comes back
+        self.cap = self._call(lambda: open_capture(target, timeout_s + 5.0), what="answer")
+
+    def _serve(self) -> None:
+        import cv2
+
+        log = cv2.utils.logging  # ("[ WARN:0@31.8] global cap_ffmpeg_impl.hpp:453 ... Stream timeout triggered")
+        previous = log.getLogLevel()
+        log.setLogLevel(min(previous, log.LOG_LEVEL_ERROR))
+        try:
+            while True:
+                fn, box = self._calls.get()
+                if fn is None:
+                    return
+                try:
+                    box.put((True, fn()))
+                except BaseException as exc:  # (KeyboardInterrupt too: the caller's)
+                    box.put((False, exc))
+        finally:
+            log.setLogLevel(previous)
+
+    def _call(self, fn: Callable[[], Any], what: str = "a frame") -> Any:
+        box: queue.SimpleQueue = queue.SimpleQueue()
+        self._calls.put((fn, box))
+        deadline = time.monotonic() + self.timeout_s
+        while True:  # (in slices: a signal delivered to another thread is seen within 0.1 s)
+            try:
+                ok, value = box.get(timeout=max(0.0, min(0.1, deadline - time.monotonic())))
+                break
+            except queue.Empty:
+                if time.monotonic() >= deadline:
+                    raise SourceStalled(f"no {what} within {self.timeout_s:g} s") from None
+        if not ok:
+            raise value
+        return value
+
+    def isOpened(self) -> bool:
+        return bool(self._call(self.cap.isOpened))
+
+    def read(self):
+        return self._call(self.cap.read)
+
+    def get(self, prop: int) -> float:
+        return self._call(lambda: self.cap.get(prop))
+
+    def release(self) -> None:
+        """Let the capture go (after any call still running) and end the thread; waits for it only
+        while nothing blocks it."""
+        if self._released:
+            return
+        self._released = True
+        box: queue.SimpleQueue = queue.SimpleQueue()
+        cap = getattr(self, "cap", None)
+        self._calls.put(((cap.release if cap is not None else (lambda: None)), box))
+        self._calls.put((None, None))
+        try:
+            box.get(timeout=0.5)
+        except queue.Empty:  # (a read still blocked: it releases when that read comes back)
+            pass
 
 
 def frame_rate(given: float | None, reported: float | None = None) -> float:
@@ -142,12 +253,18 @@ class FrameSource:
     # frames that could not be read (an image sequence's unreadable file), skipped with their
     # index and time: ``(index, time_s, why)``; the frames after them keep their own index and time
     skipped: list[tuple[int, float, str]] = field(default_factory=list, init=False)
+    #: why a live source ended before it was stopped (it stalled, closed, dropped), else None
+    ended: str | None = field(default=None, init=False)
 
     def __iter__(self) -> Iterator[tuple[int, float, np.ndarray]]:
         t0 = None
         try:
-            for image in self._frames:
-                if self.max_frames is not None and self.count >= self.max_frames:
+            while self.max_frames is None or self.count < self.max_frames:  # (checked before the next read:
+                image = next(self._frames, None)  # a live source's frame N+1 was waited for, a stalled one's 30 s)
+                if image is None:
+                    break
+                if isinstance(image, SourceEnded):
+                    self.ended = str(image)
                     break
                 i = self.count
                 if self.live:
@@ -243,13 +360,15 @@ def misordered(patterns: str | Sequence[str]) -> tuple[str, str] | None:
 
 
 def open_frames(video: str | None = None, images: str | Sequence[str] | None = None, fps: float | None = None,
-                max_frames: int | None = None) -> FrameSource:
+                max_frames: int | None = None, stall_timeout_s: float | None = None) -> FrameSource:
     """A :class:`FrameSource` for ``--video`` (file, camera index, URL) or ``--images`` (a glob, or
     several globs or files — what a shell makes of an unquoted glob: each expanded and sorted by
     name, in the order given, each file once). Raises :class:`SourceError` when nothing can be
     read from it (a video's first frame is decoded here, so a bad file fails before any output
     is opened). An image of a sequence that cannot be decoded is skipped and listed in
-    :attr:`FrameSource.skipped`: one bad file does not end a long sequence.
+    :attr:`FrameSource.skipped`: one bad file does not end a long sequence. ``stall_timeout_s``:
+    how long a live source may give no frame (or no answer to its opening) before it is taken for
+    stalled (default :data:`STALL_TIMEOUT_S`); it then ends, and :attr:`FrameSource.ended` says why.
 
     >>> import tempfile, cv2
     >>> d = tempfile.mkdtemp()
@@ -295,11 +414,23 @@ def open_frames(video: str | None = None, images: str | Sequence[str] | None = N
                            _frames=frames())
     target = capture_target(video)
     live = not isinstance(target, str) or "://" in target
-    cap = open_capture(target)
-    if not cap.isOpened():
+    kind = "camera" if isinstance(target, int) else "stream" if live else "video"
+    if stall_timeout_s is not None and (isinstance(stall_timeout_s, (str, bytes, bool))
+                                        or not isinstance(stall_timeout_s, numbers.Real)
+                                        or not (math.isfinite(stall_timeout_s) and 0 < stall_timeout_s <= 86400)):
+        raise SourceError(f"--stall-timeout must be a number of seconds above 0 (at most 86400), "
+                          f"got {stall_timeout_s!r}"[:120])
+    started = time.monotonic()
+    try:  # (a live source in a thread of its own: a stalled read no longer holds off Ctrl-C)
+        cap = LiveCapture(target, stall_timeout_s or STALL_TIMEOUT_S) if live else open_capture(target)
+        opened = cap.isOpened()
+    except SourceStalled as exc:
+        raise SourceError(f"--video {video}: cannot be opened as a {kind} ({exc})") from None
+    if not opened:
         cap.release()
-        kind = "camera" if isinstance(target, int) else "stream" if live else "video"
-        raise SourceError(f"--video {video}: cannot be opened as a {kind}")
+        waited = time.monotonic() - started  # (an address that takes connections and never answers: 30 s)
+        raise SourceError(f"--video {video}: cannot be opened as a {kind}"
+                          + (f" (no answer within {waited:.0f} s)" if live and waited >= 5 else ""))
     import cv2
 
     listed = cap.get(cv2.CAP_PROP_FRAME_COUNT)
@@ -307,6 +438,9 @@ def open_frames(video: str | None = None, images: str | Sequence[str] | None = N
                             int(listed) if math.isfinite(listed) and listed > 0 else 0)
     head: list[np.ndarray | SourceError] = []  # up to the first frame that decodes (a bad file fails here)
     for item in frames:
+        if isinstance(item, SourceEnded):  # (a live source that gives no frame at all: say why)
+            cap.release()
+            raise SourceError(f"--video {video}: {item}, before its first frame")
         head.append(item)
         if not isinstance(item, Exception):
             break
@@ -334,8 +468,11 @@ def decoded_frames(cap, label: str, live: bool = False, listed: int = 0) -> Iter
     goes on with the next frame at the next call; ``track`` took the first ``False`` for the
     end, and the rest of the video was silently not tracked. Failures followed by a frame are
     frames that failed (one each: FFmpeg's AVI and MP4 readers keep each frame's place); failures
-    not followed by one are the end. A live source (camera, stream) ends at its first failure,
-    as before. ``listed``: the frame count the container states (0: unknown), which bounds how
+    not followed by one are the end. A live source (camera, stream) is alike — one corrupt JPEG
+    part of an MJPEG stream fails one read, and the next frame comes (it ended the run) — and
+    ends after :data:`LIVE_BAD_RUN` failures in a row, or when no frame came within its
+    timeout (a :class:`LiveCapture` read that raised :class:`SourceStalled`): its last item is
+    then a :class:`SourceEnded` saying why. ``listed``: the frame count the container states (0: unknown), which bounds how
     long a run of failures may be before it is the end.
 
     What OpenCV does not tell, and this cannot see: a frame whose data is damaged but decodes
@@ -345,16 +482,31 @@ def decoded_frames(cap, label: str, live: bool = False, listed: int = 0) -> Iter
     Such frames are tracked as given; the tracker's own checks usually lose a garbled one.
     """
     failed = n = 0
+    what = "camera" if label.split()[-1].isdigit() else "stream"
+    timeout = getattr(cap, "timeout_s", STALL_TIMEOUT_S)
+    last = time.monotonic()
     while True:
-        ok, frame = cap.read()
+        try:
+            ok, frame = cap.read()
+        except SourceStalled:  # (a live source's read that did not come back)
+            yield SourceEnded(f"the {what} stalled: no frame within {timeout:g} s")
+            return
         if ok and frame is not None:
             for _ in range(failed):
-                yield SourceError(f"{label}: its data cannot be decoded (a damaged file?)")
-            n, failed = n + failed + 1, 0
+                yield SourceError(f"{label}: its data cannot be decoded (a damaged "
+                                  + ("frame?)" if live else "file?)"))
+            n, failed, last = n + failed + 1, 0, time.monotonic()
             yield frame
             continue
         failed += 1
-        if live or failed > MAX_BAD_RUN or (failed > BAD_RUN_PAST_COUNT and n + failed >= listed):
+        if live and time.monotonic() - last >= timeout:  # (reads that fail slowly, one after another)
+            yield SourceEnded(f"the {what} stalled: no frame within {timeout:g} s")
+            return
+        if live and failed > LIVE_BAD_RUN:  # (a stream closed or dropped: every read fails at once)
+            yield SourceEnded(f"the {what} ended: it gives no more frames"
+                              + (" (closed or dropped by the source; not reconnected)" if what == "stream" else ""))
+            return
+        if not live and (failed > MAX_BAD_RUN or (failed > BAD_RUN_PAST_COUNT and n + failed >= listed)):
             return
 
 

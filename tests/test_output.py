@@ -73,7 +73,7 @@ def test_bad_sources_are_one_line_errors(tmp_path, monkeypatch, video, message):
         def release(self):
             pass
 
-    monkeypatch.setattr(trackio, "open_capture", lambda target: Closed())
+    monkeypatch.setattr(trackio, "open_capture", lambda target, *timeout: Closed())
     (tmp_path / "frames").mkdir()
     with pytest.raises(trackio.SourceError, match=message):
         trackio.open_frames(video=str(tmp_path / video) if not video.isdigit() else video)
@@ -98,7 +98,7 @@ class LoopedCamera:
 
     opened_with: list = []
 
-    def __init__(self, target):
+    def __init__(self, target, *timeout):
         LoopedCamera.opened_with.append(target)
         self.cap = cv2.VideoCapture(os.path.join(EXAMPLE, "box.mp4"))
         self.frames = []
