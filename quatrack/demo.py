@@ -33,7 +33,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                                       "(default: start one on loopback)")
     parser.add_argument("--store", metavar="DIR", help="model store for the local service (default: $QUATRACK_STORE or the user data directory)")
     parser.add_argument("--object", default="cookie-box", metavar="NAME", help="trained object (default cookie-box)")
-    parser.add_argument("--video", default=None, help="video to stream (default: the bundled box.mp4)")
+    parser.add_argument("--video", default=None, help="video file to stream (default: the bundled box.mp4); "
+                                                       "for a camera or stream URL use `quatrack track --video`")
     parser.add_argument("--camera", default=None, help="the video's camera file (default: the bundled example's)")
     parser.add_argument("--mesh", default=None, help="mesh for the overlay (default: the object's, from the store or the server)")
     parser.add_argument("--out-dir", default=OUT_DIR, metavar="DIR",
@@ -81,6 +82,11 @@ def _check(args: argparse.Namespace) -> _Plan:
     example = bundled_example()
     video = args.video or str(example / "box.mp4")
     camera_file = args.camera or str(example / "camera.json")
+    text = video.strip()
+    if text.isdigit() or "://" in text:  # (was "--video 0: no such file", as if a camera were a missing file)
+        raise ValueError(f"--video {video}: demo streams a video file (it reads it again for the overlay); for a "
+                         f"camera or a stream URL use `quatrack track --video {text}`, or the browser viewer "
+                         f"(`quatrack serve`, then /viewer) for a webcam")
     for opt, path in (("--video", video), ("--camera", camera_file)):
         if not Path(path).is_file():
             hint = "" if getattr(args, opt[2:]) else " (the bundled example is not installed here; give the option)"
