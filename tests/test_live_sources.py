@@ -186,52 +186,6 @@ def test_max_frames_reads_no_frame_past_the_last(monkeypatch):
     assert [i for i, _, _ in src] == [0, 1, 2] and len(reads) == 3
 
 
-def test_an_overlay_of_a_live_source_plays_at_the_rate_its_frames_came(tmp_path):
-    # a live source's rate is a guess (FFmpeg says 25 for any MJPEG stream, a webcam 30 or
-    # nothing): the overlay was written at it and played too fast or too slow; now at the rate
-    # of the frames' time_s (their median interval: the first frame's slow recognition aside)
-    path = str(tmp_path / "overlay.mp4")
-    video = trackio.VideoOut(path, 25.0, measure=True)
-    times = [0.0, 1.6] + [1.6 + k / 10 for k in range(1, 39)]  # 10 frames/s after a slow first step
-    frame = np.zeros((48, 64, 3), np.uint8)
-    for t in times:
-        video.write(frame, t)
-    video.close()
-    cap = cv2.VideoCapture(path)
-    assert cap.get(cv2.CAP_PROP_FPS) == pytest.approx(10.0, rel=1e-3) and cap.get(cv2.CAP_PROP_FRAME_COUNT) == 40
-    cap.release()
-    assert video.notes() == ["--overlay plays at 10 frames/s, the rate the source's first 31 frames came at "
-                             "(a live source states no reliable rate; give --fps to set it)"]
-    # a short run: measured from the frames there are; without measure, the rate given
-    short = trackio.VideoOut(str(tmp_path / "short.mp4"), 25.0, measure=True)
-    for t in (0.0, 0.5, 1.0):
-        short.write(frame, t)
-    short.close()
-    assert short.written_rate == 2.0 and len(short.notes()) == 1
-    fixed = trackio.VideoOut(str(tmp_path / "fixed.mp4"), 25.0)
-    fixed.write(frame, 0.0)
-    fixed.close()
-    assert fixed.written_rate == 25.0 and fixed.notes() == []
-
-
-def test_track_writes_a_live_overlay_at_its_measured_rate(monkeypatch, tmp_path, capsys):
-    monkeypatch.setattr(trackio, "open_capture", LoopedCamera)
-    out, overlay = tmp_path / "poses.csv", tmp_path / "live.mp4"
-    assert _track("--video", "0", "--max-frames", "4", "--out", str(out), "--overlay", str(overlay)) == 0
-    err = capsys.readouterr().err
-    note = next(line for line in err.splitlines() if line.startswith("quatrack track: note: --overlay plays at "))
-    cap = cv2.VideoCapture(str(overlay))
-    assert f"plays at {cap.get(cv2.CAP_PROP_FPS):.3g} frames/s, the rate the source's first 4 frames came at" in note
-    assert cap.get(cv2.CAP_PROP_FRAME_COUNT) == 4
-    cap.release()
-    # with --fps the rate is the one given, as for a file
-    assert _track("--video", "0", "--fps", "12", "--max-frames", "2", "--out", str(out), "--overlay", str(overlay)) == 0
-    assert "--overlay plays at" not in capsys.readouterr().err
-    cap = cv2.VideoCapture(str(overlay))
-    assert cap.get(cv2.CAP_PROP_FPS) == 12.0
-    cap.release()
-
-
 @pytest.mark.parametrize("video", ["0", "rtsp://127.0.0.1:9/cam"])
 def test_demo_given_a_camera_or_a_stream_points_to_track(tmp_path, capsys, video):
     # `quatrack demo --video 0` said "--video 0: no such file", as if the camera were a missing file
