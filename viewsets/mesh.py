@@ -252,9 +252,7 @@ def load_mesh(path: str | Path, warn=None) -> Mesh:
         raise SpecError(f"{path}: mesh file not found")
     try:
         loaded = trimesh.load(str(path), process=False)
-        if warn is not None:
-            for note in mesh_notes(loaded, path):
-                warn(note)
+        notes = mesh_notes(loaded, path) if warn is not None else []
         if isinstance(loaded, trimesh.Scene):  # e.g. an OBJ with several objects: merge them
             loaded = trimesh.load(str(path), process=False, force="mesh")
     except NotImplementedError:  # (trimesh's "file_type 'png' not supported": a photo named as the mesh)
@@ -268,6 +266,8 @@ def load_mesh(path: str | Path, warn=None) -> Mesh:
         raise SpecError(f"{path}: the mesh has no vertices")
     if faces is None or len(faces) == 0:
         raise SpecError(f"{path}: the mesh has no faces (a point cloud cannot be rendered)")
+    for note in notes:  # (told only of a mesh that is used: a refused point cloud's colours were warned of first)
+        warn(note)
     mesh = make_mesh(np.asarray(vertices), outward_faces(np.asarray(vertices), np.asarray(faces)), str(path))
     # vertices no face uses (an exporter's leftovers, a CAD file's origin point) are dropped: far
     # off, one moved the bounding box's centre, about which the synthetic views turn the object,
