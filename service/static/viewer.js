@@ -11,6 +11,11 @@ const COLOURS = { tracking: "rgb(0,220,0)", init: "rgb(255,215,0)" };
 const AXIS_RGB = [[221, 51, 51], [34, 153, 34], [51, 51, 221]];  // x, y, z
 const AXIS_COLOURS = AXIS_RGB.map(([r, g, b]) => `rgb(${r},${g},${b})`);
 const AXIS_BANDS = AXIS_RGB.map(([r, g, b]) => `rgba(${r},${g},${b},0.25)`);
+// The codes of a frame the server refuses on arrival, before numbering it (service/codes.py
+// REFUSED_FRAME; tests/test_viewer_ux.py checks that the two lists are equal): such an error,
+// without "frame", is the answer to the frame just sent. Any other error without "frame" (a
+// refused frame header: out_of_order, bad_message) is not, and the frame's answer still comes.
+const REFUSED_FRAME = new Set(["camera_required", "rate_limited", "too_large", "unsupported_image"]);
 
 function token() { return $("token").value.trim(); }
 function headers() { return token() ? { Authorization: "Bearer " + token() } : {}; }
@@ -188,6 +193,11 @@ function stop(reason) {
   if (reason) message(reason);
 }
 
+function answersTheFrame(msg) {  // lock-step: the one frame in flight is the one answered
+  if (msg.type === "pose") return true;
+  return msg.type === "error" && ("frame" in msg || REFUSED_FRAME.has(msg.error && msg.error.code));
+}
+
 function nextMessage(ws) {
   return new Promise((resolve, reject) => {
     ws.onmessage = (e) => resolve(JSON.parse(e.data));
@@ -236,7 +246,11 @@ async function start(id) {  // id: this run; a newer run makes it stop quietly
     const sent = performance.now();
     ws.send(JSON.stringify({ type: "frame", time_s: t }));
     ws.send(blob);
-    const msg = await nextMessage(ws);
+    let msg = await nextMessage(ws);
+    while (current() && !answersTheFrame(msg)) {  // (say it, and wait for the frame's own answer)
+      if (msg.type === "error") message(msg.error.code + ": " + msg.error.message);
+      msg = await nextMessage(ws);
+    }
     if (!current()) return;
     if (msg.type === "error") { message(msg.error.code + ": " + msg.error.message); continue; }
     drawFrame(frame, msg, performance.now() - sent);
@@ -248,7 +262,8 @@ async function start(id) {  // id: this run; a newer run makes it stop quietly
 
 function run() {
   const id = ++state.run;
-  start(id).catch((e) => { if (state.run === id) stop(e.message); });
+  start(id).catch((e) => { if (state.run === id) stop(e.message); })
+    .finally(() => { state.done = id; });  // (the id of the latest run that has ended)
 }
 
 $("webcam").onclick = async () => {
