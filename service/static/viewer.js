@@ -181,7 +181,7 @@ function cameraFor(w, h) {
   return { ...cam, width: w, height: h };
 }
 
-function stop(reason) {
+function stop(reason) {  // ends the current run (it ends quietly: its own errors are not shown)
   state.running = false;
   if (state.ws) { try { state.ws.close(); } catch (e) { /* already closed */ } }
   state.ws = null;
@@ -198,94 +198,168 @@ function answersTheFrame(msg) {  // lock-step: the one frame in flight is the on
   return msg.type === "error" && ("frame" in msg || REFUSED_FRAME.has(msg.error && msg.error.code));
 }
 
-function nextMessage(ws) {
-  return new Promise((resolve, reject) => {
-    ws.onmessage = (e) => resolve(JSON.parse(e.data));
-    ws.onclose = (e) => reject(new Error(`connection closed (${e.code}${e.reason ? " " + e.reason : ""})`));
-    ws.onerror = () => reject(new Error("connection failed"));
-  });
+const CLOSE_CODES = { 1001: "the server is going away", 1006: "connection lost: the server stopped or the network failed",
+                      1008: "refused", 1011: "server error", 1012: "the server is restarting", 1013: "the server is busy" };
+
+function errorText(msg) { return msg.error ? msg.error.code + ": " + msg.error.message : "unexpected " + JSON.stringify(msg).slice(0, 80); }
+
+function channel(ws) {  // the socket's messages in order, and its end whenever it comes: handlers
+  // set only while awaiting missed a close that came in between (a server restarting while the
+  // frame was being encoded), and the page then waited for ever, still saying "tracking"
+  const queue = [], waiting = [];
+  let opened = false, end = null, last = null;
+  const finish = (err) => { if (!end) { end = err; for (const w of waiting.splice(0)) w.reject(err); } };
+  const deliver = (msg) => { const w = waiting.shift(); if (w) w.resolve(msg); else queue.push(msg); };
+  ws.onopen = () => { opened = true; deliver({ type: "open" }); };
+  ws.onmessage = (e) => {
+    try { last = JSON.parse(e.data); } catch (x) { last = { type: "error", error: { code: "bad_answer", message: "not JSON" } }; }
+    deliver(last);
+  };
+  ws.onclose = (e) => {
+    const why = e.reason || CLOSE_CODES[e.code] || "";
+    if (!opened) {
+      finish(new Error(`cannot open the WebSocket (${e.code}${why ? " " + why : ""}): the server refused it ` +
+                       "(wrong token, unknown object, too many sessions) or is not reachable"));
+    } else {  // (an error just before the close says why: idle_timeout, ...)
+      const said = last && last.type === "error" && !("frame" in last) ? "; " + errorText(last) : "";
+      finish(new Error(`connection closed (${e.code}${why ? " " + why : ""})${said}; start again when the server is back`));
+    }
+  };
+  return { next: () => (queue.length ? Promise.resolve(queue.shift()) : end ? Promise.reject(end)
+                        : new Promise((resolve, reject) => waiting.push({ resolve, reject }))) };
 }
 
-async function start(id) {  // id: this run; a newer run makes it stop quietly
+async function start(id, source) {  // id: this run; a stop or a newer run makes it end quietly
+  const current = () => state.running && state.run === id;
   const name = $("object").value;
-  if (!name) { message("pick an object"); return; }
+  if (!name) throw new Error("pick an object");
   const v = $("video");
-  await new Promise((res) => (v.readyState >= 2 ? res() : v.addEventListener("loadeddata", res, { once: true })));
+  await source();
+  if (!current()) return;
+  await videoReady(v);
+  if (!current()) return;
+  const w = v.videoWidth, h = v.videoHeight;
+  if (!w || !h) throw new Error("this file has no picture (audio only?)");
   await v.play();
   const mesh = await getJSON(`/v1/objects/${encodeURIComponent(name)}/mesh`);
+  if (!current()) return;  // (a newer run's wireframe, camera and count are not touched)
   state.edges = mesh.edges; state.bbox = mesh.bbox;
-  const w = v.videoWidth, h = v.videoHeight;
   state.camera = cameraFor(w, h);
-  state.count = 0; state.history = []; state.running = true;
+  state.count = 0; state.history = [];
   $("drop").classList.add("hidden");
-  $("stop").disabled = false;
   message($("camera").value.trim() ? "" : "camera guessed (60° field of view): paste your calibration for accurate poses");
   const proto = location.protocol === "https:" ? "wss:" : "ws:";
   const q = token() ? "?token=" + encodeURIComponent(token()) : "";
   const ws = new WebSocket(`${proto}//${location.host}/v1/objects/${encodeURIComponent(name)}/track${q}`);
   state.ws = ws;
-  await new Promise((res, rej) => { ws.onopen = res; ws.onerror = () => rej(new Error("cannot open the WebSocket (token?)")); });
-  ws.send(JSON.stringify({ ...state.camera, ack: true }));
-  const ready = await nextMessage(ws);
-  if (ready.type !== "ready") throw new Error(ready.error ? ready.error.code + ": " + ready.error.message : "refused");
-  const grab = document.createElement("canvas");
-  grab.width = w; grab.height = h;
-  const max = parseInt($("max-frames").value, 10);
-  state.t0 = performance.now();
-  let last = -1;
-  const current = () => state.running && state.run === id;
-  while (current() && !(max > 0 && state.count >= max)) {
-    grab.getContext("2d").drawImage(v, 0, 0, w, h);
-    const frame = document.createElement("canvas");  // keep the sent frame: the pose is drawn on it
-    frame.width = w; frame.height = h;
-    frame.getContext("2d").drawImage(grab, 0, 0);
-    const blob = await new Promise((res) => grab.toBlob(res, "image/jpeg", 0.9));
-    let t = (performance.now() - state.t0) / 1000;
-    if (t <= last) t = last + 1e-3;
-    last = t;
-    const sent = performance.now();
-    ws.send(JSON.stringify({ type: "frame", time_s: t }));
-    ws.send(blob);
-    let msg = await nextMessage(ws);
-    while (current() && !answersTheFrame(msg)) {  // (say it, and wait for the frame's own answer)
-      if (msg.type === "error") message(msg.error.code + ": " + msg.error.message);
-      msg = await nextMessage(ws);
-    }
+  const answers = channel(ws);
+  try {
+    await answers.next();  // open
     if (!current()) return;
-    if (msg.type === "error") { message(msg.error.code + ": " + msg.error.message); continue; }
-    drawFrame(frame, msg, performance.now() - sent);
-    record(msg);
-    if (v.ended) break;
+    ws.send(JSON.stringify({ ...state.camera, ack: true }));
+    const ready = await answers.next();
+    if (!current()) return;
+    if (ready.type !== "ready") throw new Error(errorText(ready));
+    const grab = document.createElement("canvas");
+    grab.width = w; grab.height = h;
+    const max = parseInt($("max-frames").value, 10);
+    state.t0 = performance.now();
+    let last = -1;
+    while (current() && !(max > 0 && state.count >= max)) {
+      grab.getContext("2d").drawImage(v, 0, 0, w, h);
+      const frame = document.createElement("canvas");  // keep the sent frame: the pose is drawn on it
+      frame.width = w; frame.height = h;
+      frame.getContext("2d").drawImage(grab, 0, 0);
+      const blob = await new Promise((res) => grab.toBlob(res, "image/jpeg", 0.9));
+      if (!current()) return;
+      if (!blob) throw new Error("the browser could not encode the frame as JPEG");
+      let t = (performance.now() - state.t0) / 1000;
+      if (t <= last) t = last + 1e-3;
+      last = t;
+      const sent = performance.now();
+      ws.send(JSON.stringify({ type: "frame", time_s: t }));
+      ws.send(blob);
+      let msg = await answers.next();
+      while (current() && !answersTheFrame(msg)) {  // (say it, and wait for the frame's own answer)
+        if (msg.type === "error") message(errorText(msg));
+        msg = await answers.next();
+      }
+      if (!current()) return;
+      if (msg.type === "error") { message(errorText(msg)); continue; }
+      drawFrame(frame, msg, performance.now() - sent);
+      record(msg);
+      if (v.ended) break;
+    }
+    if (current()) stop(state.count ? "" : "no pose received");
+  } finally {
+    if (state.ws !== ws) ws.close();  // (a stale run's socket: stop() closed only the current one)
   }
-  stop(state.count ? "" : "no pose received");
 }
 
-function run() {
+function videoReady(v) {  // the first picture decoded; a video the browser cannot play says so
+  return new Promise((resolve, reject) => {
+    if (v.readyState >= 2) { resolve(); return; }
+    const done = (ok) => {
+      v.removeEventListener("loadeddata", loaded); v.removeEventListener("error", failed);
+      if (ok) resolve(); else reject(new Error(videoError(v)));
+    };
+    const loaded = () => done(true), failed = () => done(false);
+    v.addEventListener("loadeddata", loaded);
+    v.addEventListener("error", failed);
+    if (v.error) done(false);
+  });
+}
+
+function videoError(v) {
+  const e = v.error, kinds = { 1: "aborted", 2: "network error", 3: "it cannot be decoded", 4: "format or codec not supported" };
+  const what = e ? (kinds[e.code] || "error " + e.code) + (e.message ? ": " + e.message : "") : "unknown error";
+  return `the browser cannot play this video (${what}); WebM (VP8, VP9) plays in every browser`;
+}
+
+function run(source, label) {  // source(current): sets the video's source (awaited)
+  stop();
   const id = ++state.run;
-  start(id).catch((e) => { if (state.run === id) stop(e.message); })
+  state.running = true;
+  const current = () => state.running && state.run === id;
+  $("status").textContent = "starting";
+  $("source").textContent = label;
+  $("stop").disabled = false;
+  start(id, () => source(current))
+    .catch((e) => { if (current()) stop(e.message); })
     .finally(() => { state.done = id; });  // (the id of the latest run that has ended)
 }
 
-$("webcam").onclick = async () => {
-  stop();
-  try {
-    const v = $("video");
-    v.src = "";
-    v.srcObject = await navigator.mediaDevices.getUserMedia({ video: { width: 640, height: 480 }, audio: false });
-    run();
-  } catch (e) { message("webcam: " + e.message); }
-};
+let fileURL = null;
+
+$("webcam").onclick = () => run(async (current) => {
+  const media = navigator.mediaDevices;
+  if (!media || !media.getUserMedia) {
+    throw new Error("webcam: the browser offers it only to secure pages (https, or http on localhost); open the viewer so, or drop a video file");
+  }
+  let stream;
+  try { stream = await media.getUserMedia({ video: { width: 640, height: 480 }, audio: false }); }
+  catch (e) { throw new Error("webcam: " + e.message); }
+  if (!current()) { stream.getTracks().forEach((t) => t.stop()); return; }  // (a newer run took over: camera off)
+  const v = $("video");
+  v.removeAttribute("src");  // (v.src = "" queues an error event: "empty src")
+  v.srcObject = stream;
+}, "webcam");
 
 function playFile(file) {
-  stop();
-  const v = $("video");
-  v.srcObject = null;
-  v.src = URL.createObjectURL(file);
-  v.loop = false;
-  run();
+  run(async () => {
+    const v = $("video");
+    v.srcObject = null;
+    if (fileURL) URL.revokeObjectURL(fileURL);
+    v.src = fileURL = URL.createObjectURL(file);
+    v.loop = false;
+  }, file.name);
 }
 
-$("file").onchange = (e) => { if (e.target.files[0]) playFile(e.target.files[0]); };
+$("file").onchange = (e) => {  // (emptied: choosing the same file again starts it again)
+  const file = e.target.files[0];
+  e.target.value = "";
+  if (file) playFile(file);
+};
 const view = $("view");
 view.addEventListener("dragover", (e) => e.preventDefault());
 view.addEventListener("drop", (e) => { e.preventDefault(); if (e.dataTransfer.files[0]) playFile(e.dataTransfer.files[0]); });
