@@ -220,3 +220,62 @@ def test_the_same_file_chosen_again_plays_again(server, browser, tmp_path):
         browser.find_element("id", "file").send_keys(str(video))
         _wait(browser, lambda: _js(browser, "return state.done") == run, f"run {run}'s end")
         assert _count(browser) == 2 and _text(browser, "source") == "box.webm"
+
+
+def test_the_webcam_needs_a_secure_page_and_an_object(server, browser):
+    """Over plain http from another machine the browser has no navigator.mediaDevices: the page
+    said "webcam: Cannot read properties of undefined". And without an object the webcam was
+    turned on, then the run refused ("pick an object") with the camera left on."""
+    _open(browser, server.url)
+    _js(browser, "Object.defineProperty(navigator, 'mediaDevices', {value: undefined, configurable: true})")
+    browser.find_element("id", "webcam").click()
+    _wait(browser, lambda: _run_ended(browser), "the run's end")
+    said = _text(browser, "message")
+    assert "https" in said and "localhost" in said, said
+
+    _open(browser, server.url, token=None)  # no token: no objects listed
+    _wait(browser, lambda: "unauthorized" in _text(browser, "message"), "the refusal")
+    _js(browser, """window.__cams = 0; const gum = navigator.mediaDevices.getUserMedia.bind(navigator.mediaDevices);
+        navigator.mediaDevices.getUserMedia = (c) => { window.__cams += 1; return gum(c); };""")
+    browser.find_element("id", "webcam").click()
+    _wait(browser, lambda: _run_ended(browser), "the run's end")
+    assert _text(browser, "message") == "pick an object" and _js(browser, "return window.__cams") == 0
+
+
+def test_the_object_list_offers_what_can_be_tracked(browser, tmp_path):
+    """A model that cannot be loaded was offered like the others, and chosen first when its name
+    came first (every run then refused with model_unavailable); now it is listed disabled, its
+    error in its title and in the message line. An empty store says how to train one. An older
+    list answer coming after a newer one is dropped (the token typed while the page's tokenless
+    listing was under way showed 'unauthorized' over the objects listed)."""
+    import shutil
+
+    from quatrack.viewsets import store as store_mod
+
+    src = example_store() / "cookie-box"
+    store = tmp_path / "store"
+    for name in ("a-broken", "cookie-box", "z-box"):
+        shutil.copytree(src, store / name)
+        m = json.loads((store / name / store_mod.MANIFEST).read_text())
+        (store / name / store_mod.MANIFEST).write_text(json.dumps({**m, "name": name}))
+    arrays = store / "a-broken" / store_mod.ARRAYS
+    arrays.write_bytes(arrays.read_bytes()[:1000])
+    with BackgroundServer(Settings(store=store, model_poll_s=0)) as srv:
+        browser.get(f"{srv.url}/viewer/")
+        _wait(browser, lambda: _js(browser, "return document.getElementById('object').options.length") == 3, "the list")
+        options = _js(browser, "return [...document.getElementById('object').options]"
+                               ".map(o => [o.value, o.textContent, o.disabled, o.title])")
+        assert [o[:3] for o in options] == [["a-broken", "a-broken (broken)", True], ["cookie-box", "cookie-box", False],
+                                           ["z-box", "z-box", False]]
+        assert "a-broken" in options[0][3]
+        assert _js(browser, "return document.getElementById('object').value") == "cookie-box"
+        assert "1 object(s) cannot be loaded: a-broken" in _text(browser, "message")
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with BackgroundServer(Settings(store=empty)) as srv:
+        browser.get(f"{srv.url}/viewer/")
+        _wait(browser, lambda: "no trained object" in _text(browser, "message"), "the message")
+        assert "quatrack train" in _text(browser, "message")
+        browser.find_element("id", "webcam").click()
+        _wait(browser, lambda: _run_ended(browser), "the run's end")
+        assert _text(browser, "message") == "pick an object"

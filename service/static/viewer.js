@@ -28,16 +28,37 @@ async function getJSON(path) {
   return body;
 }
 
+let listing = 0;  // the latest object list asked for: an older answer coming later is dropped
+let listNote = "";  // what the list said in the message line (cleared only by the list)
+
+function listMessage(text) {
+  if (text || $("message").textContent === listNote) message(text);
+  listNote = text;
+}
+
 async function loadObjects() {
+  const mine = ++listing;
+  const sel = $("object");
   try {
     const list = await getJSON("/v1/objects");
-    const sel = $("object");
+    if (mine !== listing) return;
     const keep = sel.value;
     sel.innerHTML = "";
-    for (const o of list.objects) sel.add(new Option(o.name, o.name));
-    if (keep) sel.value = keep;
-    message(list.objects.length ? "" : "no trained object on this server");
-  } catch (e) { message("objects: " + e.message); }
+    const broken = [];
+    for (const o of list.objects) {  // a model that cannot be loaded is listed, not chosen
+      const opt = new Option(o.error ? `${o.name} (broken)` : o.name, o.name);
+      if (o.error) { opt.disabled = true; opt.title = o.error; broken.push(`${o.name}: ${o.error}`); }
+      sel.add(opt);
+    }
+    const usable = [...sel.options].filter((o) => !o.disabled);
+    sel.value = usable.some((o) => o.value === keep) ? keep : usable.length ? usable[0].value : "";
+    if (!list.objects.length) listMessage("no trained object on this server (quatrack train SPEC.json, then reload objects)");
+    else listMessage(broken.length ? `${broken.length} object(s) cannot be loaded: ${broken.join("; ")}` : "");
+  } catch (e) {
+    if (mine !== listing) return;
+    sel.innerHTML = "";  // (what an earlier token listed is not offered)
+    listMessage("objects: " + (e instanceof TypeError ? "the server does not answer" : e.message));
+  }
 }
 
 // --- geometry ---------------------------------------------------------------------------------
