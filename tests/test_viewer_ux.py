@@ -279,3 +279,46 @@ def test_the_object_list_offers_what_can_be_tracked(browser, tmp_path):
         browser.find_element("id", "webcam").click()
         _wait(browser, lambda: _run_ended(browser), "the run's end")
         assert _text(browser, "message") == "pick an object"
+
+
+COUNT_CAMS = """window.__cams = 0; const gum = navigator.mediaDevices.getUserMedia.bind(navigator.mediaDevices);
+navigator.mediaDevices.getUserMedia = (c) => { window.__cams += 1; return gum(c); };"""
+
+
+@pytest.mark.parametrize("pasted, said", [
+    ("fx: 600, fy: 600", "camera: not JSON"),  # (YAML-ish)
+    ('{"width": 640, "height": 480, "f": 600}', "camera: fx, fy, cx, cy missing or not a number"),
+    ('{"width": 640, "fx": 600, "fy": 600, "cx": 320, "cy": 240}', "width and height must be given together"),
+    ('{"fx": 600, "fy": 600, "cx": 320, "cy": 240, "dist_coeffs": [0.1, 0.0, 0.0]}', "dist_coeffs must be 4, 5 or 8"),
+])
+def test_a_wrong_camera_is_a_clear_message_before_the_webcam_starts(server, browser, pasted, said):
+    """A pasted camera that is not the camera JSON was read after the webcam had started, and
+    said JSON.parse's "Unexpected token ..." (or, when parsed, drew at NaN)."""
+    _open(browser, server.url, camera=pasted)
+    _js(browser, COUNT_CAMS)
+    _start_webcam(browser)
+    _wait(browser, lambda: _run_ended(browser), "the run's end")
+    assert said in _text(browser, "message"), _text(browser, "message")
+    assert _js(browser, "return window.__cams") == 0
+
+
+def test_a_camera_of_another_size_is_scaled_or_refused(server, browser):
+    """The pasted camera was silently stretched to the video's size, also to another aspect
+    ratio (fx and fy scaled apart: every pose wrong). Now the same aspect ratio is scaled and
+    said so; another one is refused, naming both sizes. (The fake webcam is 640×480.)"""
+    cam = json.loads(CAMERA)
+    wide = {**cam, "width": 1280, "height": 720}
+    _open(browser, server.url, camera=json.dumps(wide))
+    _start_webcam(browser, 1)
+    _wait(browser, lambda: _run_ended(browser), "the run's end")
+    said = _text(browser, "message")
+    assert "the video is 640×480 but the pasted camera is 1280×720" in said and _count(browser) == 0, said
+
+    double = {**cam, "width": 1280, "height": 960, "fx": 2 * cam["fx"], "fy": 2 * cam["fy"], "cx": 640, "cy": 480}
+    _open(browser, server.url, camera=json.dumps(double))
+    _start_webcam(browser, 1)
+    _wait(browser, lambda: _run_ended(browser), "the run's end")
+    assert _text(browser, "message") == "the pasted 1280×960 camera is scaled to the video's 640×480"
+    used = _js(browser, "return state.camera")
+    assert _count(browser) == 1 and [used[k] for k in ("width", "height", "fx", "fy", "cx", "cy")] == \
+        [640, 480, cam["fx"], cam["fy"], 320, 240]

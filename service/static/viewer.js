@@ -186,20 +186,40 @@ function plot(canvas, key, sigmaKey) {  // one panel per axis, each with its own
 }
 
 // --- streaming --------------------------------------------------------------------------------
-function cameraFor(w, h) {
+const CAMERA_FORM = '{"width": 640, "height": 480, "fx": …, "fy": …, "cx": …, "cy": …, "dist_coeffs": [k1, k2, p1, p2, k3]}';
+
+function pastedCamera() {  // the pasted calibration, checked before anything starts; null: none
   const text = $("camera").value.trim();
+  if (!text) return null;
   let cam;
-  if (text) {
-    cam = JSON.parse(text);
-    if (cam.width && cam.height && (cam.width !== w || cam.height !== h)) {  // same camera, another size
-      const sx = w / cam.width, sy = h / cam.height;
-      cam = { ...cam, fx: cam.fx * sx, cx: cam.cx * sx, fy: cam.fy * sy, cy: cam.cy * sy };
-    }
-  } else {
-    const f = 0.5 * w / Math.tan(30 * Math.PI / 180);
-    cam = { fx: f, fy: f, cx: w / 2, cy: h / 2, guessed: true };  // (the service learns no views from a guess)
+  try { cam = JSON.parse(text); } catch (e) { throw new Error(`camera: not JSON (${e.message}); paste the camera file, ${CAMERA_FORM}`); }
+  if (!cam || typeof cam !== "object" || Array.isArray(cam)) throw new Error(`camera: a JSON object is expected, ${CAMERA_FORM}`);
+  const bad = ["fx", "fy", "cx", "cy"].filter((k) => typeof cam[k] !== "number" || !isFinite(cam[k]));
+  if (bad.length) throw new Error(`camera: ${bad.join(", ")} missing or not a number (pixels), ${CAMERA_FORM}`);
+  const size = ["width", "height"].filter((k) => cam[k] != null);
+  if (size.length === 1 || size.some((k) => !Number.isInteger(cam[k]) || cam[k] <= 0)) {
+    throw new Error("camera: width and height must be given together, as whole numbers of pixels (or both left out)");
   }
-  return { ...cam, width: w, height: h };
+  const d = cam.dist_coeffs;
+  if (d != null && (!Array.isArray(d) || ![0, 4, 5, 8].includes(d.length) || d.some((x) => typeof x !== "number"))) {
+    throw new Error("camera: dist_coeffs must be 4, 5 or 8 numbers in OpenCV's order (k1, k2, p1, p2[, k3[, k4, k5, k6]])");
+  }
+  return cam;
+}
+
+function cameraFor(cam, w, h) {  // the camera of a w×h video: the pasted one, scaled to it, or a guess
+  if (!cam) {
+    const f = 0.5 * w / Math.tan(30 * Math.PI / 180);
+    return { fx: f, fy: f, cx: w / 2, cy: h / 2, width: w, height: h, guessed: true };  // (the service learns no views from a guess)
+  }
+  const cw = cam.width || w, ch = cam.height || h;
+  if (cw === w && ch === h) return { ...cam, width: w, height: h };
+  if (Math.abs(w * ch - h * cw) > 0.01 * w * ch) {  // a crop or another camera: no scaling makes it fit
+    throw new Error(`the video is ${w}×${h} but the pasted camera is ${cw}×${ch} (another aspect ratio): ` +
+                    `paste this camera's calibration at ${w}×${h}, or empty the camera field to guess one`);
+  }
+  const sx = w / cw, sy = h / ch;  // the same camera at another resolution
+  return { ...cam, fx: cam.fx * sx, cx: cam.cx * sx, fy: cam.fy * sy, cy: cam.cy * sy, width: w, height: h, scaled: true };
 }
 
 function stop(reason) {  // ends the current run (it ends quietly: its own errors are not shown)
@@ -254,6 +274,7 @@ async function start(id, source) {  // id: this run; a stop or a newer run makes
   const current = () => state.running && state.run === id;
   const name = $("object").value;
   if (!name) throw new Error("pick an object");
+  const pasted = pastedCamera();
   const v = $("video");
   await source();
   if (!current()) return;
@@ -263,12 +284,13 @@ async function start(id, source) {  // id: this run; a stop or a newer run makes
   if (!w || !h) throw new Error("this file has no picture (audio only?)");
   await v.play();
   const mesh = await getJSON(`/v1/objects/${encodeURIComponent(name)}/mesh`);
+  const camera = cameraFor(pasted, w, h);
   if (!current()) return;  // (a newer run's wireframe, camera and count are not touched)
-  state.edges = mesh.edges; state.bbox = mesh.bbox;
-  state.camera = cameraFor(w, h);
+  state.edges = mesh.edges; state.bbox = mesh.bbox; state.camera = camera;
   state.count = 0; state.history = [];
   $("drop").classList.add("hidden");
-  message($("camera").value.trim() ? "" : "camera guessed (60° field of view): paste your calibration for accurate poses");
+  message(camera.guessed ? "camera guessed (60° field of view): paste your calibration for accurate poses"
+          : camera.scaled ? `the pasted ${pasted.width}×${pasted.height} camera is scaled to the video's ${w}×${h}` : "");
   const proto = location.protocol === "https:" ? "wss:" : "ws:";
   const q = token() ? "?token=" + encodeURIComponent(token()) : "";
   const ws = new WebSocket(`${proto}//${location.host}/v1/objects/${encodeURIComponent(name)}/track${q}`);
@@ -277,7 +299,8 @@ async function start(id, source) {  // id: this run; a stop or a newer run makes
   try {
     await answers.next();  // open
     if (!current()) return;
-    ws.send(JSON.stringify({ ...state.camera, ack: true }));
+    const { scaled, ...sent } = state.camera;
+    ws.send(JSON.stringify({ ...sent, ack: true }));
     const ready = await answers.next();
     if (!current()) return;
     if (ready.type !== "ready") throw new Error(errorText(ready));
