@@ -322,3 +322,27 @@ def test_a_camera_of_another_size_is_scaled_or_refused(server, browser):
     used = _js(browser, "return state.camera")
     assert _count(browser) == 1 and [used[k] for k in ("width", "height", "fx", "fy", "cx", "cy")] == \
         [640, 480, cam["fx"], cam["fy"], 320, 240]
+
+
+def test_the_overlay_projects_as_the_tracker_does(server, browser):
+    """The page's projection (the drawn wireframe) is tracking/camera.py's, also with the
+    rational model's k4..k6 (8 coefficients, which the service accepts): they were ignored, the
+    wireframe drawn off the object near the image's edges."""
+    import numpy as np
+
+    from quatrack.tracking.camera import PinholeCamera
+    from quatrack.tracking import quaternion as quat
+
+    _open(browser, server.url)
+    rng = np.random.default_rng(5)
+    q = rng.normal(size=4)
+    q /= np.linalg.norm(q)
+    t = np.array([3.0, -2.0, 60.0])
+    pts = rng.uniform(-25, 25, size=(50, 3))
+    for dist in ([0.0] * 5, [-0.3, 0.12, 0.002, -0.001, -0.02], [0.2, -0.1, 0.001, 0.002, 0.03, 0.5, -0.2, 0.1]):
+        cam = {"width": 640, "height": 480, "fx": 600.0, "fy": 610.0, "cx": 322.0, "cy": 238.0, "dist_coeffs": dist}
+        page = _js(browser, "const R = rotation(arguments[1]);"
+                            "return arguments[3].map((X) => project(arguments[0], R, arguments[2], X))",
+                   cam, q.tolist(), t.tolist(), pts.tolist())
+        ref = PinholeCamera(**{**cam, "dist_coeffs": np.array(dist)}).project(pts @ quat.to_matrix(q).T + t)
+        assert np.allclose(np.array(page), ref, atol=1e-6), (dist, np.abs(np.array(page) - ref).max())

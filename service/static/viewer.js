@@ -69,14 +69,15 @@ function rotation(q) {  // R(q) for q = [w, x, y, z] (Hamilton), rows
           [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]];
 }
 
-function project(cam, R, t, X) {  // pinhole with OpenCV's k1,k2,p1,p2,k3; null behind the camera
+function project(cam, R, t, X) {  // tracking/camera.py's pinhole with OpenCV's k1..k6, p1, p2; null behind the camera
   const xc = R[0][0] * X[0] + R[0][1] * X[1] + R[0][2] * X[2] + t[0];
   const yc = R[1][0] * X[0] + R[1][1] * X[1] + R[1][2] * X[2] + t[1];
   const zc = R[2][0] * X[0] + R[2][1] * X[1] + R[2][2] * X[2] + t[2];
   if (zc <= 1e-9) return null;
   const x = xc / zc, y = yc / zc, d = cam.dist_coeffs || [];
-  const [k1 = 0, k2 = 0, p1 = 0, p2 = 0, k3 = 0] = d;
-  const r2 = x * x + y * y, radial = 1 + k1 * r2 + k2 * r2 * r2 + k3 * r2 * r2 * r2;
+  const [k1 = 0, k2 = 0, p1 = 0, p2 = 0, k3 = 0, k4 = 0, k5 = 0, k6 = 0] = d;  // (k4..k6: the rational model)
+  const r2 = x * x + y * y;
+  const radial = (1 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1 + r2 * (k4 + r2 * (k5 + r2 * k6)));
   const xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x);
   const yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y;
   return [cam.fx * xd + cam.cx, cam.fy * yd + cam.cy];
