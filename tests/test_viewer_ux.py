@@ -346,3 +346,66 @@ def test_the_overlay_projects_as_the_tracker_does(server, browser):
                    cam, q.tolist(), t.tolist(), pts.tolist())
         ref = PinholeCamera(**{**cam, "dist_coeffs": np.array(dist)}).project(pts @ quat.to_matrix(q).T + t)
         assert np.allclose(np.array(page), ref, atol=1e-6), (dist, np.abs(np.array(page) - ref).max())
+
+
+def test_every_control_is_labelled_and_the_messages_are_announced():
+    """Accessibility basics, read from viewer.html: every form control has a label (a wrapping
+    <label>, <label for>, aria-label or aria-labelledby naming an element), the message line is a
+    live region (screen readers hear errors), the canvases say what they show. The camera's
+    textarea had no label; the messages and canvases were silent."""
+    from html.parser import HTMLParser
+
+    class Page(HTMLParser):
+        def __init__(self):
+            super().__init__()
+            self.stack, self.ids, self.label_for, self.controls, self.canvases, self.live = [], set(), set(), [], [], set()
+
+        def handle_starttag(self, tag, attrs):
+            a = dict(attrs)
+            if "id" in a:
+                self.ids.add(a["id"])
+            if tag == "label" and "for" in a:
+                self.label_for.add(a["for"])
+            if tag in ("input", "select", "textarea"):
+                self.controls.append((a, "label" in self.stack))
+            if tag == "canvas":
+                self.canvases.append(a)
+            if a.get("role") in ("status", "alert") or "aria-live" in a:
+                self.live.add(a.get("id"))
+            if tag not in ("input", "meta", "link", "br"):
+                self.stack.append(tag)
+
+        def handle_endtag(self, tag):
+            if tag in self.stack:
+                del self.stack[len(self.stack) - 1 - self.stack[::-1].index(tag):]
+
+    page = Page()
+    page.feed((STATIC / "viewer.html").read_text())
+    assert len(page.controls) == 5  # token, object, file, max frames, camera
+    for a, wrapped in page.controls:
+        named = wrapped or a.get("id") in page.label_for or a.get("aria-label") or \
+            (a.get("aria-labelledby") and a["aria-labelledby"] in page.ids)
+        assert named, f"{a.get('id')} has no label"
+    assert "message" in page.live
+    assert page.canvases and all(c.get("role") == "img" and c.get("aria-label") for c in page.canvases)
+
+
+def test_the_page_loads_nothing_from_elsewhere_and_works_by_keyboard(server, browser):
+    """Offline: every resource the page loaded during a run came from the server itself. Keyboard:
+    Tab reaches every control in order, and Enter on the webcam button starts a run."""
+    from selenium.webdriver.common.action_chains import ActionChains
+    from selenium.webdriver.common.keys import Keys
+
+    _open(browser, server.url)
+    _js(browser, "document.getElementById('max-frames').value = '1'; document.getElementById('token').focus()")
+    order = ["token"]
+    for _ in range(6):
+        ActionChains(browser).send_keys(Keys.TAB).perform()
+        order.append(_js(browser, "const e = document.activeElement; return e.id || e.tagName"))
+    assert order == ["token", "object", "refresh", "webcam", "file", "max-frames", "camera-label"], order
+    _js(browser, "document.getElementById('webcam').focus()")
+    ActionChains(browser).send_keys(Keys.ENTER).perform()
+    _wait(browser, lambda: _run_ended(browser), "the run's end")
+    assert _count(browser) == 1
+    urls = _js(browser, "return performance.getEntriesByType('resource').map(e => e.name)")
+    assert urls and all(u.startswith(server.url + "/") for u in urls), urls
