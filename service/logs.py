@@ -18,16 +18,32 @@ import json
 import logging
 import re
 import time
+from urllib.parse import unquote_plus
 
 _STD = set(vars(logging.makeLogRecord({}))) | {"message", "asctime"}
-_TOKEN = re.compile(r"(?i)([?&;](?:access_)?token=)[^&#\s\"']*")
+# a query parameter: its key as written (percent-encoded or not) and its value, up to the next
+# separator, space or double quote (uvicorn quotes the request line; a URL's own `"` is always
+# encoded, while `'`, `(`, `)` may be left as they are by clients: part of the value)
+_PARAM = re.compile(r"([?&;])([^=&;#?\s\"']+)=([^&;#\s\"]*)")
+_SECRET_KEYS = {"token", "access_token"}
 _REFUSED: contextvars.ContextVar[bool] = contextvars.ContextVar("quatrack_ws_refused", default=False)
 _UVICORN_AFTER_DENIAL = "ASGI callable returned without completing handshake"
 
 
+def _secret_key(key: str) -> bool:
+    """Whether a query key, as it was written, reads as ``token`` once decoded the way the server
+    decodes it (``%74oken``, ``TOKEN``, ``tok%65n``, ``access_token``: all are the token's key
+    for someone; the server reads ``token``)."""
+    return unquote_plus(key).strip().lower() in _SECRET_KEYS
+
+
 def redact(text: str) -> str:
-    """``text`` with the value of every ``token=`` query parameter replaced."""
-    return _TOKEN.sub(r"\1[redacted]", text)
+    """``text`` with the value of every ``token`` query parameter replaced, however its key is
+    written: the service reads ``?%74oken=…`` as ``?token=…`` (the query's keys are
+    percent-decoded), so a client that encodes the key must not see its token in the log."""
+    if "=" not in text:
+        return text
+    return _PARAM.sub(lambda m: f"{m[1]}{m[2]}=[redacted]" if m[3] and _secret_key(m[2]) else m[0], text)
 
 
 def mark_refused() -> None:
@@ -47,7 +63,7 @@ class ServiceLogFilter(logging.Filter):
         if clean != message:
             record.msg, record.args = clean, ()
         for key, value in list(vars(record).items()):
-            if key not in _STD and isinstance(value, str) and "token=" in value.lower():
+            if key not in _STD and isinstance(value, str) and "=" in value:
                 setattr(record, key, redact(value))
         return True
 

@@ -336,7 +336,7 @@ async def track(websocket: WebSocket, name: str) -> None:
         token = auth[7:].strip()
     token = token or websocket.query_params.get("token")
     if not _token_ok(state.settings.api_token, token):
-        return await _deny(websocket, 401, "unauthorized", "a valid bearer token is required (header or ?token=)", 1008)
+        return await _deny(websocket, 401, "unauthorized", "a valid bearer token is required (the Authorization header, or the query parameter token)", 1008)
     try:
         state.registry.check_name(name)
     except ApiError as exc:
