@@ -31,7 +31,7 @@ import numpy as np
 from quatrack.recognition.match import ModelIndex, index_for
 from quatrack.viewsets.errors import StoreError
 from quatrack.viewsets.features import Features
-from quatrack.viewsets.names import check_object_name
+from quatrack.viewsets.names import NAME_RE, check_object_name
 from quatrack.viewsets.store import ObjectModel, list_models, load_manifest, load_model, model_stamp, remove_stale
 
 from .errors import ApiError
@@ -75,11 +75,17 @@ class ModelRegistry:
 
     @staticmethod
     def check_name(name: str) -> str:
-        """The name, if it cannot escape the store (400 otherwise)."""
-        try:
+        """The name, if it cannot escape the store (400 otherwise). The whole name must match
+        (``re.match`` with ``$`` let a trailing newline through: ``cookie-box%0A`` reached the
+        file system), and a refused name is echoed at most 80 characters long."""
+        if isinstance(name, str) and NAME_RE.fullmatch(name):
             return check_object_name(name)
+        try:
+            check_object_name("\n")  # (the message of any refused name)
         except StoreError as exc:
-            raise ApiError(400, "invalid_object_name", str(exc)) from None
+            why = str(exc)
+        shown = name[:80] + "…" if isinstance(name, str) and len(name) > 80 else name
+        raise ApiError(400, "invalid_object_name", why.replace(repr("\n"), repr(shown), 1))
 
     def manifest(self, name: str) -> dict:
         self.check_name(name)
