@@ -66,7 +66,7 @@ def _locate_all(state: ServiceState, data: bytes, camera: CameraIn) -> dict:
         except ApiError as exc:  # a broken model: the others are still searched
             failed[name] = exc.message
         except Exception as exc:  # noqa: BLE001 - a model that cannot be loaded is reported, not fatal
-            failed[name] = str(exc)
+            failed[name] = state.registry.public(str(exc))
     try:
         results = locate_all(image, cam, models, LocateParams(max_pixels=state.settings.locate_max_pixels))
     except ImageError as exc:

@@ -67,8 +67,20 @@ class ModelRegistry:
         return sorted(self._models)
 
     def failed(self) -> dict[str, str]:
-        """Objects of the store that cannot be loaded, with the reason (one line each)."""
-        return {name: why for name, (_, why) in sorted(self._failed.items())}
+        """Objects of the store that cannot be loaded, with the reason (one line each; no server
+        path: :meth:`public`)."""
+        return {name: self.public(why) for name, (_, why) in sorted(self._failed.items())}
+
+    def public(self, text: str) -> str:
+        """``text`` as clients may read it: the store's place on the server's disk left out
+        (``/data/models/cookie-box/model.npz`` is ``cookie-box/model.npz``, the store itself
+        ``the store``). The store's errors name their files, which the log keeps for the operator;
+        ``/readyz`` (open without a token), ``GET /v1/objects`` and the 503 answers showed them to
+        any client."""
+        for root in {str(self.store), str(self.store.resolve()), str(self.store.absolute())}:
+            if root and root not in ("/", "."):
+                text = text.replace(root + "/", "").replace(root, "the store")
+        return text
 
     def is_known(self, name: str) -> bool:
         return name in self._models or model_stamp(self.store, name) is not None
@@ -94,7 +106,7 @@ class ModelRegistry:
         try:
             return load_manifest(self.store, name)
         except StoreError as exc:
-            raise ApiError(503, "model_unavailable", str(exc)) from None
+            raise ApiError(503, "model_unavailable", self.public(str(exc))) from None
 
     # --- loading --------------------------------------------------------------------------------
     def get(self, name: str) -> tuple[ObjectModel, ModelIndex]:
@@ -147,7 +159,7 @@ class ModelRegistry:
                 return hit
             why = failed[1]
             advice = "the other objects are served" if why.endswith("retrain it") else "fix or retrain it; the other objects are served"
-            raise ApiError(503, "model_unavailable", f"{why} ({advice})")
+            raise ApiError(503, "model_unavailable", self.public(f"{why} ({advice})"))
 
     def refresh(self) -> None:
         """Bring the registry in step with the store: load new and retrained models, drop deleted ones."""
@@ -195,7 +207,8 @@ class ModelRegistry:
         except ApiError as exc:
             return {"name": name, "status": "failed", "message": exc.message}
         if entry.stamp != stamp:  # broken files, previous model kept
-            return {"name": name, "status": "failed", "message": self._failed[name][1] + "; still serving the previous model"}
+            return {"name": name, "status": "failed",
+                    "message": self.public(self._failed[name][1]) + "; still serving the previous model"}
         return {"name": name, "status": "loaded"}
 
     def load_all(self) -> None:

@@ -38,3 +38,82 @@ def test_redaction_leaves_other_parameters_and_messages_alone():
     assert redact("a valid bearer token is required (the Authorization header, or the query parameter token)") == \
         "a valid bearer token is required (the Authorization header, or the query parameter token)"
     assert redact("/track?token=") == "/track?token="  # nothing to hide
+
+
+# --- a server with a token, over a store holding a broken model ---------------------------------
+
+import json  # noqa: E402
+import shutil  # noqa: E402
+
+import httpx  # noqa: E402
+
+from quatrack.service.server import BackgroundServer  # noqa: E402
+from quatrack.service.settings import Settings  # noqa: E402
+from quatrack.testing.scenes import example_store  # noqa: E402
+from quatrack.viewsets import store as store_mod  # noqa: E402
+
+AUTH = {"Authorization": f"Bearer {SECRET}"}
+CAMERA = {"fx": 669.7, "fy": 667.8, "cx": 320.0, "cy": 240.0}
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory):
+    """The example, and two broken copies (truncated arrays, a garbled manifest)."""
+    dst = tmp_path_factory.mktemp("security") / "models"
+    for name in ("cookie-box", "truncated", "garbled"):
+        shutil.copytree(example_store() / "cookie-box", dst / name)
+        m = json.loads((dst / name / store_mod.MANIFEST).read_text())
+        (dst / name / store_mod.MANIFEST).write_text(json.dumps({**m, "name": name}))
+    arrays = dst / "truncated" / store_mod.ARRAYS
+    arrays.write_bytes(arrays.read_bytes()[:1000])
+    (dst / "garbled" / store_mod.MANIFEST).write_text("{not json")
+    return dst
+
+
+@pytest.fixture(scope="module")
+def server(store):
+    with BackgroundServer(Settings(store=store, api_token=SECRET, model_poll_s=0)) as srv:
+        yield srv
+
+
+@pytest.fixture(scope="module")
+def client(server):
+    with httpx.Client(base_url=server.url, timeout=60) as c:
+        yield c
+
+
+def test_no_answer_shows_where_the_store_is(client, store):
+    """The store's errors name their files (kept in the log for the operator); ``/readyz`` —
+    open without a token — ``GET /v1/objects``, the 503 answers, ``POST /v1/pose``'s ``failed``
+    and ``reload`` showed the server's paths (``/data/models/…``) to clients."""
+    where = str(store.parent)
+    ready = client.get("/readyz").json()
+    assert set(ready["failed"]) == {"truncated", "garbled"}, ready
+    answers = [json.dumps(ready)]
+    answers.append(client.get("/v1/objects", headers=AUTH).text)
+    for name in ("truncated", "garbled"):
+        answers.append(client.get(f"/v1/objects/{name}", headers=AUTH).text)
+        r = client.post(f"/v1/objects/{name}/pose", content=b"\xff\xd8\xff", params=CAMERA,
+                        headers={**AUTH, "content-type": "image/jpeg"})
+        answers.append(r.text)
+        answers.append(client.post(f"/v1/objects/{name}/reload", headers=AUTH).text)
+    assert any("model_unavailable" in a for a in answers)
+    for a in answers:
+        assert where not in a and "/models/" not in a, a
+    # what the reasons still say: which object, which file, what is wrong
+    assert "'truncated'" in ready["failed"]["truncated"] and "model.npz" in ready["failed"]["truncated"]
+    assert "manifest" in ready["failed"]["garbled"]
+
+
+@pytest.mark.parametrize("name", ["cookie-box%0A", "cookie-box%0A/mesh", "cookie-box%0D%0A"])
+def test_a_name_with_a_line_break_is_refused(client, name):
+    """``re.match`` with ``$`` matched before a trailing newline: ``cookie-box\\n`` passed the name
+    check and was looked up in the store (404 unknown_object)."""
+    r = client.get(f"/v1/objects/{name}", headers=AUTH)
+    assert r.status_code == 400 and r.json()["error"]["code"] == "invalid_object_name", r.text
+
+
+def test_a_refused_name_is_not_echoed_whole(client):
+    r = client.get("/v1/objects/" + "a" * 4000, headers=AUTH)
+    assert r.status_code == 400 and r.json()["error"]["code"] == "invalid_object_name"
+    assert len(r.text) < 400, r.text
