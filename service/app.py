@@ -127,6 +127,35 @@ async def _send_json(send, status: int, body: dict, headers: list | None = None)
     await send({"type": "http.response.body", "body": data})
 
 
+class SecurityHeaders:
+    """``X-Content-Type-Options: nosniff`` on every answer (a JSON error echoing input is never
+    sniffed as HTML), and on every HTML page (``/viewer``, ``/docs``, ``/redoc``) a refusal to be
+    framed by another site (``X-Frame-Options``, CSP ``frame-ancestors``), unless the page sets
+    its own policy (the viewer's: :data:`viewer.VIEWER_CSP`)."""
+
+    def __init__(self, app) -> None:
+        self.app = app
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] != "http":
+            return await self.app(scope, receive, send)
+
+        async def send_with_headers(msg):
+            if msg["type"] == "http.response.start":
+                headers = list(msg.get("headers", []))
+                names = {k.lower() for k, _ in headers}
+                extra = [] if b"x-content-type-options" in names else [(b"x-content-type-options", b"nosniff")]
+                ctype = dict((k.lower(), v) for k, v in headers).get(b"content-type", b"")
+                if ctype.startswith(b"text/html"):
+                    extra.append((b"x-frame-options", b"DENY"))
+                    if b"content-security-policy" not in names:
+                        extra.append((b"content-security-policy", b"frame-ancestors 'none'"))
+                msg = {**msg, "headers": headers + extra}
+            await send(msg)
+
+        await self.app(scope, receive, send_with_headers)
+
+
 class RequestLog:
     """A request id (``X-Request-ID``, the client's if sane), one log line and metrics per request."""
 
@@ -277,6 +306,7 @@ def create_app(settings: Settings | None = None, whole_process: bool = False) ->
     if settings.cors_origins:
         app.add_middleware(CORSMiddleware, allow_origins=list(settings.cors_origins), allow_methods=["GET", "POST"],
                            allow_headers=["Authorization", "Content-Type", "X-Request-ID"], expose_headers=["X-Request-ID"])
+    app.add_middleware(SecurityHeaders)
     app.add_middleware(RequestLog, metrics=metrics)
     app.state.settings = settings
     return app

@@ -23,6 +23,14 @@ from .errors import ApiError
 from .routes import ERRORS, ServiceState, get_state, require_token
 
 STATIC = Path(__file__).with_name("static")
+# The viewer page's Content-Security-Policy: its own script and style only (no inline code, none
+# from elsewhere: an injected <script> does not run), its socket and requests to its own origin
+# ('self' covers ws:/wss: to it: Chromium 71+, Firefox, Safari 16+), the video from the webcam
+# (mediastream:) or a dropped file (blob:), and no page may frame it (clickjacking the token
+# field and the webcam button).
+VIEWER_CSP = ("default-src 'none'; script-src 'self'; style-src 'self'; img-src 'self' data: blob:; "
+              "media-src 'self' blob: mediastream:; connect-src 'self'; base-uri 'none'; form-action 'none'; "
+              "frame-ancestors 'none'")
 _FILES = {"viewer.html": "text/html; charset=utf-8", "viewer.js": "text/javascript; charset=utf-8",
           "viewer.css": "text/css; charset=utf-8"}
 
@@ -44,16 +52,19 @@ async def viewer_page() -> RedirectResponse:
     return RedirectResponse("/viewer/")
 
 
+_PAGE_HEADERS = {"Content-Security-Policy": VIEWER_CSP, "Referrer-Policy": "no-referrer"}
+
+
 @viewer.get("/viewer/")
 async def viewer_index() -> FileResponse:
-    return FileResponse(STATIC / "viewer.html", media_type=_FILES["viewer.html"])
+    return FileResponse(STATIC / "viewer.html", media_type=_FILES["viewer.html"], headers=_PAGE_HEADERS)
 
 
 @viewer.get("/viewer/{file}")
 async def viewer_file(file: str) -> FileResponse:
     if file not in _FILES:  # a fixed list: no path from the client ever reaches the file system
         raise ApiError(404, "not_found", f"no file {file!r} in the viewer")
-    return FileResponse(STATIC / file, media_type=_FILES[file])
+    return FileResponse(STATIC / file, media_type=_FILES[file], headers=_PAGE_HEADERS if file == "viewer.html" else None)
 
 
 @mesh_api.get("/objects/{name}/mesh", response_model=MeshEdges, summary="the object's wireframe (for overlays)")

@@ -117,3 +117,27 @@ def test_a_refused_name_is_not_echoed_whole(client):
     r = client.get("/v1/objects/" + "a" * 4000, headers=AUTH)
     assert r.status_code == 400 and r.json()["error"]["code"] == "invalid_object_name"
     assert len(r.text) < 400, r.text
+
+
+def test_pages_say_how_they_may_be_used(client):
+    """No answer carried X-Content-Type-Options, and no page refused to be framed by another site
+    (a page framing the viewer could click its webcam button over the user's token); the viewer
+    had no Content-Security-Policy. Its policy allows what it needs (its own script, style and
+    socket, the webcam, a dropped file: test_viewer.py runs it under that policy in Chromium)."""
+    for path in ("/viewer/", "/viewer/viewer.html", "/docs", "/redoc"):
+        r = client.get(path)
+        assert r.status_code == 200 and r.headers["content-type"].startswith("text/html"), path
+        assert r.headers.get("x-content-type-options") == "nosniff", path
+        assert r.headers.get("x-frame-options") == "DENY", path
+        assert "frame-ancestors 'none'" in r.headers.get("content-security-policy", ""), path
+    csp = {d.split()[0]: d.split()[1:] for d in client.get("/viewer/").headers["content-security-policy"].split("; ")}
+    assert csp["default-src"] == ["'none'"] and csp["script-src"] == ["'self'"] and csp["connect-src"] == ["'self'"]
+    assert "'unsafe-inline'" not in str(csp) and "'unsafe-eval'" not in str(csp)
+    assert client.get("/viewer/").headers.get("referrer-policy") == "no-referrer"
+    for path, headers in (("/viewer/viewer.js", {}), ("/healthz", {}), ("/v1/objects", {}), ("/v1/objects", AUTH),
+                          ("/nowhere", {})):
+        r = client.get(path, headers=headers)
+        assert r.headers.get("x-content-type-options") == "nosniff", (path, r.status_code)
+        assert "x-frame-options" not in r.headers, path  # (not a page)
+    r = client.post("/v1/objects/cookie-box/pose", content=b"0" * 11_000_000, headers={**AUTH, "content-type": "image/jpeg"})
+    assert r.status_code == 413 and r.headers.get("x-content-type-options") == "nosniff"
