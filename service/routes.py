@@ -15,6 +15,7 @@ import json
 from concurrent.futures import Executor
 from dataclasses import dataclass
 from typing import Annotated, Callable
+from urllib.parse import urlsplit
 
 from fastapi import APIRouter, Depends, Query, Request, WebSocket
 from fastapi.responses import JSONResponse, PlainTextResponse
@@ -326,6 +327,38 @@ def _locate(state: ServiceState, name: str, data: bytes, camera: CameraIn) -> di
     return result.to_json()
 
 
+def _same_origin(origin: str, host: str) -> bool:
+    """Whether a browser page of ``origin`` (``scheme://host[:port]``) is this server's own, as
+    reached through ``host`` (the ``Host`` or ``X-Forwarded-Host`` header). A ``host`` without a
+    port (a proxy's ``Host $host``, which drops it) compares host names only."""
+    try:
+        o = urlsplit(origin)
+        h = urlsplit("//" + host.split(",")[0].strip())
+        o_port = o.port or {"http": 80, "https": 443}.get(o.scheme)
+        h_port = h.port
+    except ValueError:
+        return False
+    if o.scheme not in ("http", "https") or not o.hostname or not h.hostname:
+        return False
+    return o.hostname == h.hostname and (h_port is None or h_port == o_port)
+
+
+def origin_allowed(settings: Settings, headers) -> bool:
+    """Cross-site WebSocket hijacking: a WebSocket is not bound by the same-origin policy, so any
+    page the user visits could open one to a server without a token (one on 127.0.0.1 included),
+    occupy its sessions and, with ``QUATRACK_LEARN_VIEWS``, make it learn views. Without a token
+    a browser's handshake (it always sends ``Origin``) must come from this server's own pages or
+    an origin of ``QUATRACK_CORS_ORIGINS``; clients that are no browser send no ``Origin``. With a
+    token there is nothing for another site to borrow: browsers never send the token by
+    themselves (no cookie; the viewer keeps it in its field only), so the token alone decides."""
+    origin = headers.get("origin")
+    if origin is None or settings.api_token is not None:
+        return True
+    if "*" in settings.cors_origins or origin in settings.cors_origins:
+        return True
+    return any(_same_origin(origin, headers.get(h, "")) for h in ("host", "x-forwarded-host") if headers.get(h))
+
+
 @sockets.websocket("/objects/{name}/track")
 async def track(websocket: WebSocket, name: str) -> None:
     """Camera JSON first, then binary frames; one JSON message per frame (see the README)."""
@@ -337,6 +370,10 @@ async def track(websocket: WebSocket, name: str) -> None:
     token = token or websocket.query_params.get("token")
     if not _token_ok(state.settings.api_token, token):
         return await _deny(websocket, 401, "unauthorized", "a valid bearer token is required (the Authorization header, or the query parameter token)", 1008)
+    if not origin_allowed(state.settings, websocket.headers):
+        return await _deny(websocket, 403, "forbidden_origin",
+                           "a page of another site may not open this server's WebSocket (its origin is not "
+                           "this server's; allow it with QUATRACK_CORS_ORIGINS, or set QUATRACK_API_TOKEN)", 1008)
     try:
         state.registry.check_name(name)
     except ApiError as exc:

@@ -141,3 +141,56 @@ def test_pages_say_how_they_may_be_used(client):
         assert "x-frame-options" not in r.headers, path  # (not a page)
     r = client.post("/v1/objects/cookie-box/pose", content=b"0" * 11_000_000, headers={**AUTH, "content-type": "image/jpeg"})
     assert r.status_code == 413 and r.headers.get("x-content-type-options") == "nosniff"
+
+
+def _ws_status(url: str, **kw) -> int:
+    """101 when the handshake is accepted, else the refusal's HTTP status."""
+    from websockets.exceptions import InvalidStatus
+    from websockets.sync.client import connect
+
+    try:
+        with connect(url, open_timeout=30, **kw):
+            return 101
+    except InvalidStatus as exc:
+        return exc.response.status_code
+
+
+def test_another_site_cannot_open_the_websocket_of_a_server_without_a_token(store):
+    """Cross-site WebSocket hijacking: the same-origin policy does not cover WebSockets, and the
+    handshake's Origin was not checked: any page the user visited could open sessions on a
+    tokenless server (127.0.0.1 included), holding its QUATRACK_MAX_SESSIONS and, with
+    QUATRACK_LEARN_VIEWS, feeding the stored model. Now refused (403 forbidden_origin) unless the
+    origin is the server's own or one of QUATRACK_CORS_ORIGINS; clients that are no browser send
+    no Origin and are unaffected; with a token the token decides (no browser sends it on its own)."""
+    with BackgroundServer(Settings(store=store, model_poll_s=0, cors_origins=("https://app.example",))) as srv:
+        url = f"{srv.ws_url}/v1/objects/cookie-box/track"
+        port = url.split(":")[2].split("/")[0]
+        assert _ws_status(url, origin="https://evil.example") == 403
+        assert _ws_status(url, origin="null") == 403
+        assert _ws_status(url, origin=f"http://127.0.0.1:{int(port) + 1}") == 403  # another port: another site
+        assert _ws_status(url) == 101  # no Origin: not a browser
+        assert _ws_status(url, origin=f"http://127.0.0.1:{port}") == 101  # the viewer's own page
+        assert _ws_status(url, origin="https://app.example") == 101  # allowed by QUATRACK_CORS_ORIGINS
+        # a proxy that says which host the page reached
+        assert _ws_status(url, origin="https://public.example", additional_headers={"X-Forwarded-Host": "public.example"}) == 101
+        with httpx.Client(base_url=srv.url, timeout=60) as c:
+            assert 'code="forbidden_origin"' in c.get("/metrics").text
+
+
+def test_what_counts_as_the_servers_own_origin():
+    from quatrack.service.routes import _same_origin
+
+    assert _same_origin("http://127.0.0.1:8000", "127.0.0.1:8000")
+    assert _same_origin("https://quatrack.example", "quatrack.example:443")
+    assert _same_origin("http://lb.example:8080", "lb.example")  # nginx's Host $host drops the port
+    assert not _same_origin("http://lb.example:8080", "lb.example:8000")
+    assert not _same_origin("http://evil.example", "lb.example")
+    assert not _same_origin("http://lb.example.evil.example", "lb.example")
+    assert not _same_origin("null", "lb.example") and not _same_origin("file://", "lb.example")
+    assert not _same_origin("http://[::1", "lb.example")  # malformed: refused, not a 500
+
+
+def test_with_a_token_the_token_decides_whatever_the_origin(server):
+    url = f"{server.ws_url}/v1/objects/cookie-box/track"
+    assert _ws_status(url, origin="https://evil.example") == 401
+    assert _ws_status(f"{url}?token={SECRET}", origin="https://evil.example") == 101
