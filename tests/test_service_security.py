@@ -194,3 +194,34 @@ def test_with_a_token_the_token_decides_whatever_the_origin(server):
     url = f"{server.ws_url}/v1/objects/cookie-box/track"
     assert _ws_status(url, origin="https://evil.example") == 401
     assert _ws_status(f"{url}?token={SECRET}", origin="https://evil.example") == 101
+
+
+@pytest.mark.skipif(__import__("quatrack.testing.balancer", fromlist=["find_nginx"]).find_nginx() is None,
+                    reason="nginx is not installed")
+def test_nginx_passes_the_token_and_its_log_format_leaves_it_out(server, tmp_path, monkeypatch):
+    """deploy/nginx.conf had no access-log format to offer: turning the log on meant nginx's
+    default, whose $request holds a browser's ``?token=``. Its ``quatrack`` format logs ``$uri``;
+    the Authorization header is passed on to the service."""
+    from websockets.sync.client import connect
+
+    from quatrack.testing import balancer
+
+    conf = balancer.NGINX_CONF.read_text()
+    assert conf.count("access_log off;") == 1 and "log_format quatrack" in conf
+    fmt = conf[conf.index("log_format quatrack"):].split(";")[0]
+    assert not any(v in fmt for v in ("$request ", "$request\"", "$request_uri", "$args", "$query_string", "$http_authorization"))
+    log = tmp_path / "nginx" / "logs" / "access.log"
+    template = tmp_path / "nginx.conf"
+    template.write_text(conf.replace("access_log off;", f"access_log {log} quatrack;"))
+    port = int(server.url.rsplit(":", 1)[1])
+    with balancer.Nginx(tmp_path / "nginx", [port]) as lb:
+        pass  # (started with deploy/nginx.conf: valid as shipped)
+    monkeypatch.setattr(balancer, "nginx_config", lambda ports, listen, _c=balancer.nginx_config: _c(ports, listen, template))
+    with balancer.Nginx(tmp_path / "nginx", [port]) as lb, httpx.Client(base_url=lb.url, timeout=60) as c:
+        assert c.get("/v1/objects", headers=AUTH).status_code == 200  # the header reaches the service
+        assert c.get("/v1/objects", params={"token": "wrong-" + SECRET}).status_code == 401
+        with connect(f"{lb.ws_url}/v1/objects/cookie-box/track?token={SECRET}", open_timeout=30):
+            pass
+    text = log.read_text()
+    assert "/v1/objects/cookie-box/track" in text and "/v1/objects" in text
+    assert SECRET not in text, text
