@@ -225,3 +225,17 @@ def test_nginx_passes_the_token_and_its_log_format_leaves_it_out(server, tmp_pat
     text = log.read_text()
     assert "/v1/objects/cookie-box/track" in text and "/v1/objects" in text
     assert SECRET not in text, text
+
+
+def test_the_image_gets_no_secrets_nor_history():
+    """The Dockerfile copies the whole folder (COPY . /app) and there was no .dockerignore: a
+    checkout's .env (QUATRACK_API_TOKEN=…), .git and .venv went into an image layer. It runs as
+    an unprivileged user."""
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parent.parent
+    ignored = {ln.strip() for ln in (root / ".dockerignore").read_text().splitlines() if ln.strip() and not ln.startswith("#")}
+    assert {".git", ".venv", ".env", "**/.env"} <= ignored
+    assert not {"examples", "service", "*"} & ignored  # what the image needs stays
+    docker = (root / "Dockerfile").read_text()
+    assert "\nUSER quatrack" in docker and docker.index("\nUSER quatrack") < docker.index("\nENTRYPOINT")
