@@ -50,8 +50,9 @@ class Settings(BaseSettings):
                         description="model store directory (default: `$XDG_DATA_HOME/quatrack/models`)")
     host: str = Field("127.0.0.1", description="address to listen on (`0.0.0.0` in containers)")
     port: int = Field(8000, ge=1, le=65535, description="TCP port")
-    api_token: str | None = Field(None, description="bearer token required on everything but `/healthz`, `/readyz` "
-                                                     "and the API's description (`/docs`, `/redoc`, `/openapi.json`)")
+    api_token: str | None = Field(None, description="bearer token required on everything but `/healthz`, `/readyz`, "
+                                                     "the API's description (`/docs`, `/redoc`, `/openapi.json`) "
+                                                     "and the viewer's page (`/viewer`)")
     cors_origins: Annotated[tuple[str, ...], NoDecode] = Field(
         (), description="comma-separated origins allowed by CORS, e.g. `https://example.org`; `*` allows any")
     workers: int = Field(default_factory=_cores, ge=1, le=256,
