@@ -1,0 +1,73 @@
+"""Geometrically extreme but legitimate inputs to the tracker: nothing crashes, nothing wrong
+is reported as tracked, and a refusal says why.
+
+- frames smaller than recognition takes (1 × N) are refused by ``Tracker.step`` whatever the
+  tracker's state (they went through KLT and the sources after ``init_pose``).
+
+One small cube (centimetres) trained from one rendered photo at 320 × 240, no synthetic views.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from quatrack.recognition.images import ImageError
+from quatrack.recognition.match import index_for
+from quatrack.recognition.video import Tracker
+from quatrack.testing import scenes as S
+from quatrack.testing import zoo as Z
+from quatrack.tracking.camera import PinholeCamera
+from quatrack.tracking.pose import Pose
+from quatrack.viewsets.spec import load_spec
+from quatrack.viewsets.train import TrainParams, train_object
+
+CAM = Z.zoo_camera(320, 240)
+NAME = "small-cube-cm"
+
+
+def _background(seed: int = 3) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    img = cv2.GaussianBlur(rng.uniform(0, 255, (240, 320, 3)).astype(np.float32), (0, 0), 2.0)
+    return cv2.normalize(img, None, 40, 210, cv2.NORM_MINMAX).astype(np.uint8)
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    cv2.setRNGSeed(0)
+    path = Z.write_spec(NAME, tmp_path_factory.mktemp("cube"), 1, camera=CAM, backgrounds=(_background(),))
+    spec = load_spec(path)
+    model = train_object(spec, TrainParams(novel=None))
+    return model, index_for(model), spec.views[0].pose
+
+
+def _moved(pose: Pose, k: int, speed: float = 0.004) -> Pose:
+    """``pose`` slid sideways by ``speed`` × its depth per frame and turned 0.5° per frame."""
+    obj = Z.textured(NAME)
+    c = pose.R @ obj.mesh.centre + pose.t
+    R = cv2.Rodrigues(np.array([0.0, np.radians(0.5) * k, 0.0]))[0] @ pose.R
+    return Pose.from_matrix(R, c + np.array([speed * k * c[2], 0.0, 0.0]) - R @ obj.mesh.centre)
+
+
+def _frame(pose: Pose, seed: int) -> np.ndarray:
+    img, sil = Z.textured(NAME).render(CAM, pose)
+    return Z.degrade(Z.compose(img, sil, _background()), np.random.default_rng(seed))
+
+
+def _close(step, truth: Pose, mesh) -> bool:
+    dt, dr = S.pose_errors(step.t, step.q_wxyz, truth, mesh)
+    return dt <= 0.05 * mesh.extent and dr <= 5.0
+
+
+def test_frames_too_small_to_search_are_refused_after_a_given_pose_too(trained):
+    model, index, pose = trained
+    for w, h in ((320, 1), (1, 240), (320, 16)):
+        cam = PinholeCamera(CAM.fx, CAM.fy, (w - 1) / 2, (h - 1) / 2, np.zeros(5), width=w, height=h)
+        tracker = Tracker(model, cam, index=index)
+        tracker.init_pose(pose)
+        with pytest.raises(ImageError, match=rf"the image is too small \({w}×{h} px; at least 32 px a side\)"):
+            tracker.step(np.full((h, w, 3), 128, np.uint8), 0.0)
+        # as recognition refused it (no given pose): the same error
+        with pytest.raises(ImageError, match="too small"):
+            Tracker(model, cam, index=index).step(np.full((h, w), 128, np.uint8), 0.0)
