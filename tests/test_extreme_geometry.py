@@ -2,7 +2,9 @@
 is reported as tracked, and a refusal says why.
 
 - frames smaller than recognition takes (1 × N) are refused by ``Tracker.step`` whatever the
-  tracker's state (they went through KLT and the sources after ``init_pose``).
+  tracker's state (they went through KLT and the sources after ``init_pose``);
+- a given pose with the object at or behind the camera (``t = 0``, a mirrored ``t``) is refused
+  naming that, and the next frame is searched by recognition;
 
 One small cube (centimetres) trained from one rendered photo at 320 × 240, no synthetic views.
 """
@@ -71,3 +73,20 @@ def test_frames_too_small_to_search_are_refused_after_a_given_pose_too(trained):
         # as recognition refused it (no given pose): the same error
         with pytest.raises(ImageError, match="too small"):
             Tracker(model, cam, index=index).step(np.full((h, w), 128, np.uint8), 0.0)
+
+
+@pytest.mark.parametrize("given", ["t=0", "mirrored", "straddling"])
+def test_a_given_pose_at_or_behind_the_camera_is_refused_saying_so(trained, given):
+    model, index, pose = trained
+    centre = pose.R @ model.mesh.centre + pose.t
+    bad = {"t=0": Pose(pose.q_wxyz, np.zeros(3)),
+           "mirrored": Pose(pose.q_wxyz, pose.t * np.array([1.0, 1.0, -1.0])),
+           "straddling": Pose(pose.q_wxyz, pose.t - centre)}[given]  # the object's centre at the camera's
+    assert bad.apply(model.mesh.vertices)[:, 2].min() <= 0
+    tracker = Tracker(model, CAM, index=index)
+    tracker.init_pose(bad)
+    first = tracker.step(_frame(pose, 0), 0.0)
+    assert first.status == "lost" and first.pose is None
+    assert first.reason.startswith("given pose refused: the object would be (partly) behind the camera"), first.reason
+    second = tracker.step(_frame(pose, 1), 1 / 30)  # recognition takes over
+    assert second.status == "init" and second.reason == "recognition" and _close(second, pose, model.mesh)

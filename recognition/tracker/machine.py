@@ -517,6 +517,12 @@ class Tracker:
         if self._pending is not None:
             pose, t_given = self._pending
             self._pending = None
+            z = pose.apply(self.model.mesh.vertices)[:, 2]
+            if np.any(z <= 1e-9):
+                # (t = 0, a pose behind the camera: "only 0 model points matched near the pose"
+                # said nothing of why; the next frame is searched by recognition, as before)
+                return self._lost(time_s, f"given pose refused: the object would be (partly) behind the camera "
+                                          f"(its nearest vertex at z = {z.min():.3g} mesh units)")
             cov, how = self._initial_covariance(), "given pose"
             self._second_hand, self._birth = False, None
             time_s0 = time_s if t_given is None or t_given > time_s else t_given
