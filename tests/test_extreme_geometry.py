@@ -5,6 +5,8 @@ is reported as tracked, and a refusal says why.
   tracker's state (they went through KLT and the sources after ``init_pose``);
 - a given pose with the object at or behind the camera (``t = 0``, a mirrored ``t``) is refused
   naming that, and the next frame is searched by recognition;
+- a clock jumping by hours ends the track, and that frame is searched afresh (the velocities
+  were extrapolated over the gap: the prediction left the object metres away, behind the camera).
 
 One small cube (centimetres) trained from one rendered photo at 320 × 240, no synthetic views.
 """
@@ -17,7 +19,7 @@ import pytest
 
 from quatrack.recognition.images import ImageError
 from quatrack.recognition.match import index_for
-from quatrack.recognition.video import Tracker
+from quatrack.recognition.video import Tracker, TrackerParams
 from quatrack.testing import scenes as S
 from quatrack.testing import zoo as Z
 from quatrack.tracking.camera import PinholeCamera
@@ -90,3 +92,28 @@ def test_a_given_pose_at_or_behind_the_camera_is_refused_saying_so(trained, give
     assert first.reason.startswith("given pose refused: the object would be (partly) behind the camera"), first.reason
     second = tracker.step(_frame(pose, 1), 1 / 30)  # recognition takes over
     assert second.status == "init" and second.reason == "recognition" and _close(second, pose, model.mesh)
+
+
+def test_a_clock_jumping_by_hours_restarts_the_track_by_recognition(trained):
+    model, index, pose = trained
+    tracker = Tracker(model, CAM, TrackerParams(motion_model="ude"), index=index)
+    steps = [tracker.step(_frame(_moved(pose, k), k), k / 30) for k in range(6)]
+    assert [s.status for s in steps] == ["init"] + ["tracking"] * 5
+    # the object stopped where it was; the clock jumped by three hours (a paused stream, a
+    # timestamp glitch): the frame is a new start, found where the object is
+    truth = _moved(pose, 5)
+    after = tracker.step(_frame(truth, 6), 3 * 3600.0)
+    assert after.status == "init" and after.reason == "recognition" and _close(after, truth, model.mesh)
+    nxt = tracker.step(_frame(truth, 7), 3 * 3600.0 + 1 / 30)
+    assert nxt.status == "tracking" and _close(nxt, truth, model.mesh)
+    # a jump to where the object is gone: lost, saying the track was dropped for the gap
+    gone = tracker.step(_background(5), 6 * 3600.0)
+    assert gone.status == "lost" and gone.reason.startswith("the track was dropped after 1.08e+04 s without a frame")
+
+
+def test_max_gap_s_none_predicts_across_any_gap(trained):
+    model, index, pose = trained
+    tracker = Tracker(model, CAM, TrackerParams(motion_model="ude", max_gap_s=None), index=index)
+    for k in range(3):
+        tracker.step(_frame(pose, k), k / 30)
+    assert tracker.step(_frame(pose, 3), 5.0).status != "init"

@@ -291,8 +291,18 @@ class Tracker:
         self._frame += 1
         timings: dict[str, float] = {}
         frame = make_frame(cv2.cvtColor(img, cv2.COLOR_BGR2GRAY))
+        gap = None if state is None else time_s - state.t
+        if gap is not None and self.params.max_gap_s is not None and gap > self.params.max_gap_s:
+            # (a clock jump, a pause: nothing to predict from; the track is dropped — no
+            # re-acquisition near a pose that old — and this frame searched afresh)
+            self._lost(time_s, "")
+            self._seen = self._relocated_at = None
+        else:
+            gap = None
         if self.phase == "init":
             step = self._initialise(img, frame, time_s, timings)
+            if gap is not None and step.status == "lost":
+                step.reason = f"the track was dropped after {gap:.3g} s without a frame (max_gap_s); {step.reason}"
         else:
             seen = LastSeen(self.filter.state, self._prev, self.trained.tracks, copy.copy(self.mesh_points),
                             second_hand=self._second_hand, birth=self._birth, doubted=self._doubted > 0)

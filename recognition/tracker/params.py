@@ -251,6 +251,12 @@ class TrackerParams:
     # after a loss, for reacquire_s the tracker first tries to pick the track up again near the
     # last good pose (Tracker._reacquire: KLT from that frame, the edges confirming) before recognition
     reacquire_s: float = 2.0
+    # a frame more than this many seconds after the track's latest frame ends the track and is
+    # searched afresh by recognition (None: the motion model predicts across any gap). Ude's model
+    # extrapolates its velocities over the gap: a clock jumping by hours moved the prediction of
+    # a still object metres away (behind the camera: that frame was "lost"); a scene cut over a
+    # pause is a new start anyway. No frame of a video or the benchmarks is that far apart
+    max_gap_s: float | None = 10.0
     reacquire_min_ncc: float = 0.5  # the object's patch matched this well: start from where it went
     reacquire_min_inside: float = 0.5  # share of the silhouette inside the image a re-acquired pose needs
     # re-acquire only near a track that had run this many tracked frames before the loss: a track
