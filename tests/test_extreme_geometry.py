@@ -117,3 +117,13 @@ def test_max_gap_s_none_predicts_across_any_gap(trained):
     for k in range(3):
         tracker.step(_frame(pose, k), k / 30)
     assert tracker.step(_frame(pose, 3), 5.0).status != "init"
+
+
+def test_a_time_lapse_gap_under_a_minute_keeps_the_track(trained):
+    # the default max_gap_s is a minute: a slow camera or a time-lapse (a frame every 30 s of a
+    # still object) is tracked on, not restarted by recognition at every frame
+    model, index, pose = trained
+    tracker = Tracker(model, CAM, TrackerParams(motion_model="ude"), index=index)
+    assert TrackerParams().max_gap_s == 60.0
+    steps = [tracker.step(_frame(pose, k), 30.0 * k) for k in range(4)]
+    assert [s.status for s in steps] == ["init"] + ["tracking"] * 3, [s.reason for s in steps]

@@ -255,8 +255,10 @@ class TrackerParams:
     # searched afresh by recognition (None: the motion model predicts across any gap). Ude's model
     # extrapolates its velocities over the gap: a clock jumping by hours moved the prediction of
     # a still object metres away (behind the camera: that frame was "lost"); a scene cut over a
-    # pause is a new start anyway. No frame of a video or the benchmarks is that far apart
-    max_gap_s: float | None = 10.0
+    # pause is a new start anyway. A minute, not less: a time-lapse or a slow live camera (a frame
+    # every 10–30 s of a still object) keeps its track and its smoothing; no frame of a video or
+    # the benchmarks is that far apart
+    max_gap_s: float | None = 60.0
     reacquire_min_ncc: float = 0.5  # the object's patch matched this well: start from where it went
     reacquire_min_inside: float = 0.5  # share of the silhouette inside the image a re-acquired pose needs
     # re-acquire only near a track that had run this many tracked frames before the loss: a track
