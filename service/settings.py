@@ -14,7 +14,7 @@ import os
 from pathlib import Path
 from typing import Annotated
 
-from pydantic import Field, ValidationError, field_validator, model_validator
+from pydantic import Field, ValidationError, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 from quatrack.recognition.tracker.params import TrackerParams
@@ -123,11 +123,20 @@ class Settings(BaseSettings):
         TrackerParams(sources=v)
         return v
 
-    @model_validator(mode="after")
-    def _sane(self) -> "Settings":
-        if not self.host.strip():
-            raise ValueError("host must not be empty")
-        return self
+    @field_validator("host", mode="after")
+    @classmethod
+    def _host_not_blank(cls, v: str) -> str:
+        # (on the field, so that the one-line error names QUATRACK_HOST or --host, not "settings")
+        if not v.strip():
+            raise ValueError("the address must not be blank")
+        return v
+
+    @field_validator("run_dir", mode="after")
+    @classmethod
+    def _run_dir_is_a_directory(cls, v: Path | None) -> Path | None:
+        if v is not None and Path(v).expanduser().exists() and not Path(v).expanduser().is_dir():
+            raise ValueError("not a directory")
+        return None if v is None else Path(v).expanduser()
 
     @classmethod
     def from_env(cls, **overrides) -> "Settings":
