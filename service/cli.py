@@ -56,8 +56,13 @@ def run_serve(args: argparse.Namespace) -> int:
     import os
     import shutil
 
-    from .settings import Settings
+    import sys
 
+    from .settings import Settings, env_warnings
+
+    # before the settings are checked, so that a misspelt name is told even when a value is refused
+    for line in env_warnings():
+        print(f"quatrack serve: warning: {line}", file=sys.stderr, flush=True)
     settings = Settings.from_env(store=args.store, host=args.host, port=args.port, workers=args.workers,
                                  threads=args.threads)
     if settings.store.exists() and not settings.store.is_dir():

@@ -175,6 +175,31 @@ def env_name(field: str) -> str:
     return ENV_PREFIX + field.upper()
 
 
+def env_warnings(environ=None) -> list[str]:
+    """One line per ``QUATRACK_*`` variable the settings will not use as the operator may think:
+    a name no setting has (``QUATRACK_API_TOKNE``: the server would start without a token), with
+    the setting it is nearest to, and an empty value, which counts as unset (the default is used;
+    for ``QUATRACK_API_TOKEN``: no token is required). Names are matched as pydantic-settings
+    matches them, whatever their case."""
+    import difflib
+
+    environ = os.environ if environ is None else environ
+    known = {env_name(f) for f in Settings.model_fields}
+    out = []
+    for key in sorted(environ):
+        name = key.upper()
+        if not name.startswith(ENV_PREFIX):
+            continue
+        if name not in known:
+            near = difflib.get_close_matches(name, sorted(known), n=1, cutoff=0.6)
+            hint = f" (did you mean {near[0]}?)" if near else " (the settings are listed by `python -m quatrack.service.settings`)"
+            out.append(f"{key} is not a setting: ignored{hint}")
+        elif environ[key] == "":
+            what = "no token is required" if name == env_name("api_token") else "the default is used"
+            out.append(f"{key} is empty: ignored, {what}")
+    return out
+
+
 def describe(exc: ValidationError, given: dict) -> str:
     """The first error of ``exc`` as one line: ``QUATRACK_PORT='x': Input should be ...``."""
     e = exc.errors()[0]

@@ -1,11 +1,12 @@
-"""`quatrack serve` as an operator configures it: every bad value a one-line error naming the
-variable (no server is started)."""
+"""`quatrack serve` as an operator configures it: `QUATRACK_*` variables told apart from typos and
+empty values, and every bad value a one-line error naming the variable (no server is started)."""
 
 from __future__ import annotations
 
 import pytest
 
 from quatrack.cli import main
+from quatrack.service.settings import Settings, env_warnings
 
 
 @pytest.fixture
@@ -23,6 +24,30 @@ def _serve(capsys, tmp_path, *extra) -> tuple[int, list[str]]:
     err = capsys.readouterr().err
     assert "Traceback" not in err, err
     return code, err.strip().splitlines()
+
+
+def test_a_misspelt_variable_is_warned_of(clean_env, capsys, tmp_path):
+    # QUATRACK_API_TOKNE: the server started without a token and said nothing, its operator
+    # believing every route needed one
+    assert env_warnings({"QUATRACK_API_TOKNE": "s3cret", "QUATRACK_PORT": "8000", "HOME": "/"}) == [
+        "QUATRACK_API_TOKNE is not a setting: ignored (did you mean QUATRACK_API_TOKEN?)"]
+    assert env_warnings({"QUATRACK_NO_SUCH_THING_AT_ALL": "1"})[0].startswith("QUATRACK_NO_SUCH_THING_AT_ALL is not a setting")
+    # told before the values are checked, so also when the start then fails
+    clean_env.setenv("QUATRACK_API_TOKNE", "s3cret")
+    clean_env.setenv("QUATRACK_MAX_FPS", "abc")
+    code, lines = _serve(capsys, tmp_path)
+    assert code == 2 and len(lines) == 2, lines
+    assert lines[0] == "quatrack serve: warning: QUATRACK_API_TOKNE is not a setting: ignored (did you mean QUATRACK_API_TOKEN?)"
+    assert lines[1].startswith("quatrack serve: error: environment variable QUATRACK_MAX_FPS='abc'")
+
+
+def test_an_empty_token_is_warned_of(clean_env):
+    # `QUATRACK_API_TOKEN=${TOKEN}` with TOKEN unset: empty counts as unset, so no token is required
+    assert env_warnings({"QUATRACK_API_TOKEN": ""}) == ["QUATRACK_API_TOKEN is empty: ignored, no token is required"]
+    assert env_warnings({"QUATRACK_MAX_FPS": ""}) == ["QUATRACK_MAX_FPS is empty: ignored, the default is used"]
+    clean_env.setenv("QUATRACK_API_TOKEN", "")
+    assert Settings.from_env().api_token is None
+    assert env_warnings({"QUATRACK_API_TOKEN": "x", "QUATRACK_LEARN_VIEWS": "*"}) == []
 
 
 @pytest.mark.parametrize("env, names", [
