@@ -13,15 +13,25 @@ import argparse
 import errno
 
 
+#: the end of ``quatrack serve --help``: where the other settings are and which value wins
+SERVE_EPILOG = ("Every setting is also a QUATRACK_* environment variable (QUATRACK_API_TOKEN, QUATRACK_MAX_SESSIONS, "
+                "...: `python -m quatrack.service.settings` lists them all, as the README's table). An option given "
+                "here wins over its variable, which wins over the default; an empty variable counts as unset. "
+                "A variable whose name is no setting (a typo) or whose value is empty is warned of at start.")
+
+
 def add_serve(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--store", metavar="DIR", help="model store (default: $QUATRACK_STORE or the user data directory)")
-    parser.add_argument("--host", default=None, help="address to listen on (default 127.0.0.1, or $QUATRACK_HOST)")
-    parser.add_argument("--port", type=int, default=None, help="port (default 8000, or $QUATRACK_PORT)")
+    parser.epilog = SERVE_EPILOG
+    parser.add_argument("--store", metavar="DIR",
+                        help="model store (default: $QUATRACK_STORE, else $XDG_DATA_HOME/quatrack/models)")
+    parser.add_argument("--host", default=None, help="address to listen on (default: $QUATRACK_HOST, else 127.0.0.1)")
+    parser.add_argument("--port", type=int, default=None, help="port (default: $QUATRACK_PORT, else 8000)")
     parser.add_argument("--workers", type=int, default=None, metavar="N",
-                        help="worker processes, each with its own sessions (default: the number of cores, or $QUATRACK_WORKERS)")
+                        help="worker processes, each with its own sessions (default: $QUATRACK_WORKERS, else the number of cores)")
     parser.add_argument("--threads", type=int, default=None, metavar="N",
-                        help="CPU threads per worker process (default: cores ÷ workers, at least 1, or $QUATRACK_THREADS)")
-    parser.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"])
+                        help="CPU threads per worker process (default: $QUATRACK_THREADS, else cores ÷ workers, at least 1)")
+    parser.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"],
+                        help="least severe log messages written, as JSON lines on stderr (default: info)")
 
 
 def check_address(host: str, port: int) -> None:

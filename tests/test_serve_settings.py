@@ -69,3 +69,25 @@ def test_a_bad_value_is_one_line_naming_the_variable(clean_env, capsys, tmp_path
 def test_a_blank_host_option_is_named(clean_env, capsys, tmp_path):
     code, lines = _serve(capsys, tmp_path, "--host", " ")
     assert code == 2 and lines == ["quatrack serve: error: host=' ': Value error, the address must not be blank"], lines
+
+
+def test_serve_help_tells_the_precedence_and_the_real_defaults(clean_env, capsys):
+    # "(default 8000, or $QUATRACK_PORT)" read as if 8000 came first; --log-level had no help; the
+    # other settings (the token among them) were not mentioned at all
+    with pytest.raises(SystemExit):
+        main(["serve", "--help"])
+    out = " ".join(capsys.readouterr().out.split())
+    fields = Settings.model_fields
+    assert f"(default: $QUATRACK_PORT, else {fields['port'].default})" in out
+    assert f"(default: $QUATRACK_HOST, else {fields['host'].default})" in out
+    assert "(default: info)" in out and "QUATRACK_API_TOKEN" in out and "python -m quatrack.service.settings" in out
+    assert "An option given here wins over its variable, which wins over the default" in out
+
+
+def test_an_option_wins_over_its_variable_which_wins_over_the_default(clean_env):
+    assert Settings.from_env().port == Settings.model_fields["port"].default
+    clean_env.setenv("QUATRACK_PORT", "9000")
+    clean_env.setenv("QUATRACK_HOST", "0.0.0.0")
+    assert Settings.from_env().port == 9000 and Settings.from_env(port=None).port == 9000
+    s = Settings.from_env(port=9001, host="127.0.0.2")
+    assert (s.port, s.host) == (9001, "127.0.0.2")
