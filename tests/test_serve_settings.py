@@ -91,3 +91,22 @@ def test_an_option_wins_over_its_variable_which_wins_over_the_default(clean_env)
     assert Settings.from_env().port == 9000 and Settings.from_env(port=None).port == 9000
     s = Settings.from_env(port=9001, host="127.0.0.2")
     assert (s.port, s.host) == (9001, "127.0.0.2")
+
+
+def test_the_readme_lists_every_serve_option_and_tells_the_precedence():
+    # --log-level was missing from the README's heading of `quatrack serve`, and "CLI options win"
+    # said nothing of what an empty or misspelt variable does
+    import argparse
+    from pathlib import Path
+
+    from quatrack.service.cli import add_serve
+
+    readme = " ".join((Path(__file__).parents[1] / "README.md").read_text().split())
+    head = next(line for line in readme.split("### ") if line.startswith("Serve: `quatrack serve"))
+    parser = argparse.ArgumentParser()
+    add_serve(parser)
+    for action in parser._actions:
+        for opt in action.option_strings:
+            assert opt in ("-h", "--help") or opt in head.split("`")[1], opt
+    assert "an option of `quatrack serve` wins over its variable" in readme
+    assert "QUATRACK_API_TOKNE is not a setting: ignored (did you mean QUATRACK_API_TOKEN?)" in readme
