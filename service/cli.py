@@ -73,8 +73,16 @@ def run_serve(args: argparse.Namespace) -> int:
     # before the settings are checked, so that a misspelt name is told even when a value is refused
     for line in env_warnings():
         print(f"quatrack serve: warning: {line}", file=sys.stderr, flush=True)
-    settings = Settings.from_env(store=args.store, host=args.host, port=args.port, workers=args.workers,
-                                 threads=args.threads)
+    options = {"store": args.store, "host": args.host, "port": args.port, "workers": args.workers, "threads": args.threads}
+    try:
+        settings = Settings.from_env(**options)
+    except ValueError as exc:  # "threads=0: ..." names the option as the other errors of the command do: "--threads 0: ..."
+        text = str(exc)
+        for name, value in options.items():
+            if value is not None and text.startswith(f"{name}={value!r}: "):
+                shown = value if str(value).strip() else repr(value)  # (a blank one quoted)
+                text = f"--{name} {shown}: " + text[len(f"{name}={value!r}: "):]
+        raise ValueError(text) from None
     if settings.store.exists() and not settings.store.is_dir():
         raise ValueError(f"--store {settings.store}: not a directory")
     check_address(settings.host, settings.port)

@@ -66,9 +66,16 @@ def test_a_bad_value_is_one_line_naming_the_variable(clean_env, capsys, tmp_path
     assert lines[0].startswith(f"quatrack serve: error: environment variable {names}"), lines
 
 
-def test_a_blank_host_option_is_named(clean_env, capsys, tmp_path):
-    code, lines = _serve(capsys, tmp_path, "--host", " ")
-    assert code == 2 and lines == ["quatrack serve: error: host=' ': Value error, the address must not be blank"], lines
+@pytest.mark.parametrize("args, line", [
+    (["--host", " "], "--host ' ': Value error, the address must not be blank"),
+    (["--threads", "0"], "--threads 0: Input should be greater than or equal to 1"),  # was "threads=0: ..."
+    (["--port", "70000"], "--port 70000: Input should be less than or equal to 65535"),
+])
+def test_a_bad_option_is_named_as_given(clean_env, capsys, tmp_path, args, line):
+    if args[0] == "--port":
+        clean_env.setenv("QUATRACK_PORT", "abc")  # (an option given wins: its variable is not read)
+    code, lines = _serve(capsys, tmp_path, *args)
+    assert code == 2 and lines == [f"quatrack serve: error: {line}"], lines
 
 
 def test_serve_help_tells_the_precedence_and_the_real_defaults(clean_env, capsys):
