@@ -176,7 +176,7 @@ def _add_bench(parser: argparse.ArgumentParser) -> None:
                     "fps, latency p50/p99, frames dropped, /healthz p99, RSS per worker; REST pose requests/s.",
     )
     serve.add_argument("--store", metavar="DIR", help="model store with the object (default: train the example into a temp store)")
-    serve.add_argument("--object", default="cookie-box", metavar="NAME")
+    serve.add_argument("--object", default="cookie-box", metavar="NAME", help="object the clients track and the REST requests locate (default cookie-box)")
     serve.add_argument("--video", help="video streamed by every client (default: the bundled box.mp4)")
     serve.add_argument("--camera", help="its camera JSON (default: the bundled example's)")
     serve.add_argument("--spec", help="spec trained when no --store is given (default: the bundled example's)")
@@ -186,12 +186,13 @@ def _add_bench(parser: argparse.ArgumentParser) -> None:
     serve.add_argument("--threads", type=int, default=None, metavar="N",
                        help="CPU threads per worker process (default: as quatrack serve, cores ÷ workers)")
     serve.add_argument("--replicas", default="auto", choices=["auto", "yes", "no"],
-                       help="also two 1-worker replicas behind nginx (default: when nginx is installed)")
+                       help="also two 1-worker replicas behind nginx (default auto: when nginx is installed)")
     serve.add_argument("--seconds", type=float, default=5.0, help="length of each run: frames each client streams / fps (default 5)")
     serve.add_argument("--frames", type=int, default=None, metavar="N", help="frames each client streams (default: seconds × fps)")
     serve.add_argument("--fps", type=float, default=30.0, help="each client's frame rate (default 30)")
     serve.add_argument("--rest-requests", type=int, default=40, help="REST pose requests (default 40; 0 to skip)")
-    serve.add_argument("--rest-concurrency", type=int, default=4)
+    serve.add_argument("--rest-concurrency", type=int, default=4, metavar="N",
+                       help="REST pose requests in flight at once (default 4, 1 to 256)")
     serve.add_argument("--stagger-s", type=float, default=0.0, metavar="S",
                        help="start stream k at k × S seconds instead of all at once (default 0: a burst)")
     serve.add_argument("--json", action="store_true", help="print one JSON object instead of the tables")
