@@ -19,7 +19,7 @@ from typing import Callable
 import numpy as np
 
 from quatrack.recognition.runtime import limit_blas_threads, tune_allocator
-from quatrack.recognition.trackio import quiet_ffmpeg
+from quatrack.recognition.trackio import glob_files, quiet_ffmpeg
 
 
 class UserError(Exception):
@@ -575,14 +575,12 @@ def _image_arguments(images: list[str]) -> list[str]:
     as ``track --images`` expands its own: its files sorted by name. ``locate 'frames/*.png'`` said
     "cannot read image frames/*.png: No such file". A file that exists is taken as named (``[1].png``
     is no pattern then); a pattern matching no file stays, to be reported on its line."""
-    import glob
-
     out = []
     for arg in images:
         if os.path.exists(arg) or not any(c in arg for c in "*?["):
             out.append(arg)
         else:
-            out += sorted(p for p in glob.glob(arg) if os.path.isfile(p)) or [arg]
+            out += glob_files(arg) or [arg]
     return out
 
 

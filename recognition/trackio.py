@@ -313,6 +313,12 @@ def list_file(path: str) -> list[str]:
     return [os.path.join(folder, os.path.expanduser(line)) for line in lines if line and not line.startswith("#")]
 
 
+def glob_files(pattern: str) -> list[str]:
+    """The files (not folders) a glob matches, sorted by name: the order of ``--images`` (the
+    contract's) and of ``locate``'s quoted globs."""
+    return sorted(p for p in globlib.glob(pattern) if os.path.isfile(p))
+
+
 def image_paths(patterns: str | Sequence[str]) -> list[str]:
     """The files of ``--images``: each glob (``~`` expanded) sorted by name, in the order given, or
     a file as the shell gave it (``[1].png`` is no pattern then), or the files a list file names
@@ -325,7 +331,7 @@ def image_paths(patterns: str | Sequence[str]) -> list[str]:
         elif os.path.isfile(path):
             paths.append(path)
         else:
-            paths += sorted(p for p in globlib.glob(path) if os.path.isfile(p))
+            paths += glob_files(path)
     return list(dict.fromkeys(paths))
 
 
@@ -352,7 +358,7 @@ def misordered(patterns: str | Sequence[str]) -> tuple[str, str] | None:
         path = os.path.expanduser(pattern)
         if os.path.isfile(path):
             continue
-        matches = sorted(p for p in globlib.glob(path) if os.path.isfile(p))
+        matches = glob_files(path)
         for a, b in zip(matches, matches[1:]):
             if _numbered(b) < _numbered(a):
                 return a, b
