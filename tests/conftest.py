@@ -19,7 +19,10 @@ example is expensive (a network round trip); elsewhere the profile decides.
 from __future__ import annotations
 
 import os
+import shutil
+from pathlib import Path
 
+import pytest
 from hypothesis import HealthCheck, settings
 
 settings.register_profile("ci", derandomize=True, database=None, deadline=None, print_blob=True,
@@ -153,3 +156,29 @@ def closed_prism(sides: int = 6, radius: float = 4.0, height: float = 9.0):
         F += [[i, j, sides + j], [i, sides + j, sides + i], [2 * sides, j, i], [2 * sides + 1, sides + i, sides + j]]
     return make_mesh(V, np.array(F))
 
+
+
+# --- the bundled example trained into a store, for the tests of the model store (test_viewsets_store,
+# test_store_changes)
+
+EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "cookie-box"
+FAST_TRAIN = ["--novel-views", "none", "--novel-scales", "none"]  # no synthetic views: about 2 s
+
+
+@pytest.fixture(scope="module")
+def base_store(tmp_path_factory):
+    """A store holding the cookie box trained without synthetic views (:data:`FAST_TRAIN`), once per
+    test module: read it, never change it (``store`` is a test's own copy)."""
+    from quatrack.cli import main
+
+    store = tmp_path_factory.mktemp("base")
+    assert main(["train", str(EXAMPLE / "object.json"), "--store", str(store), *FAST_TRAIN]) == 0
+    return store
+
+
+@pytest.fixture
+def store(base_store, tmp_path):
+    """A copy of :func:`base_store` the test may change (modules with a ``store`` of their own keep it)."""
+    s = tmp_path / "store"
+    shutil.copytree(base_store, s)
+    return s

@@ -21,23 +21,9 @@ from quatrack.tracking.pose import Pose
 from quatrack.viewsets import learn as L
 from quatrack.viewsets import store as S
 
-EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "cookie-box"
+from conftest import EXAMPLE  # (base_store and store: conftest's fixtures)
+
 NAME = "cookie-box"
-
-
-@pytest.fixture(scope="module")
-def base_store(tmp_path_factory):
-    store = tmp_path_factory.mktemp("base")
-    assert main(["train", str(EXAMPLE / "object.json"), "--store", str(store),
-                 "--novel-views", "none", "--novel-scales", "none"]) == 0
-    return store
-
-
-@pytest.fixture
-def store(base_store, tmp_path):
-    s = tmp_path / "store"
-    shutil.copytree(base_store, s)
-    return s
 
 
 def turned_views(model, degrees=(60.0, 120.0)) -> list:

@@ -20,8 +20,7 @@ from quatrack.viewsets.spec import load_spec
 from quatrack.viewsets.store import default_store, list_models, load_model, model_path, save_model
 from quatrack.viewsets.train import TrainParams, train_object
 
-EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "cookie-box"
-FAST = ["--novel-views", "none", "--novel-scales", "none"]
+from conftest import EXAMPLE, FAST_TRAIN as FAST  # (base_store and store: conftest's fixtures)
 
 
 def snapshot(root: Path) -> dict[str, bytes]:
@@ -30,22 +29,6 @@ def snapshot(root: Path) -> dict[str, bytes]:
     for p in sorted(root.rglob("*")):
         out[str(p.relative_to(root))] = p.read_bytes() if p.is_file() else b"<dir>"
     return out
-
-
-@pytest.fixture(scope="module")
-def base_store(tmp_path_factory):
-    store = tmp_path_factory.mktemp("base")
-    assert main(["train", str(EXAMPLE / "object.json"), "--store", str(store), *FAST]) == 0
-    return store
-
-
-@pytest.fixture
-def store(base_store, tmp_path):
-    import shutil
-
-    s = tmp_path / "store"
-    shutil.copytree(base_store, s)
-    return s
 
 
 def make_spec(tmp_path: Path, **view_changes) -> Path:
