@@ -168,6 +168,18 @@ def _add_bench(parser: argparse.ArgumentParser) -> None:
                     help="vertex jitter, sigma as a share of the box's diagonal (default 0.001)")
     sm.add_argument("--frames", type=int, default=150, metavar="N", help="frames of box.mp4 tracked (default 150)")
     sm.add_argument("--json", action="store_true", help="print one JSON object instead of the table")
+    rg = sub.add_parser(
+        "register",
+        help="photos registered from clicked corners: PnP and the mesh's edges against the truth",
+        description="Each zoo object's training photo rendered at a known pose; up to 8 visible corners clicked with "
+                    "Gaussian noise; the pose from PnP and after quatrack register's refit to the mesh's edges, "
+                    "against the truth (median / 90th percentile / max), per click noise.",
+    )
+    rg.add_argument("--zoo-objects", metavar="A,B,...", help="zoo objects (default: all)")
+    rg.add_argument("--photos", type=int, default=4, metavar="N", help="photos (seeds) per object (default 4)")
+    rg.add_argument("--noise", default="1,2,4", metavar="PX,...", help="click noise levels, px per axis (default 1,2,4)")
+    rg.add_argument("--grey", action="store_true", help="grey photos")
+    rg.add_argument("--json", action="store_true", help="print one JSON object instead of the table")
     serve = sub.add_parser(
         "serve",
         help="the service under load: 1..16 concurrent 30 fps streams against 1 and N workers and two replicas behind nginx",
@@ -276,6 +288,15 @@ def _run_bench(args: argparse.Namespace) -> int:
         if not 10 <= args.frames <= 300:
             raise UserError("--frames must be between 10 and 300")
         return scan_mesh.main(args.subdivisions, args.jitter, args.frames, args.json)
+    if args.benchmark == "register":
+        from quatrack.bench import register as bench_register
+
+        if not 1 <= args.photos <= 50:
+            raise UserError("--photos must be between 1 and 50")
+        noises = _floats(args.noise, "--noise")
+        if not noises or any(not 0 <= v <= 20 for v in noises):
+            raise UserError("--noise: give click noise levels between 0 and 20 px, separated by commas")
+        return bench_register.main(_zoo_names(args.zoo_objects, "--zoo-objects"), args.photos, noises, args.grey, args.json)
     if args.benchmark == "locate":
         from quatrack.bench import locate as bench_locate
 
@@ -700,6 +721,18 @@ def _run_track(args: argparse.Namespace) -> int:
     return run(args)
 
 
+def _add_register(parser: argparse.ArgumentParser) -> None:
+    from quatrack.register_cli import add_arguments
+
+    add_arguments(parser)
+
+
+def _run_register(args: argparse.Namespace) -> int:
+    from quatrack.register_cli import run
+
+    return run(args)
+
+
 def _add_serve(parser: argparse.ArgumentParser) -> None:
     from quatrack.service.cli import add_serve
 
@@ -726,6 +759,8 @@ def _run_demo(args: argparse.Namespace) -> int:
 
 COMMANDS: dict[str, tuple[str, Callable[[argparse.ArgumentParser], None], Callable[[argparse.Namespace], int]]] = {
     "bench": ("run a benchmark and print its figures", _add_bench, _run_bench),
+    "register": ("solve a spec's photo poses from clicked points, refine them on the mesh's edges, write the spec back",
+                 _add_register, _run_register),
     "train": ("train an object's model (RFCH + SIFT viewsets) from its spec into the model store", _add_train, _run_train),
     "models": ("list, show or delete the trained objects in the model store", _add_models, _run_models),
     "locate": ("find a trained object in images and estimate its initial pose", _add_locate, _run_locate),

@@ -1,16 +1,16 @@
 """Object spec (JSON) → dataclasses, with every path resolved relative to the spec file.
 
-Nothing here reads images or meshes: only the spec's structure, cameras and poses are checked,
-so a bad spec fails fast with a message naming the file, the view and the field.
+Nothing here reads images or meshes: only the spec's structure, cameras and poses are checked
+(a view's pose solved from its clicked points when it gives no pose: geometry alone,
+:mod:`.register`), so a bad spec fails fast with a message naming the file, the view and the field.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
-import math
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -24,19 +24,24 @@ from quatrack.tracking.pose import Pose
 from .camera import camera_from_dict, isfinite, load_camera
 from .errors import SpecError, StoreError
 from .names import check_object_name
+from .register import MIN_POINTS, PointPairs, max_rms_px, parse_points, pose_from_points
 
 __all__ = ["ObjectSpec", "ViewSpec", "load_spec", "parse_pose"]
 
 
 @dataclass(frozen=True)
 class ViewSpec:
-    """One registered training view: the photo, its camera, the object's pose, an optional mask."""
+    """One registered training view: the photo, its camera, the object's pose, an optional mask,
+    and the clicked points the pose was solved from (``points``, when the spec gives them:
+    :mod:`quatrack.viewsets.register`; ``pose_from_points`` says the spec gave no pose)."""
 
     index: int
     image_path: Path
     camera: PinholeCamera
     pose: Pose
     mask_path: Path | None = None
+    points: PointPairs | None = field(default=None, compare=False)
+    pose_from_points: bool = False
 
 
 @dataclass(frozen=True)
@@ -168,6 +173,20 @@ def _repeated_photos(views: list[ViewSpec], path: Path) -> list[str]:
     return out
 
 
+def _points_disagree(points: PointPairs, camera: PinholeCamera, pose: Pose) -> str | None:
+    """Why a given pose and the view's clicked points disagree (None: they agree): the points'
+    RMS at the pose beyond what a registration may have (:func:`~.register.max_rms_px`)."""
+    Xc = points.model @ pose.R.T + pose.t
+    if np.any(Xc[:, 2] <= 0):
+        return "the given pose puts some of its points behind the camera (is it object → camera?)"
+    r = np.linalg.norm(camera.project(Xc) - points.pixel, axis=1)
+    rms, limit = float(np.sqrt(np.mean(r ** 2))), max_rms_px(camera)
+    if rms <= limit:
+        return None
+    return (f"the given pose puts its points {rms:.1f} px (RMS) from their pixels (at most {limit:.1f}); "
+            f"the pose is used — drop it to solve the pose from the points")
+
+
 def load_spec(path: str | Path, warn=None) -> ObjectSpec:
     """Parse and check an object spec file; cameras given as paths are loaded too. ``warn``
     (optional) receives one message per object or view with fields the spec does not know."""
@@ -202,19 +221,33 @@ def load_spec(path: str | Path, warn=None) -> ObjectSpec:
         where = f"{path}: view {i}"
         if not isinstance(v, dict):
             raise SpecError(f"{where}: must be a JSON object")
-        for key in ("image", "camera", "pose"):
+        for key in ("image", "camera"):
             if key not in v:
                 raise SpecError(f"{where}: missing field {key!r}")
-        _unknown(v, ("image", "camera", "pose", "mask"), where, warn)
+        if "pose" not in v and "points" not in v:
+            raise SpecError(f"{where}: missing field 'pose' (or 'points': at least {MIN_POINTS} clicked model points "
+                            f"and their pixels, from which the pose is solved)")
+        _unknown(v, ("image", "camera", "pose", "mask", "points"), where, warn)
         image = _path(base, v["image"], where, "image")
         cam = v["camera"]
         if isinstance(cam, str):
             camera = load_camera(_path(base, cam, where, "camera"))
         else:
             camera = camera_from_dict(cam, f"{where}: camera")
-        pose = parse_pose(v["pose"], f"{where}: pose")
+        points = parse_points(v["points"], where) if "points" in v else None
+        if "pose" in v:
+            pose = parse_pose(v["pose"], f"{where}: pose")
+            if points is not None and warn:
+                if (msg := _points_disagree(points, camera, pose)) is not None:
+                    warn(f"view {i}: {msg}")
+        else:
+            reg = pose_from_points(points, camera, where)
+            pose = reg.pose
+            if warn:
+                warn(f"view {i}: pose solved from its {len(points)} points (RMS {reg.rms_px:.1f} px); "
+                     f"`quatrack register` also fits it to the mesh's edges in the photo and draws it to check")
         mask = _path(base, v["mask"], where, "mask") if v.get("mask") is not None else None
-        views.append(ViewSpec(i, image, camera, pose, mask))
+        views.append(ViewSpec(i, image, camera, pose, mask, points, "pose" not in v))
     if warn:
         for msg in _repeated_photos(views, path):
             warn(msg)

@@ -1,0 +1,170 @@
+"""``quatrack register``: solve and refine the photos' poses of an object spec, and write them back.
+
+A user's own object comes with a mesh and a photo, rarely with the photo's pose. The spec may
+give, instead of a view's ``pose``, the ``points`` clicked in it (``{"model": [x, y, z], "pixel":
+[u, v]}``, at least four: :mod:`quatrack.viewsets.register`). ``quatrack train`` solves such a
+view's pose by PnP from its points alone; ``register`` also pulls each view's pose (solved, or
+given) onto the mesh's edges in the photo, prints what it did, and writes a spec with the poses
+filled in — by default ``NAME.registered.json`` beside the spec — plus, with ``--overlay DIR``,
+each photo with the mesh drawn at its pose to look at before training. The written spec keeps
+everything the input had (the points too), so it can be edited and registered again.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from quatrack.cli import UserError
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("spec", metavar="SPEC.json", help="object spec (docs/contract.md): views with 'pose' and/or 'points'")
+    parser.add_argument("--out", metavar="OUT.json",
+                        help="where to write the spec with the poses filled in (default: SPEC.registered.json beside SPEC; "
+                             "relative paths in it are rewritten for its folder)")
+    parser.add_argument("--overlay", metavar="DIR",
+                        help="also write each photo with the mesh's edges at its pose (green), the clicked pixels (yellow) "
+                             "and where the pose puts their points (red) as DIR/view-N.png")
+    parser.add_argument("--no-edges", action="store_true",
+                        help="keep the poses PnP gives from the points (and the given poses) as they are: no refit to the mesh's edges")
+    parser.add_argument("--click-sigma", type=float, default=2.0, metavar="PX",
+                        help="how far a click may be off, in pixels (default 2.0): the clicks' weight against the edges")
+
+
+def _relative(value: str, old_base: Path, new_base: Path) -> str:
+    """A path of the spec (relative to ``old_base`` unless absolute) for a spec in ``new_base``."""
+    p = Path(value)
+    if p.is_absolute() or old_base == new_base:
+        return value
+    try:
+        return os.path.relpath(old_base / p, new_base)
+    except ValueError:  # (another drive on Windows)
+        return str((old_base / p).resolve())
+
+
+def _rebased(data: dict, old_base: Path, new_base: Path) -> dict:
+    """The spec's JSON with its file paths (mesh, images, cameras, masks) valid from ``new_base``."""
+    out = dict(data)
+    if isinstance(out.get("mesh"), str):
+        out["mesh"] = _relative(out["mesh"], old_base, new_base)
+    views = []
+    for v in out.get("views", []):
+        v = dict(v)
+        for key in ("image", "camera", "mask"):
+            if isinstance(v.get(key), str):
+                v[key] = _relative(v[key], old_base, new_base)
+        views.append(v)
+    out["views"] = views
+    return out
+
+
+def _pose_json(pose) -> dict:
+    return {"q_wxyz": [round(float(x), 9) for x in pose.q_wxyz], "t": [float(f"{x:.9g}") for x in pose.t]}
+
+
+def _draw(photo: np.ndarray, view, mesh_edges: np.ndarray, pose) -> np.ndarray:
+    import cv2
+
+    from quatrack.recognition.images import to_bgr8
+    from quatrack.recognition.overlay import draw_label, draw_wireframe
+
+    out = to_bgr8(photo).copy()
+    draw_wireframe(out, view.camera, pose.t, pose.q_wxyz, mesh_edges, (60, 200, 60))
+    if view.points is not None:
+        proj = view.camera.project(view.points.model @ pose.R.T + pose.t)
+        for i, (c, p) in enumerate(zip(view.points.pixel, proj)):
+            cv2.circle(out, tuple(int(round(x)) for x in c), 6, (0, 230, 255), 1, cv2.LINE_AA)
+            if np.all(np.isfinite(p)) and np.all(np.abs(p) < 1e5):
+                cv2.circle(out, tuple(int(round(x)) for x in p), 2, (40, 40, 230), -1, cv2.LINE_AA)
+            cv2.putText(out, str(i), (int(c[0]) + 7, int(c[1]) - 7), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 230, 255), 1, cv2.LINE_AA)
+    draw_label(out, f"view {view.index}")
+    return out
+
+
+def run(args: argparse.Namespace) -> int:
+    import cv2
+
+    from quatrack.recognition.evidence import edge_agreement
+    from quatrack.recognition.trackio import atomic_path
+    from quatrack.recognition.visibility import mesh_edges
+    from quatrack.viewsets.mesh import load_mesh
+    from quatrack.viewsets.register import Registration, refine_with_edges
+    from quatrack.viewsets.spec import load_spec
+    from quatrack.viewsets.train import _read_image
+
+    if not (np.isfinite(args.click_sigma) and args.click_sigma > 0):
+        raise UserError(f"--click-sigma must be a positive number of pixels, got {args.click_sigma!r}")
+    spec_path = Path(args.spec)
+    out_path = Path(args.out) if args.out else spec_path.with_name(f"{spec_path.stem}.registered.json")
+    if out_path.resolve() == spec_path.resolve():
+        raise UserError(f"--out {out_path}: that is the spec itself; write the registered spec to another file")
+    if not out_path.name or (out_path.exists() and out_path.is_dir()):
+        raise UserError(f"--out {out_path}: give a file name, not a folder")
+    if not out_path.resolve().parent.is_dir():
+        raise UserError(f"--out {out_path}: the folder {out_path.resolve().parent} does not exist")
+    overlay = Path(args.overlay) if args.overlay else None
+    if overlay is not None and overlay.exists() and not overlay.is_dir():
+        raise UserError(f"--overlay {overlay}: not a folder")
+
+    def warn(msg: str) -> None:
+        print(f"quatrack register: warning: {msg}", file=sys.stderr)
+
+    spec = load_spec(spec_path, warn=warn)
+    raw = json.loads(spec_path.read_bytes().decode("utf-8-sig"))
+    mesh = load_mesh(spec.mesh_path, warn=warn).run_time  # (a scan's decimation: the edges the tracker sees)
+    edges3d = mesh_edges(mesh)
+    poses = []
+    for view in spec.views:
+        photo = _read_image(view)  # (checks the file and its size against the camera, as training does)
+        cam = view.camera
+        if cam.width is None:  # (a camera sized by its images)
+            from dataclasses import replace
+
+            view = replace(view, camera=replace(cam, width=photo.shape[1], height=photo.shape[0]))
+        origin = "solved from its points" if view.pose_from_points else "given"
+        line = f"view {view.index}: pose {origin}"
+        grey = cv2.cvtColor(photo, cv2.COLOR_BGR2GRAY)
+        if view.points is None:  # (no clicks to hold a refit: the edges alone may take a print's line)
+            e = edge_agreement(grey, mesh, view.camera, view.pose)
+            line += f"; the mesh's edges lie on the photo's edges for {e.agreement:.0%} of their length ({e.chance:.0%} by chance)"
+            reg = Registration(view.pose, float("nan"), -1, float("nan"))
+        else:
+            r = np.linalg.norm(view.camera.project(view.points.model @ view.pose.R.T + view.pose.t) - view.points.pixel, axis=1)
+            worst = int(np.argmax(r))
+            reg = Registration(view.pose, float(np.sqrt(np.mean(r ** 2))), worst, float(r[worst]))
+            line += f" ({len(view.points)} points, RMS {reg.rms_px:.2f} px, worst: point {reg.worst} at {reg.worst_px:.1f} px)"
+            if not args.no_edges:
+                reg = refine_with_edges(grey, mesh, view.camera, reg, view.points, click_sigma_px=args.click_sigma)
+                a0, a1 = reg.edge_agreement
+                if reg.moved is not None:
+                    line += (f"; refitted to the mesh's edges: {a0:.0%} → {a1:.0%} of their length on the photo's edges, "
+                             f"moved {100 * reg.moved[0]:.2f} % of the diameter and {reg.moved[1]:.2f}°, "
+                             f"clicks' RMS {reg.rms_px:.2f} px")
+                elif reg.refused is not None:
+                    why = (f"it left the clicks {reg.refused.rms_px:.1f} px (RMS) off — the photo's print, not the "
+                           f"object's outline?" if a1 > a0 else f"the edges agreed no better ({a0:.0%} → {a1:.0%})")
+                    line += f"; the mesh's edges lie on the photo's for {a0:.0%} of their length; a refit to them not kept: {why}"
+                else:
+                    line += f"; the mesh's edges lie on the photo's for {a0:.0%} of their length (no refit possible)"
+        print(line)
+        poses.append(reg.pose)
+        if overlay is not None:
+            overlay.mkdir(parents=True, exist_ok=True)
+            target = overlay / f"view-{view.index}.png"
+            with atomic_path(target, "--overlay") as tmp:
+                if not cv2.imwrite(tmp, _draw(photo, view, edges3d, reg.pose)):
+                    raise UserError(f"--overlay {target}: cannot write the image")
+    data = _rebased(raw, spec_path.resolve().parent, out_path.resolve().parent)
+    for v, pose in zip(data["views"], poses):
+        v["pose"] = _pose_json(pose)
+    with atomic_path(out_path, "--out") as tmp:
+        Path(tmp).write_text(json.dumps(data, indent=1) + "\n", encoding="utf-8")
+    print(f"wrote {out_path}" + (f" and {len(poses)} overlay image(s) in {overlay}" if overlay is not None else "")
+          + f"; train it with: quatrack train {out_path}")
+    return 0
