@@ -16,6 +16,7 @@ import argparse
 import json
 import os
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -33,6 +34,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "and where the pose puts their points (red) as DIR/view-N.png")
     parser.add_argument("--no-edges", action="store_true",
                         help="keep the poses PnP gives from the points (and the given poses) as they are: no refit to the mesh's edges")
+    parser.add_argument("--locate", action="store_true",
+                        help="views with neither 'pose' nor 'points' are found by recognition, with a model trained "
+                             "(in memory) from the views that have a pose — again with every view found, until no more are")
     parser.add_argument("--click-sigma", type=float, default=2.0, metavar="PX",
                         help="how far a click may be off, in pixels (default 2.0): the clicks' weight against the edges")
 
@@ -87,6 +91,43 @@ def _draw(photo: np.ndarray, view, mesh_edges: np.ndarray, pose) -> np.ndarray:
     return out
 
 
+def _locate_missing(spec, views: list, photos: dict) -> dict:
+    """``{view index: (pose, how it was found)}`` for the views without a pose, found by
+    recognition (:func:`quatrack.recognition.locate.locate`, verified as any found pose) with a
+    model trained in memory from the views that have one; trained again with the views found,
+    while that finds more (a photo 60° from the clicked one may be found from one found at 30°).
+    A view still missing is reported (it needs points) and stays without a pose."""
+    from quatrack.recognition.locate import locate
+    from quatrack.viewsets.train import TrainParams, train_object
+
+    found: dict = {}
+    missing = [v for v in views if v.pose is None]
+    reasons: dict = {}
+    while missing:
+        posed = [replace(v, pose=found[v.index][0]) if v.index in found else v for v in views]
+        posed = [v for v in posed if v.pose is not None]
+        if not posed:
+            raise UserError("--locate: no view has a pose or points to start from: give at least one view 'points' "
+                            "(clicked corners) or a 'pose'")
+        print(f"training on {len(posed)} view(s) to find {len(missing)} more …", file=sys.stderr, flush=True)
+        model = train_object(replace(spec, views=tuple(posed)), TrainParams())
+        still = []
+        for v in missing:
+            res = locate(photos[v.index], v.camera, model)
+            if res.found:
+                found[v.index] = (res.pose, f"found by recognition ({res.inliers} inliers, confidence "
+                                            f"{res.confidence:.2f}, from viewset {res.viewset})")
+            else:
+                reasons[v.index] = res.reason or "not found"
+                still.append(v)
+        if len(still) == len(missing):
+            break
+        missing = still
+    for v in missing:
+        print(f"view {v.index}: not found ({reasons[v.index]}): give it 'points' (clicked corners)")
+    return found
+
+
 def run(args: argparse.Namespace) -> int:
     import cv2
 
@@ -113,21 +154,32 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--overlay {overlay}: not a folder")
 
     def warn(msg: str) -> None:
-        print(f"quatrack register: warning: {msg}", file=sys.stderr)
+        if "`quatrack register` also fits it" not in msg:  # (load_spec's hint for train: this is the command)
+            print(f"quatrack register: warning: {msg}", file=sys.stderr)
 
-    spec = load_spec(spec_path, warn=warn)
+    spec = load_spec(spec_path, warn=warn, pose_required=not args.locate)
     raw = json.loads(spec_path.read_bytes().decode("utf-8-sig"))
     mesh = load_mesh(spec.mesh_path, warn=warn).run_time  # (a scan's decimation: the edges the tracker sees)
     edges3d = mesh_edges(mesh)
-    poses = []
+    photos = {}
+    views = []
     for view in spec.views:
-        photo = _read_image(view)  # (checks the file and its size against the camera, as training does)
+        photo = photos[view.index] = _read_image(view)  # (checks the file and its size against the camera, as training does)
         cam = view.camera
         if cam.width is None:  # (a camera sized by its images)
-            from dataclasses import replace
-
             view = replace(view, camera=replace(cam, width=photo.shape[1], height=photo.shape[0]))
-        origin = "solved from its points" if view.pose_from_points else "given"
+        views.append(view)
+    found = _locate_missing(spec, views, photos) if args.locate else {}
+    poses = []
+    for view in views:
+        photo = photos[view.index]
+        if view.index in found:
+            view = replace(view, pose=found[view.index][0])
+        elif view.pose is None:  # (--locate did not find it: reported, left without a pose)
+            poses.append(None)
+            continue
+        origin = ("solved from its points" if view.pose_from_points
+                  else found[view.index][1] if view.index in found else "given")
         line = f"view {view.index}: pose {origin}"
         grey = cv2.cvtColor(photo, cv2.COLOR_BGR2GRAY)
         if view.points is None:  # (no clicks to hold a refit: the edges alone may take a print's line)
@@ -162,9 +214,16 @@ def run(args: argparse.Namespace) -> int:
                     raise UserError(f"--overlay {target}: cannot write the image")
     data = _rebased(raw, spec_path.resolve().parent, out_path.resolve().parent)
     for v, pose in zip(data["views"], poses):
-        v["pose"] = _pose_json(pose)
+        if pose is not None:
+            v["pose"] = _pose_json(pose)
     with atomic_path(out_path, "--out") as tmp:
         Path(tmp).write_text(json.dumps(data, indent=1) + "\n", encoding="utf-8")
-    print(f"wrote {out_path}" + (f" and {len(poses)} overlay image(s) in {overlay}" if overlay is not None else "")
-          + f"; train it with: quatrack train {out_path}")
+    shown = sum(p is not None for p in poses)
+    print(f"wrote {out_path}" + (f" and {shown} overlay image(s) in {overlay}" if overlay is not None else ""), end="")
+    if shown < len(poses):
+        left = [v.index for v, p in zip(views, poses) if p is None]
+        print(f"; view(s) {', '.join(map(str, left))} still have no pose: give them 'points' in {out_path} and "
+              f"register it again")
+        return 2
+    print(f"; train it with: quatrack train {out_path}")
     return 0

@@ -18,7 +18,7 @@ from quatrack.testing.scenes import pose_errors
 from quatrack.tracking.camera import PinholeCamera
 from quatrack.tracking.pose import Pose
 from quatrack.viewsets.errors import SpecError
-from quatrack.viewsets.register import (PointPairs, click_limit_px, max_rms_px, parse_points, pose_from_points,
+from quatrack.viewsets.register import (AGREEMENT_SLACK, PointPairs, click_limit_px, max_rms_px, parse_points, pose_from_points,
                                         refine_with_edges)
 from quatrack.viewsets.spec import load_spec
 
@@ -118,7 +118,7 @@ def test_the_edges_bring_clicked_poses_nearer_the_truth(tmp_path):
             assert reg.edge_agreement is not None
             if reg.moved is not None:
                 assert reg.rms_px <= click_limit_px(len(pairs), 2.0)
-                assert reg.edge_agreement[1] > reg.edge_agreement[0]
+                assert reg.edge_agreement[1] >= reg.edge_agreement[0] - AGREEMENT_SLACK
             for out, r in ((before, reg0), (after, reg)):
                 t, deg = pose_errors(r.pose.t, r.pose.q_wxyz, v.pose, mesh)
                 out.append(max(t / mesh.extent / 0.05, deg / 5.0))
@@ -223,3 +223,57 @@ def test_bench_register_reports_both_poses(capsys):
     assert all(len(row[k]) == 3 and row[k][0] <= row[k][2] for k in ("pnp_pct", "pnp_deg", "edges_pct", "edges_deg"))
     assert main(["bench", "register", "--noise", "none"]) == 2
     assert "--noise" in capsys.readouterr().err
+
+
+def _four_photos_one_clicked(tmp_path, name="small-cube-cm", seed=1):
+    """Four registered zoo photos; view 0's pose replaced by 6–8 clicked corners, the others' removed."""
+    from quatrack.testing import zoo as Z
+    from quatrack.testing.clicks import visible_vertices
+    from quatrack.viewsets.mesh import load_mesh
+
+    path = Z.write_spec(name, tmp_path / name, n_views=4, seed=seed)
+    spec = load_spec(path)
+    mesh = load_mesh(spec.mesh_path)
+    v0 = spec.views[0]
+    vis = visible_vertices(mesh, v0.camera, v0.pose)[:8]
+    uv = v0.camera.project(mesh.vertices[vis] @ v0.pose.R.T + v0.pose.t)
+    uv = uv + np.random.default_rng(0).normal(0, 1.5, uv.shape)
+    data = json.loads(path.read_text())
+    data["views"][0]["points"] = [{"model": [float(x) for x in X], "pixel": [float(x) for x in u]}
+                                  for X, u in zip(mesh.vertices[vis], uv)]
+    for v in data["views"]:
+        del v["pose"]
+    path.write_text(json.dumps(data))
+    return path, [v.pose for v in spec.views], mesh
+
+
+def test_register_locate_finds_the_photos_without_clicks(tmp_path, capsys):
+    """The photos recognition can find from the clicked one (and from those found) get their
+    poses, near the truth; one it cannot find is named, written without a pose, exit status 2."""
+    path, truth, mesh = _four_photos_one_clicked(tmp_path)
+    assert main(["train", str(path), "--store", str(tmp_path / "s")]) == 2  # (views without pose: not trainable)
+    assert "missing field 'pose' (or 'points'" in capsys.readouterr().err
+    code = main(["register", str(path), "--locate"])
+    out = capsys.readouterr().out
+    written = json.loads(path.with_name("object.registered.json").read_text())
+    found = [i for i, v in enumerate(written["views"]) if "pose" in v]
+    assert 0 in found and len(found) >= 2  # the clicked view, and at least one found by recognition
+    assert all(f"view {i}: pose found by recognition" in out for i in found if i)
+    for i in found:
+        spec_pose = load_spec(path.with_name("object.registered.json"), pose_required=False).views[i].pose
+        t, deg = pose_errors(spec_pose.t, spec_pose.q_wxyz, truth[i], mesh)
+        assert t < 0.02 * mesh.extent and deg < 2.0
+    if len(found) < 4:
+        assert code == 2 and "still have no pose" in out and "not found (" in out
+    else:
+        assert code == 0
+
+
+def test_register_locate_needs_a_view_to_start_from(tmp_path, capsys):
+    path, _, _ = _four_photos_one_clicked(tmp_path)
+    data = json.loads(path.read_text())
+    del data["views"][0]["points"]
+    path.write_text(json.dumps(data))
+    assert main(["register", str(path), "--locate"]) == 2
+    assert "no view has a pose or points to start from" in capsys.readouterr().err
+    assert not path.with_name("object.registered.json").exists()

@@ -38,7 +38,7 @@ class ViewSpec:
     index: int
     image_path: Path
     camera: PinholeCamera
-    pose: Pose
+    pose: Pose  # (None only from load_spec(..., pose_required=False): a view to be located)
     mask_path: Path | None = None
     points: PointPairs | None = field(default=None, compare=False)
     pose_from_points: bool = False
@@ -159,7 +159,7 @@ def _repeated_photos(views: list[ViewSpec], path: Path) -> list[str]:
     first: dict[Path, ViewSpec] = {}
     for v in views:
         w = first.setdefault(v.image_path, v)
-        if w is v:
+        if w is v or v.pose is None or w.pose is None:
             continue
         apart = v.pose.inverse() @ w.pose
         turn = float(np.degrees(np.linalg.norm(apart.rvec)))
@@ -187,9 +187,11 @@ def _points_disagree(points: PointPairs, camera: PinholeCamera, pose: Pose) -> s
             f"the pose is used — drop it to solve the pose from the points")
 
 
-def load_spec(path: str | Path, warn=None) -> ObjectSpec:
+def load_spec(path: str | Path, warn=None, pose_required: bool = True) -> ObjectSpec:
     """Parse and check an object spec file; cameras given as paths are loaded too. ``warn``
-    (optional) receives one message per object or view with fields the spec does not know."""
+    (optional) receives one message per object or view with fields the spec does not know.
+    ``pose_required=False`` (``quatrack register --locate``) lets a view give neither ``pose`` nor
+    ``points``: its ``pose`` is None, for the caller to find."""
     path = Path(path)
     try:
         raw = path.read_bytes()
@@ -224,7 +226,7 @@ def load_spec(path: str | Path, warn=None) -> ObjectSpec:
         for key in ("image", "camera"):
             if key not in v:
                 raise SpecError(f"{where}: missing field {key!r}")
-        if "pose" not in v and "points" not in v:
+        if "pose" not in v and "points" not in v and pose_required:
             raise SpecError(f"{where}: missing field 'pose' (or 'points': at least {MIN_POINTS} clicked model points "
                             f"and their pixels, from which the pose is solved)")
         _unknown(v, ("image", "camera", "pose", "mask", "points"), where, warn)
@@ -240,6 +242,8 @@ def load_spec(path: str | Path, warn=None) -> ObjectSpec:
             if points is not None and warn:
                 if (msg := _points_disagree(points, camera, pose)) is not None:
                     warn(f"view {i}: {msg}")
+        elif points is None:
+            pose = None  # (pose_required=False: the caller finds it)
         else:
             reg = pose_from_points(points, camera, where)
             pose = reg.pose
@@ -247,7 +251,7 @@ def load_spec(path: str | Path, warn=None) -> ObjectSpec:
                 warn(f"view {i}: pose solved from its {len(points)} points (RMS {reg.rms_px:.1f} px); "
                      f"`quatrack register` also fits it to the mesh's edges in the photo and draws it to check")
         mask = _path(base, v["mask"], where, "mask") if v.get("mask") is not None else None
-        views.append(ViewSpec(i, image, camera, pose, mask, points, "pose" not in v))
+        views.append(ViewSpec(i, image, camera, pose, mask, points, "pose" not in v and points is not None))
     if warn:
         for msg in _repeated_photos(views, path):
             warn(msg)
