@@ -370,59 +370,86 @@ class StreamResult:
 
 
 class _Session:
-    """One open socket's bookkeeping: the caller's index of each server frame number, send times."""
+    """One open socket's bookkeeping. The k-th frame sent gets ``"id": k`` in its header, and the
+    server echoes that id in every answer about the frame (pose, ``dropped``, refusal, error), so
+    each answer is filed under its own caller's index whatever the server refused or replaced
+    meanwhile. Counting alone slipped in real time: a refusal coming back after newer frames
+    were sent dropped the newest index instead of the refused one, and every later answer went
+    under the index before its own. A server that echoes no id (one older than the id) is still
+    matched by counting, as before: ``numbers`` holds the ids of the frames it numbered."""
 
     def __init__(self, ws, res: StreamResult, on_answer=None) -> None:
         self.ws, self.res, self.on_answer = ws, res, on_answer
-        self.numbers: list[int] = []
-        self.sent_at: list[float] = []
+        self.indices: list = []  # the caller's index of each id (ids count the frames sent, from 0)
+        self.sent_at: list[float] = []  # each id's send time
+        self.numbers: list[int] = []  # the id of each server frame number (the frames it did not refuse)
+        self.closed: set[int] = set()  # ids answered for good
 
-    async def send(self, idx: int, t: float, data: bytes) -> None:
-        await self.ws.send(json.dumps({"type": "frame", "time_s": t}))
-        self.numbers.append(idx)
+    async def send(self, idx, t: float, data: bytes) -> int:
+        """Send one frame (its header, with the time and the id, then the image); returns its id."""
+        k = len(self.indices)
+        await self.ws.send(json.dumps({"type": "frame", "time_s": float(t), "id": k}))
+        self.indices.append(idx)
+        self.numbers.append(k)
         self.sent_at.append(time.perf_counter())
         await self.ws.send(data)
         self.res.sent += 1
+        return k
+
+    def _id_of(self, msg: dict, refused: bool) -> int | None:
+        """The id of the frame ``msg`` is about: the one it echoes, else (a server without ids)
+        the one its frame number counts to — a refused frame's is the newest sent (lock-step:
+        the only one in flight)."""
+        k = msg.get("id")
+        if isinstance(k, int) and not isinstance(k, bool) and 0 <= k < len(self.indices):
+            if refused and k in self.numbers:  # (not numbered by the server: the later frames' numbers move up)
+                self.numbers.remove(k)
+            return k
+        if "id" in msg:  # (not one of ours: filed under no frame)
+            return None
+        if refused:
+            return self.numbers.pop() if self.numbers else None
+        n = msg.get("frame")
+        return self.numbers[n] if isinstance(n, int) and 0 <= n < len(self.numbers) else None
 
     def take(self, msg: dict) -> int | None:
-        """Record one answer; returns the server frame number it closes, if any. A frame the
-        server refuses on arrival (an error without ``frame``: too large, not an image, over the
-        rate) gets no number there, so its own is dropped here: the next frame's answer, numbered
-        as the server counts, was filed under the refused one's index, and lock-step waited for a
-        number that never came (until the server's idle timeout)."""
-        if msg.get("type") == "error" and "frame" not in msg and msg.get("error", {}).get("code") in REFUSED_FRAME \
-                and self.numbers:
-            # (the frame just sent — lock-step: the only one in flight; real time: refusals come back
-            # at once, before the next frame is sent at any usual rate)
-            self.numbers.pop()
-            self.sent_at.pop()
+        """Record one answer; returns the id of the frame it answers for good, if any: its pose
+        (tracked, or ``dropped``: not tracked, newer frames came), an error naming its server
+        frame number, or its refusal on arrival (an error without ``frame`` whose code is one of
+        ``codes.REFUSED_FRAME``: such a frame gets no number). An error about a frame's header
+        alone (``out_of_order``, ``bad_message``) is recorded and the frame's answer still
+        awaited; other errors are recorded."""
+        kind = msg.get("type")
+        error = msg.get("error") if isinstance(msg.get("error"), dict) else {}
+        refused = kind == "error" and "frame" not in msg and error.get("code") in REFUSED_FRAME
+        k = self._id_of(msg, refused) if kind in ("pose", "error") else None
+        if kind == "error":
             self.res.errors.append(msg)
-            return None
-        if msg.get("type") == "pose" and msg.get("dropped"):  # answered, not tracked (newer frames came)
-            return msg["frame"]
-        if msg.get("type") == "pose":
-            n = msg["frame"]
-            self.res.poses[self.numbers[n]] = msg
+            if not (refused or "frame" in msg):
+                return None
+        elif kind == "pose" and k is not None and not msg.get("dropped"):
+            self.res.poses[self.indices[k]] = msg
             self.res.skipped += msg.get("skipped", 0)
-            self.res.rtt_ms.append((time.perf_counter() - self.sent_at[n]) * 1e3)
+            self.res.rtt_ms.append((time.perf_counter() - self.sent_at[k]) * 1e3)
             if self.on_answer is not None:
                 self.on_answer(msg)
-            return n
-        self.res.errors.append(msg)
-        return msg.get("frame")
+        if k is not None:
+            self.closed.add(k)
+        return k
 
     def last_answered(self) -> bool:
-        last = len(self.numbers) - 1
-        return self.numbers[-1] in self.res.poses or any(e.get("frame") == last for e in self.res.errors)
+        return len(self.indices) - 1 in self.closed
 
 
 async def _lockstep(s: _Session, frames, timeout: float) -> None:
     for idx, t, data in frames:
-        await s.send(idx, t, data)
+        k = await s.send(idx, t, data)
         while True:
             msg = json.loads(await asyncio.wait_for(s.ws.recv(), timeout))
-            if s.take(msg) == len(s.numbers) - 1 or (msg.get("type") == "error" and "frame" not in msg):
+            if s.take(msg) == k:
                 break
+            if msg.get("type") == "error" and "frame" not in msg and "id" not in msg:
+                break  # (an error about no frame, e.g. the session's idle timeout: not waited past)
 
 
 async def _realtime(s: _Session, frames, fps: float, timeout: float) -> None:
@@ -439,7 +466,7 @@ async def _realtime(s: _Session, frames, fps: float, timeout: float) -> None:
                 await asyncio.sleep(delay)
             await s.send(idx, t, data)
         deadline = time.perf_counter() + timeout  # the newest frame is always answered: wait for it
-        while s.numbers and not s.last_answered() and time.perf_counter() < deadline and not receiver.done():
+        while s.indices and not s.last_answered() and time.perf_counter() < deadline and not receiver.done():
             await asyncio.sleep(0.01)
         if receiver.done():  # the connection lost before the last answer: raised (as lock-step raises),
             receiver.result()  # not returned as if complete, with "Task exception was never retrieved" on stderr

@@ -228,3 +228,5 @@ class TrackMessage(BaseModel):
     reason: str | None = Field(None, description="why lost, or how (re)initialised")
     timings_ms: dict[str, float] = {}
     ros: dict | None = Field(None, description="with ?format=ros: geometry_msgs/PoseWithCovarianceStamped (metres, x,y,z,w)")
+    id: int | str | None = Field(None, description="the frame's id as its header gave it "
+                                 "({\"type\": \"frame\", \"id\"}); absent when the client gave none")

@@ -53,6 +53,10 @@ MAX_TEXT = 65_536  # characters in one text message: a camera or a control is a 
 # until it reads; one that reads nothing for ``idle_timeout_s`` is closed ("stalled")
 MAX_UNANSWERED = 64
 CLOSE_TIMEOUT_S = 5.0  # the session's closing frame, sent at its end: waited for this long at most
+# a frame header's optional "id", echoed in every answer about that frame (_frame_id): a string of
+# at most this many characters, or an integer a JavaScript client reads back exactly
+MAX_ID_CHARS = 64
+MAX_ID_INT = 2**53 - 1
 
 
 class SessionLimiter:
@@ -80,6 +84,7 @@ class _PendingFrame:
     data: bytes
     arrival: float  # perf_counter
     controls: list = field(default_factory=list)
+    id: int | str | None = None  # the client's id of the frame (its header's "id"), echoed in its answers
 
 
 class _SessionError(Exception):
@@ -98,6 +103,23 @@ def _seconds(value) -> float | None:
     except OverflowError:
         return None
     return value if math.isfinite(value) else None
+
+
+def _frame_id(msg: dict) -> tuple[int | str | None, str | None]:
+    """A frame header's optional ``"id"``: ``(id, None)`` (``id`` None when there is none), or
+    ``(None, why)`` when it is not an integer (no boolean, ``|id| ≤ 2**53 - 1``) nor a string of
+    at most :data:`MAX_ID_CHARS` characters. Only such ids: they come back unchanged, also through
+    a JavaScript client's JSON (a larger integer would not), and equal only themselves (a float or
+    a list would not make a reliable key)."""
+    if "id" not in msg:
+        return None, None
+    value = msg["id"]
+    if isinstance(value, str) and len(value) <= MAX_ID_CHARS:
+        return value, None
+    if isinstance(value, int) and not isinstance(value, bool) and abs(value) <= MAX_ID_INT:
+        return value, None
+    return None, (f"'id' must be an integer (at most 2**53 - 1 in size) or a string of at most {MAX_ID_CHARS} "
+                  f"characters; got {repr(value)[:40]}")
 
 
 class TrackSession:
@@ -122,6 +144,7 @@ class TrackSession:
         self.last_time: float | None = None
         self.last_clock = 0.0  # the session clock at the latest frame's arrival
         self.header_time: float | None = None
+        self.header_id: int | str | None = None  # the next binary frame's id (its header's "id")
         self.t0: float | None = None
         self.wakeup = asyncio.Event()
         self.send_lock = asyncio.Lock()
@@ -156,10 +179,13 @@ class TrackSession:
         self.closed = self.stalled = True
         self.answered.set()  # (wakes a receive loop waiting for the answers to be read)
 
-    async def send_error(self, code: str, message: str, frame: int | None = None) -> None:
+    async def send_error(self, code: str, message: str, frame: int | None = None,
+                         frame_id: int | str | None = None) -> None:
         body = {"type": "error", **error_body(code, message)}
         if frame is not None:
             body["frame"] = frame
+        if frame_id is not None:  # (the client's id of the frame the error is about: absent without one)
+            body["id"] = frame_id
         log.info("session %s: %s: %s", self.sid, code, message)
         await self.send(body)
 
@@ -234,25 +260,28 @@ class TrackSession:
     async def _on_frame(self, data: bytes) -> None:
         """A binary frame: refused on arrival, unnumbered, with one of ``codes.REFUSED_FRAME``
         (the client's bookkeeping relies on that set: add a new refusal's code there), else
-        numbered, timed and put in the mailbox."""
+        numbered, timed and put in the mailbox. Either way the frame takes its header's id, and
+        every answer about it carries that id."""
         arrival = time.perf_counter()
+        fid, self.header_id = self.header_id, None
         if self.camera is None:
-            await self.send_error(CAMERA_REQUIRED, "send the camera as a JSON text message before any frame")
+            await self.send_error(CAMERA_REQUIRED, "send the camera as a JSON text message before any frame", frame_id=fid)
             return
         if len(data) > self.settings.max_body_bytes:
             self.header_time = None
             self.metrics.frames.labels("error").inc()
-            await self.send_error(TOO_LARGE, f"a frame may have at most {self.settings.max_body_bytes} bytes")
+            await self.send_error(TOO_LARGE, f"a frame may have at most {self.settings.max_body_bytes} bytes", frame_id=fid)
             return
         if sniff(data) is None:  # cheap, and keeps garbage from using a frame number or a time
             self.header_time = None
             self.metrics.frames.labels("error").inc()
-            await self.send_error(UNSUPPORTED_IMAGE, "a binary message must be a JPEG, PNG or WebP frame")
+            await self.send_error(UNSUPPORTED_IMAGE, "a binary message must be a JPEG, PNG or WebP frame", frame_id=fid)
             return
         if not self._take_token():
             self.header_time = None
             self.metrics.frames.labels("rate_limited").inc()
-            await self.send_error(RATE_LIMITED, f"more than {self.settings.max_fps:g} frames per second; frame dropped")
+            await self.send_error(RATE_LIMITED, f"more than {self.settings.max_fps:g} frames per second; frame dropped",
+                                  frame_id=fid)
             return
         now = self.clock()
         if self.header_time is not None:
@@ -276,7 +305,7 @@ class TrackSession:
                 self.skipped += 1
                 controls = _bounded(stale.controls + controls)  # (frame after frame replaced: still bounded)
                 self.dropped.append(replace(stale, data=b"", controls=[]))  # (answered, never decoded)
-            self.pending = _PendingFrame(number, time_s, data, arrival, controls)
+            self.pending = _PendingFrame(number, time_s, data, arrival, controls, fid)
         if stale is not None:
             self.metrics.frames.labels("skipped").inc()
         self.wakeup.set()
@@ -299,19 +328,10 @@ class TrackSession:
         kind = msg.get("type")
         if kind is None and "fx" in msg or kind == "camera":
             await self._on_camera(msg)
+        elif kind == "frame":
+            await self._on_header(msg)
         elif self.camera is None:
             await self.send_error("camera_required", "the first message must be the camera (JSON)")
-        elif kind == "frame":
-            ts = _seconds(msg.get("time_s"))
-            if ts is None or ts < 0:
-                await self.send_error("bad_message", "'time_s' must be a finite number of seconds ≥ 0")
-            elif self.header_time is not None:
-                self.header_time = None
-                await self.send_error("out_of_order", "two frame headers in a row; send the binary frame after each")
-            elif self.last_time is not None and ts <= self.last_time:
-                await self.send_error("out_of_order", f"time_s {ts:g} is not after the previous frame's {self.last_time:g}")
-            else:
-                self.header_time = float(ts)
         elif kind == "reset":
             self._control(("reset",))
             self.header_time = None
@@ -325,6 +345,37 @@ class TrackSession:
             self._control(("init", pose.t, pose.q_wxyz, ts))
         else:
             await self.send_error("bad_message", f"unknown message type {repr(kind)[:40]}; use camera, frame, reset or init")
+
+    async def _on_header(self, msg: dict) -> None:
+        """``{"type": "frame", "time_s"?, "id"?}``: the time and the id of the next binary frame.
+        A header with an id may leave out ``time_s`` (the frame is then timed as an untimed one).
+        A valid id names the next frame even when the header's time is refused: that frame is
+        still answered (untimed), and the error about the header carries the id too, so a client
+        matching answers by id files both under the right frame. Without an id, exactly the
+        answers of before."""
+        fid, why = _frame_id(msg)
+        if why is not None:  # (the whole header ignored, as one with a bad time_s is)
+            await self.send_error("bad_message", why)
+            return
+        pending = self.header_time is not None or self.header_id is not None  # a header without its frame yet
+        if fid is not None:
+            self.header_id = fid
+        if self.camera is None:
+            await self.send_error("camera_required", "the first message must be the camera (JSON)", frame_id=fid)
+            return
+        untimed = fid is not None and "time_s" not in msg
+        ts = None if untimed else _seconds(msg.get("time_s"))
+        if not untimed and (ts is None or ts < 0):
+            await self.send_error("bad_message", "'time_s' must be a finite number of seconds ≥ 0", frame_id=fid)
+        elif pending:
+            self.header_time = None
+            await self.send_error("out_of_order", "two frame headers in a row; send the binary frame after each",
+                                  frame_id=fid)
+        elif ts is not None and self.last_time is not None and ts <= self.last_time:
+            await self.send_error("out_of_order", f"time_s {ts:g} is not after the previous frame's {self.last_time:g}",
+                                  frame_id=fid)
+        else:
+            self.header_time = None if ts is None else float(ts)
 
     def _control(self, op: tuple) -> None:
         self.controls = _bounded([*self.controls, op])
@@ -370,7 +421,7 @@ class TrackSession:
             await self._answer_dropped(item.number)
             if isinstance(out, _SessionError):
                 self.metrics.frames.labels("error").inc()
-                await self.send_error(out.code, out.message, item.number)
+                await self.send_error(out.code, out.message, item.number, item.id)
                 continue
             out["skipped"] = skipped
             out["latency_ms"] = round((time.perf_counter() - item.arrival) * 1e3, 2)
@@ -482,5 +533,8 @@ def _bounded(controls: list) -> list:
 
 def _message(item: _PendingFrame, step) -> dict:
     """The per-frame message (:func:`recognition.trackio.step_message`), numbered and timed as
-    the session received the frame."""
-    return {**step_message(step), "frame": item.number, "time_s": item.time_s}
+    the session received the frame, with the client's id of the frame when it gave one."""
+    msg = {**step_message(step), "frame": item.number, "time_s": item.time_s}
+    if item.id is not None:
+        msg["id"] = item.id
+    return msg

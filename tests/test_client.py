@@ -311,3 +311,86 @@ def test_a_real_time_stream_cut_by_the_server_is_closed_not_complete():
             asyncio.run(stream(url, CAMERA, [(0, 0.0, b"\xff\xd8\xff")], fps=10.0, timeout=30.0))
         ws_server.shutdown()
     assert e.value.code == "closed" and "1012" in e.value.message, e.value
+
+
+def _fake_track_server(batch: bool):
+    """A stand-in for the service's track socket, answering as it does with frame ids: a frame
+    ``b"refused"`` is refused on arrival (no number), ``b"late"`` has its header refused
+    (``out_of_order``) and is still tracked; the others are numbered in arrival order. ``batch``:
+    every frame is read before any answer — a client sending faster than the tracker runs —
+    and the frames between the first and the newest are replaced (``dropped``)."""
+    from websockets.sync.server import serve
+
+    def answers(got):
+        out, number, good = [], 0, [k for k, (_, data) in enumerate(got) if data != b"refused"]
+        for k, (header, data) in enumerate(got):
+            echo = {"id": header["id"]} if "id" in header else {}
+            if data == b"refused":
+                out.append({"type": "error", "error": {"code": "unsupported_image", "message": "not an image"}, **echo})
+                continue
+            if data == b"late":
+                out.append({"type": "error", "error": {"code": "out_of_order", "message": "not after"}, **echo})
+            dropped = batch and k not in (good[0], good[-1])
+            out.append({"type": "pose", "frame": number, "time_s": header["time_s"], "status": "lost" if dropped else "tracking",
+                        "pose": None, "velocity": None, "covariance": None, "inliers": 0, "latency_ms": 1.0,
+                        "skipped": 0, **({"dropped": True} if dropped else {}), **echo})
+            number += 1
+        return out
+
+    def handler(ws):
+        ws.recv()
+        ws.send(json.dumps({"type": "ready"}))
+        got = []
+        for text in ws:
+            got.append((json.loads(text), ws.recv()))
+            if not batch:
+                for m in answers(got)[len(answers(got[:-1])):]:
+                    ws.send(json.dumps(m))
+            elif got[-1][1] == b"last":
+                for m in answers(got):
+                    ws.send(json.dumps(m))
+
+    return serve(handler, "127.0.0.1", 0)
+
+
+@pytest.mark.parametrize("fps", [None, 1000.0])
+def test_stream_files_every_answer_under_its_own_index(fps):
+    """``stream``: answers filed by the frame id the server echoes. Counting slipped: in real
+    time, a refusal read after newer frames were sent dropped the newest index, and each later
+    answer went under the index of the frame before its own; in lock-step, an error about a
+    frame's header was taken for the frame's answer, and the stream ended before the last one.
+    Each frame's time here is its index's, so a misfiled answer shows."""
+    import asyncio
+    import threading
+
+    from quatrack.client import stream
+
+    kinds = [b"ok", b"refused", b"refused", b"ok", b"late", b"ok", b"refused", b"ok", b"last"]
+    frames = [(100 + i, i / 30, data) for i, data in enumerate(kinds)]
+    with _fake_track_server(batch=fps is not None) as ws_server:
+        threading.Thread(target=ws_server.serve_forever, daemon=True).start()
+        url = f"ws://127.0.0.1:{ws_server.socket.getsockname()[1]}/v1/objects/cookie-box/track"
+        res = asyncio.run(stream(url, CAMERA, frames, fps=fps, timeout=30.0))
+        ws_server.shutdown()
+    tracked = [100, 108] if fps else [100 + i for i, d in enumerate(kinds) if d != b"refused"]
+    assert sorted(res.poses) == tracked, res.poses
+    assert all(m["time_s"] == pytest.approx((idx - 100) / 30) for idx, m in res.poses.items()), res.poses
+    assert sorted(e["error"]["code"] for e in res.errors) == ["out_of_order"] + ["unsupported_image"] * 3
+    assert res.sent == len(kinds) and len(res.rtt_ms) == len(tracked)
+
+
+def test_a_real_time_stream_through_skips_and_refusals_keeps_every_index(server, frames):
+    """End to end: frames sent faster than the tracker runs, every other one refused on arrival
+    (not an image): each answer filed comes with its own frame's time, and the newest is
+    tracked."""
+    import asyncio
+
+    from quatrack.client import stream
+
+    good = [_jpeg(image) for _, image in frames]
+    sent = [(i, i / 30, good[i // 2] if i % 2 == 0 else b"\x00not an image") for i in range(2 * len(good) - 1)]
+    url = f"{server.ws_url}/v1/objects/cookie-box/track"
+    res = asyncio.run(stream(url, CAMERA, sent, fps=1000.0, token=TOKEN, timeout=60.0))
+    assert res.poses and all(i % 2 == 0 for i in res.poses) and len(sent) - 1 in res.poses, sorted(res.poses)
+    assert all(m["time_s"] == pytest.approx(i / 30) and m["id"] == i for i, m in res.poses.items()), res.poses
+    assert sorted(e["id"] for e in res.errors) == list(range(1, len(sent), 2)), res.errors

@@ -613,3 +613,110 @@ def test_a_flood_of_controls_never_loses_the_camera(tmp_path):
     # frames replaced before their turn pass their controls on to the newer one: still bounded
     merged = sessions._bounded(session.controls + [("camera", old)] + [("reset",)] * sessions.MAX_CONTROLS)
     assert len(merged) == sessions.MAX_CONTROLS and [c[1] for c in merged if c[0] == "camera"] == [old]
+
+
+def test_frame_ids_are_echoed_in_every_answer_about_the_frame(server, frames, monkeypatch):
+    """A frame header's ``"id"`` comes back in every message about that frame — its pose, its
+    ``dropped`` answer, its refusal on arrival, an error about its header, an error tracking it —
+    so a client sending faster than the tracker runs matches answers to frames without counting.
+    Made independent of the machine's speed as the back-pressure test: the first tracked step
+    waits until the server has received every frame."""
+    from quatrack.service import sessions
+
+    gate = threading.Event()
+    real = sessions.make_tracker
+
+    def gated(*args, **kw):
+        tracker = real(*args, **kw)
+        step = tracker.step
+
+        def first_step_waits(*a, **k):
+            assert gate.wait(60), "the test never opened the gate"
+            return step(*a, **k)
+
+        tracker.step = first_step_waits
+        return tracker
+
+    monkeypatch.setattr(sessions, "make_tracker", gated)
+    sent = [({"time_s": 0.0, "id": "a"}, frames[0]),
+            ({"time_s": 1 / 30, "id": 1}, b"\x00garbage"),  # refused on arrival
+            ({"time_s": -1, "id": 2}, frames[1]),  # the header's time refused: the frame still answered
+            ({"id": 3}, frames[2]),  # an id, no time: timed as an untimed frame
+            ({"time_s": 5 / 30, "id": -4}, frames[3])]
+    with open_session(server) as ws:
+        before = frames_received(server)
+        for header, data in sent:
+            ws.send(json.dumps({"type": "frame", **header}))
+            ws.send(data)
+        assert wait_until(lambda: frames_received(server) == before + 4, timeout=60)
+        gate.set()
+        msgs = []
+        while not msgs or (msgs[-1].get("id"), msgs[-1]["type"]) != (-4, "pose"):
+            msgs.append(recv(ws))
+        ws.send(frames[4][: len(frames[4]) // 3])  # (a truncated JPEG: decoding it fails), no id
+        msgs.append(recv(ws))
+        ws.send(json.dumps({"type": "frame", "time_s": 100.0, "id": "t"}))
+        ws.send(frames[4][: len(frames[4]) // 3])
+        msgs.append(recv(ws))
+        ws.send(json.dumps({"type": "frame", "time_s": 200.0, "id": "big"}))
+        ws.send(b"\xff\xd8\xff" + b"0" * 2_100_000)  # over max_body_bytes
+        msgs.append(recv(ws))
+    by_id: dict = {}
+    for m in msgs:
+        by_id.setdefault(m.get("id"), []).append(m)
+    kinds = {k: [(m["type"], m["error"]["code"] if m["type"] == "error" else m.get("frame")) for m in v]
+             for k, v in by_id.items()}
+    assert kinds["a"] == [("pose", 0)] and kinds[1] == [("error", "unsupported_image")], kinds
+    assert kinds[2] == [("error", "bad_message"), ("pose", 1)] and kinds[3] == [("pose", 2)], kinds
+    assert kinds[-4] == [("pose", 3)] and not by_id[-4][0].get("dropped"), kinds
+    assert kinds[None] == [("error", "bad_image")] and kinds["t"] == [("error", "bad_image")], kinds
+    assert by_id["t"][0]["frame"] == 5 and "id" not in by_id[None][0]  # (an error naming its frame, with its id)
+    assert kinds["big"] == [("error", "too_large")], kinds
+    assert by_id["a"][0]["time_s"] == 0.0 and by_id[-4][0]["time_s"] == pytest.approx(5 / 30)
+    assert all(m["type"] == "pose" for k in ("a", 2, 3, -4) for m in by_id[k][-1:])
+
+
+def test_without_ids_no_answer_has_one(server, frames):
+    """Backward compatible: a client that sends no id gets exactly the messages of before, none
+    with an ``"id"`` key (poses, refusals, header errors, tracking errors)."""
+    with open_session(server) as ws:
+        send_frame(ws, frames[0], 0.0)
+        ws.send(b"\x00garbage")
+        ws.send(json.dumps({"type": "frame", "time_s": -1}))
+        ws.send(frames[1][:500])
+        msgs = [recv(ws) for _ in range(4)]
+    codes = sorted(m["error"]["code"] if m["type"] == "error" else m["type"] for m in msgs)
+    assert codes == ["bad_image", "bad_message", "pose", "unsupported_image"], msgs
+    assert not any("id" in m for m in msgs), msgs
+
+
+def test_frame_ids_of_the_wrong_type_are_refused(tmp_path):
+    """An id is an integer a JavaScript client reads back exactly (``|id| ≤ 2**53 - 1``, not a
+    boolean) or a string of at most 64 characters; anything else is ``bad_message`` naming
+    ``'id'``, and the header is ignored whole (no time, no id), as one with a bad ``time_s``."""
+    import asyncio
+
+    from quatrack.service import sessions
+
+    def answers(*msgs) -> tuple[list[dict], sessions.TrackSession]:
+        session = sessions.TrackSession(_Outbox(), "sid", "cookie-box", None, Settings(store=tmp_path), None, None)
+
+        async def run():
+            for m in (CAMERA, *msgs):
+                await session._on_text(json.dumps(m))
+        asyncio.run(run())
+        return session.ws.sent, session
+
+    for bad in (True, 1.5, None, [1], {"k": 1}, 2**53, -(2**53), "x" * 65):
+        (err,), session = answers({"type": "frame", "time_s": 1.0, "id": bad})
+        assert err["error"]["code"] == "bad_message" and "'id'" in err["error"]["message"] and "id" not in err, (bad, err)
+        assert (session.header_time, session.header_id) == (None, None), bad
+    for good in (0, -7, 2**53 - 1, "", "cam0/frame-12", "é" * 64):
+        sent, session = answers({"type": "frame", "time_s": 1.0, "id": good})
+        assert sent == [] and (session.header_time, session.header_id) == (1.0, good), (good, sent)
+    sent, session = answers({"type": "frame", "id": 9})  # an id alone: an untimed frame's header
+    assert sent == [] and (session.header_time, session.header_id) == (None, 9)
+    (err,), _ = answers({"type": "frame"})  # neither: refused as before
+    assert err["error"]["code"] == "bad_message" and "time_s" in err["error"]["message"] and "id" not in err
+    (err,), session = answers({"type": "frame", "id": 1}, {"type": "frame", "time_s": 1.0, "id": 2})
+    assert (err["error"]["code"], err["id"]) == ("out_of_order", 2) and session.header_id == 2, err
