@@ -174,29 +174,38 @@ def frames_received(srv) -> float:
     return metric(srv, 'quatrack_ws_frames_total{result="received"}')
 
 
-def test_back_pressure_processes_the_newest(server, frames, monkeypatch):
-    """While a frame is being tracked, newer ones replace each other: the newest is processed
-    next. Made independent of the machine's speed: the first tracked frame's step waits until the
-    server has received every frame (read from its metrics). Which frame that first one is
-    depends on when the worker thread started on it (it takes the newest then, usually frame 0);
-    whatever it is, every frame after it but the last is skipped."""
+def gate_the_steps(monkeypatch) -> tuple[threading.Event, list[float]]:
+    """The sessions' trackers step only once the returned event is set (the test sets it when
+    the server has received what it sent: independent of the machine's speed); the list gets
+    the time each step was given."""
     from quatrack.service import sessions
 
-    gate = threading.Event()
+    gate, times = threading.Event(), []
     real = sessions.make_tracker
 
     def gated(*args, **kw):
         tracker = real(*args, **kw)
         step = tracker.step
 
-        def first_step_waits(*a, **k):
+        def step_waits(image, time_s, *a, **k):
             assert gate.wait(60), "the test never opened the gate"
-            return step(*a, **k)
+            times.append(time_s)
+            return step(image, time_s, *a, **k)
 
-        tracker.step = first_step_waits
+        tracker.step = step_waits
         return tracker
 
     monkeypatch.setattr(sessions, "make_tracker", gated)
+    return gate, times
+
+
+def test_back_pressure_processes_the_newest(server, frames, monkeypatch):
+    """While a frame is being tracked, newer ones replace each other: the newest is processed
+    next. Made independent of the machine's speed: the first tracked frame's step waits until the
+    server has received every frame (read from its metrics). Which frame that first one is
+    depends on when the worker thread started on it (it takes the newest then, usually frame 0);
+    whatever it is, every frame after it but the last is skipped."""
+    gate, _ = gate_the_steps(monkeypatch)
     n = 15
     with open_session(server) as ws:
         before = frames_received(server)
@@ -621,23 +630,7 @@ def test_frame_ids_are_echoed_in_every_answer_about_the_frame(server, frames, mo
     so a client sending faster than the tracker runs matches answers to frames without counting.
     Made independent of the machine's speed as the back-pressure test: the first tracked step
     waits until the server has received every frame."""
-    from quatrack.service import sessions
-
-    gate = threading.Event()
-    real = sessions.make_tracker
-
-    def gated(*args, **kw):
-        tracker = real(*args, **kw)
-        step = tracker.step
-
-        def first_step_waits(*a, **k):
-            assert gate.wait(60), "the test never opened the gate"
-            return step(*a, **k)
-
-        tracker.step = first_step_waits
-        return tracker
-
-    monkeypatch.setattr(sessions, "make_tracker", gated)
+    gate, _ = gate_the_steps(monkeypatch)
     sent = [({"time_s": 0.0, "id": "a"}, frames[0]),
             ({"time_s": 1 / 30, "id": 1}, b"\x00garbage"),  # refused on arrival
             ({"time_s": -1, "id": 2}, frames[1]),  # the header's time refused: the frame still answered
@@ -720,3 +713,24 @@ def test_frame_ids_of_the_wrong_type_are_refused(tmp_path):
     assert err["error"]["code"] == "bad_message" and "time_s" in err["error"]["message"] and "id" not in err
     (err,), session = answers({"type": "frame", "id": 1}, {"type": "frame", "time_s": 1.0, "id": 2})
     assert (err["error"]["code"], err["id"]) == ("out_of_order", 2) and session.header_id == 2, err
+
+
+def test_an_untimed_frame_is_timed_at_its_arrival_not_when_tracked(server, frames, monkeypatch):
+    """A frame without a time is timed by the session's clock when it arrives: one that waits in
+    the mailbox while the tracker is busy, then is tracked, keeps its arrival time (and so does a
+    frame replaced before its turn), whatever the clock says when a thread takes it. The clock is
+    the test's: frames arrive at 10, 11 and 12 s, and are tracked at 1000 s."""
+    gate, stepped = gate_the_steps(monkeypatch)
+    now = [10.0]
+    monkeypatch.setattr(server.app.state.quatrack, "clock", lambda: now[0])
+    with open_session(server) as ws:
+        before = frames_received(server)
+        for k, f in enumerate(frames[:3]):
+            now[0] = 10.0 + k
+            ws.send(f)
+            assert wait_until(lambda: frames_received(server) == before + k + 1, timeout=60)
+        now[0] = 1000.0
+        gate.set()
+        msgs = [recv(ws) for _ in range(3)]
+    assert [(m["frame"], m["time_s"]) for m in msgs] == [(0, 0.0), (1, 1.0), (2, 2.0)], msgs
+    assert stepped[-1] == 2.0 and set(stepped) <= {0.0, 1.0, 2.0}, stepped  # (the tracker's times too)
