@@ -342,6 +342,10 @@ class TrackSession:
                 await self.send_error("bad_pose", str(exc))
                 return
             ts = _seconds(msg.get("time_s"))
+            if ts is None and msg.get("time_s") is not None:  # (was dropped without a word: the pose taken at the next frame)
+                await self.send_error("bad_message", "init: 'time_s' must be a finite number of seconds, or left out "
+                                                     "(the pose is then the next frame's)")
+                return
             self._control(("init", pose.t, pose.q_wxyz, ts))
         else:
             await self.send_error("bad_message", f"unknown message type {repr(kind)[:40]}; use camera, frame, reset or init")

@@ -734,3 +734,31 @@ def test_an_untimed_frame_is_timed_at_its_arrival_not_when_tracked(server, frame
         msgs = [recv(ws) for _ in range(3)]
     assert [(m["frame"], m["time_s"]) for m in msgs] == [(0, 0.0), (1, 1.0), (2, 2.0)], msgs
     assert stepped[-1] == 2.0 and set(stepped) <= {0.0, 1.0, 2.0}, stepped  # (the tracker's times too)
+
+
+def test_an_init_with_a_time_that_is_no_number_is_refused(tmp_path):
+    """``{"type": "init", "pose", "time_s"}`` whose ``time_s`` is no finite number (a string, a
+    boolean, a number too large for a float) was taken as an init without a time — the pose put
+    at the next frame, without a word. It is ``bad_message`` and the init is not queued; a
+    number, ``null`` or no ``time_s`` are taken as before."""
+    import asyncio
+
+    from quatrack.service import sessions
+
+    pose = {"q_wxyz": [1, 0, 0, 0], "t": [0, 0, 50]}
+
+    def answers(text: str) -> tuple[list[dict], list]:
+        session = sessions.TrackSession(_Outbox(), "sid", "cookie-box", None, Settings(store=tmp_path), None, None)
+
+        async def run():
+            for t in (CAM_TEXT, text):
+                await session._on_text(t)
+        asyncio.run(run())
+        return session.ws.sent, [c for c in session.controls if c[0] == "init"]
+
+    for bad in ('"soon"', "true", "[1]", "1" + "0" * 400, "NaN", "Infinity"):
+        (err,), inits = answers('{"type": "init", "pose": %s, "time_s": %s}' % (json.dumps(pose), bad))
+        assert err["error"]["code"] == "bad_message" and "time_s" in err["error"]["message"] and not inits, (bad, err)
+    for good, ts in (', "time_s": 2.5', 2.5), (', "time_s": null', None), ("", None):
+        sent, inits = answers('{"type": "init", "pose": %s%s}' % (json.dumps(pose), good))
+        assert sent == [] and [c[3] for c in inits] == [ts], (good, sent)
