@@ -130,6 +130,19 @@ def _typed_stream_errors(url: str, timeout: float) -> Iterator[None]:
         raise QuatrackError("timeout", f"{url}: no answer within {timeout:g} s") from None
 
 
+def _message(text: str | bytes) -> dict:
+    """One message of the track socket, a JSON object; anything else (not JSON, not an object:
+    a proxy's error page, another service at that address) is a QuatrackError ``"protocol"``
+    (it was json's or Python's own exception, from inside the stream)."""
+    try:
+        msg = json.loads(text)
+    except (ValueError, RecursionError):
+        msg = None
+    if not isinstance(msg, dict):
+        raise QuatrackError("protocol", f"the server's message is not a JSON object: {str(text)[:80]!r}")
+    return msg
+
+
 def _ws_error(exc: BaseException) -> QuatrackError:
     """A refused WebSocket handshake (its HTTP answer) or a connection failure, as a QuatrackError."""
     from websockets.exceptions import InvalidStatus
@@ -208,8 +221,8 @@ class _Endpoint:
     @staticmethod
     def _expect(msg: dict, kind: str) -> dict:
         if msg.get("type") == "error":
-            e = msg.get("error", {})
-            raise QuatrackError(e.get("code", "error"), e.get("message", ""))
+            e = msg.get("error") if isinstance(msg.get("error"), dict) else {}
+            raise QuatrackError(str(e.get("code", "error")), str(e.get("message", "")))
         if msg.get("type") != kind:
             raise QuatrackError("protocol", f"expected a {kind!r} message, got {str(msg)[:120]}")
         return msg
@@ -268,13 +281,13 @@ class Client(_Endpoint):
             raise _ws_error(exc) from None
         with ws, _typed_stream_errors(self.ws_url, self.timeout):  # (the server gone, or silent)
             ws.send(self._hello(camera))
-            self._expect(json.loads(ws.recv(self.timeout)), "ready")
+            self._expect(_message(ws.recv(self.timeout)), "ready")
             for item in frames:
                 header, data = self._frame_parts(item)
                 if header is not None:
                     ws.send(header)
                 ws.send(data)
-                msg = json.loads(ws.recv(self.timeout))
+                msg = _message(ws.recv(self.timeout))
                 yield TrackMessage.model_validate(self._expect(msg, "pose"))
 
     def close(self) -> None:
@@ -335,13 +348,13 @@ class AsyncClient(_Endpoint):
         async with ws:
             with _typed_stream_errors(self.ws_url, self.timeout):  # (the server gone, or silent)
                 await ws.send(self._hello(camera))
-                self._expect(json.loads(await asyncio.wait_for(ws.recv(), self.timeout)), "ready")
+                self._expect(_message(await asyncio.wait_for(ws.recv(), self.timeout)), "ready")
                 async for item in items():
                     header, data = self._frame_parts(item)
                     if header is not None:
                         await ws.send(header)
                     await ws.send(data)
-                    msg = json.loads(await asyncio.wait_for(ws.recv(), self.timeout))
+                    msg = _message(await asyncio.wait_for(ws.recv(), self.timeout))
                     yield TrackMessage.model_validate(self._expect(msg, "pose"))
 
     async def aclose(self) -> None:
@@ -445,7 +458,7 @@ async def _lockstep(s: _Session, frames, timeout: float) -> None:
     for idx, t, data in frames:
         k = await s.send(idx, t, data)
         while True:
-            msg = json.loads(await asyncio.wait_for(s.ws.recv(), timeout))
+            msg = _message(await asyncio.wait_for(s.ws.recv(), timeout))
             if s.take(msg) == k:
                 break
             if msg.get("type") == "error" and "frame" not in msg and "id" not in msg:
@@ -455,7 +468,7 @@ async def _lockstep(s: _Session, frames, timeout: float) -> None:
 async def _realtime(s: _Session, frames, fps: float, timeout: float) -> None:
     async def receive():
         while True:
-            s.take(json.loads(await s.ws.recv()))
+            s.take(_message(await s.ws.recv()))
 
     receiver = asyncio.create_task(receive())
     try:
@@ -502,7 +515,7 @@ async def stream(url: str, camera: Any, frames: Iterable[tuple[int, float, bytes
             pass
         with _typed_stream_errors(url, timeout):  # (the server gone, or silent)
             await ws.send(json.dumps(hello))  # (with "ack": the "ready" handshake)
-            Client._expect(json.loads(await asyncio.wait_for(ws.recv(), timeout)), "ready")
+            Client._expect(_message(await asyncio.wait_for(ws.recv(), timeout)), "ready")
             s = _Session(ws, res, on_answer)
             if fps is None:
                 await _lockstep(s, frames, timeout)

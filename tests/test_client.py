@@ -394,3 +394,43 @@ def test_a_real_time_stream_through_skips_and_refusals_keeps_every_index(server,
     assert res.poses and all(i % 2 == 0 for i in res.poses) and len(sent) - 1 in res.poses, sorted(res.poses)
     assert all(m["time_s"] == pytest.approx(i / 30) and m["id"] == i for i, m in res.poses.items()), res.poses
     assert sorted(e["id"] for e in res.errors) == list(range(1, len(sent), 2)), res.errors
+
+
+@pytest.mark.parametrize("answer", ["<html>502 Bad Gateway</html>", "[1, 2]", '{"type": "error", "error": "boom"}'])
+def test_a_message_that_is_no_json_object_is_a_protocol_error(frames, answer):
+    """Something at the address that is not the service (a proxy's error page, another program)
+    answering a frame with a text that is not a JSON object: ``QuatrackError("protocol")`` from
+    ``Client.track`` and ``stream`` in both modes (it was json's ``JSONDecodeError`` or an
+    ``AttributeError`` from inside the client); an error whose ``error`` is no object keeps its
+    type, ``"error"``."""
+    import asyncio
+    import threading
+
+    from websockets.sync.server import serve
+
+    from quatrack.client import stream
+
+    def handler(ws):
+        ws.recv()
+        ws.send(json.dumps({"type": "ready"}))
+        for message in ws:
+            if isinstance(message, bytes):
+                ws.send(answer)
+
+    with serve(handler, "127.0.0.1", 0) as ws_server:
+        threading.Thread(target=ws_server.serve_forever, daemon=True).start()
+        port = ws_server.socket.getsockname()[1]
+        url = f"ws://127.0.0.1:{port}/v1/objects/cookie-box/track"
+        codes = []
+        with Client(f"http://127.0.0.1:{port}", object="cookie-box", timeout=30) as c:
+            with pytest.raises(QuatrackError) as e:
+                list(c.track([b"\xff\xd8\xff"], CAMERA))
+            codes.append(e.value.code)
+        for fps in (None, 100.0):
+            if answer.startswith("{"):  # (an error message, however malformed, is no protocol error in stream)
+                break
+            with pytest.raises(QuatrackError) as e:
+                asyncio.run(stream(url, CAMERA, [(0, 0.0, b"\xff\xd8\xff")], fps=fps, timeout=30.0))
+            codes.append(e.value.code)
+        ws_server.shutdown()
+    assert codes == (["error"] if answer.startswith("{") else ["protocol"] * 3), codes
