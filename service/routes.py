@@ -396,7 +396,11 @@ async def track(websocket: WebSocket, name: str) -> None:
             model = await asyncio.get_running_loop().run_in_executor(state.executor, state.registry.get, name)
         except ApiError as exc:  # e.g. a corrupt model: 503 naming the object
             return await _deny(websocket, exc.status_code, exc.code, exc.message, 1011)
-        await websocket.accept()
+        try:
+            await websocket.accept()
+        except OSError:  # (uvicorn's ClientDisconnected) the client gave up while the model loaded: no
+            outcome = "disconnected"  # session to serve, and no server error (it was counted "error")
+            return
         session = TrackSession(websocket, sid, name, model, state.settings, state.executor, m, clock=state.clock,
                                ros_unit=unit)
         outcome = await session.run()

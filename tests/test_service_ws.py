@@ -762,3 +762,25 @@ def test_an_init_with_a_time_that_is_no_number_is_refused(tmp_path):
     for good, ts in (', "time_s": 2.5', 2.5), (', "time_s": null', None), ("", None):
         sent, inits = answers('{"type": "init", "pose": %s%s}' % (json.dumps(pose), good))
         assert sent == [] and [c[3] for c in inits] == [ts], (good, sent)
+
+
+def test_a_client_that_leaves_before_the_handshake_ends_is_disconnected_not_an_error(server, monkeypatch):
+    """A client giving up while the server loads the session's model (its handshake timeout):
+    the server's accept then fails (uvicorn's ``ClientDisconnected``), and the session was
+    counted ``outcome="error"``, a server fault on the operator's dashboards. It is
+    ``"disconnected"``. The model's loading is held by the test until the client has left."""
+    registry = server.app.state.quatrack.registry
+    real, left = registry.get, threading.Event()
+
+    def held(name):
+        assert left.wait(60)
+        return real(name)
+
+    monkeypatch.setattr(registry, "get", held)
+    name = 'quatrack_ws_sessions_total{outcome="%s"}'
+    before = {o: metric(server, name % o) for o in ("error", "disconnected")}
+    with pytest.raises(TimeoutError):
+        connect(f"{server.ws_url}/v1/objects/cookie-box/track", open_timeout=0.3)
+    left.set()
+    assert wait_until(lambda: metric(server, name % "disconnected") == before["disconnected"] + 1)
+    assert metric(server, name % "error") == before["error"]
