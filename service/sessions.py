@@ -19,7 +19,7 @@ import math
 import threading
 import time
 import uuid
-from concurrent.futures import Executor
+from concurrent.futures import Executor, Future
 from dataclasses import dataclass, field, replace
 from typing import Callable
 
@@ -159,6 +159,7 @@ class TrackSession:
         self.tracker = None
         self.tracker_camera = None
         self.last_status: str | None = None
+        self.job: Future | None = None  # the processor's job in the pool (_process_newest), the latest
 
     # --- sending ----------------------------------------------------------------------------------
     async def send(self, payload: dict) -> None:
@@ -226,6 +227,7 @@ class TrackSession:
                 await processor
             except (asyncio.CancelledError, Exception):
                 pass
+            await self._step_finished()
             if self.ws.client_state == WebSocketState.CONNECTED:
                 try:  # (a client that reads nothing never lets the close frame out: not waited for)
                     await asyncio.wait_for(self.ws.close(1000), CLOSE_TIMEOUT_S)
@@ -233,6 +235,20 @@ class TrackSession:
                     pass
             await store_session_views(self)  # QUATRACK_LEARN_VIEWS (service/learning.py)
         return outcome
+
+    async def _step_finished(self) -> None:
+        """At the session's end, wait (at most ``idle_timeout_s``) for the tracker's step in
+        flight: cancelling the processor stops no worker thread, and the learned views stored
+        next (:func:`store_session_views`) were read from the tracker on another thread while
+        it stepped — the session's tracker used by two threads at once, the last step's views
+        lost. A job still waiting for a thread was cancelled with the processor: none runs."""
+        job = self.job
+        if job is None or job.done():
+            return
+        try:
+            await asyncio.wait_for(asyncio.wrap_future(job), self.settings.idle_timeout_s)
+        except (asyncio.TimeoutError, Exception):  # (the step's own failure was answered, or is moot now)
+            pass
 
     async def _answers_read(self) -> bool:
         """Whether the session may read the next message: fewer than :data:`MAX_UNANSWERED`
@@ -412,13 +428,13 @@ class TrackSession:
 
     # --- processing -------------------------------------------------------------------------------
     async def _process_loop(self) -> None:
-        loop = asyncio.get_running_loop()
         while not self.closed:
             await self.wakeup.wait()
             self.wakeup.clear()
             if self.pending is None:
                 continue
-            taken = await loop.run_in_executor(self.executor, self._process_newest)
+            self.job = self.executor.submit(self._process_newest)
+            taken = await asyncio.wrap_future(self.job)
             if taken is None:
                 continue
             item, skipped, out = taken

@@ -784,3 +784,53 @@ def test_a_client_that_leaves_before_the_handshake_ends_is_disconnected_not_an_e
     left.set()
     assert wait_until(lambda: metric(server, name % "disconnected") == before["disconnected"] + 1)
     assert metric(server, name % "error") == before["error"]
+
+
+def test_a_session_ends_after_its_tracker_step_in_flight(tmp_path, frames, monkeypatch):
+    """The client leaves while its frame is being tracked: the session's end stored the learned
+    views (``store_session_views``) at once, reading the tracker on another thread while the
+    worker still stepped it — the tracker used by two threads at once, the step's views lost.
+    The end now waits for the step. Here the step waits (at most 2 s) for the store to start;
+    the store says whether the step was still running."""
+    import asyncio
+    from concurrent.futures import ThreadPoolExecutor
+
+    from quatrack.service import sessions
+    from quatrack.service.metrics import Metrics
+    from starlette.websockets import WebSocketState
+
+    started, stored = threading.Event(), threading.Event()
+    stepping, seen = [False], []
+
+    class Leaves:
+        client_state = WebSocketState.DISCONNECTED
+
+        def __init__(self) -> None:
+            self.script = [{"type": "websocket.receive", "text": CAM_TEXT}, {"type": "websocket.receive", "bytes": frames[0]}]
+
+        async def receive(self) -> dict:
+            if self.script:
+                return self.script.pop(0)
+            assert await asyncio.to_thread(started.wait, 30)  # (the frame is being tracked)
+            return {"type": "websocket.disconnect"}
+
+        async def send_text(self, text: str) -> None:
+            pass
+
+    def step(item):
+        stepping[0] = True
+        started.set()
+        stored.wait(2.0)  # (set by the store if it runs before the step ends)
+        stepping[0] = False
+        return {"type": "pose", "frame": item.number, "time_s": item.time_s}
+
+    async def store(session):
+        seen.append(stepping[0])
+        stored.set()
+
+    monkeypatch.setattr(sessions, "store_session_views", store)
+    with ThreadPoolExecutor(2) as pool:
+        session = sessions.TrackSession(Leaves(), "sid", "cookie-box", None, Settings(store=tmp_path), pool, Metrics())
+        session._process = step
+        assert asyncio.run(asyncio.wait_for(session.run(), 60)) == "closed"
+    assert seen == [False]
