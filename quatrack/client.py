@@ -371,10 +371,12 @@ class AsyncClient(_Endpoint):
 
 @dataclass
 class StreamResult:
-    """Answers by the index of the frame they are for (the caller's numbering)."""
+    """Answers by the index of the frame they are for (the caller's numbering), matched by the
+    frame id the server echoes."""
 
     poses: dict[int, dict] = field(default_factory=dict)
     errors: list[dict] = field(default_factory=list)
+    error_index: list = field(default_factory=list)  # the caller's index of each error's frame (None: of no frame)
     sent: int = 0
     skipped: int = 0
     rtt_ms: list[float] = field(default_factory=list)  # send → answer, per processed frame
@@ -438,6 +440,7 @@ class _Session:
         k = self._id_of(msg, refused) if kind in ("pose", "error") else None
         if kind == "error":
             self.res.errors.append(msg)
+            self.res.error_index.append(None if k is None else self.indices[k])
             if not (refused or "frame" in msg):
                 return None
         elif kind == "pose" and k is not None and not msg.get("dropped"):
@@ -493,7 +496,8 @@ async def stream(url: str, camera: Any, frames: Iterable[tuple[int, float, bytes
     """Stream ``(index, time_s, JPEG bytes)`` through one tracking session at ``url`` (the full
     ``ws://.../v1/objects/NAME/track``) and collect the answers: lock-step when ``fps`` is None,
     else real time at ``fps`` frames/s (> 0); ``on_answer(msg)`` is called on each pose message as
-    it arrives. ``camera``: as :class:`Client` takes it (a dict, a PinholeCamera or a camera
+    it arrives. Each frame goes with an id (its place in the stream), so every answer is filed
+    under its own index whatever the server refused or skipped meanwhile. ``camera``: as :class:`Client` takes it (a dict, a PinholeCamera or a camera
     file's path). Raises :class:`QuatrackError` when the server refuses."""
     import websockets
 

@@ -376,6 +376,8 @@ def test_stream_files_every_answer_under_its_own_index(fps):
     assert sorted(res.poses) == tracked, res.poses
     assert all(m["time_s"] == pytest.approx((idx - 100) / 30) for idx, m in res.poses.items()), res.poses
     assert sorted(e["error"]["code"] for e in res.errors) == ["out_of_order"] + ["unsupported_image"] * 3
+    assert sorted(zip(res.error_index, (e["error"]["code"] for e in res.errors))) == [
+        (101, "unsupported_image"), (102, "unsupported_image"), (104, "out_of_order"), (106, "unsupported_image")]
     assert res.sent == len(kinds) and len(res.rtt_ms) == len(tracked)
 
 
@@ -394,6 +396,7 @@ def test_a_real_time_stream_through_skips_and_refusals_keeps_every_index(server,
     assert res.poses and all(i % 2 == 0 for i in res.poses) and len(sent) - 1 in res.poses, sorted(res.poses)
     assert all(m["time_s"] == pytest.approx(i / 30) and m["id"] == i for i, m in res.poses.items()), res.poses
     assert sorted(e["id"] for e in res.errors) == list(range(1, len(sent), 2)), res.errors
+    assert res.error_index == [e["id"] for e in res.errors]  # (here the caller's index is the frame's place)
 
 
 @pytest.mark.parametrize("answer", ["<html>502 Bad Gateway</html>", "[1, 2]", '{"type": "error", "error": "boom"}'])

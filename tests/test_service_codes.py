@@ -41,9 +41,10 @@ def test_the_client_drops_the_index_of_every_refused_frame():
 
     for code in sorted(codes.REFUSED_FRAME) + ["bad_image"]:
         s = _Session(None, StreamResult())
-        s.numbers, s.sent_at = [7], [0.0]
+        s.indices, s.numbers, s.sent_at = [7], [0], [0.0]  # (the caller's frame 7 sent, id 0, no id echoed)
         s.take({"type": "error", **codes.error_body(code, "refused")})
-        assert s.numbers == ([] if code in codes.REFUSED_FRAME else [7]), code
+        assert s.numbers == ([] if code in codes.REFUSED_FRAME else [0]), code
+        assert s.res.error_index == ([7] if code in codes.REFUSED_FRAME else [None]), code
 
 
 def test_the_client_imports_no_server_stack(tmp_path):
