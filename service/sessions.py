@@ -8,6 +8,8 @@ tracker is never used by two threads at once; the frame is taken from the mailbo
 starts on it, not when the job is queued, so a frame never goes stale waiting for a thread.
 Control messages (camera, reset, init) travel with the frame they preceded, so they act in the
 order the client sent them even when frames are skipped. Bad input is answered with an error message and the session stays open.
+A frame's header may give the frame an id, echoed in every answer about it (:meth:`TrackSession._on_header`):
+with frames skipped and refused, a client that sends ahead of the answers cannot match them by counting.
 """
 
 from __future__ import annotations
