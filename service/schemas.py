@@ -13,7 +13,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from pydantic_core import PydanticCustomError
 
 from quatrack.tracking.camera import PinholeCamera
-from quatrack.viewsets.camera import camera_from_dict
+from quatrack.viewsets.camera import CAMERA_FIELDS, camera_from_dict, misspelt_field
 from quatrack.viewsets.errors import SpecError
 
 Vec3 = list[float]
@@ -69,6 +69,15 @@ class CameraIn(BaseModel):
         return v
 
     _a_bool = field_validator("guessed", mode="before")(_strict_bool)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _no_misspelt_field(cls, data):
+        """A misspelt field (``dist_coeff``, ``fxx``) is refused with a suggestion, not ignored
+        (:func:`quatrack.viewsets.camera.misspelt_field`: the distortion was dropped silently)."""
+        if isinstance(data, dict) and (msg := misspelt_field(data, (*CAMERA_FIELDS, "guessed", "ack", "type"), "")) is not None:
+            raise ValueError(msg.removeprefix(": "))
+        return data
 
     @field_validator("dist_coeffs", mode="before")
     @classmethod

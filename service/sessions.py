@@ -32,6 +32,7 @@ from quatrack.recognition.images import ImageError
 from quatrack.recognition.trackio import step_message
 from quatrack.recognition.match import ModelIndex
 from quatrack.recognition.video import TrackStep
+from quatrack.viewsets.camera import CAMERA_FIELDS
 from quatrack.viewsets.store import ObjectModel
 from quatrack.viewsets.errors import SpecError
 from quatrack.viewsets.spec import parse_pose
@@ -344,7 +345,7 @@ class TrackSession:
             await self.send_error("bad_message", "a text message must be a JSON object")
             return
         kind = msg.get("type")
-        if kind is None and "fx" in msg or kind == "camera":
+        if kind is None and any(k in msg for k in CAMERA_FIELDS) or kind == "camera":
             await self._on_camera(msg)
         elif kind == "frame":
             await self._on_header(msg)

@@ -388,3 +388,10 @@ def test_a_camera_file_with_a_byte_order_mark_is_read(client, frame_jpeg):
         files = [("camera", camera), ("image", ("f.jpg", frame_jpeg, "image/jpeg"))]  # (the camera first)
         r = client.post("/v1/objects/cookie-box/pose", files=files)
         assert r.status_code == 200 and r.json()["found"], r.text[:300]
+
+
+def test_a_misspelt_camera_field_is_refused_with_a_suggestion(client, frame_jpeg):
+    cam = {k: v for k, v in CAMERA.items() if k != "dist_coeffs"} | {"dist_coeff": [0.1, 0, 0, 0]}
+    r = client.post("/v1/objects/cookie-box/pose", files={"image": ("f.jpg", frame_jpeg, "image/jpeg")},
+                    data={"camera": json.dumps(cam)})
+    assert "did you mean 'dist_coeffs'" in assert_error(r, 422, "bad_camera")["error"]["message"]

@@ -834,3 +834,15 @@ def test_a_session_ends_after_its_tracker_step_in_flight(tmp_path, frames, monke
         session._process = step
         assert asyncio.run(asyncio.wait_for(session.run(), 60)) == "closed"
     assert seen == [False]
+
+
+def test_a_camera_with_a_misspelt_field_is_a_bad_camera(server):
+    """Without "fx" the message was not taken for a camera at all: "camera_required" answered a camera."""
+    with connect(f"{server.ws_url}/v1/objects/cookie-box/track", open_timeout=20) as ws:
+        ws.send(json.dumps({k: v for k, v in CAMERA.items() if k != "fx"} | {"fxx": CAMERA["fx"]}))
+        m = recv(ws)
+        assert m["type"] == "error" and m["error"]["code"] == "bad_camera", m
+        assert "did you mean 'fx'" in m["error"]["message"]
+        ws.send(json.dumps({k: v for k, v in CAMERA.items() if k != "fx"}))  # a field missing: named too
+        m = recv(ws)
+        assert m["error"]["code"] == "bad_camera" and "fx" in m["error"]["message"], m

@@ -19,9 +19,33 @@ from quatrack.tracking.camera import PinholeCamera
 
 from .errors import SpecError
 
-__all__ = ["load_camera", "camera_from_dict", "camera_to_dict", "check_plausible", "within_pixels"]
+__all__ = ["load_camera", "camera_from_dict", "camera_to_dict", "check_plausible", "misspelt_field", "within_pixels"]
 
 _KEYS = ("fx", "fy", "cx", "cy")
+CAMERA_FIELDS = ("width", "height", "fx", "fy", "cx", "cy", "dist_coeffs")
+
+
+def misspelt_field(data: dict, known=CAMERA_FIELDS, where: str = "camera") -> str | None:
+    """A message naming a field of ``data`` that looks like a misspelling of a known field it
+    lacks (``dist_coeff`` for ``dist_coeffs``, ``fxx`` for ``fx``; difflib's ratio ≥ 0.75), else
+    None. Why: other fields are ignored (a camera file may carry its own notes), so a misspelt
+    ``dist_coeffs`` dropped the lens's distortion without a word, everywhere a camera is read.
+
+    >>> misspelt_field({"fx": 600, "dist_coeff": [0.1, 0, 0, 0]})
+    "camera: unknown field 'dist_coeff' (did you mean 'dist_coeffs'?)"
+    >>> misspelt_field({"fx": 600, "model": "pinhole"}) is None
+    True
+    """
+    import difflib
+
+    absent = [k for k in known if k not in data]
+    for key in data:
+        if not isinstance(key, str) or key in known:
+            continue
+        near = difflib.get_close_matches(key.lower(), absent, n=1, cutoff=0.75)
+        if near:
+            return f"{where}: unknown field {_shown(key)} (did you mean {near[0]!r}?)"
+    return None
 
 
 def isfinite(x) -> bool:
@@ -51,6 +75,8 @@ def camera_from_dict(data: Any, where: str = "camera") -> PinholeCamera:
     """A camera from the contract's JSON object ``{width, height, fx, fy, cx, cy[, dist_coeffs]}``."""
     if not isinstance(data, dict):
         raise SpecError(f"{where}: a camera must be a JSON object, got {type(data).__name__}")
+    if (msg := misspelt_field(data, where=where)) is not None:
+        raise SpecError(msg)
     missing = [k for k in (*_KEYS, "width", "height") if k not in data]
     if missing:
         raise SpecError(f"{where}: missing field(s) {', '.join(missing)}")
