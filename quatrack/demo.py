@@ -39,13 +39,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--mesh", default=None, help="mesh for the overlay (default: the object's, from the store or the server)")
     parser.add_argument("--out-dir", default=OUT_DIR, metavar="DIR",
                         help=f"folder for the outputs (default ./{OUT_DIR}/, created if missing)")
-    parser.add_argument("--out", default="poses.csv", metavar="POSES.csv", help="tracked poses as `quatrack track` writes them (in --out-dir)")
-    parser.add_argument("--overlay", default="overlay.mp4", metavar="VIDEO", help="overlay video in --out-dir ('none' to skip)")
-    parser.add_argument("--plot", default="plot.png", metavar="PNG", help="position/orientation plot in --out-dir ('none' to skip)")
+    parser.add_argument("--out", default="poses.csv", metavar="POSES.csv", help="tracked poses as `quatrack track` writes them, in --out-dir (default poses.csv)")
+    parser.add_argument("--overlay", default="overlay.mp4", metavar="VIDEO", help="overlay video in --out-dir (default overlay.mp4; 'none' to skip)")
+    parser.add_argument("--plot", default="plot.png", metavar="PNG", help="position/orientation plot in --out-dir (default plot.png; 'none' to skip)")
     parser.add_argument("--fps", type=float, default=None,
                         help="stream in real time at this rate (frames the server cannot keep up with are skipped, "
                              "and written as lost); default: lock-step, every frame tracked")
-    parser.add_argument("--max-frames", type=int, default=None, metavar="N", help="stop after N frames")
+    parser.add_argument("--max-frames", type=int, default=None, metavar="N", help="stop after N frames (default: all)")
     parser.add_argument("--token", default=None, help="bearer token (default $QUATRACK_API_TOKEN)")
     parser.add_argument("--quiet", action="store_true", help="no progress line")
 

@@ -130,8 +130,9 @@ def _options(parser, path=()):
             yield " ".join(path), action
 
 
-# defaults set in modules whose help texts are not part of quatrack/cli.py: told in their own words
-_TOLD_ELSEWHERE = {("demo", "--out"), ("demo", "--overlay"), ("demo", "--plot")}
+# options whose help tells their default in other words than the value (none now: `demo --out`,
+# `--overlay` and `--plot` were excused, and `demo --help` showed none of their defaults)
+_TOLD_ELSEWHERE: set[tuple[str, str]] = set()
 
 
 def test_every_option_with_a_default_has_help_that_tells_it():
