@@ -362,6 +362,9 @@ def _add_train(parser: argparse.ArgumentParser) -> None:
                              "private one); specs and store must be on a filesystem every node shares; "
                              "needs pip install 'quatrack[ray]'")
     parser.add_argument("--no-overwrite", action="store_true", help="refuse to replace an existing model of that name")
+    parser.add_argument("--drop-learned", action="store_true",
+                        help="forget the views a replaced model learned while tracking (default: kept when the mesh "
+                             "and the kind of descriptors are unchanged; dropped, with a warning, otherwise)")
     parser.add_argument("--skip-existing", action="store_true",
                         help="do nothing (exit 0) if the store already holds this object trained from this very spec")
     parser.add_argument("--novel-views", default="20,40", metavar="DEG,...",
@@ -419,7 +422,8 @@ def _run_train(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from quatrack.viewsets.spec import load_spec
-    from quatrack.viewsets.store import learned_views_warning, model_path, resolve_store, save_model, trained_from
+    from quatrack.viewsets.learn import save_trained
+    from quatrack.viewsets.store import model_path, resolve_store, trained_from
     from quatrack.viewsets.train import train_object
 
     t0 = time.perf_counter()
@@ -443,8 +447,6 @@ def _run_train(args: argparse.Namespace) -> int:
     if args.skip_existing and trained_from(store, spec.name, spec.checksum):
         print(f"{spec.name!r} is already trained from {spec_path} in {store}: nothing to do")
         return 0
-    if (learned := learned_views_warning(store, spec.name)) is not None:  # (retraining replaces them)
-        _train_warning(learned)
     bar = tqdm(total=0, desc=f"training {spec.name}", unit="view", file=sys.stderr, disable=None, leave=False)
 
     def set_total(n: int) -> None:
@@ -461,9 +463,14 @@ def _run_train(args: argparse.Namespace) -> int:
     for msg in _registration_doubts(spec, model.mesh.run_time):
         warn(msg)
     try:
-        path = save_model(store, model, overwrite=not args.no_overwrite)
+        # (the views the replaced model learned while tracking are kept where they fit, read and
+        # written under the store's lock; they were replaced, lost after a warning)
+        saved = save_trained(store, model, overwrite=not args.no_overwrite, keep_learned=not args.drop_learned)
     except OSError as exc:  # (a full disk said "[Errno 28] No space left on device", naming nothing)
         raise UserError(f"cannot save {spec.name!r} in {store}: {exc.strerror or exc}") from None
+    path = saved.path
+    if (note := saved.note(spec.name, store)) is not None:  # (dropped unasked: the mesh or the descriptors changed)
+        _train_warning(note)
     s = model.manifest["training_summary"]
     counts = list(s["keypoints_per_viewset"].values())
     print(f"trained {spec.name!r} -> {path}")
@@ -472,6 +479,9 @@ def _run_train(args: argparse.Namespace) -> int:
     print(f"  3-D points kept: {s['points3d_total']}")
     r = model.rfch
     print(f"  RFCH: {r.n_clusters} clusters, {r.histogram.size} bins, d = {r.distance} px, scales {list(r.scales)}")
+    if saved.kept or saved.dropped:
+        print(f"  views learned while tracking: {saved.kept} kept" + (f", {saved.dropped} dropped" if saved.dropped else "")
+              + (" (--drop-learned)" if saved.dropped and args.drop_learned else ""))
     print(f"  time: {time.perf_counter() - t0:.1f} s")
     return 0
 

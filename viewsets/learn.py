@@ -24,7 +24,9 @@ Rules kept here, so that the tracker, the CLI and the service agree:
 (:func:`~quatrack.viewsets.store.save_model`), so concurrent writers (two service sessions of
 one object, a CLI run) never lose each other's views nor leave a half-written model. The store's
 format is unchanged (schema 1): a learned viewset is stored like a trained one, with
-``"learned": true`` in its manifest entry, which older code ignores.
+``"learned": true`` in its manifest entry, which older code ignores. A retraining of the object
+(:func:`save_trained`) keeps its learned views when they still fit the new model — the same mesh,
+descriptors of the same kind — and says how many it dropped otherwise (:func:`carry_learned`).
 
 The model's RFCH histogram (the window search's colour co-occurrence statistics) is trained on
 the registered photos' object pixels; a learned view brings its frame's co-occurrence counts
@@ -52,7 +54,7 @@ from .features import RUN_TIME_STRETCH
 from .mesh import Mesh
 from .render import RenderBuffers, footprint, render_window
 from .rfch import RFCHModel, cooccurrence, descriptor_planes, label_planes
-from .store import ObjectModel, load_model, model_lock, model_path, save_model
+from .store import ObjectModel, load_manifest, load_model, model_lock, model_path, save_model
 from .viewset import Viewset, ViewsetParams, build_viewset
 
 MAX_LEARNED = 24  # learned viewsets per model at most
@@ -221,7 +223,7 @@ def why_none_learned(model: ObjectModel, max_learned: int = MAX_LEARNED) -> str:
     confident frame from a new direction (that one said so, too, when the bound was the cause)."""
     n = sum(vs.learned for vs in model.viewsets)
     if n >= max_learned:
-        return f"the model holds {n} learned views, the most it keeps; retrain it to learn afresh"
+        return f"the model holds {n} learned views, the most it keeps; retrain it with --drop-learned to learn afresh"
     return "none seen from a new direction with a confident pose"
 
 
@@ -275,6 +277,90 @@ def merge_learned(store: str | Path, name: str, viewsets, mesh: Mesh | None = No
         return folder, n_added, sum(vs.learned for vs in merged.viewsets)
 
 
+@dataclasses.dataclass(frozen=True)
+class Retrained:
+    """What :func:`save_trained` did with the views the replaced model had learned while tracking:
+    ``kept`` carried into the new model, ``dropped`` not, and ``why`` (None when none was dropped)."""
+
+    path: Path
+    kept: int = 0
+    dropped: int = 0
+    why: str | None = None
+
+    def note(self, name: str, store: str | Path) -> str | None:
+        """The warning a retraining owes its user when it dropped learned views it was not told
+        to drop (None otherwise): how many, why, and how many were kept."""
+        if not self.dropped or self.why == DROP_ASKED:
+            return None
+        return (f"{name!r} in {store} held {self.kept + self.dropped} view(s) learned while tracking; "
+                f"{self.dropped} dropped: {self.why}" + (f"; {self.kept} kept" if self.kept else "")
+                + " (track --learn learns them again)")
+
+
+#: :attr:`Retrained.why` when the caller asked for the learned views to go (``train --drop-learned``)
+DROP_ASKED = "--drop-learned"
+
+
+def carry_learned(stored: ObjectModel | None, model: ObjectModel) -> tuple[ObjectModel, int, str | None]:
+    """``model`` (a new training of ``stored``'s object) with ``stored``'s learned views, when they
+    fit it: the same mesh (their 3-D points were lifted onto the old one: another mesh, even one
+    scaled or moved, puts them off the object) and descriptors of the same kind (SIFT or RootSIFT:
+    one does not match the other). Other settings — SIFT's threshold and keypoint count, the RFCH
+    clusters, the photos — change which keypoints a view holds and the window search's colours,
+    not what a learned view's points are, so its views stay. Returns ``(model, views carried,
+    why none was)``. All of them are carried, with their labels and boxes (which widen the RFCH
+    window sizes as when they were learned); their colours, folded into the old model's RFCH
+    histogram, are not: the new histogram is the photos' alone."""
+    learned = [vs for vs in (stored.viewsets if stored is not None else []) if vs.learned]
+    if not learned:
+        return model, 0, None
+    if not same_mesh(stored.mesh, model.mesh):
+        return model, 0, "the mesh changed (their 3-D points lie on the old one)"
+    from .viewset import params_from_manifest
+
+    if params_from_manifest(stored.manifest).root_sift != params_from_manifest(model.manifest).root_sift:
+        return model, 0, "the descriptors changed (--root-sift): they would not match"
+    merged = with_learned(model, learned, max_learned=max(MAX_LEARNED, len(learned)), min_angle_deg=0.0)
+    if merged is not model and "learned_updated" in stored.manifest:  # (when views were last learned: not now)
+        merged.manifest["learned_updated"] = stored.manifest["learned_updated"]
+    return merged, len(merged.viewsets) - len(model.viewsets), None
+
+
+def _learned_count(store: Path, name: str) -> int:
+    """How many learned views the stored model's manifest lists (0: none, no model, unreadable)."""
+    try:
+        entries = load_manifest(store, name).get("viewsets")
+    except StoreError:
+        return 0
+    return sum(isinstance(e, dict) and e.get("learned") is True for e in entries) if isinstance(entries, list) else 0
+
+
+def save_trained(store: str | Path, model: ObjectModel, overwrite: bool = True, keep_learned: bool = True) -> Retrained:
+    """Save a new training ``model`` of an object (:func:`~.store.save_model`, atomic) keeping the
+    views the stored model learned while tracking where they fit it (:func:`carry_learned`;
+    ``keep_learned=False``: none). The stored model is read and replaced under the store's lock,
+    which merges of learned views hold from their read to their write (:func:`merge_learned`,
+    :func:`~.store.model_lock`; no lock file is added to the store), so views a ``track --learn`` run stores meanwhile
+    are kept or reported too, never lost between the read and the write. A stored model that
+    cannot be read (broken) is replaced, as before, with nothing to carry."""
+    store = Path(store)
+    with model_lock(store, model.name):
+        n = _learned_count(store, model.name)
+        stored = None
+        if n and keep_learned:
+            try:
+                stored = load_model(store, model.name)
+            except StoreError:
+                stored = None
+        model, kept, why = carry_learned(stored, model) if stored is not None else (model, 0, None)
+        if n and not keep_learned:
+            why = DROP_ASKED
+        elif n and stored is None:
+            why = "the stored model cannot be read"
+        path = save_model(store, model, overwrite=overwrite, locked=True)
+    return Retrained(path, kept, n - kept, why if n - kept else None)
+
+
 def save_learned(store: str | Path, name: str, viewsets, mesh: Mesh | None = None) -> Path:
     """Write the object's stored model with ``viewsets`` learned (:func:`merge_learned`) atomically
     into ``store``; returns its folder."""
@@ -298,4 +384,5 @@ def same_mesh(a: Mesh, b: Mesh) -> bool:
 
 __all__ = ["MAX_LEARNED", "MIN_ANGLE_DEG", "MIN_COS", "view_angles_deg", "is_new_direction",
            "learned_viewset", "with_learned", "why_none_learned", "check_can_store", "merge_learned", "save_learned", "store_lock", "same_mesh",
+           "carry_learned", "save_trained", "Retrained",
            "same_description"]
