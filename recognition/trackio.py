@@ -12,7 +12,9 @@ hold everywhere:
   ``--fps`` if given, else the rate the container reports if it is finite and in (0, 1000], else
   30. Per-frame container timestamps are not used (with B-frames they come out of order). A live
   source (camera index or URL) without ``--fps`` is timed by the clock instead: ``time_s`` =
-  monotonic seconds since its first frame, since a camera drops and delays frames.
+  monotonic seconds from the moment its first frame was grabbed (its read returned, in the
+  capture thread) to the moment this one was, since a camera drops and delays frames — not when
+  the tracker took it (the first frame is read as the source opens, before the tracker is built).
 - **Live sources** are read in a thread of their own (:class:`LiveCapture`), one frame at a time
   as the consumer asks: a read blocked in OpenCV (a stalled stream) no longer holds off Ctrl-C or
   SIGTERM, and a source that gives no frame for ``stall_timeout_s`` (default
@@ -132,12 +134,18 @@ class LiveCapture:
     released under a running read is a crash), so it happens when the read comes back. The
     frames are read as the caller asks, one at a time, as a capture of its own would be (no
     read-ahead: the same frames, and a stop after ``N`` frames reads no more). An exception of the
-    call (a test's camera raising ``KeyboardInterrupt``) is raised in the caller."""
+    call (a test's camera raising ``KeyboardInterrupt``) is raised in the caller.
+
+    :attr:`grabbed_at` is the :attr:`clock` reading taken in the capture thread as the latest
+    ``read`` returned: the frame's own time, whenever the caller gets round to it."""
+
+    clock: Callable[[], float] = staticmethod(time.monotonic)
 
     def __init__(self, target: int | str, timeout_s: float = STALL_TIMEOUT_S) -> None:
         self.target, self.timeout_s = target, timeout_s
         self._calls: queue.SimpleQueue = queue.SimpleQueue()
         self._released = False
+        self.grabbed_at: float | None = None
         threading.Thread(target=self._serve, name=f"capture {target}", daemon=True).start()
         # FFmpeg's own timeout a little after ours: the thread left in a blocked read comes back
         self.cap = self._call(lambda: open_capture(target, timeout_s + 5.0), what="answer")
@@ -179,7 +187,13 @@ class LiveCapture:
         return bool(self._call(self.cap.isOpened))
 
     def read(self):
-        return self._call(self.cap.read)
+        return self._call(self._read)
+
+    def _read(self):
+        """(In the capture thread.) The capture's read, its time noted as it returns."""
+        result = self.cap.read()
+        self.grabbed_at = self.clock()
+        return result
 
     def get(self, prop: int) -> float:
         return self._call(lambda: self.cap.get(prop))
@@ -249,6 +263,9 @@ class FrameSource:
     _frames: Iterator[np.ndarray | Exception] | None = None
     _close: Callable[[], None] = lambda: None
     _clock: Callable[[], float] = time.monotonic
+    # a live source's: the time its latest frame was grabbed (LiveCapture.grabbed_at), which times
+    # its frames in place of the clock read when the consumer takes each
+    _stamp: Callable[[], float | None] | None = None
     count: int = field(default=0, init=False)
     # frames that could not be read (an image sequence's unreadable file), skipped with their
     # index and time: ``(index, time_s, why)``; the frames after them keep their own index and time
@@ -257,7 +274,7 @@ class FrameSource:
     ended: str | None = field(default=None, init=False)
 
     def __iter__(self) -> Iterator[tuple[int, float, np.ndarray]]:
-        t0 = None
+        t0, t = None, 0.0
         try:
             while self.max_frames is None or self.count < self.max_frames:  # (checked before the next read:
                 image = next(self._frames, None)  # a live source's frame N+1 was waited for, a stalled one's 30 s)
@@ -268,7 +285,8 @@ class FrameSource:
                     break
                 i = self.count
                 if self.live:
-                    now = self._clock()
+                    now = self._stamp() if self._stamp is not None else None
+                    now = self._clock() if now is None else now
                     t0 = now if t0 is None else t0
                     t = now - t0 if i == 0 else max(now - t0, t + 1e-6)  # strictly increasing for the filter
                 else:
@@ -455,7 +473,8 @@ def open_frames(video: str | None = None, images: str | Sequence[str] | None = N
         raise SourceError(f"--video {video}: no frame can be decoded")
     rate = frame_rate(fps, cap.get(cv2.CAP_PROP_FPS))
     return FrameSource(f"--video {video}", rate, live=live and fps is None, max_frames=max_frames,
-                       _frames=itertools.chain(head, frames), _close=cap.release)
+                       _frames=itertools.chain(head, frames), _close=cap.release,
+                       _stamp=(lambda: cap.grabbed_at) if live else None)
 
 
 #: consecutive frames of a video file that may fail to decode beyond the count its container lists

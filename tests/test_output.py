@@ -125,9 +125,9 @@ class LoopedCamera:
 def test_a_camera_index_is_live_and_timed_by_the_clock(monkeypatch):
     monkeypatch.setattr(trackio, "open_capture", LoopedCamera)
     LoopedCamera.opened_with.clear()
-    ticks = iter([100.0, 100.04, 100.09, 100.2])
+    ticks = iter([100.0, 100.04, 100.09, 100.2])  # (read as each frame is grabbed: LiveCapture.clock)
+    monkeypatch.setattr(trackio.LiveCapture, "clock", staticmethod(lambda: next(ticks, 0.0)))
     src = trackio.open_frames(video="0", max_frames=4)
-    src._clock = lambda: next(ticks)
     got = list(src)
     assert LoopedCamera.opened_with == [0] and src.live
     assert len(got) == 4 and np.allclose([t for _, t, _ in got], [0.0, 0.04, 0.09, 0.2])
