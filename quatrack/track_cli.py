@@ -183,8 +183,8 @@ def _track_frames(s: _Setup, rows, video, progress) -> tuple[list, bool]:
         rows.write(step)
         steps.append(step)
         progress.update(step.status)
-        if video is not None and image is not None:
-            video.write(draw_overlay(image, s.camera, s.model.mesh, step, edges))
+        if video is not None and image is not None:  # (a live source's by its time: VideoOut's timed)
+            video.write(draw_overlay(image, s.camera, s.model.mesh, step, edges), step.time_s)
 
     done = 0  # the skipped frames written so far
 
@@ -280,7 +280,8 @@ def run(args: argparse.Namespace) -> int:
         tmp_out = stack.enter_context(atomic_path(args.out, "--out"))
         video = None
         if args.overlay:
-            video = VideoOut(stack.enter_context(atomic_path(args.overlay, "--overlay")), s.source.rate)
+            video = VideoOut(stack.enter_context(atomic_path(args.overlay, "--overlay")), s.source.rate,
+                             timed=s.source.live)
         with open(tmp_out, "w", newline="", encoding="utf-8") as f:
             rows = RowWriter(f, args.format, args.mesh_unit, args.obj_id)
             try:

@@ -845,13 +845,23 @@ class VideoOut:
     is padded with one black column at the right and/or one black row at the bottom (its pixels
     and their coordinates unchanged; :attr:`padded` holds ``(w, h) → (W, H)``), and such a rate is
     written as the nearest one MPEG-4 stores (:attr:`written_rate`; the frames' own times are the
-    caller's business). The caller can say so (:meth:`notes`)."""
+    caller's business). The caller can say so (:meth:`notes`).
 
-    def __init__(self, path: str, rate: float, option: str = "--overlay") -> None:
+    ``timed``: the frames are placed by their ``time_s`` (:meth:`write`), as a live source's are
+    due: its frames come at the pace they are read and tracked, not at the rate the camera or
+    stream claims (``CAP_PROP_FPS``, the video's rate), so written one per video frame the
+    overlay played several times too fast. Each frame is shown from its time to the next one's:
+    repeated while the source gave none, left out when two fall within one video frame (the
+    later is shown); the video lasts as long as the run."""
+
+    def __init__(self, path: str, rate: float, option: str = "--overlay", timed: bool = False) -> None:
         self.path, self.rate, self.option, self.writer = path, rate, option, None
         self.size: tuple[int, int] | None = None  # (width, height) written
         self.padded: tuple[tuple[int, int], tuple[int, int]] | None = None
         self.written_rate: float | None = None
+        self.timed = timed
+        self.frames = 0  # video frames written
+        self._held: np.ndarray | None = None  # (timed) the latest frame, written once the next one's time says how often
 
     def _open(self, size: tuple[int, int]):
         import cv2
@@ -869,7 +879,9 @@ class VideoOut:
             log.setLogLevel(previous)
         raise SourceError(f"{self.option}: cannot write a {size[0]}×{size[1]} MP4 video here")
 
-    def write(self, image: np.ndarray) -> None:
+    def write(self, image: np.ndarray, time_s: float | None = None) -> None:
+        """Add ``image``: the next video frame, or (``timed``) the one shown from ``time_s`` (seconds
+        from the first frame's) on."""
         import cv2
 
         h, w = image.shape[:2]
@@ -881,7 +893,16 @@ class VideoOut:
         W, H = self.size
         if (w, h) != (W, H) and W - 1 <= w <= W and H - 1 <= h <= H:  # (an odd size: padded, not rescaled)
             image = cv2.copyMakeBorder(image, 0, H - h, 0, W - w, cv2.BORDER_CONSTANT, value=0)
-        self.writer.write(image)
+        if not self.timed or time_s is None:
+            self.writer.write(image)
+            self.frames += 1
+            return
+        slot = math.floor(max(float(time_s), 0.0) * self.written_rate + 0.5)  # the video frame it starts at
+        if self._held is not None:
+            while self.frames < slot:
+                self.writer.write(self._held)
+                self.frames += 1
+        self._held = image
 
     def notes(self) -> list[str]:
         """What the video is not as asked, one line each (none when it is): its size, its rate."""
@@ -900,6 +921,10 @@ class VideoOut:
         """Finish the video; without a frame written (Ctrl-C before the first) there is no video:
         the file is removed (an empty .mp4 no player opens was left)."""
         if self.writer is not None:
+            if self._held is not None:  # (timed: the last frame, once)
+                self.writer.write(self._held)
+                self.frames += 1
+                self._held = None
             self.writer.release()
             self.writer = None
         elif os.path.isfile(self.path) and os.path.getsize(self.path) == 0:
