@@ -19,7 +19,7 @@ from typing import Callable
 import numpy as np
 
 from quatrack.recognition.runtime import limit_blas_threads, tune_allocator
-from quatrack.recognition.trackio import glob_files, quiet_ffmpeg
+from quatrack.recognition.trackio import quiet_ffmpeg
 
 
 class UserError(Exception):
@@ -602,16 +602,21 @@ def _add_locate(parser: argparse.ArgumentParser) -> None:
 
 
 def _image_arguments(images: list[str]) -> list[str]:
-    """``locate``'s IMAGE arguments with a glob the shell left alone (quoted, or in a script) expanded
-    as ``track --images`` expands its own: its files sorted by name. ``locate 'frames/*.png'`` said
-    "cannot read image frames/*.png: No such file". A file that exists is taken as named (``[1].png``
-    is no pattern then); a pattern matching no file stays, to be reported on its line."""
+    """``locate``'s IMAGE arguments expanded as ``track --images`` expands its own
+    (:func:`~quatrack.recognition.trackio.image_paths`), one argument at a time: a glob the shell
+    left alone (quoted, or in a script) is its files sorted by name (``locate 'frames/*.png'``
+    said "cannot read image frames/*.png: No such file"), a list file (``.txt``, ``.lst``) the
+    images it names (it was read as an image: "cannot be decoded"), a file that exists is taken
+    as named (``[1].png`` is no pattern then). An argument naming no file (a missing one, a glob
+    matching none, a folder) stays, to be reported on its line."""
+    from quatrack.recognition.trackio import SourceError, image_paths
+
     out = []
     for arg in images:
-        if os.path.exists(arg) or not any(c in arg for c in "*?["):
-            out.append(arg)
-        else:
-            out += glob_files(arg) or [arg]
+        try:
+            out += image_paths([arg]) or [arg]
+        except SourceError as exc:  # (a list file that cannot be read: its message names track's --images)
+            raise UserError(str(exc).removeprefix("--images ")) from None
     return out
 
 

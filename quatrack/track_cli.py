@@ -265,11 +265,14 @@ def run(args: argparse.Namespace) -> int:
     import cv2
 
     from quatrack.recognition.overlay import plot_track
-    from quatrack.recognition.trackio import Progress, RowWriter, VideoOut, atomic_path, misordered
+    from quatrack.recognition.trackio import Progress, RowWriter, VideoOut, atomic_path, misordered, misordered_given
 
     s = _setup(args)
     if args.images and (pair := misordered(args.images)) is not None:
         print(f"quatrack track: warning: --images are read in order of name, so {pair[0]} comes before {pair[1]}: "
+              f"number the files with leading zeros (0002 for 2), or give them in order", file=sys.stderr)
+    elif args.images and (pair := misordered_given(args.images)) is not None:  # (a glob the shell expanded, a list)
+        print(f"quatrack track: warning: --images are read in the order given, so {pair[0]} comes before {pair[1]}: "
               f"number the files with leading zeros (0002 for 2), or give them in order", file=sys.stderr)
     if args.mesh_unit is not None and args.format != "bop":  # (ignored in silence: a CSV read as metres was in mm)
         print(f"quatrack track: warning: --mesh-unit is for --format bop only; the {args.format} output is in the "

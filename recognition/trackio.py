@@ -340,13 +340,16 @@ def glob_files(pattern: str) -> list[str]:
 def image_paths(patterns: str | Sequence[str]) -> list[str]:
     """The files of ``--images``: each glob (``~`` expanded) sorted by name, in the order given, or
     a file as the shell gave it (``[1].png`` is no pattern then), or the files a list file names
-    (``.txt``, ``.lst``: :func:`list_file`); each file once, first place kept. :func:`open_frames` reads these; ``track`` checks its outputs against them."""
+    (``.txt``, ``.lst``: :func:`list_file`); each file once, first place kept. :func:`open_frames` reads these; ``track`` checks its outputs against them.
+    A file named that is missing (no pattern, no folder) stays, as a list's missing line does: its
+    frame is a ``lost`` row in its place (it was left out, and the frames after it came one index
+    early). ``locate`` expands its IMAGE arguments with this too, one at a time."""
     paths: list[str] = []
     for pattern in [patterns] if isinstance(patterns, str) else patterns:
         path = os.path.expanduser(pattern)
         if os.path.isfile(path) and path.lower().endswith(LIST_SUFFIXES):
             paths += list_file(path)
-        elif os.path.isfile(path):
+        elif os.path.isfile(path) or not (globlib.has_magic(path) or os.path.isdir(path)):
             paths.append(path)
         else:
             paths += glob_files(path)
@@ -381,6 +384,41 @@ def misordered(patterns: str | Sequence[str]) -> tuple[str, str] | None:
             if _numbered(b) < _numbered(a):
                 return a, b
     return None
+
+
+def _jumbled(files: list[str]) -> tuple[str, str] | None:
+    """The first two of ``files`` in the wrong order by their numbers, when ``files`` are one
+    numbered sequence (at least 3, names alike but for their numbers) in neither ascending nor
+    descending order — as a shell's or ``ls``'s sort by name leaves ``f_1 f_10 f_2`` — else None.
+
+    >>> _jumbled(["f_1.png", "f_10.png", "f_2.png"]), _jumbled(["f_3.png", "f_2.png", "f_1.png"])
+    (('f_10.png', 'f_2.png'), None)
+    """
+    if len(files) < 3 or len({re.sub(r"\d+", "#", f) for f in files}) != 1:
+        return None
+    keys = [_numbered(f) for f in files]
+    pairs = list(zip(keys, keys[1:]))
+    if all(a <= b for a, b in pairs) or all(a >= b for a, b in pairs):
+        return None
+    k = next(k for k, (a, b) in enumerate(pairs) if b < a)
+    return files[k], files[k + 1]
+
+
+def misordered_given(patterns: str | Sequence[str]) -> tuple[str, str] | None:
+    """As :func:`misordered`, for the files of ``--images`` taken in the order given: files named
+    one after another (an unquoted glob, which the shell expanded and sorted by name itself) and
+    each list file's lines (often ``ls``'s output) — jumbled numbered sequences (:func:`_jumbled`),
+    which were tracked without a word while the same glob quoted was warned of."""
+    runs: list[list[str]] = [[]]
+    for pattern in [patterns] if isinstance(patterns, str) else patterns:
+        path = os.path.expanduser(pattern)
+        if os.path.isfile(path) and path.lower().endswith(LIST_SUFFIXES):
+            runs += [list_file(path), []]
+        elif os.path.isfile(path):
+            runs[-1].append(path)
+        else:
+            runs.append([])
+    return next((pair for run in runs if (pair := _jumbled(run)) is not None), None)
 
 
 def open_frames(video: str | None = None, images: str | Sequence[str] | None = None, fps: float | None = None,
@@ -420,7 +458,7 @@ def open_frames(video: str | None = None, images: str | Sequence[str] | None = N
         patterns = [images] if isinstance(images, str) else list(images)
         paths = image_paths(patterns)
         label = " ".join(repr(p) for p in patterns[:2]) + (f" … ({len(patterns)} in all)" if len(patterns) > 2 else "")
-        if not paths:
+        if not any(os.path.isfile(p) for p in paths):  # (named files all missing: as a glob matching none)
             folder = next((p for p in patterns if os.path.isdir(os.path.expanduser(p))), None)
             if folder is not None:  # (was "no file matches" for a folder full of frames)
                 raise SourceError(f"--images {folder}: is a folder; give a glob of its images, "
