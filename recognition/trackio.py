@@ -458,7 +458,9 @@ def open_frames(video: str | None = None, images: str | Sequence[str] | None = N
         patterns = [images] if isinstance(images, str) else list(images)
         paths = image_paths(patterns)
         label = " ".join(repr(p) for p in patterns[:2]) + (f" … ({len(patterns)} in all)" if len(patterns) > 2 else "")
-        if not any(os.path.isfile(p) for p in paths):  # (named files all missing: as a glob matching none)
+        listed = any(os.path.expanduser(p).lower().endswith(LIST_SUFFIXES) and os.path.isfile(os.path.expanduser(p))
+                     for p in patterns)  # (a list's missing files: "no frame can be read", naming the first)
+        if not paths or not (listed or any(os.path.isfile(p) for p in paths)):  # (named files all missing: as a glob matching none)
             folder = next((p for p in patterns if os.path.isdir(os.path.expanduser(p))), None)
             if folder is not None:  # (was "no file matches" for a folder full of frames)
                 raise SourceError(f"--images {folder}: is a folder; give a glob of its images, "

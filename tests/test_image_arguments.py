@@ -74,3 +74,11 @@ def test_locate_reads_a_list_file_as_track_does(tmp_path, capsys):
     assert [line["image"] for line in lines] == [str(tmp_path / "0000.png"), str(tmp_path / "missing.png")]
     assert lines[0]["found"] and "error" in lines[1] and rc == 1
     assert trackio.image_paths([str(listing)]) == [line["image"] for line in lines]
+
+
+def test_a_list_of_missing_files_names_the_first(tmp_path, capsys):
+    listing = tmp_path / "frames.txt"
+    listing.write_text("gone.png\n")
+    assert _track(tmp_path, "--images", str(listing), "--out", str(tmp_path / "poses.csv")) == 2
+    err = capsys.readouterr().err
+    assert "no frame can be read" in err and "gone.png" in err, err
