@@ -39,8 +39,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                           "or a stream URL (rtsp://, http://, ...)")
     src.add_argument("--images", metavar="GLOB", nargs="+",
                      help="an image sequence, e.g. 'frames/*.png' (sorted by name), or several globs or files "
-                          "(an unquoted glob: each expanded and sorted, in the order given); an image that "
-                          "cannot be read is skipped: its row says lost")
+                          "(an unquoted glob: each expanded and sorted, in the order given), or a list file "
+                          "(.txt, .lst: one image a line); an image that cannot be read is skipped: its row says lost")
     parser.add_argument("--object", required=True, metavar="NAME", help="a trained object (see `quatrack models list`)")
     parser.add_argument("--camera", required=True, metavar="CAMERA", help="camera file of the frames (JSON, or OpenCV YAML)")
     parser.add_argument("--out", required=True, metavar="POSES", help="output file, one row per frame (see --format)")
@@ -146,6 +146,8 @@ def _setup(args: argparse.Namespace) -> _Setup:
     _check_outputs(args)
     if args.format == "bop" and args.mesh_unit is None:
         raise UserError("--format bop needs --mesh-unit (mm, cm or m): BOP's t is in millimetres")
+    if args.obj_id < 0:  # (written as given: a BOP file no evaluation reads)
+        raise UserError(f"--obj-id {args.obj_id}: BOP object ids are whole numbers from 0 (the datasets' start at 1)")
     relocate = getattr(args, "relocate_every", None)
     if relocate is not None and not (np.isfinite(relocate) and relocate > 0):
         raise UserError(f"--relocate-every {relocate:g}: give a number of seconds above 0")
@@ -277,6 +279,9 @@ def run(args: argparse.Namespace) -> int:
     if args.mesh_unit is not None and args.format != "bop":  # (ignored in silence: a CSV read as metres was in mm)
         print(f"quatrack track: warning: --mesh-unit is for --format bop only; the {args.format} output is in the "
               f"mesh's own units ({args.mesh_unit}), unconverted", file=sys.stderr)
+    if args.obj_id != 1 and args.format != "bop":  # (ignored in silence, as --mesh-unit was)
+        print(f"quatrack track: warning: --obj-id is for --format bop only; the {args.format} output has no "
+              f"object id", file=sys.stderr)
     progress = Progress("tracking", enabled=False if args.quiet else None)
     with ExitStack() as stack:
         stack.callback(s.source.close)

@@ -82,3 +82,4 @@ def test_a_list_of_missing_files_names_the_first(tmp_path, capsys):
     assert _track(tmp_path, "--images", str(listing), "--out", str(tmp_path / "poses.csv")) == 2
     err = capsys.readouterr().err
     assert "no frame can be read" in err and "gone.png" in err, err
+

@@ -1,0 +1,19 @@
+"""``quatrack track`` options that apply to one output format only."""
+
+from __future__ import annotations
+
+from quatrack.testing.scenes import EXAMPLE
+
+from test_track_cli import _track
+
+
+def test_obj_id_is_checked_and_said_to_be_for_bop_only(tmp_path, capsys):
+    # --obj-id -3 was written into the BOP file as given; --obj-id with csv was ignored in silence
+    video = ["--video", str(EXAMPLE / "box.mp4"), "--max-frames", "1"]
+    out = tmp_path / "poses.csv"
+    assert _track(tmp_path, *video, "--format", "bop", "--mesh-unit", "cm", "--obj-id", "-3", "--out", str(out)) == 2
+    assert capsys.readouterr().err.strip() == ("quatrack track: error: --obj-id -3: BOP object ids are whole numbers "
+                                               "from 0 (the datasets' start at 1)") and not out.exists()
+    assert _track(tmp_path, *video, "--obj-id", "5", "--out", str(out)) == 0
+    assert capsys.readouterr().err.strip() == ("quatrack track: warning: --obj-id is for --format bop only; the csv "
+                                               "output has no object id")
