@@ -374,9 +374,11 @@ def _add_train(parser: argparse.ArgumentParser) -> None:
                         help="apparent-size factors for synthetic views; 'none' to disable (default 0.6,1.4)")
     parser.add_argument("--max-features", type=int, default=1500, metavar="N", help="SIFT keypoints per view (default 1500)")
     parser.add_argument("--root-sift", action="store_true", help="store RootSIFT descriptors instead of SIFT")
-    parser.add_argument("--rfch-clusters", type=int, default=None, metavar="N", help="RFCH cluster centres")
-    parser.add_argument("--rfch-distance", type=int, default=None, metavar="PX", help="RFCH pair distance in pixels")
-    parser.add_argument("--rfch-scales", default=None, metavar="S,...", help="RFCH Gaussian scales in pixels")
+    # (the defaults are RFCHParams'; told here without importing it, as a test checks)
+    parser.add_argument("--rfch-clusters", type=int, default=None, metavar="N", help="RFCH cluster centres (default 32)")
+    parser.add_argument("--rfch-distance", type=int, default=None, metavar="PX",
+                        help="RFCH pair distance in pixels (default 8)")
+    parser.add_argument("--rfch-scales", default=None, metavar="S,...", help="RFCH Gaussian scales in pixels (default 1,2)")
 
 
 def _train_params(args: argparse.Namespace):

@@ -1,4 +1,4 @@
-"""``quatrack track`` options that apply to one output format only."""
+"""``quatrack track`` options that apply to one output format only; ``train``'s help on its RFCH options."""
 
 from __future__ import annotations
 
@@ -17,3 +17,18 @@ def test_obj_id_is_checked_and_said_to_be_for_bop_only(tmp_path, capsys):
     assert _track(tmp_path, *video, "--obj-id", "5", "--out", str(out)) == 0
     assert capsys.readouterr().err.strip() == ("quatrack track: warning: --obj-id is for --format bop only; the csv "
                                                "output has no object id")
+
+
+def test_train_help_tells_the_rfch_defaults():
+    # --rfch-clusters, --rfch-distance and --rfch-scales said nothing of their defaults
+    import argparse
+
+    from quatrack.cli import build_parser
+    from quatrack.viewsets.rfch import RFCHParams
+
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction)).choices["train"]
+    helps = {a.option_strings[-1]: a.help for a in sub._actions if a.option_strings}
+    d = RFCHParams()
+    assert helps["--rfch-clusters"].endswith(f"(default {d.n_clusters})")
+    assert helps["--rfch-distance"].endswith(f"(default {d.distance})")
+    assert helps["--rfch-scales"].endswith(f"(default {','.join(f'{x:g}' for x in d.scales)})")
