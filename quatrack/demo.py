@@ -133,7 +133,8 @@ def _check(args: argparse.Namespace) -> _Plan:
 
 
 def _stream_video(plan: _Plan, args: argparse.Namespace):
-    """Run the session; returns (the stream result, time of every frame read, by index)."""
+    """Run the session; returns (the stream result, time of every frame read, by index, and the
+    frames that could not be decoded: ``FrameSource.skipped``, not sent)."""
     import asyncio
     import contextlib
 
@@ -168,7 +169,7 @@ def _stream_video(plan: _Plan, args: argparse.Namespace):
             progress.close()
         if plan.mesh is None and args.overlay.lower() != "none":
             plan.mesh = _server_edges(plan, args)
-    return res, times
+    return res, times, list(source.skipped)
 
 
 def _explain(exc, args) -> str:
@@ -196,14 +197,33 @@ def _server_edges(plan: _Plan, args):
         return None
 
 
-def _write_outputs(plan: _Plan, args: argparse.Namespace, res, times: dict) -> list:
+#: the reason of a frame that could not be decoded, as ``quatrack track`` writes it (``Tracker.skip``'s)
+UNREADABLE = "the frame cannot be read: "
+
+
+def _steps(res, times: dict, skipped: list) -> list:
+    """One step per frame of the video, in order: the server's answer (or ``lost``, "no answer")
+    for each frame sent, and a ``lost`` row for each frame that could not be decoded, as ``track``
+    writes them (they were left out: the rows and the overlay skipped from frame 2 to 5)."""
+    import dataclasses
+
+    from quatrack.recognition.trackio import step_from_message
+
+    steps = {i: step_from_message(res.poses.get(i), i, t) for i, t in times.items()}
+    for i, t, why in skipped:
+        steps[i] = dataclasses.replace(step_from_message(None, i, t), reason=UNREADABLE + why)
+    return [steps[i] for i in sorted(steps)]
+
+
+def _write_outputs(plan: _Plan, args: argparse.Namespace, res, times: dict, skipped: list = ()) -> list:
     """The CSV, the overlay video and the plot, each atomically; returns the steps."""
     import cv2
+    import numpy as np
 
     from quatrack.recognition.overlay import draw_overlay, plot_track
-    from quatrack.recognition.trackio import Progress, RowWriter, VideoOut, atomic_path, open_frames, step_from_message
+    from quatrack.recognition.trackio import Progress, RowWriter, VideoOut, atomic_path, open_frames
 
-    steps = [step_from_message(res.poses.get(i), i, times[i]) for i in sorted(times)]
+    steps = _steps(res, times, list(skipped))
     os.makedirs(args.out_dir, exist_ok=True)
     with atomic_path(plan.outputs["csv"], "--out") as tmp, open(tmp, "w", newline="", encoding="utf-8") as f:
         rows = RowWriter(f)
@@ -224,10 +244,28 @@ def _write_outputs(plan: _Plan, args: argparse.Namespace, res, times: dict) -> l
         progress = Progress("demo: overlay", enabled=False if args.quiet else None)
         with atomic_path(plan.outputs["overlay"], "--overlay") as tmp:
             video = VideoOut(tmp, source.rate)
-            try:
-                for (i, _, image), step in zip(source, steps):
+            # one overlay frame per row, as track writes it: a frame that cannot be decoded shows the
+            # previous one again, marked lost (before any: a black frame of the camera's size)
+            c = plan.camera
+            last = np.zeros((c.height, c.width, 3), np.uint8) if c.width and c.height else None
+            k = 0
+
+            def draw(image, step) -> None:
+                if image is not None:
                     video.write(draw_overlay(image, plan.camera, mesh, step, edges))
-                    progress.update(step.status)
+                progress.update(step.status)
+
+            try:
+                for i, _, image in source:
+                    while k < len(steps) and steps[k].frame < i:
+                        draw(last, steps[k])
+                        k += 1
+                    if k < len(steps) and steps[k].frame == i:
+                        last = image
+                        draw(image, steps[k])
+                        k += 1
+                for step in steps[k:]:
+                    draw(last, step)
             finally:
                 video.close()
                 progress.close()
@@ -237,15 +275,20 @@ def _write_outputs(plan: _Plan, args: argparse.Namespace, res, times: dict) -> l
 def run(args: argparse.Namespace) -> int:
     """Stream a video through the WebSocket; write the poses (CSV), an overlay video and a plot."""
     plan = _check(args)
-    res, times = _stream_video(plan, args)
+    res, times, skipped = _stream_video(plan, args)
     if res.errors:  # (a camera of another size than the video's frames: every frame refused, exit 0, no word why)
         first = res.errors[0].get("error") or {}
         why = f"{first.get('message') or first.get('code') or res.errors[0]}"
         if not res.poses:
             raise ValueError(f"the server refused every frame of --video {plan.video}: {why}")
         print(f"demo: the server refused {len(res.errors)} frame(s), written as lost; the first: {why}", file=sys.stderr)
-    steps = _write_outputs(plan, args, res, times)
-    counts = {k: sum(s.status == k for s in steps if s.reason != "no answer") for k in ("tracking", "init", "lost")}
+    steps = _write_outputs(plan, args, res, times, skipped)
+    for k, _, why in skipped[:5]:  # (as track says it)
+        print(f"demo: frame {k} cannot be read, written as lost: {why}", file=sys.stderr)
+    if len(skipped) > 5:
+        print(f"demo: ... {len(skipped)} frames in all cannot be read", file=sys.stderr)
+    answered = [s for s in steps if s.reason != "no answer" and not (s.reason or "").startswith(UNREADABLE)]
+    counts = {k: sum(s.status == k for s in answered) for k in ("tracking", "init", "lost")}
     written = ", ".join(p for p in plan.outputs.values() if p)
     print(f"demo: {res.sent} frames sent, {len(res.poses)} tracked answers ({counts['tracking']} tracking, "
           f"{counts['init']} init, {counts['lost']} lost), {res.skipped} skipped, {len(res.errors)} errors, "
