@@ -347,10 +347,11 @@ def ransac_pnp(
     uv = np.asarray(uv, np.float64).reshape(-1, 2)
     if len(X) < max(6, min_inliers):
         return None
-    # RANSAC draws its samples from OpenCV's thread-local RNG, whose state is whatever ran before
-    # in that thread: seeded here, the same matches give the same pose (an answer, a test or a
-    # benchmark figure no longer depends on what the process did earlier)
-    cv2.setRNGSeed(0)
+    # OpenCV's RANSAC (solvePnPRansac without USAC flags) draws its samples from an RNG of its own,
+    # made afresh with a fixed seed at every call (``RNG rng((uint64)-1)`` in ptsetreg.cpp), not from
+    # the thread's RNG: the same matches give the same pose whatever ran before. So the thread's
+    # RNG is left alone: a cv2.setRNGSeed(0) here reset the caller's (for its own kmeans, randu)
+    # at every call and changed no pose (tests/test_pose_rng.py)
     try:
         if guess is None:
             ok, rvec, tvec, inl = cv2.solvePnPRansac(
