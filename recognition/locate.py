@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 
 import cv2
 import numpy as np
@@ -87,9 +87,30 @@ class LocateParams:
             raise ValueError(f"max_pixels must be a whole number of pixels, at least 1, got {v!r}"[:120])
 
 
+def value_key(result) -> tuple:
+    """What an answer (:class:`Located`, :class:`~quatrack.recognition.tracker.params.TrackStep`)
+    is compared by: its fields that compare, in order, arrays (and lists) as their shape and
+    numbers. Why: the dataclasses' own ``==`` compared the arrays in a tuple, and two answers
+    with a pose raised "the truth value of an array ... is ambiguous" (``step in steps`` too)."""
+    key = []
+    for f in fields(result):
+        if f.compare:
+            v = getattr(result, f.name)
+            if isinstance(v, (np.ndarray, list)):
+                a = np.asarray(v)
+                v = (a.shape, tuple(a.ravel().tolist()))
+            key.append(v)
+    return tuple(key)
+
+
 @dataclass
 class Located:
-    """The answer for one image (pixels of the original image; pose in mesh units)."""
+    """The answer for one image (pixels of the original image; pose in mesh units).
+
+    Answers compare by value (``==``: every field, arrays number for number, exactly; not
+    ``time_ms``, which measures the machine, not the answer: the same image gives equal answers).
+    Not hashable: an answer may be changed after it is made (:func:`locate_all` marks one not
+    found)."""
 
     found: bool
     # (x, y, w, h): the RFCH window the pose was found in, or the one searched when nothing was
@@ -104,11 +125,18 @@ class Located:
     t: np.ndarray | None = None
     q_wxyz: np.ndarray | None = None
     covariance: np.ndarray | None = None
-    time_ms: dict = field(default_factory=dict)
+    time_ms: dict = field(default_factory=dict, compare=False)
     reason: str | None = None  # why not found
     searched: str = "window"  # "window" or "image": where the pose came from
     verification: dict | None = None  # the evidence for the last pose checked (issue 13)
     object: str | None = None  # the model's name
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, Located):
+            return NotImplemented
+        return self is other or value_key(self) == value_key(other)
+
+    __hash__ = None  # (mutable: see the class's doc)
 
     @property
     def pose(self) -> Pose | None:

@@ -18,7 +18,7 @@ from quatrack.tracking.adjust import AdjustOptions
 from quatrack.tracking.pose import Pose
 
 from ..klt import KLTParams
-from ..locate import LocateParams
+from ..locate import LocateParams, value_key
 from ..pose import PoseParams
 from ..visibility import VisibilityParams
 
@@ -434,7 +434,11 @@ class TrackStep:
     as :attr:`pose`), ``v`` mesh units/s and ``omega`` rad/s in the camera frame; ``covariance``
     6×6 over ``[p, δθ]`` (``δθ`` the rotation error in the camera frame: ``q_true = exp(δθ/2) ⊗
     q``), symmetric positive definite (to rounding). Pose fields are None when ``status`` is ``lost``.
-    Picklable and copyable; ``timings_ms`` is the step's time per stage (milliseconds)."""
+    Picklable and copyable; ``timings_ms`` is the step's time per stage (milliseconds).
+
+    Steps compare by value (``==``: every field, arrays number for number, exactly; not
+    ``timings_ms``, which measures the machine: one video tracked twice gives equal steps), as
+    :class:`~quatrack.recognition.locate.Located` does; not hashable (a step's fields may be set)."""
 
     frame: int
     time_s: float
@@ -445,8 +449,15 @@ class TrackStep:
     omega: np.ndarray | None = None
     covariance: np.ndarray | None = None
     inliers: int = 0
-    timings_ms: dict = field(default_factory=dict)
+    timings_ms: dict = field(default_factory=dict, compare=False)
     reason: str | None = None  # why lost (or how initialised)
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, TrackStep):
+            return NotImplemented
+        return self is other or value_key(self) == value_key(other)
+
+    __hash__ = None  # (mutable, as a dataclass that compares by value)
 
     @property
     def has_pose(self) -> bool:

@@ -1,0 +1,66 @@
+"""Equality of the answers holding arrays: TrackStep and Located compare by value (arrays number
+for number, the stage times left out) and are not hashable; Pose (by value, hashable) for
+comparison."""
+
+import copy
+import pickle
+
+import numpy as np
+import pytest
+
+from quatrack.recognition.locate import Located
+from quatrack.recognition.tracker.params import TrackStep
+from quatrack.tracking.pose import Pose
+
+
+def _step(**changes) -> TrackStep:
+    rng = np.random.default_rng(5)
+    a = rng.normal(size=(6, 6))
+    fields = dict(frame=3, time_s=0.1, status="tracking", t=np.array([0.1, -0.2, 5.0]),
+                  q_wxyz=np.array([0.9, 0.1, 0.3, np.sqrt(1 - 0.81 - 0.01 - 0.09)]), v=np.zeros(3),
+                  omega=np.array([0.0, 0.01, 0.0]), covariance=a @ a.T, inliers=40, timings_ms={"total": 12.5},
+                  reason=None)
+    fields.update(changes)
+    return TrackStep(**fields)
+
+
+def _located(**changes) -> Located:
+    fields = dict(found=True, bbox=(10.0, 20.0, 100.0, 80.0), chi2=3.5, viewset="front", matches=50, inliers=30,
+                  reprojection_rms_px=0.8, t=np.array([0.0, 0.1, 4.0]), q_wxyz=np.array([1.0, 0.0, 0.0, 0.0]),
+                  covariance=np.eye(6) * 1e-4, time_ms={"total": 40.0}, verification={"confidence": 0.97},
+                  object="box")
+    fields.update(changes)
+    return Located(**fields)
+
+
+@pytest.mark.parametrize("make, times", [(_step, "timings_ms"), (_located, "time_ms")])
+def test_answers_with_arrays_compare_by_value_not_raising(make, times):
+    # was ValueError "The truth value of an array with more than one element is ambiguous"
+    a, b = make(), make()
+    assert a == b and not (a != b) and a == a
+    assert b in [make(covariance=np.eye(6)), a]  # (list membership asks ==)
+    assert a == make(**{times: {"total": 99.0, "other": 1.0}})  # the machine's times are not the answer
+    assert a == make(t=list(a.t)) and a == make(t=a.t.copy())
+    assert a != make(t=a.t.astype(np.float32).astype(float))  # exact: not within rounding
+    assert a == copy.deepcopy(a) and a == pickle.loads(pickle.dumps(a))
+    assert a != make(t=a.t + [0.0, 0.0, 1e-12])
+    assert a != make(covariance=a.covariance[:5, :5])  # another shape, the same leading numbers
+    assert a != make(covariance=None) and a != make(inliers=a.inliers + 1)
+    assert a != "a string" and a != Pose(np.array(a.q_wxyz), a.t)
+
+
+def test_lost_steps_and_not_found_answers_compare_by_their_fields():
+    assert TrackStep(1, 0.0, "lost", reason="x") == TrackStep(1, 0.0, "lost", reason="x", timings_ms={"total": 2.0})
+    assert TrackStep(1, 0.0, "lost", reason="x") != TrackStep(1, 0.0, "lost", reason="y")
+    assert Located(False, reason="no match") == Located(False, reason="no match", time_ms={"total": 3.0})
+    assert Located(False, reason="no match") != _located()
+    assert _step() != _located()
+
+
+@pytest.mark.parametrize("answer", [_step(), _located(), TrackStep(1, 0.0, "lost")])
+def test_answers_are_not_hashable_they_change_after_they_are_made(answer):
+    # value equality on a mutable object: a hash would change under the dict holding it
+    # (locate_all marks an answer not found; Pose, frozen with read-only arrays, is hashable)
+    with pytest.raises(TypeError, match="unhashable"):
+        hash(answer)
+    assert len({_step().pose, _step().pose}) == 1
