@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 import struct
+import warnings
 from dataclasses import dataclass, replace
 
 import cv2
@@ -21,13 +22,25 @@ from quatrack.viewsets.imagefile import FORMAT_NAMES, sniff, truncated
 MIN_SIDE = 32
 DEFAULT_MAX_PIXELS = 4_000_000  # beyond this an image is downscaled (e.g. 8000×6000 → 2309×1732)
 MAX_DECODE_PIXELS = 100_000_000  # refuse to even decode images larger than this
+# a uint16 image of at least LOW_DEPTH_MIN_PIXELS pixels whose values all lie below LOW_DEPTH_MAX
+# (the range of 12-bit data) is, read as full-range 16-bit (its top 8 bits, ≤ 15 of 255), all but
+# black: most likely 10- or 12-bit camera data, which to_bgr8 warns of once (BitDepthWarning)
+LOW_DEPTH_MAX = 4096
+LOW_DEPTH_MIN_PIXELS = 64 * 64
 
-__all__ = ["DEFAULT_MAX_PIXELS", "MAX_DECODE_PIXELS", "MIN_SIDE", "ImageError", "PreparedImage", "decode_image", "header_size",
+__all__ = ["DEFAULT_MAX_PIXELS", "MAX_DECODE_PIXELS", "MIN_SIDE", "BitDepthWarning", "ImageError", "PreparedImage", "decode_image", "header_size",
            "prepare_image", "read_image", "sniff", "to_bgr8", "truncated"]
 
 
 class ImageError(ValueError):
     """The image cannot be used: unreadable, empty, too small, or not matching its camera."""
+
+
+class BitDepthWarning(UserWarning):
+    """A 16-bit image that looks like 10- or 12-bit data read as full-range 16-bit (almost black)."""
+
+
+_depth_warned = False  # (BitDepthWarning is given once a process: a stream would repeat it every frame)
 
 
 @dataclass(frozen=True)
@@ -152,10 +165,53 @@ def read_image(path: str) -> np.ndarray:
         raise ImageError(f"{path}: {exc}") from None
 
 
-def to_bgr8(image: np.ndarray) -> np.ndarray:
+def _check_bits(bits) -> None:
+    if bits is not None and (isinstance(bits, (bool, np.bool_)) or not isinstance(bits, (int, np.integer))
+                             or not 8 <= bits <= 16):
+        raise ValueError(f"bits must be a whole number from 8 to 16 (the significant bits of uint16 pixels, "
+                         f"e.g. 12 for a 12-bit camera), got {bits!r}"[:160])
+
+
+def _uint16_to_8(img: np.ndarray, bits: int | None) -> np.ndarray:
+    """``uint16`` pixels of ``bits`` significant bits (None: full-range 16-bit) as 8-bit: their top
+    8 bits. Without ``bits``, an image that looks like 10- or 12-bit data (:data:`LOW_DEPTH_MAX`)
+    is warned of once (:class:`BitDepthWarning`): read as 16-bit it came out almost black, in
+    silence, and nothing was found in it. With ``bits``, a value beyond them is refused: the data
+    is not what ``bits`` says (12-bit data already scaled to 16 bits: leave ``bits`` out)."""
+    global _depth_warned
+    if bits is None:
+        if not _depth_warned and img.shape[0] * img.shape[1] >= LOW_DEPTH_MIN_PIXELS:
+            top = int(img.max())
+            if 0 < top < LOW_DEPTH_MAX:
+                _depth_warned = True
+                depth, shift = (10, 6) if top < 1024 else (12, 4)
+                warnings.warn(
+                    f"a 16-bit image whose values all lie below {LOW_DEPTH_MAX} (at most {top}) is read as full-range "
+                    f"16-bit (its top 8 bits) and comes out almost black: {depth}-bit camera data? State the depth "
+                    f"(quatrack.recognition.images.to_bgr8(image, bits={depth}), then pass the 8-bit image on) or "
+                    f"scale it to 16 bits first (image << {shift}). Warned once.", BitDepthWarning, stacklevel=3)
+        return (img >> 8).astype(np.uint8)
+    top = int(img.max()) if img.size else 0
+    if top >= 1 << bits:
+        raise ImageError(f"a pixel value of {top} does not fit bits={bits} (at most {(1 << bits) - 1}): the data "
+                         f"has more significant bits (already scaled to 16 bits? then leave bits out)")
+    return (img >> (bits - 8)).astype(np.uint8)
+
+
+def to_bgr8(image: np.ndarray, *, bits: int | None = None) -> np.ndarray:
     """8-bit, 3-channel BGR from grey, BGRA, 16-bit or float images: ``uint16`` as full-range
     16-bit (its top 8 bits), floats as 0..1 (0..255 when a value exceeds 1). Colour is taken as
-    OpenCV's BGR order: an RGB image cannot be told apart and passes as it is."""
+    OpenCV's BGR order: an RGB image cannot be told apart and passes as it is.
+
+    ``bits`` (8–16): the significant bits of ``uint16`` pixels (10- or 12-bit camera data stored
+    as 16-bit: ``bits=12`` maps 0..4095 to 0..255); ignored for other pixel types. Without it a
+    ``uint16`` image whose values all lie below 4096 is warned of once (:class:`BitDepthWarning`).
+
+    >>> twelve = np.full((64, 64), 4095, np.uint16)
+    >>> int(to_bgr8(twelve, bits=12).max()), int(to_bgr8(twelve << 4).max())
+    (255, 255)
+    """
+    _check_bits(bits)
     if image is None or isinstance(image, (str, bytes, os.PathLike)):
         raise ImageError(f"expected an image array (numpy), got {type(image).__name__}"
                          + ("" if image is None else ": read the file first (cv2.imread)"))
@@ -167,7 +223,7 @@ def to_bgr8(image: np.ndarray) -> np.ndarray:
                          f"(H, W, 3|4)" + (" (channels first? image.transpose(1, 2, 0))"
                                            if img.ndim == 3 and img.shape[0] in (1, 3, 4) else ""))
     if img.dtype == np.uint16:
-        img = (img >> 8).astype(np.uint8)
+        img = _uint16_to_8(img, bits)
     elif img.dtype in (np.float32, np.float64):
         finite = np.nan_to_num(img, nan=0.0, posinf=1.0, neginf=0.0)
         img = np.clip(finite * 255.0 if finite.max() <= 1.0 else finite, 0, 255).astype(np.uint8)
@@ -181,12 +237,14 @@ def to_bgr8(image: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(img)
 
 
-def prepare_image(image: np.ndarray, camera: PinholeCamera, max_pixels: int = DEFAULT_MAX_PIXELS) -> PreparedImage:
-    """Check ``image`` against ``camera`` and bring it to 8-bit BGR within ``max_pixels``.
+def prepare_image(image: np.ndarray, camera: PinholeCamera, max_pixels: int = DEFAULT_MAX_PIXELS, *,
+                  bits: int | None = None) -> PreparedImage:
+    """Check ``image`` against ``camera`` and bring it to 8-bit BGR within ``max_pixels``
+    (``bits``: the significant bits of ``uint16`` pixels, as :func:`to_bgr8` takes them).
 
     The camera must describe this image: if it states a size, the image must have it.
     """
-    img = to_bgr8(image)
+    img = to_bgr8(image, bits=bits)
     h, w = img.shape[:2]
     if min(h, w) < MIN_SIDE:
         raise ImageError(f"the image is too small ({w}×{h} px; at least {MIN_SIDE} px a side)")
