@@ -166,17 +166,18 @@ def test_a_glb_scene_of_two_parts_is_one_object_placed_by_its_transforms_and_say
     import trimesh
 
     T = np.eye(4)
-    T[:3, 3] = [10.0, 0, 0]
+    T[:3, 3] = [13.0, 0, 0]
     scene = trimesh.Scene()
     scene.add_geometry(trimesh.Trimesh(CORNERS, _triangles(QUADS), process=False), node_name="body")
     scene.add_geometry(trimesh.Trimesh(CORNERS - [10.0, 0, 0], _triangles(QUADS), process=False), node_name="lid",
-                       transform=T)  # (its vertices at -10, its node moves them back by +10: a second box on the first)
+                       transform=T)  # (its vertices at -10, its node moves them by +13: a second box beside the first;
+    # one on the first would be the same triangles twice, dropped: tests/test_mesh_repeated_faces.py)
     scene.export(str(tmp_path / "parts.glb"))
     said = []
     mesh = load_mesh(tmp_path / "parts.glb", warn=said.append)
     assert len(mesh.faces) == 24
     np.testing.assert_allclose(mesh.vertices.min(axis=0), [0, 0, 0], atol=1e-6)
-    np.testing.assert_allclose(mesh.vertices.max(axis=0), [2, 3, 1], atol=1e-6)
+    np.testing.assert_allclose(mesh.vertices.max(axis=0), [5, 3, 1], atol=1e-6)
     assert len(said) == 1 and "its 2 meshes" in said[0] and "one object" in said[0] and "scene transforms" in said[0]
 
 

@@ -238,11 +238,52 @@ def _trimesh():
 MESH_FORMATS = "PLY, OBJ, STL, OFF, GLB or glTF"
 
 
+def repeated_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Mask (m,) of the faces that repeat an earlier face: the same three corners, in any order
+    (reversed too), vertices joined by position (an STL file stores each triangle's corners apart),
+    as in :attr:`Mesh.closed_outward`. All False for arrays that are no valid mesh (left to
+    :func:`make_mesh` to refuse).
+
+    Why they are dropped on load: an edge of a repeated triangle has three or four faces, so
+    :attr:`Mesh.edge_faces` pairs a face with its own copy — the crease it shares with its
+    neighbour is lost to the edge evidence (a copy wound the same way: no crease, no silhouette)
+    or the triangle's diagonal across a flat side becomes an edge the image is asked to show (one
+    wound the other way: a "silhouette" at every pose); the tracker's sharp edges and the
+    wireframe gain the diagonal; and the surface is no longer closed (no back-face culling).
+
+    >>> tri = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0.0]])
+    >>> repeated_faces(tri, np.array([[0, 1, 2], [2, 1, 0], [1, 2, 0]])).tolist()
+    [False, True, True]
+    """
+    V, F = np.asarray(vertices), np.asarray(faces)
+    out = np.zeros(len(F) if F.ndim else 0, bool)
+    if (V.ndim != 2 or V.shape[1:] != (3,) or F.ndim != 2 or F.shape[1:] != (3,) or not len(F)
+            or not np.issubdtype(F.dtype, np.integer) or F.min() < 0 or F.max() >= len(V)):
+        return out
+    # (on sorted keys, not np.unique(axis=0): 0.35 s → 0.07 s for a 330 000-face mesh)
+    order = np.lexsort(V.T[::-1])
+    new = np.r_[True, np.any(V[order][1:] != V[order][:-1], axis=1)]
+    same = np.empty(len(V), np.int64)
+    same[order] = np.cumsum(new) - 1  # the vertex's position's number
+    corners = np.sort(same[F], axis=1)
+    n = int(same.max()) + 1
+    if n < 2**21:  # one int64 per triangle
+        _, first = np.unique((corners[:, 0] * n + corners[:, 1]) * n + corners[:, 2], return_index=True)
+    else:
+        _, first = np.unique(corners, axis=0, return_index=True)
+    out[:] = True
+    out[first] = False
+    return out
+
+
 def load_mesh(path: str | Path, warn=None) -> Mesh:
     """Load a PLY or OBJ mesh (polygons are triangulated by trimesh; also STL, OFF, GLB/glTF);
     faces are required. ``warn`` (optional) is told what of the file is not used or is combined:
     its texture or colours (training takes the object's look from the photos alone), and the
-    meshes of a scene merged into one object (:func:`mesh_notes`)."""
+    meshes of a scene merged into one object (:func:`mesh_notes`).
+
+    Faces that repeat another (:func:`repeated_faces`) and faces of zero area are dropped, with one
+    warning that counts them (to ``warn``; without it, a :class:`UserWarning`)."""
     trimesh = _trimesh()
 
     path = Path(path)
@@ -268,7 +309,16 @@ def load_mesh(path: str | Path, warn=None) -> Mesh:
         raise SpecError(f"{path}: the mesh has no faces (a point cloud cannot be rendered)")
     for note in notes:  # (told only of a mesh that is used: a refused point cloud's colours were warned of first)
         warn(note)
-    mesh = make_mesh(np.asarray(vertices), outward_faces(np.asarray(vertices), np.asarray(faces)), str(path))
+    vertices, faces = np.asarray(vertices), np.asarray(faces)
+    repeated = repeated_faces(vertices, faces)
+    if repeated.any():  # (before winding: a copy wound the other way makes the surface one-sided)
+        faces = faces[~repeated]
+    mesh = make_mesh(vertices, outward_faces(vertices, faces), str(path))
+    r, z = int(repeated.sum()), len(faces) - len(mesh.faces)
+    dropped = ([f"{r} repeated face{'s' if r != 1 else ''} (a triangle given again, in any corner order)"] if r else []) \
+        + ([f"{z} face{'s' if z != 1 else ''} of zero area"] if z else [])
+    if dropped:
+        _tell(warn, f"{path}: dropped {' and '.join(dropped)}")
     # vertices no face uses (an exporter's leftovers, a CAD file's origin point) are dropped: far
     # off, one moved the bounding box's centre, about which the synthetic views turn the object,
     # out of the object (each kept no keypoint) and its extent, the mesh's length scale
@@ -276,6 +326,16 @@ def load_mesh(path: str | Path, warn=None) -> Mesh:
     if len(used) == len(mesh.vertices):
         return mesh
     return Mesh(mesh.vertices[used], faces.reshape(mesh.faces.shape).astype(np.int32))
+
+
+def _tell(warn, message: str) -> None:
+    """``message`` to ``warn`` when given, else as a :class:`UserWarning` (a library caller's)."""
+    if warn is not None:
+        warn(message)
+    else:
+        import warnings
+
+        warnings.warn(message, UserWarning, stacklevel=3)
 
 
 def mesh_notes(loaded, path) -> list[str]:
