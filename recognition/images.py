@@ -165,6 +165,11 @@ def read_image(path: str) -> np.ndarray:
         raise ImageError(f"{path}: {exc}") from None
 
 
+def too_small(w: int, h: int) -> str:
+    """The message refusing a ``w``×``h`` image below :data:`MIN_SIDE` (an empty one too)."""
+    return f"the image is too small ({w}×{h} px; at least {MIN_SIDE} px a side)"
+
+
 def _check_bits(bits) -> None:
     if bits is not None and (isinstance(bits, (bool, np.bool_)) or not isinstance(bits, (int, np.integer))
                              or not 8 <= bits <= 16):
@@ -222,6 +227,8 @@ def to_bgr8(image: np.ndarray, *, bits: int | None = None) -> np.ndarray:
         raise ImageError(f"unsupported image shape {img.shape}: expected grey (H, W) or (H, W, 1), BGR or BGRA "
                          f"(H, W, 3|4)" + (" (channels first? image.transpose(1, 2, 0))"
                                            if img.ndim == 3 and img.shape[0] in (1, 3, 4) else ""))
+    if img.size == 0:  # (OpenCV's "!_src.empty()" assertion, or numpy's "zero-size array", before)
+        raise ImageError(too_small(img.shape[1], img.shape[0]))
     if img.dtype == np.uint16:
         img = _uint16_to_8(img, bits)
     elif img.dtype in (np.float32, np.float64):
@@ -247,7 +254,7 @@ def prepare_image(image: np.ndarray, camera: PinholeCamera, max_pixels: int = DE
     img = to_bgr8(image, bits=bits)
     h, w = img.shape[:2]
     if min(h, w) < MIN_SIDE:
-        raise ImageError(f"the image is too small ({w}×{h} px; at least {MIN_SIDE} px a side)")
+        raise ImageError(too_small(w, h))
     if w * h > MAX_DECODE_PIXELS:
         raise ImageError(f"the image is too large ({w}×{h} px; at most {MAX_DECODE_PIXELS} pixels)")
     if camera.width is not None and camera.height is not None and (camera.width, camera.height) != (w, h):
