@@ -64,3 +64,18 @@ def test_answers_are_not_hashable_they_change_after_they_are_made(answer):
     with pytest.raises(TypeError, match="unhashable"):
         hash(answer)
     assert len({_step().pose, _step().pose}) == 1
+
+
+def test_meshes_compare_by_value_and_hash_alike_when_equal():
+    # (the frozen dataclass's == raised "the truth value of an array ... is ambiguous", hash()
+    # "unhashable type: 'numpy.ndarray'")
+    from quatrack.examples import example_dir
+    from quatrack.viewsets.mesh import load_mesh, make_mesh
+
+    box = load_mesh(example_dir() / "box.ply")
+    same = make_mesh(box.vertices.copy(), box.faces.astype(np.int64))
+    assert box == same and hash(box) == hash(same) and len({box, same}) == 1 and box == box
+    assert box != make_mesh(box.vertices + [0.0, 0.0, 1e-9], box.faces)
+    assert box != make_mesh(box.vertices, box.faces[::-1]) and box != make_mesh(box.vertices, box.faces[:11])
+    assert box != "box" and box != None  # noqa: E711
+    assert {box: "model"}[same] == "model"

@@ -11,12 +11,35 @@ import numpy as np
 from .errors import SpecError
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Mesh:
-    """Vertices (n, 3) float64 in mesh units and triangles (m, 3) int32 (indices into vertices)."""
+    """Vertices (n, 3) float64 in mesh units and triangles (m, 3) int32 (indices into vertices).
+
+    Meshes compare by value (``==``: the same vertices and faces, number for number, in order)
+    and hash alike when equal (by their arrays' shapes: a mesh's arrays are not changed after it
+    is made). (The dataclass's own ``==`` raised "the truth value of an array ... is ambiguous",
+    and ``hash`` "unhashable type: 'numpy.ndarray'".)
+
+    >>> tri = make_mesh(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0.0]]), np.array([[0, 1, 2]]))
+    >>> tri == make_mesh(tri.vertices.copy(), tri.faces.copy()), tri == make_mesh(tri.vertices, tri.faces[:, ::-1])
+    (True, False)
+    >>> len({tri, make_mesh(tri.vertices.copy(), tri.faces.copy())})
+    1
+    """
 
     vertices: np.ndarray
     faces: np.ndarray
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, Mesh):
+            return NotImplemented
+        return self is other or (np.shape(self.vertices) == np.shape(other.vertices)
+                                  and np.shape(self.faces) == np.shape(other.faces)
+                                  and np.array_equal(self.faces, other.faces)
+                                  and np.array_equal(self.vertices, other.vertices))
+
+    def __hash__(self) -> int:
+        return hash((np.shape(self.vertices), np.shape(self.faces)))
 
     @property
     def triangles(self) -> np.ndarray:
