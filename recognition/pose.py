@@ -313,6 +313,18 @@ def _mirror_candidates(camera: PinholeCamera, X: np.ndarray, uv: np.ndarray):
 RANSAC_SAMPLE = 4  # matches per minimal sample of :func:`ransac_pnp` without a guess (AP3P)
 
 
+def _matched_points(X, uv) -> tuple[np.ndarray, np.ndarray]:
+    """``X`` (n, 3) model points and ``uv`` (n, 2) pixels as float64 arrays (OpenCV's (n, 1, k)
+    too). ValueError when they are not one pixel per point: a ``uv`` one row short, or points
+    without their z, were silently "no consensus" (OpenCV's error, caught), or reshaped into other
+    points."""
+    X, uv = np.asarray(X, np.float64), np.asarray(uv, np.float64)
+    if X.shape[-1:] != (3,) or uv.shape[-1:] != (2,) or X.size // 3 != uv.size // 2:
+        raise ValueError(f"X must be (n, 3) model points and uv (n, 2) pixels, one per point; got shapes "
+                         f"{X.shape} and {uv.shape}")
+    return X.reshape(-1, 3), uv.reshape(-1, 2)
+
+
 def _sqpnp(camera: PinholeCamera, X: np.ndarray, uv: np.ndarray, rvec: np.ndarray, tvec: np.ndarray):
     """The pose fitted to the matches by SQPnP (``rvec``, ``tvec``), or the given pose when SQPnP
     fails (:func:`ransac_pnp` says why it replaces OpenCV's final EPnP fit)."""
@@ -342,9 +354,10 @@ def ransac_pnp(
     EPnP, the slow tail of ``locate`` (bench/RESULTS.md, session 24). And OpenCV fits its final
     pose to the consensus by EPnP, whose solution on nearly planar points (one face, mostly)
     could fall so far off that fewer than half the consensus stayed within ``inlier_px`` — in a
-    zoo scene with 59 true matches among 76, "no consensus"; SQPnP has no such failure."""
-    X = np.asarray(X, np.float64).reshape(-1, 3)
-    uv = np.asarray(uv, np.float64).reshape(-1, 2)
+    zoo scene with 59 true matches among 76, "no consensus"; SQPnP has no such failure.
+
+    ``X`` (n, 3) and ``uv`` (n, 2): one pixel per model point, else ValueError."""
+    X, uv = _matched_points(X, uv)
     if len(X) < max(6, min_inliers):
         return None
     # OpenCV's RANSAC (solvePnPRansac without USAC flags) draws its samples from an RNG of its own,
@@ -601,9 +614,9 @@ def solve_pnp(
 
     ``prior`` = (R, t, centre) of the matched viewset's view breaks a tie: candidates within 3
     nats of the best fit the matches equally well, and the one seen from nearer the viewset's
-    direction is kept (the query looks like that viewset, or it would not have matched it)."""
-    X = np.asarray(X, np.float64).reshape(-1, 3)
-    uv = np.asarray(uv, np.float64).reshape(-1, 2)
+    direction is kept (the query looks like that viewset, or it would not have matched it).
+    ``X`` (n, 3) and ``uv`` (n, 2): one pixel per model point, else ValueError."""
+    X, uv = _matched_points(X, uv)
     if len(X) < max(6, params.min_inliers):
         return None
     found = ransac_pnp(camera, X, uv, params.ransac_px, params.ransac_iterations, params.ransac_confidence)

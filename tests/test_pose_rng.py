@@ -1,5 +1,6 @@
 """ransac_pnp and the caller's random numbers: OpenCV's thread RNG and numpy's global state are
-left as they were, and the poses do not depend on them (recognition/pose.py)."""
+left as they were, and the poses do not depend on them (recognition/pose.py); and its inputs:
+points and pixels that do not pair up are a ValueError."""
 
 import threading
 
@@ -73,3 +74,22 @@ def test_ransac_pnp_gives_the_same_poses_whatever_the_thread_rng_held(matches):
     worker.start()
     worker.join()
     assert all(_same(a, b) for a, b in zip(out[0], reference))
+
+
+@pytest.mark.parametrize("cut", ["uv short", "X without z", "uv with z"])
+def test_points_and_pixels_that_do_not_pair_up_are_a_value_error_not_no_pose(matches, cut):
+    # (a uv one row short was OpenCV's error, caught: None, as for matches without a consensus;
+    # 30 points without their z were reshaped into 20 points)
+    from quatrack.recognition.pose import PoseParams, solve_pnp
+
+    cam, X, uv, _, _ = matches
+    X, uv = {"uv short": (X, uv[:-1]), "X without z": (X[:, :2], uv), "uv with z": (X, np.c_[uv, np.ones(len(uv))])}[cut]
+    for call in (lambda: ransac_pnp(cam, X, uv), lambda: solve_pnp(cam, X, uv, PoseParams())):
+        with pytest.raises(ValueError, match=r"X must be \(n, 3\) model points and uv \(n, 2\) pixels, one per point"):
+            call()
+
+
+def test_opencvs_point_layout_is_taken_as_before(matches):
+    cam, X, uv, _, guess = matches
+    a, b = ransac_pnp(cam, X[:, None, :], uv[:, None, :]), ransac_pnp(cam, X, uv)
+    assert a[0] == b[0] and np.array_equal(a[1], b[1])
