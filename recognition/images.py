@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 import struct
+import sys
 import warnings
 from dataclasses import dataclass, replace
 
@@ -177,6 +178,20 @@ def _check_bits(bits) -> None:
                          f"e.g. 12 for a 12-bit camera), got {bits!r}"[:160])
 
 
+_HERE = os.path.dirname(os.path.abspath(__file__)) + os.sep
+
+
+def _caller_level() -> int:
+    """``warnings.warn``'s stacklevel, for a call from the function that called this one, of the
+    first frame outside quatrack.recognition: the warning names the line of the caller's code
+    that handed the image in (``to_bgr8``, ``prepare_image``, ``locate`` or ``Tracker.step``), not
+    a line of ours."""
+    frame, level = sys._getframe(1), 1
+    while frame.f_back is not None and os.path.abspath(frame.f_code.co_filename).startswith(_HERE):
+        frame, level = frame.f_back, level + 1
+    return level
+
+
 def _uint16_to_8(img: np.ndarray, bits: int | None) -> np.ndarray:
     """``uint16`` pixels of ``bits`` significant bits (None: full-range 16-bit) as 8-bit: their top
     8 bits. Without ``bits``, an image that looks like 10- or 12-bit data (:data:`LOW_DEPTH_MAX`)
@@ -194,7 +209,8 @@ def _uint16_to_8(img: np.ndarray, bits: int | None) -> np.ndarray:
                     f"a 16-bit image whose values all lie below {LOW_DEPTH_MAX} (at most {top}) is read as full-range "
                     f"16-bit (its top 8 bits) and comes out almost black: {depth}-bit camera data? State the depth "
                     f"(quatrack.recognition.images.to_bgr8(image, bits={depth}), then pass the 8-bit image on) or "
-                    f"scale it to 16 bits first (image << {shift}). Warned once.", BitDepthWarning, stacklevel=3)
+                    f"scale it to 16 bits first (image << {shift}). Warned once.", BitDepthWarning,
+                    stacklevel=_caller_level())
         return (img >> 8).astype(np.uint8)
     top = int(img.max()) if img.size else 0
     if top >= 1 << bits:

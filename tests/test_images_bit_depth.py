@@ -45,6 +45,16 @@ def test_low_depth_data_is_converted_as_before_and_warned_of_once_with_what_to_d
     _no_warning(lambda: to_bgr8(img))  # once: a stream would repeat it every frame
 
 
+def test_the_warning_names_the_callers_line_whichever_function_took_the_image(monkeypatch):
+    # (through prepare_image it named a line of images.py: the user could not tell which call)
+    cam = PinholeCamera(200.0, 200.0, 80.0, 60.0, width=160, height=120)
+    for call in (lambda: to_bgr8(_frame(4095)), lambda: prepare_image(_frame(4095), cam)):
+        monkeypatch.setattr(I, "_depth_warned", False)
+        with pytest.warns(BitDepthWarning) as caught:
+            call()
+        assert [w.filename for w in caught] == [__file__]
+
+
 @pytest.mark.parametrize("img", [
     np.full((40, 40), 4095, np.uint16),  # tiny: too few pixels to judge
     np.zeros((120, 160), np.uint16),  # black whatever its depth
