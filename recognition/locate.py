@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -26,8 +26,8 @@ from .appearance import texture_agreement
 from .images import DEFAULT_MAX_PIXELS, prepare_image
 from .window_search import Window, WindowSearchParams, search_window
 from .match import ModelIndex, index_for, rank_viewsets
-from .pose import (RANSAC_SAMPLE, PnPSolution, PoseParams, Verification, polish, rival_inliers, solve_pnp, verification,
-                   verify)
+from .pose import (RANSAC_SAMPLE, PnPSolution, PoseParams, Verification, polish, rival_inliers, solve_pnp, value_key,
+                   verification, verify)
 
 
 @dataclass(frozen=True)
@@ -85,22 +85,6 @@ class LocateParams:
         v = self.max_pixels
         if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)) or v < 1:
             raise ValueError(f"max_pixels must be a whole number of pixels, at least 1, got {v!r}"[:120])
-
-
-def value_key(result) -> tuple:
-    """What an answer (:class:`Located`, :class:`~quatrack.recognition.tracker.params.TrackStep`)
-    is compared by: its fields that compare, in order, arrays (and lists) as their shape and
-    numbers. Why: the dataclasses' own ``==`` compared the arrays in a tuple, and two answers
-    with a pose raised "the truth value of an array ... is ambiguous" (``step in steps`` too)."""
-    key = []
-    for f in fields(result):
-        if f.compare:
-            v = getattr(result, f.name)
-            if isinstance(v, (np.ndarray, list)):
-                a = np.asarray(v)
-                v = (a.shape, tuple(a.ravel().tolist()))
-            key.append(v)
-    return tuple(key)
 
 
 @dataclass

@@ -11,7 +11,7 @@ confidence (issue 13). Poses are judged on the part of the object inside the ima
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Callable
 
 import cv2
@@ -165,10 +165,30 @@ CONFIDENCE_COEF: tuple[tuple[str, float], ...] = (
 )
 
 
-@dataclass(frozen=True)
+def value_key(result) -> tuple:
+    """What an answer (:class:`PnPSolution`, :class:`~quatrack.recognition.locate.Located`,
+    :class:`~quatrack.recognition.tracker.params.TrackStep`) is compared by: its fields that compare, in order, arrays (and lists) as their shape and
+    numbers. Why: the dataclasses' own ``==`` compared the arrays in a tuple, and two answers
+    with a pose raised "the truth value of an array ... is ambiguous" (``step in steps`` too)."""
+    key = []
+    for f in fields(result):
+        if f.compare:
+            v = getattr(result, f.name)
+            if isinstance(v, (np.ndarray, list)):
+                a = np.asarray(v)
+                v = (a.shape, tuple(a.ravel().tolist()))
+            key.append(v)
+    return tuple(key)
+
+
+@dataclass(frozen=True, eq=False)
 class PnPSolution:
     """A refined PnP pose (object → camera) with its 6×6 covariance over ``[p, δθ]``, the
-    inliers (indices into the matches) and their reprojection RMS."""
+    inliers (indices into the matches) and their reprojection RMS.
+
+    Solutions compare by value (``==``: pose, covariance, inliers and RMS, number for number; not
+    ``ties``) and hash by their pose (the dataclass's ``==`` raised "the truth value of an array
+    ... is ambiguous", its hash "unhashable type: 'numpy.ndarray'")."""
 
     pose: Pose
     covariance: np.ndarray
@@ -177,6 +197,14 @@ class PnPSolution:
     # the other candidate poses that fit all the matches as well (within 3 nats of the best
     # likelihood; :func:`solve_pnp`): the matches cannot tell them from this one
     ties: tuple = field(default=(), compare=False)
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, PnPSolution):
+            return NotImplemented
+        return self is other or value_key(self) == value_key(other)
+
+    def __hash__(self) -> int:
+        return hash(self.pose)
 
     @property
     def t(self) -> np.ndarray:

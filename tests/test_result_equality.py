@@ -79,3 +79,16 @@ def test_meshes_compare_by_value_and_hash_alike_when_equal():
     assert box != make_mesh(box.vertices, box.faces[::-1]) and box != make_mesh(box.vertices, box.faces[:11])
     assert box != "box" and box != None  # noqa: E711
     assert {box: "model"}[same] == "model"
+
+
+def test_pnp_solutions_compare_by_value_and_hash_by_their_pose():
+    # (solve_pnp's result: the frozen dataclass's == raised, its hash was "unhashable type")
+    from quatrack.recognition.pose import PnPSolution
+
+    pose = Pose.from_rvec([0.1, 0.2, 0.3], [0.0, 0.0, 5.0])
+    a = PnPSolution(pose, np.eye(6) * 1e-4, np.arange(12), 0.7)
+    b = PnPSolution(Pose.from_rvec([0.1, 0.2, 0.3], [0.0, 0.0, 5.0]), np.eye(6) * 1e-4, np.arange(12), 0.7,
+                    ties=(pose,))  # (ties do not compare)
+    assert a == b and hash(a) == hash(b) and len({a, b}) == 1
+    assert a != PnPSolution(pose, np.eye(6) * 2e-4, np.arange(12), 0.7)
+    assert a != PnPSolution(pose, np.eye(6) * 1e-4, np.arange(11), 0.7) and a != pose

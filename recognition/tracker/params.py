@@ -18,8 +18,8 @@ from quatrack.tracking.adjust import AdjustOptions
 from quatrack.tracking.pose import Pose
 
 from ..klt import KLTParams
-from ..locate import LocateParams, value_key
-from ..pose import PoseParams
+from ..locate import LocateParams
+from ..pose import PoseParams, value_key
 from ..visibility import VisibilityParams
 
 __all__ = ["TrackerParams", "TrackStep", "motion_noise", "DEFAULT_MOTION_NOISE", "STATUSES",
