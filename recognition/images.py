@@ -29,8 +29,8 @@ MAX_DECODE_PIXELS = 100_000_000  # refuse to even decode images larger than this
 LOW_DEPTH_MAX = 4096
 LOW_DEPTH_MIN_PIXELS = 64 * 64
 
-__all__ = ["DEFAULT_MAX_PIXELS", "MAX_DECODE_PIXELS", "MIN_SIDE", "BitDepthWarning", "ImageError", "PreparedImage", "decode_image", "header_size",
-           "prepare_image", "read_image", "sniff", "to_bgr8", "truncated"]
+__all__ = ["DEFAULT_MAX_PIXELS", "MAX_DECODE_PIXELS", "MIN_SIDE", "BitDepthWarning", "ImageError", "PreparedImage",
+           "decode_image", "header_size", "prepare_image", "read_image", "sniff", "to_bgr8", "too_small", "truncated"]
 
 
 class ImageError(ValueError):

@@ -167,9 +167,10 @@ CONFIDENCE_COEF: tuple[tuple[str, float], ...] = (
 
 def value_key(result) -> tuple:
     """What an answer (:class:`PnPSolution`, :class:`~quatrack.recognition.locate.Located`,
-    :class:`~quatrack.recognition.tracker.params.TrackStep`) is compared by: its fields that compare, in order, arrays (and lists) as their shape and
-    numbers. Why: the dataclasses' own ``==`` compared the arrays in a tuple, and two answers
-    with a pose raised "the truth value of an array ... is ambiguous" (``step in steps`` too)."""
+    :class:`~quatrack.recognition.tracker.params.TrackStep`) is compared by: its fields that
+    compare, in order, arrays (and lists) as their shape and numbers. Why: the dataclasses' own
+    ``==`` compared the arrays in a tuple, and two answers with a pose raised "the truth value of
+    an array ... is ambiguous" (``step in steps`` too)."""
     key = []
     for f in fields(result):
         if f.compare:

@@ -30,7 +30,8 @@ def test_repeated_faces_are_dropped_on_load_with_a_warning_that_counts_them(tmp_
     F = box.faces
     mid = box.vertices[F[0, :2]].mean(axis=0)  # a point on an edge: a sliver of zero area through it
     V = np.r_[box.vertices, mid[None]]
-    extra = np.array([F[0], F[0, [1, 2, 0]], F[3, ::-1], [F[0, 0], F[0, 1], len(box.vertices)], [F[1, 0], F[1, 0], F[1, 2]]])
+    extra = np.array([F[0], F[0, [1, 2, 0]], F[3, ::-1],  # repeated: as given, turned, reversed
+                      [F[0, 0], F[0, 1], len(box.vertices)], [F[1, 0], F[1, 0], F[1, 2]]])  # zero area
     told = []
     mesh = load_mesh(_write(tmp_path, V, np.r_[F, extra]), warn=told.append)
     assert told == [f"{tmp_path / 'mesh.ply'}: dropped 3 repeated faces (a triangle given again, in any corner order) "

@@ -83,7 +83,8 @@ def test_points_and_pixels_that_do_not_pair_up_are_a_value_error_not_no_pose(mat
     from quatrack.recognition.pose import PoseParams, solve_pnp
 
     cam, X, uv, _, _ = matches
-    X, uv = {"uv short": (X, uv[:-1]), "X without z": (X[:, :2], uv), "uv with z": (X, np.c_[uv, np.ones(len(uv))])}[cut]
+    X, uv = {"uv short": (X, uv[:-1]), "X without z": (X[:, :2], uv),
+             "uv with z": (X, np.c_[uv, np.ones(len(uv))])}[cut]
     for call in (lambda: ransac_pnp(cam, X, uv), lambda: solve_pnp(cam, X, uv, PoseParams())):
         with pytest.raises(ValueError, match=r"X must be \(n, 3\) model points and uv \(n, 2\) pixels, one per point"):
             call()

@@ -376,8 +376,8 @@ def load_mesh(path: str | Path, warn=None) -> Mesh:
         faces = faces[~repeated]
     mesh = make_mesh(vertices, outward_faces(vertices, faces), str(path))
     r, z = int(repeated.sum()), len(faces) - len(mesh.faces)
-    dropped = ([f"{r} repeated face{'s' if r != 1 else ''} (a triangle given again, in any corner order)"] if r else []) \
-        + ([f"{z} face{'s' if z != 1 else ''} of zero area"] if z else [])
+    dropped = [f"{r} repeated face{'s' if r != 1 else ''} (a triangle given again, in any corner order)"] if r else []
+    dropped += [f"{z} face{'s' if z != 1 else ''} of zero area"] if z else []
     if dropped:
         _tell(warn, f"{path}: dropped {' and '.join(dropped)}")
     # vertices no face uses (an exporter's leftovers, a CAD file's origin point) are dropped: far
