@@ -192,11 +192,22 @@ def make_mesh(vertices: np.ndarray, faces: np.ndarray, where: str = "mesh") -> M
     except (TypeError, ValueError):
         raise SpecError(f"{where}: vertices must be an (n, 3) array of numbers (a trimesh's .vertices), "
                         f"got {type(vertices).__name__}") from None
-    F = np.asarray(faces)
+    try:
+        F = np.asarray(faces)
+    except ValueError:  # (rows of different lengths: numpy's "inhomogeneous shape")
+        F = np.asarray(faces, dtype=object)
     if V.ndim != 2 or V.shape[1] != 3:
         raise SpecError(f"{where}: vertices must be an (n, 3) array of numbers, got shape {V.shape}")
     if F.size and (F.ndim != 2 or F.shape[1] != 3):
         raise SpecError(f"{where}: faces must be an (m, 3) array of vertex indices (triangles), got shape {F.shape}")
+    # (whole numbers only: 1.5 was cut to 1, NaN became index -2147483648 (IndexError), strings
+    # numpy's UFuncTypeError; integral floats, as a text file's loadtxt gives them, are taken)
+    if F.size and F.dtype.kind not in "iu":
+        whole = F.dtype.kind == "f" and np.isfinite(F) & (F == np.round(F))
+        if F.dtype.kind != "f" or not whole.all():
+            got = f"{float(F[~whole][0]):g}" if F.dtype.kind == "f" else {
+                "U": "text", "S": "text", "b": "True/False values", "c": "complex numbers"}.get(F.dtype.kind, "objects")
+            raise SpecError(f"{where}: faces must be whole vertex indices, got {got}")
     F = F.reshape(-1, 3)
     if F.size == 0:
         raise SpecError(f"{where}: the mesh has no faces (a point cloud cannot be rendered)")
