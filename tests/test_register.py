@@ -225,13 +225,17 @@ def test_bench_register_reports_both_poses(capsys):
     assert "--noise" in capsys.readouterr().err
 
 
-def _four_photos_one_clicked(tmp_path, name="small-cube-cm", seed=1):
-    """Four registered zoo photos; view 0's pose replaced by 6–8 clicked corners, the others' removed."""
+def _four_photos_one_clicked(tmp_path, name="small-cube-cm"):
+    """Four zoo photos (the camera at azimuths 35°, 55° and 75° above the object, and at 215°
+    below it: only that one shows none of the first's faces); view 0's pose replaced by 6–8
+    clicked corners, the others' removed. Returns the spec's path, the true poses and the mesh."""
     from quatrack.testing import zoo as Z
     from quatrack.testing.clicks import visible_vertices
     from quatrack.viewsets.mesh import load_mesh
 
-    path = Z.write_spec(name, tmp_path / name, n_views=4, seed=seed)
+    obj, cam = Z.textured(name), Z.zoo_camera()
+    poses = [Z.orbit_pose(obj, cam, az, el) for az, el in ((35, 25), (55, 25), (75, 25), (215, -25))]
+    path = Z.write_spec(name, tmp_path / name, seed=3, poses=poses)
     spec = load_spec(path)
     mesh = load_mesh(spec.mesh_path)
     v0 = spec.views[0]
@@ -244,27 +248,28 @@ def _four_photos_one_clicked(tmp_path, name="small-cube-cm", seed=1):
     for v in data["views"]:
         del v["pose"]
     path.write_text(json.dumps(data))
-    return path, [v.pose for v in spec.views], mesh
+    return path, poses, mesh
 
 
-def test_register_locate_finds_the_photos_without_clicks(tmp_path, capsys):
-    """The photos recognition can find from the clicked one (and from those found) get their
-    poses, near the truth; one it cannot find is named, written without a pose, exit status 2."""
-    path, truth, mesh = _four_photos_one_clicked(tmp_path)
+@pytest.mark.parametrize("name", ["small-cube-cm", "wide-box-cm"])
+def test_register_locate_finds_the_photos_without_clicks(tmp_path, capsys, name):
+    """The photos 20° and 40° round from the clicked one get their poses by recognition, near the
+    truth; the one from below, showing none of its faces, is named, written without a pose, and
+    the exit status is 2 (if recognition finds it all the same, its pose must be right too)."""
+    path, truth, mesh = _four_photos_one_clicked(tmp_path, name)
     assert main(["train", str(path), "--store", str(tmp_path / "s")]) == 2  # (views without pose: not trainable)
     assert "missing field 'pose' (or 'points'" in capsys.readouterr().err
     code = main(["register", str(path), "--locate"])
     out = capsys.readouterr().out
-    written = json.loads(path.with_name("object.registered.json").read_text())
-    found = [i for i, v in enumerate(written["views"]) if "pose" in v]
-    assert 0 in found and len(found) >= 2  # the clicked view, and at least one found by recognition
+    written = load_spec(path.with_name("object.registered.json"), pose_required=False)
+    found = [v.index for v in written.views if v.pose is not None]
+    assert {0, 1, 2} <= set(found)
     assert all(f"view {i}: pose found by recognition" in out for i in found if i)
     for i in found:
-        spec_pose = load_spec(path.with_name("object.registered.json"), pose_required=False).views[i].pose
-        t, deg = pose_errors(spec_pose.t, spec_pose.q_wxyz, truth[i], mesh)
+        t, deg = pose_errors(written.views[i].pose.t, written.views[i].pose.q_wxyz, truth[i], mesh)
         assert t < 0.02 * mesh.extent and deg < 2.0
-    if len(found) < 4:
-        assert code == 2 and "still have no pose" in out and "not found (" in out
+    if 3 not in found:
+        assert code == 2 and "view(s) 3 still have no pose" in out and "view 3: not found (" in out
     else:
         assert code == 0
 
@@ -277,3 +282,26 @@ def test_register_locate_needs_a_view_to_start_from(tmp_path, capsys):
     assert main(["register", str(path), "--locate"]) == 2
     assert "no view has a pose or points to start from" in capsys.readouterr().err
     assert not path.with_name("object.registered.json").exists()
+
+
+def test_training_fits_a_clicked_pose_to_the_edges_too(tmp_path):
+    """train_object does with a view whose pose comes from clicks what register does: the
+    registered viewset's pose is the edges' refit when kept (said in a warning), nearer the truth
+    than PnP's over four zoo objects (median of the error against the 5 %/5° criterion; 3 px clicks)."""
+    from quatrack.viewsets.train import TrainParams, train_object
+
+    errors, kept = {"pnp": [], "trained": []}, 0
+    for name in ("small-cube-cm", "cookie-slab-cm", "cube-m", "cylinder-mm"):
+        path, truth, mesh = _points_spec(tmp_path, name=name, seed=0, noise=3.0, folder=name)
+        notes = []
+        spec = load_spec(path, warn=notes.append)
+        model = train_object(spec, TrainParams(novel=None), warn=notes.append)
+        trained = next(v.pose for v in model.viewsets if not v.synthetic)
+        for tag, pose in (("pnp", spec.views[0].pose), ("trained", trained)):
+            t, deg = pose_errors(pose.t, pose.q_wxyz, truth, mesh)
+            errors[tag].append(max(t / mesh.extent / 0.05, deg / 5.0))
+        refitted = any("fitted to the mesh's edges in the photo" in n for n in notes)
+        kept += refitted
+        assert refitted or np.allclose(trained.t, spec.views[0].pose.t)  # (not kept: PnP's pose, said nothing)
+    assert kept >= 2
+    assert np.median(errors["trained"]) < 0.6 * np.median(errors["pnp"])

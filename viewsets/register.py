@@ -8,9 +8,10 @@ edges, which the photo shows along their whole length, then pull it onto the ima
 (:func:`refine_with_edges`: :func:`quatrack.recognition.evidence.edge_fit` with the clicks as
 its points). On the zoo's 32 training photos (8 objects × 4), 5–8 visible corners clicked with
 2 px of noise gave poses 1.33 % of the diameter / 1.29° off (median; 90th percentile 2.8 % /
-2.3°) by PnP, and 0.31 % / 0.43° (1.4 % / 1.2°) with the edges, which were kept for 28 of the 32
-(``bench/RESULTS.md``, session 63). They help least on a thin object or a busy print beside the
-outline (the hex prism's bricks: 0.6 → 1.9° once), and a refit that leaves the clicks is not kept.
+2.3°) by PnP, and 0.30 % / 0.42° (1.4 % / 1.2°) with the edges, which were kept for 30 of the 32;
+with 4 px, 2.67 % / 2.55° and 0.47 % / 0.79° (``quatrack bench register``; ``bench/RESULTS.md``,
+session 63). They help least on a thin object or a busy print beside the outline, and a refit
+that leaves the clicks is not kept.
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ from .camera import isfinite
 from .errors import SpecError
 
 __all__ = ["AGREEMENT_SLACK", "MIN_POINTS", "PointPairs", "Registration", "click_limit_px", "max_rms_px", "parse_points",
-           "pose_from_points", "refine_with_edges"]
+           "click_sigma", "pose_from_points", "refine_with_edges", "refined_view"]
 
 MIN_POINTS = 4  # PnP's unique pose needs 4 pairs (3 leave up to four poses)
 MAX_RMS_SHARE = 0.01  # of the photo's diagonal: the clicks' RMS a registration may have (6.4 px at 640 × 480)
@@ -175,12 +176,23 @@ def click_limit_px(n: int, click_sigma_px: float) -> float:
     return float(click_sigma_px * np.sqrt(chi2.ppf(0.99, 2 * n) / n))
 
 
+def click_sigma(reg: Registration, n: int, click_sigma_px: float) -> float:
+    """The clicks' σ (px per coordinate): the larger of the one stated and the one PnP's
+    residual shows, ``rms · √(n / (2n − 6))`` (``n`` clicks: ``n · rms²`` sums 2n squared
+    coordinates, 6 of them fitted; ``reg`` from :func:`pose_from_points`). Why both: a user's
+    clicks are as careful as they are, and a gate set for 2 px refused every refit of clicks
+    4 px off."""
+    seen = reg.rms_px * np.sqrt(n / (2 * n - 6)) if n > 3 and np.isfinite(reg.rms_px) else 0.0
+    return float(max(click_sigma_px, seen))
+
+
 def refine_with_edges(grey: np.ndarray, mesh, camera: PinholeCamera, reg: Registration, pairs: PointPairs,
                       click_sigma_px: float = 2.0, rounds: int = 3) -> Registration:
     """``reg``'s pose refitted to the mesh's visible edges in the photo and the clicks together
     (:func:`~quatrack.recognition.evidence.edge_fit`: each edge sample searches along its normal
-    for the strongest aligned gradient; Gauss–Newton with Cauchy weights, the clicks at σ
-    ``click_sigma_px``, the edges at 1 px), measured again from each new pose (``rounds``: the
+    for the strongest aligned gradient; Gauss–Newton with Cauchy weights, the clicks at
+    :func:`click_sigma`'s
+    σ, the edges at 1 px), measured again from each new pose (``rounds``: the
     search is centred on the pose, so a pose several pixels off is pulled in over two or three).
 
     The refit is kept only if it keeps the clicks (their RMS within :func:`click_limit_px`) and
@@ -193,12 +205,13 @@ def refine_with_edges(grey: np.ndarray, mesh, camera: PinholeCamera, reg: Regist
     clicks 19 px off; on the zoo's photos (flat print) they brought poses 3× nearer the truth."""
     from quatrack.recognition.evidence import edge_fit, measure_edges
 
+    sigma = click_sigma(reg, len(pairs), click_sigma_px)
     before, image = measure_edges(grey, mesh, camera, reg.pose)
     pose = reg.pose
     for _ in range(rounds):
         if image is None:
             break
-        fit = edge_fit(image, mesh, camera, pose, pairs.model, pairs.pixel, point_sigma_px=click_sigma_px, iterations=10)
+        fit = edge_fit(image, mesh, camera, pose, pairs.model, pairs.pixel, point_sigma_px=sigma, iterations=10)
         if fit.pose is None:
             break
         pose = fit.pose
@@ -207,10 +220,23 @@ def refine_with_edges(grey: np.ndarray, mesh, camera: PinholeCamera, reg: Regist
         return replace(reg, edge_agreement=(before.agreement, before.agreement))
     after = measure_edges(grey, mesh, camera, pose)[0]
     refit = _registration(pairs, camera, pose, edge_agreement=(before.agreement, after.agreement))
-    if after.agreement < before.agreement - AGREEMENT_SLACK or refit.rms_px > click_limit_px(len(pairs), click_sigma_px):
+    if after.agreement < before.agreement - AGREEMENT_SLACK or refit.rms_px > click_limit_px(len(pairs), sigma):
         return replace(reg, edge_agreement=(before.agreement, after.agreement), refused=refit)
     c = mesh.centre
     dc = float(np.linalg.norm((pose.R @ c + pose.t) - (reg.pose.R @ c + reg.pose.t)))
     dR = pose.R @ reg.pose.R.T
     angle = float(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1.0, 1.0))))
     return replace(refit, moved=(dc / float(mesh.extent), angle))
+
+
+def refined_view(view, image: np.ndarray, mesh, click_sigma_px: float = 2.0):
+    """A spec view whose pose was solved from its clicks (``view.pose_from_points``), with that
+    pose refitted to the mesh's edges in its photo ``image`` (:func:`refine_with_edges`; ``mesh``'s
+    run-time decimation for a scan's): ``(view, Registration)``. What ``quatrack train`` does with
+    such a view, as ``quatrack register`` does, so the model learns from the better pose."""
+    import cv2
+
+    grey = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
+    reg = refine_with_edges(grey, mesh.run_time, view.camera, _registration(view.points, view.camera, view.pose),
+                            view.points, click_sigma_px)
+    return replace(view, pose=reg.pose), reg

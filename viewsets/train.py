@@ -22,6 +22,7 @@ from .errors import SpecError
 from .imagefile import truncated
 from .mesh import Mesh, load_mesh
 from .novel import NovelViewParams, novel_poses, render_textured_view
+from .register import refined_view
 from .render import RenderBuffers, render
 from .rfch import RFCHParams, train_rfch
 from .spec import ObjectSpec, ViewSpec
@@ -168,9 +169,14 @@ def _sized_by(view: ViewSpec, image: np.ndarray) -> ViewSpec:
     return dataclasses.replace(view, camera=dataclasses.replace(cam, width=w, height=h))
 
 
-def _prepare_view(mesh: Mesh, view: ViewSpec) -> _View:
+def _prepare_view(mesh: Mesh, view: ViewSpec, warn=None) -> _View:
     image = _read_image(view)
     view = _sized_by(view, image)
+    if view.pose_from_points:  # (its pose solved from clicks by load_spec: fitted to the mesh's edges too)
+        view, reg = refined_view(view, image, mesh)
+        if warn and reg.moved is not None:
+            warn(f"view {view.index}: the pose its points give fitted to the mesh's edges in the photo (moved "
+                 f"{100 * reg.moved[0]:.2f} % of the diameter and {reg.moved[1]:.2f}°; clicks' RMS {reg.rms_px:.1f} px)")
     full = image.shape[:2]
     view, image = _within_pixels(view, image)
     buffers = check_pose(mesh, view)
@@ -271,7 +277,7 @@ def train_object(
         raise TypeError(f"params: a TrainParams (quatrack.viewsets.train), got {type(params).__name__}")
     t0 = time.perf_counter()
     mesh = load_mesh(spec.mesh_path, warn=warn)
-    views = [_prepare_view(mesh, v) for v in spec.views]
+    views = [_prepare_view(mesh, v, warn) for v in spec.views]
     asked = params.viewsets.contrast_threshold
     viewsets, params, weak = _viewsets_for_texture(mesh, _tasks(mesh, views, params.novel), params, progress, on_total)
     viewsets = _checked(viewsets, params, warn)  # (raises: nothing to learn even at the lowest threshold)
