@@ -8,6 +8,11 @@ given) onto the mesh's edges in the photo, prints what it did, and writes a spec
 filled in — by default ``NAME.registered.json`` beside the spec — plus, with ``--overlay DIR``,
 each photo with the mesh drawn at its pose to look at before training. The written spec keeps
 everything the input had (the points too), so it can be edited and registered again.
+
+A view that cannot be registered — clicks that fit no pose, model points off the mesh (other
+units), a pose whose mesh edges miss the photo's (the pose inverted, another photo), a photo
+``--locate`` cannot find surely — is named on stderr with what to check, the overlays are still
+drawn (the clicks against their best pose), nothing else is written, and the exit status is 2.
 """
 
 from __future__ import annotations
@@ -99,12 +104,12 @@ LOCATE_MIN_CONFIDENCE = 0.98
 LOCATE_MIN_EDGES = 0.7
 
 
-def _locate_missing(spec, views: list, photos: dict) -> dict:
+def _locate_missing(spec, views: list, photos: dict) -> tuple[dict, dict]:
     """``{view index: (pose, how it was found)}`` for the views without a pose, found by
     recognition (:func:`quatrack.recognition.locate.locate`, verified as any found pose) with a
     model trained in memory from the views that have one; trained again with the views found,
     while that finds more (a photo 60° from the clicked one may be found from one found at 30°).
-    A view still missing is reported (it needs points) and stays without a pose."""
+    Second: ``{view index: why it was not found}``."""
     from quatrack.recognition.locate import locate
     from quatrack.viewsets.train import TrainParams, train_object
 
@@ -134,22 +139,12 @@ def _locate_missing(spec, views: list, photos: dict) -> dict:
         if len(still) == len(missing):
             break
         missing = still
-    for v in missing:
-        print(f"view {v.index}: not found ({reasons[v.index]}): give it 'points' (clicked corners)")
-    return found
+    return found, {v.index: f"view {v.index}: not found by recognition ({reasons[v.index]}): give it 'points' "
+                            f"(clicked corners)" for v in missing}
 
 
-def run(args: argparse.Namespace) -> int:
-    import cv2
-
-    from quatrack.recognition.evidence import edge_agreement
-    from quatrack.recognition.trackio import atomic_path
-    from quatrack.recognition.visibility import mesh_edges
-    from quatrack.viewsets.mesh import load_mesh
-    from quatrack.viewsets.register import Registration, refine_with_edges
-    from quatrack.viewsets.spec import load_spec
-    from quatrack.viewsets.train import _read_image
-
+def _outputs(args: argparse.Namespace) -> tuple[Path, Path, Path | None]:
+    """The spec, the registered spec's path and the overlay folder, checked before any work."""
     if not (np.isfinite(args.click_sigma) and args.click_sigma > 0):
         raise UserError(f"--click-sigma must be a positive number of pixels, got {args.click_sigma!r}")
     spec_path = Path(args.spec)
@@ -163,78 +158,121 @@ def run(args: argparse.Namespace) -> int:
     overlay = Path(args.overlay) if args.overlay else None
     if overlay is not None and overlay.exists() and not overlay.is_dir():
         raise UserError(f"--overlay {overlay}: not a folder")
+    return spec_path, out_path, overlay
+
+
+def _register_view(view, grey: np.ndarray, mesh, args: argparse.Namespace, origin: str):
+    """One view's final pose, its line for stdout, and what is wrong with it (None: nothing):
+    its clicks off the mesh, or the mesh's edges at the pose not on the photo's as a pose
+    ``locate`` finds must be (:class:`~quatrack.recognition.pose.PoseParams`' bars)."""
+    from quatrack.recognition.evidence import edge_agreement
+    from quatrack.recognition.pose import PoseParams
+    from quatrack.viewsets.errors import SpecError
+    from quatrack.viewsets.register import Registration, off_mesh_message, refine_with_edges
+    from quatrack.viewsets.train import check_pose
+
+    line = f"view {view.index}: pose {origin}"
+    if view.points is not None and (msg := off_mesh_message(view.points.model, mesh, f"view {view.index}")) is not None:
+        return view.pose, line, msg
+    try:
+        check_pose(mesh, view)  # (in front of the camera, and enough of it in the photo: as training needs)
+    except SpecError as exc:
+        return view.pose, line, str(exc)
+    if view.points is None:  # (no clicks to hold a refit: the edges alone may take a print's line)
+        reg = Registration(view.pose, float("nan"), -1, float("nan"))
+    else:
+        r = np.linalg.norm(view.camera.project(view.points.model @ view.pose.R.T + view.pose.t) - view.points.pixel, axis=1)
+        worst = int(np.argmax(r))
+        reg = Registration(view.pose, float(np.sqrt(np.mean(r ** 2))), worst, float(r[worst]))
+        line += f" ({len(view.points)} points, RMS {reg.rms_px:.2f} px, worst: point {reg.worst} at {reg.worst_px:.1f} px)"
+        if not args.no_edges:
+            reg = refine_with_edges(grey, mesh, view.camera, reg, view.points, click_sigma_px=args.click_sigma)
+            a0, a1 = reg.edge_agreement
+            if reg.moved is not None:
+                line += (f"; refitted to the mesh's edges: {a0:.0%} → {a1:.0%} of their length on the photo's edges, "
+                         f"moved {100 * reg.moved[0]:.2f} % of the diameter and {reg.moved[1]:.2f}°, "
+                         f"clicks' RMS {reg.rms_px:.2f} px")
+            elif reg.refused is not None:
+                why = (f"it left the clicks {reg.refused.rms_px:.1f} px (RMS) off — the photo's print, not the "
+                       f"object's outline?" if a1 >= a0 - 0.02 else f"the edges agreed less ({a0:.0%} → {a1:.0%})")
+                line += f"; a refit to the mesh's edges not kept: {why}"
+    e = edge_agreement(grey, mesh, view.camera, reg.pose)
+    line += f"; the mesh's edges lie on the photo's for {e.agreement:.0%} of their length ({e.chance:.0%} by chance)"
+    p = PoseParams()
+    if e.samples >= p.min_edge_samples and (e.agreement < p.min_edge_agreement or e.lead < p.min_edge_lead):
+        span = " × ".join(f"{x:.3g}" for x in np.ptp(mesh.vertices, axis=0))
+        return reg.pose, line, (
+            f"view {view.index}: the mesh's edges at its pose lie on the photo's for {e.agreement:.0%} of their length "
+            f"({e.chance:.0%} by chance; a pose locate finds needs {p.min_edge_agreement:.0%}, {p.min_edge_lead:.0%} "
+            f"above chance): are the points' model coordinates in the mesh's units (it spans {span}), the pose "
+            f"object → camera, the photo this view's?")
+    return reg.pose, line, None
+
+
+def run(args: argparse.Namespace) -> int:
+    import cv2
+
+    from quatrack.recognition.trackio import atomic_path
+    from quatrack.recognition.visibility import mesh_edges
+    from quatrack.viewsets.mesh import load_mesh
+    from quatrack.viewsets.spec import load_spec
+    from quatrack.viewsets.train import _read_image
+
+    spec_path, out_path, overlay = _outputs(args)
 
     def warn(msg: str) -> None:
         if "`quatrack register --overlay DIR` draws it" not in msg:  # (load_spec's hint for train: this is the command)
             print(f"quatrack register: warning: {msg}", file=sys.stderr)
 
-    spec = load_spec(spec_path, warn=warn, pose_required=not args.locate)
+    misfits: list = []
+    spec = load_spec(spec_path, warn=warn, pose_required=not args.locate, misfits=misfits)
+    problems = {i: str(exc) for i, exc in misfits}
     raw = json.loads(spec_path.read_bytes().decode("utf-8-sig"))
     mesh = load_mesh(spec.mesh_path, warn=warn).run_time  # (a scan's decimation: the edges the tracker sees)
     edges3d = mesh_edges(mesh)
-    photos = {}
-    views = []
+    photos, views = {}, []
     for view in spec.views:
         photo = photos[view.index] = _read_image(view)  # (checks the file and its size against the camera, as training does)
         cam = view.camera
         if cam.width is None:  # (a camera sized by its images)
             view = replace(view, camera=replace(cam, width=photo.shape[1], height=photo.shape[0]))
         views.append(view)
-    found = _locate_missing(spec, views, photos) if args.locate else {}
+    found, not_found = _locate_missing(spec, [v for v in views if v.index not in problems], photos) if args.locate else ({}, {})
+    problems.update(not_found)
     poses = []
     for view in views:
-        photo = photos[view.index]
         if view.index in found:
             view = replace(view, pose=found[view.index][0])
-        elif view.pose is None:  # (--locate did not find it: reported, left without a pose)
+        if view.pose is None:  # (--locate did not find it)
             poses.append(None)
             continue
-        origin = ("solved from its points" if view.pose_from_points
-                  else found[view.index][1] if view.index in found else "given")
-        line = f"view {view.index}: pose {origin}"
-        grey = cv2.cvtColor(photo, cv2.COLOR_BGR2GRAY)
-        if view.points is None:  # (no clicks to hold a refit: the edges alone may take a print's line)
-            e = edge_agreement(grey, mesh, view.camera, view.pose)
-            line += f"; the mesh's edges lie on the photo's edges for {e.agreement:.0%} of their length ({e.chance:.0%} by chance)"
-            reg = Registration(view.pose, float("nan"), -1, float("nan"))
+        if view.index in problems:  # (its clicks fit no pose: only drawn, at their best pose)
+            pose, line = view.pose, f"view {view.index}: the clicks fit no pose (below)"
         else:
-            r = np.linalg.norm(view.camera.project(view.points.model @ view.pose.R.T + view.pose.t) - view.points.pixel, axis=1)
-            worst = int(np.argmax(r))
-            reg = Registration(view.pose, float(np.sqrt(np.mean(r ** 2))), worst, float(r[worst]))
-            line += f" ({len(view.points)} points, RMS {reg.rms_px:.2f} px, worst: point {reg.worst} at {reg.worst_px:.1f} px)"
-            if not args.no_edges:
-                reg = refine_with_edges(grey, mesh, view.camera, reg, view.points, click_sigma_px=args.click_sigma)
-                a0, a1 = reg.edge_agreement
-                if reg.moved is not None:
-                    line += (f"; refitted to the mesh's edges: {a0:.0%} → {a1:.0%} of their length on the photo's edges, "
-                             f"moved {100 * reg.moved[0]:.2f} % of the diameter and {reg.moved[1]:.2f}°, "
-                             f"clicks' RMS {reg.rms_px:.2f} px")
-                elif reg.refused is not None:
-                    why = (f"it left the clicks {reg.refused.rms_px:.1f} px (RMS) off — the photo's print, not the "
-                           f"object's outline?" if a1 > a0 else f"the edges agreed no better ({a0:.0%} → {a1:.0%})")
-                    line += f"; the mesh's edges lie on the photo's for {a0:.0%} of their length; a refit to them not kept: {why}"
-                else:
-                    line += f"; the mesh's edges lie on the photo's for {a0:.0%} of their length (no refit possible)"
+            origin = ("solved from its points" if view.pose_from_points
+                      else found[view.index][1] if view.index in found else "given")
+            grey = cv2.cvtColor(photos[view.index], cv2.COLOR_BGR2GRAY)
+            pose, line, problem = _register_view(view, grey, mesh, args, origin)
+            if problem is not None:
+                problems[view.index] = problem
         print(line)
-        poses.append(reg.pose)
+        poses.append(pose)
         if overlay is not None:
             overlay.mkdir(parents=True, exist_ok=True)
             target = overlay / f"view-{view.index}.png"
             with atomic_path(target, "--overlay") as tmp:
-                if not cv2.imwrite(tmp, _draw(photo, view, edges3d, reg.pose)):
+                if not cv2.imwrite(tmp, _draw(photos[view.index], view, edges3d, pose)):
                     raise UserError(f"--overlay {target}: cannot write the image")
+    drawn = f" (each view drawn at its pose in {overlay})" if overlay is not None else ""
+    if problems:
+        lines = "\n".join(f"quatrack register: {problems[i]}" for i in sorted(problems))
+        print(lines, file=sys.stderr)
+        raise UserError(f"{len(problems)} of {len(views)} view(s) not registered{drawn}; {spec_path} not written over, "
+                        f"{out_path} not written")
     data = _rebased(raw, spec_path.resolve().parent, out_path.resolve().parent)
     for v, pose in zip(data["views"], poses):
-        if pose is not None:
-            v["pose"] = _pose_json(pose)
+        v["pose"] = _pose_json(pose)
     with atomic_path(out_path, "--out") as tmp:
         Path(tmp).write_text(json.dumps(data, indent=1) + "\n", encoding="utf-8")
-    shown = sum(p is not None for p in poses)
-    print(f"wrote {out_path}" + (f" and {shown} overlay image(s) in {overlay}" if overlay is not None else ""), end="")
-    if shown < len(poses):
-        left = [v.index for v, p in zip(views, poses) if p is None]
-        print(f"; view(s) {', '.join(map(str, left))} still have no pose: give them 'points' in {out_path} and "
-              f"register it again")
-        return 2
-    print(f"; train it with: quatrack train {out_path}")
+    print(f"wrote {out_path}{drawn}; train it with: quatrack train {out_path}")
     return 0

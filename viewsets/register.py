@@ -28,8 +28,9 @@ from quatrack.tracking.pose import Pose
 from .camera import isfinite
 from .errors import SpecError
 
-__all__ = ["AGREEMENT_SLACK", "MIN_POINTS", "PointPairs", "Registration", "click_limit_px", "max_rms_px", "parse_points",
-           "click_sigma", "pose_from_points", "refine_with_edges", "refined_view"]
+__all__ = ["AGREEMENT_SLACK", "MIN_POINTS", "PointPairs", "PointsMisfit", "Registration", "click_limit_px", "max_rms_px", "parse_points",
+           "click_sigma", "off_mesh_message", "points_off_mesh", "pose_from_points", "refine_with_edges",
+           "refined_view"]
 
 MIN_POINTS = 4  # PnP's unique pose needs 4 pairs (3 leave up to four poses)
 MAX_RMS_SHARE = 0.01  # of the photo's diagonal: the clicks' RMS a registration may have (6.4 px at 640 × 480)
@@ -161,10 +162,53 @@ def pose_from_points(pairs: PointPairs, camera: PinholeCamera, where: str = "vie
     reg = _registration(pairs, camera, pose)
     limit = max_rms_px(camera)
     if reg.rms_px > limit:
-        raise SpecError(f"{where}: the points do not fit one pose: RMS {reg.rms_px:.1f} px (at most {limit:.1f}); "
-                        f"point {reg.worst} lies {reg.worst_px:.0f} px from where the best pose puts it — "
-                        f"is it the right point of the mesh, and its pixel in this photo?")
+        raise PointsMisfit(f"{where}: the points do not fit one pose: RMS {reg.rms_px:.1f} px (at most {limit:.1f}); "
+                           f"{_culprit(pairs, camera, reg, limit)}", reg)
     return reg
+
+
+class PointsMisfit(SpecError):
+    """Clicks that fit no pose (:func:`pose_from_points`); ``registration`` is their best pose,
+    for a picture of where it puts them (``quatrack register --overlay``)."""
+
+    def __init__(self, message: str, registration: Registration):
+        super().__init__(message)
+        self.registration = registration
+
+
+def _solve(X: np.ndarray, uv: np.ndarray, camera: PinholeCamera) -> Pose | None:
+    try:
+        ok, rvec, tvec = cv2.solvePnP(X, uv, camera.matrix, np.asarray(camera.dist_coeffs, float), flags=cv2.SOLVEPNP_SQPNP)
+    except cv2.error:
+        return None
+    return Pose.from_matrix(cv2.Rodrigues(rvec)[0], tvec.ravel()) if ok and np.all(np.isfinite(tvec)) else None
+
+
+def _culprit(pairs: PointPairs, camera: PinholeCamera, reg: Registration, limit: float) -> str:
+    """Which click is wrong, said as surely as the clicks allow. With 5 or more, the one whose
+    removal lets the others fit (their RMS within ``limit``) — PnP's worst residual can be a right
+    click pulled aside by a wrong one; with 4, one wrong click cannot be told from the others
+    (the other 3 fit some pose whichever is left out)."""
+    n = len(pairs)
+    if n <= MIN_POINTS:
+        return (f"with {n} points one wrong click cannot be told from the others: check each (the right point of "
+                f"the mesh, its pixel in this photo), or add a point")
+    fits = []
+    for i in range(n):
+        keep = np.arange(n) != i
+        pose = _solve(pairs.model[keep], pairs.pixel[keep], camera)
+        if pose is None:
+            continue
+        others = PointPairs(pairs.model[keep], pairs.pixel[keep])
+        rms = float(np.sqrt(np.mean(_residuals(others, camera, pose) ** 2)))
+        fits.append((rms, i, float(_residuals(PointPairs(pairs.model[i:i + 1], pairs.pixel[i:i + 1]), camera, pose)[0])))
+    good = sorted(f for f in fits if f[0] <= limit)
+    if len(good) == 1 or (good and good[0][0] < 0.5 * good[1][0]):
+        rms, i, off = good[0]
+        return (f"point {i} lies {off:.0f} px from where the pose of the others puts it (they fit to {rms:.1f} px) — "
+                f"is it the right point of the mesh, and its pixel in this photo?")
+    return (f"no one point explains it (point {reg.worst} lies farthest, {reg.worst_px:.0f} px, from the best pose): "
+            f"are the model points in the mesh's units, and the pixels in this photo?")
 
 
 def click_limit_px(n: int, click_sigma_px: float) -> float:
@@ -229,6 +273,45 @@ def refine_with_edges(grey: np.ndarray, mesh, camera: PinholeCamera, reg: Regist
     return replace(refit, moved=(dc / float(mesh.extent), angle))
 
 
+OFF_MESH_SHARE = 0.05  # of the mesh's diameter: how far a clicked model point may lie from its surface
+
+
+def points_off_mesh(points: np.ndarray, mesh, share: float = OFF_MESH_SHARE) -> list[tuple[int, float]]:
+    """``(index, distance)`` of the model points farther than ``share`` × the diameter from the
+    mesh's surface (exact point–triangle distances, trimesh's). Why: a point given in other units
+    than the mesh (cm for a mesh in mm: 10× too near its origin) or of another object still fits
+    *some* pose — PnP cannot tell — but not one the photo shows (bench: the edges then agree 0 %).
+
+    >>> from quatrack.viewsets.mesh import make_mesh
+    >>> tri = make_mesh(np.array([[0., 0, 0], [10, 0, 0], [0, 10, 0]]), np.array([[0, 1, 2]]))
+    >>> points_off_mesh(np.array([[1., 1, 0], [1, 1, 3]]), tri)
+    [(1, 3.0)]
+    """
+    import trimesh
+
+    tris = mesh.triangles
+    limit = share * float(mesh.extent)
+    out = []
+    for i, p in enumerate(np.asarray(points, float)):
+        near = trimesh.triangles.closest_point(tris, np.repeat(p[None], len(tris), axis=0))
+        d = float(np.sqrt(((near - p) ** 2).sum(axis=1)).min())
+        if d > limit:
+            out.append((i, d))
+    return out
+
+
+def off_mesh_message(points: np.ndarray, mesh, where: str) -> str | None:
+    """:func:`points_off_mesh` said for a user (None when every point lies on the mesh)."""
+    off = points_off_mesh(points, mesh)
+    if not off:
+        return None
+    i, d = off[0]
+    span = " × ".join(f"{x:.3g}" for x in np.ptp(mesh.vertices, axis=0))
+    return (f"{where}: point {i}'s model coordinates lie {d:.3g} from the mesh's surface "
+            f"({len(off)} of {len(points)} points off it; the mesh spans {span}): are they in the mesh's units, "
+            f"on this object?")
+
+
 def refined_view(view, image: np.ndarray, mesh, click_sigma_px: float = 2.0):
     """A spec view whose pose was solved from its clicks (``view.pose_from_points``), with that
     pose refitted to the mesh's edges in its photo ``image`` (:func:`refine_with_edges`; ``mesh``'s
@@ -236,6 +319,8 @@ def refined_view(view, image: np.ndarray, mesh, click_sigma_px: float = 2.0):
     such a view, as ``quatrack register`` does, so the model learns from the better pose."""
     import cv2
 
+    if (msg := off_mesh_message(view.points.model, mesh, f"view {view.index}")) is not None:
+        raise SpecError(msg)
     grey = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
     reg = refine_with_edges(grey, mesh.run_time, view.camera, _registration(view.points, view.camera, view.pose),
                             view.points, click_sigma_px)

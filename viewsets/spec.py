@@ -24,7 +24,7 @@ from quatrack.tracking.pose import Pose
 from .camera import camera_from_dict, isfinite, load_camera
 from .errors import SpecError, StoreError
 from .names import check_object_name
-from .register import MIN_POINTS, PointPairs, max_rms_px, parse_points, pose_from_points
+from .register import MIN_POINTS, PointPairs, PointsMisfit, max_rms_px, parse_points, pose_from_points
 
 __all__ = ["ObjectSpec", "ViewSpec", "load_spec", "parse_pose"]
 
@@ -187,11 +187,13 @@ def _points_disagree(points: PointPairs, camera: PinholeCamera, pose: Pose) -> s
             f"the pose is used — drop it to solve the pose from the points")
 
 
-def load_spec(path: str | Path, warn=None, pose_required: bool = True) -> ObjectSpec:
+def load_spec(path: str | Path, warn=None, pose_required: bool = True, misfits: list | None = None) -> ObjectSpec:
     """Parse and check an object spec file; cameras given as paths are loaded too. ``warn``
     (optional) receives one message per object or view with fields the spec does not know.
     ``pose_required=False`` (``quatrack register --locate``) lets a view give neither ``pose`` nor
-    ``points``: its ``pose`` is None, for the caller to find."""
+    ``points``: its ``pose`` is None, for the caller to find. ``misfits`` (a list): a view whose
+    points fit no pose (:class:`~.register.PointsMisfit`) is appended to it as ``(index, error)``
+    and takes their best pose instead of ending the reading (``quatrack register`` draws it)."""
     path = Path(path)
     try:
         raw = path.read_bytes()
@@ -245,7 +247,13 @@ def load_spec(path: str | Path, warn=None, pose_required: bool = True) -> Object
         elif points is None:
             pose = None  # (pose_required=False: the caller finds it)
         else:
-            reg = pose_from_points(points, camera, where)
+            try:
+                reg = pose_from_points(points, camera, where)
+            except PointsMisfit as exc:
+                if misfits is None:
+                    raise
+                misfits.append((i, exc))
+                reg = exc.registration
             pose = reg.pose
             if warn:
                 warn(f"view {i}: pose solved from its {len(points)} points (RMS {reg.rms_px:.1f} px); "

@@ -131,7 +131,8 @@ def check_pose(mesh: Mesh, view: ViewSpec, buffers: RenderBuffers | None = None,
     pixels is refused, with the numbers (how much is inside, of how much)."""
     X = view.pose.apply(mesh.vertices)
     if np.any(X[:, 2] <= 0):
-        raise SpecError(f"view {view.index}: pose puts the object (partly) behind the camera (min z = {X[:, 2].min():.3g})")
+        raise SpecError(f"view {view.index}: pose puts the object (partly) behind the camera (min z = {X[:, 2].min():.3g}): "
+                        f"is the pose object → camera, and its t in the mesh's units?")
     buffers = buffers or render(mesh, view.camera, view.pose)
     seen = int(np.count_nonzero(buffers.face >= 0))
     if seen < min_pixels:
@@ -139,7 +140,8 @@ def check_pose(mesh: Mesh, view: ViewSpec, buffers: RenderBuffers | None = None,
         hull_area = cv2.contourArea(cv2.convexHull(uv))
         raise SpecError(
             f"view {view.index}: the object shows only {seen} pixels inside the image (of ~{hull_area:.0f} "
-            f"for its whole silhouette; at least {min_pixels} are needed to learn from): is the pose right?"
+            f"for its whole silhouette; at least {min_pixels} are needed to learn from): is the pose right "
+            f"(object → camera, its t in the mesh's units)?"
         )
     return buffers
 
