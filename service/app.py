@@ -127,6 +127,33 @@ async def _send_json(send, status: int, body: dict, headers: list | None = None)
     await send({"type": "http.response.body", "body": data})
 
 
+class HeadAsGet:
+    """``HEAD`` answered as ``GET`` without the body, on every path: the same status and headers
+    (``Content-Length`` the body's, ETag, security headers), so a monitor, a balancer or ``curl -I``
+    probing ``/viewer``, ``/docs`` or ``/metrics`` gets what GET gets; they answered 405 (only the
+    probes and Starlette's static files knew HEAD). What has no GET has no HEAD either (405 naming
+    the methods it has). The request log and metrics still say ``HEAD``; uvicorn, which sees
+    ``HEAD``, sends no body whatever the app passes on."""
+
+    def __init__(self, app) -> None:
+        self.app = app
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] != "http" or scope["method"] != "HEAD":
+            return await self.app(scope, receive, send)
+        inner = {**scope, "method": "GET"}
+
+        async def send_headers_only(msg):
+            if msg["type"] == "http.response.body":
+                msg = {**msg, "body": b""}
+            await send(msg)
+
+        try:
+            await self.app(inner, receive, send_headers_only)
+        finally:
+            scope.setdefault("route", inner.get("route"))  # the route matched, for the request log
+
+
 class SecurityHeaders:
     """``X-Content-Type-Options: nosniff`` on every answer (a JSON error echoing input is never
     sniffed as HTML), and on every HTML page (``/viewer``, ``/docs``, ``/redoc``) a refusal to be
@@ -302,6 +329,7 @@ def create_app(settings: Settings | None = None, whole_process: bool = False) ->
     app.include_router(sockets)
     app.include_router(viewer.router)  # /viewer page + GET /v1/objects/{name}/mesh (service/viewer.py)
     app.include_router(pose_all.router)  # POST /v1/pose: every trained object searched (service/pose_all.py)
+    app.add_middleware(HeadAsGet)  # innermost: HEAD reaches the routes as GET (their body dropped)
     app.add_middleware(BodyLimit, limit=settings.max_body_bytes)
     if settings.cors_origins:
         app.add_middleware(CORSMiddleware, allow_origins=list(settings.cors_origins), allow_methods=["GET", "POST"],
