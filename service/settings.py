@@ -11,6 +11,7 @@ processes through the same variables (:meth:`Settings.to_env`).
 from __future__ import annotations
 
 import os
+import threading
 from pathlib import Path
 from typing import Annotated
 
@@ -21,6 +22,12 @@ from quatrack.recognition.tracker.params import TrackerParams
 from quatrack.viewsets.store import resolve_store
 
 ENV_PREFIX = "QUATRACK_"
+# Bounds that are not the type's. Every float setting is also finite (``allow_inf_nan=False``):
+# ``QUATRACK_MAX_FPS=inf`` was accepted, and the token bucket then added ``0 × inf`` (NaN);
+# ``QUATRACK_MODEL_POLL_S=inf`` (or above ``threading.TIMEOUT_MAX``) killed the store's watcher
+# thread with an OverflowError at its first wait, after a clean start.
+SECRET_FIELDS = frozenset({"api_token"})  # never echoed in an error line
+MAX_SESSIONS = 10_000  # the slots are files: /metrics probes each of them at every scrape (70 ms for 10 000)
 
 
 def _cores() -> int:
@@ -62,19 +69,19 @@ class Settings(BaseSettings):
     thread_nice: int = Field(5, ge=0, le=19, description="nice value of those threads (Linux, per thread), "
                                                          "so that the event loop (probes, frames in, poses "
                                                          "out) gets a core first; 0: off")
-    switch_interval_ms: float = Field(1.0, gt=0, le=100, description="the interpreter's switch interval in worker "
+    switch_interval_ms: float = Field(1.0, gt=0, le=100, allow_inf_nan=False, description="the interpreter's switch interval in worker "
                                                                      "processes: how long a thread running Python keeps "
                                                                      "the lock while the event loop waits for it")
     max_body_bytes: int = Field(10 * 1024 * 1024, ge=1, description="largest REST body and WebSocket frame, bytes")
     max_image_pixels: int = Field(20_000_000, ge=1, description="larger images are refused before decoding (decompression bombs)")
     locate_max_pixels: int = Field(4_000_000, ge=1, description="larger images are downscaled for recognition")
     max_pending_requests: int = Field(8, ge=1, description="REST pose requests queued or running **per worker process**; then 503")
-    max_sessions: int = Field(4, ge=1, description="concurrent WebSocket sessions **for the whole server** (all workers); then 503 + Retry-After")
-    max_fps: float = Field(60.0, gt=0, description="frames a session may send per second (token bucket); above: dropped")
-    idle_timeout_s: float = Field(60.0, gt=0, description="a session with no message for this long is closed")
+    max_sessions: int = Field(4, ge=1, le=MAX_SESSIONS, description="concurrent WebSocket sessions **for the whole server** (all workers); then 503 + Retry-After")
+    max_fps: float = Field(60.0, gt=0, allow_inf_nan=False, description="frames a session may send per second (token bucket); above: dropped")
+    idle_timeout_s: float = Field(60.0, gt=0, allow_inf_nan=False, description="a session with no message for this long is closed")
     retry_after_s: int = Field(5, ge=0, description="`Retry-After` seconds sent with 503 answers")
     preload: bool = Field(True, description="load every model of the store at start-up (`/readyz` waits for it)")
-    model_poll_s: float = Field(2.0, ge=0, description="how often the store is checked for retrained, new and deleted models "
+    model_poll_s: float = Field(2.0, ge=0, le=threading.TIMEOUT_MAX, allow_inf_nan=False, description="how often the store is checked for retrained, new and deleted models "
                                                       "(new sessions get them; 0: never, `POST /v1/objects/{name}/reload` still works)")
     learn_views: Annotated[tuple[str, ...], NoDecode] = Field(
         (), description="comma-separated objects whose tracking sessions learn views of the sides their photos do not "
@@ -83,7 +90,7 @@ class Settings(BaseSettings):
         TrackerParams().sources,
         description="comma-separated measurement sources of the tracker (some of `trained`, `mesh`, `edges`, `contour`): "
                     "without `contour` (the outline by colour) a step costs about a fifth less and is less accurate")
-    relocate_interval_s: float = Field(0.0, ge=0, description="while a session's object is lost, search for it at "
+    relocate_interval_s: float = Field(0.0, ge=0, allow_inf_nan=False, description="while a session's object is lost, search for it at "
                                        "most once per this many seconds of the frames' time (0: every frame). A failed "
                                        "search costs 0.1-0.6 s of CPU, so a stream whose object is out of view holds a "
                                        "thread that the other sessions wait for; e.g. 0.25 frees most of it and finds "
@@ -129,6 +136,23 @@ class Settings(BaseSettings):
         # (on the field, so that the one-line error names QUATRACK_HOST or --host, not "settings")
         if not v.strip():
             raise ValueError("the address must not be blank")
+        return v
+
+    @field_validator("api_token", mode="after")
+    @classmethod
+    def _token_sendable(cls, v: str | None) -> str | None:
+        """Surrounding whitespace is removed (a secret file's line end, ``kubectl create secret
+        --from-file``): HTTP strips it from a header's value, so a token ending in ``\\n`` refused
+        every client. A token of whitespace only was accepted the same way, and one with a control
+        character inside (a line break) cannot be sent in a header at all: both are refused."""
+        if v is None:
+            return None
+        v = v.strip()
+        if not v:
+            raise ValueError("the token must not be blank (it is whitespace only)")
+        if any(ord(c) < 32 or ord(c) == 127 for c in v):
+            raise ValueError("the token has a control character (a line break?): "
+                             "an Authorization header cannot carry it")
         return v
 
     @field_validator("run_dir", mode="after")
@@ -204,10 +228,12 @@ def describe(exc: ValidationError, given: dict) -> str:
     """The first error of ``exc`` as one line: ``QUATRACK_PORT='x': Input should be ...``."""
     e = exc.errors()[0]
     field = str(e["loc"][0]) if e["loc"] else ""
+    secret = field in SECRET_FIELDS  # its value is not echoed: the error line goes to logs
     if field and field not in given and env_name(field) in os.environ:
-        where = f"environment variable {env_name(field)}={os.environ[env_name(field)]!r}"
+        value = "(hidden)" if secret else repr(os.environ[env_name(field)])
+        where = f"environment variable {env_name(field)}={value}"
     elif field:
-        where = f"{field}={given.get(field)!r}"
+        where = f"{field}={'(hidden)' if secret else repr(given.get(field))}"
     else:
         where = "settings"
     return f"{where}: {e['msg']}"

@@ -151,3 +151,89 @@ def test_every_option_with_a_default_has_help_that_tells_it():
         if not action.help or not any(t in action.help for t in told):
             missing.append(f"{command} {action.option_strings[-1]} (default {d!r})")
     assert not missing, missing
+
+
+_FLOATS = [name for name, f in Settings.model_fields.items() if f.annotation is float]
+
+
+@pytest.fixture
+def no_server(clean_env):
+    """A value wrongly accepted fails the test instead of starting a server that never returns
+    (and the variables ``serve`` exports for its workers are taken back)."""
+    import os
+
+    import uvicorn
+
+    def started(*args, **kwargs):
+        raise AssertionError("the settings were accepted: the server was started")
+
+    clean_env.setattr(uvicorn, "run", started)
+    before = dict(os.environ)
+    yield clean_env
+    os.environ.clear()
+    os.environ.update(before)
+
+
+@pytest.mark.parametrize("name", _FLOATS)
+@pytest.mark.parametrize("value", ["inf", "nan", "-inf", "Infinity"])
+def test_a_float_setting_must_be_finite(no_server, capsys, tmp_path, name, value):
+    """``QUATRACK_MAX_FPS=inf`` and ``QUATRACK_IDLE_TIMEOUT_S=inf`` started a server (whose token
+    bucket then computed ``0 × inf``); ``QUATRACK_MODEL_POLL_S=inf`` started one whose store
+    watcher died at its first wait (OverflowError). Refused at start, naming the variable."""
+    no_server.setenv(f"QUATRACK_{name.upper()}", value)
+    code, lines = _serve(capsys, tmp_path)
+    assert code == 2 and len(lines) == 1, lines
+    assert lines[0].startswith(f"quatrack serve: error: environment variable QUATRACK_{name.upper()}={value!r}: "), lines
+
+
+@pytest.mark.parametrize("env, why", [
+    ({"QUATRACK_MODEL_POLL_S": "1e10"}, "less than or equal to"),  # above threading.TIMEOUT_MAX: OverflowError in the watcher
+    ({"QUATRACK_MAX_SESSIONS": "1000000"}, "less than or equal to 10000"),  # a million slot files probed per /metrics
+    ({"QUATRACK_MAX_FPS": "0"}, "greater than 0"),
+    ({"QUATRACK_IDLE_TIMEOUT_S": "-1"}, "greater than 0"),
+])
+def test_a_setting_out_of_its_range_is_refused(no_server, capsys, tmp_path, env, why):
+    for key, value in env.items():
+        no_server.setenv(key, value)
+    code, lines = _serve(capsys, tmp_path)
+    assert code == 2 and len(lines) == 1 and why in lines[0], lines
+
+
+def test_large_finite_values_and_zero_where_it_means_off_are_kept(clean_env):
+    for key, value, field, expected in [("QUATRACK_MAX_FPS", "1e6", "max_fps", 1e6),
+                                        ("QUATRACK_IDLE_TIMEOUT_S", "86400", "idle_timeout_s", 86400.0),
+                                        ("QUATRACK_MODEL_POLL_S", "0", "model_poll_s", 0.0),
+                                        ("QUATRACK_MODEL_POLL_S", "3600", "model_poll_s", 3600.0),
+                                        ("QUATRACK_RELOCATE_INTERVAL_S", "0", "relocate_interval_s", 0.0),
+                                        ("QUATRACK_MAX_SESSIONS", "10000", "max_sessions", 10000)]:
+        clean_env.setenv(key, value)
+        assert getattr(Settings.from_env(), field) == expected, key
+        clean_env.delenv(key)
+
+
+@pytest.mark.parametrize("value, message", [
+    ("   ", "the token must not be blank"),
+    ("\t\n", "the token must not be blank"),
+    ("abc\ndef", "the token has a control character"),
+])
+def test_a_token_no_client_can_send_is_refused_without_echoing_it(no_server, capsys, tmp_path, value, message):
+    """A whitespace-only token started a server that refused every request (HTTP strips a
+    header's surrounding whitespace, so no client could send it). The error line, which goes to
+    logs, does not echo the token."""
+    no_server.setenv("QUATRACK_API_TOKEN", value)
+    code, lines = _serve(capsys, tmp_path)
+    assert code == 2 and len(lines) == 1, lines
+    assert lines[0].startswith("quatrack serve: error: environment variable QUATRACK_API_TOKEN=(hidden): ")
+    assert message in lines[0] and "def" not in lines[0], lines
+    with pytest.raises(ValueError, match="api_token=\\(hidden\\)"):
+        Settings.from_env(api_token=value)
+
+
+def test_a_token_s_surrounding_whitespace_is_removed(clean_env):
+    """A secret file's line end (``kubectl create secret --from-file``) made the token one no
+    client could match: the header's value arrives stripped. It is removed; what is inside stays."""
+    clean_env.setenv("QUATRACK_API_TOKEN", "  s3cret token\n")
+    s = Settings.from_env()
+    assert s.api_token == "s3cret token"
+    assert s.to_env()["QUATRACK_API_TOKEN"] == "s3cret token"  # what the worker processes get
+    assert Settings(api_token="s3cret").api_token == "s3cret"

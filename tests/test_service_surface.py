@@ -75,3 +75,10 @@ def test_head_over_uvicorn_sends_the_length_and_no_body(tmp_path):
     assert rest.endswith(b"\r\n\r\n"), head[-200:]  # nothing after the headers
     assert f"content-length: {len(body)}".encode() in rest.lower() and len(body) > 1000
 
+
+def test_a_token_read_with_its_line_end_is_the_token_clients_send(tmp_path):
+    """``QUATRACK_API_TOKEN`` from a secret file ending in a line break: every request was 401,
+    the header's value reaching the server without it."""
+    with TestClient(create_app(_settings(tmp_path, api_token="s3cret\n"))) as c:
+        assert c.get("/v1/objects", headers={"Authorization": "Bearer s3cret"}).status_code == 200
+        assert c.get("/v1/objects").status_code == 401
