@@ -27,12 +27,14 @@ from importlib.metadata import version
 import cv2
 from fastapi import FastAPI
 from fastapi.middleware.cors import CORSMiddleware
+from starlette.responses import JSONResponse
+from starlette.websockets import WebSocket
 
 from quatrack.recognition.runtime import compile_hot_loops, limit_blas_threads, tune_allocator
 
 from . import docs, errors, pose_all, viewer
 from .errors import ApiError, error_body
-from .logs import install_filters
+from .logs import install_filters, mark_refused
 from .metrics import Metrics, worker_exit
 from .placement import placement_of_running_loop, read_board
 from .registry import ModelRegistry
@@ -125,6 +127,48 @@ async def _send_json(send, status: int, body: dict, headers: list | None = None)
                 "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(data)).encode()),
                             *(headers or [])]})
     await send({"type": "http.response.body", "body": data})
+
+
+class AllowedHosts:
+    """Requests whose ``Host`` is not in ``QUATRACK_ALLOWED_HOSTS`` are refused, 400 ``invalid_host``
+    (a WebSocket's handshake too). Why: DNS rebinding — a page of an attacker's site whose name
+    is made to resolve to 127.0.0.1 is same-origin with a local server, and its requests carry
+    the attacker's name as ``Host``; without a token, that server is the page's. The probes
+    (:data:`PROBES`) answer whatever the ``Host``: a container's health check, a kubelet or a
+    balancer calls them by address and they hold nothing to steal."""
+
+    PROBES = frozenset({"/healthz", "/readyz"})
+
+    def __init__(self, app, hosts: tuple[str, ...]) -> None:
+        self.app, self.hosts = app, hosts
+        self.any = "*" in hosts
+        self.suffixes = tuple(h[1:] for h in hosts if h.startswith("*."))  # "*.example.org" -> ".example.org"
+
+    def allowed(self, host_header: str) -> bool:
+        host = host_header.strip().lower()
+        if host.startswith("["):  # [::1]:8000
+            host = host[1:host.find("]")] if "]" in host else ""
+        elif host.count(":") == 1:  # name:port (more colons: a bare IPv6 address)
+            host = host.split(":")[0]
+        host = host.rstrip(".")
+        return self.any or (bool(host) and (host in self.hosts or host.endswith(self.suffixes)))
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] not in ("http", "websocket") or scope["path"] in self.PROBES:
+            return await self.app(scope, receive, send)
+        host = dict(scope.get("headers") or []).get(b"host", b"").decode("latin-1")
+        if self.allowed(host):
+            return await self.app(scope, receive, send)
+        body = error_body("invalid_host", f"this server does not answer to the host {host[:80]!r} "
+                                          f"(QUATRACK_ALLOWED_HOSTS)")
+        if scope["type"] == "http":
+            return await _send_json(send, 400, body)
+        ws = WebSocket(scope, receive, send)
+        try:  # an HTTP answer to the handshake where the server supports it, as routes._deny
+            await ws.send_denial_response(JSONResponse(body, status_code=400))
+            mark_refused()
+        except RuntimeError:
+            await ws.close(1008)
 
 
 class HeadAsGet:
@@ -334,6 +378,8 @@ def create_app(settings: Settings | None = None, whole_process: bool = False) ->
     if settings.cors_origins:
         app.add_middleware(CORSMiddleware, allow_origins=list(settings.cors_origins), allow_methods=["GET", "POST"],
                            allow_headers=["Authorization", "Content-Type", "X-Request-ID"], expose_headers=["X-Request-ID"])
+    if settings.allowed_hosts:
+        app.add_middleware(AllowedHosts, hosts=settings.allowed_hosts)
     app.add_middleware(SecurityHeaders)
     app.add_middleware(RequestLog, metrics=metrics)
     app.state.settings = settings

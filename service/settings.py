@@ -62,6 +62,11 @@ class Settings(BaseSettings):
                                                      "and the viewer's page (`/viewer`)")
     cors_origins: Annotated[tuple[str, ...], NoDecode] = Field(
         (), description="comma-separated origins allowed by CORS, e.g. `https://example.org`; `*` allows any")
+    allowed_hosts: Annotated[tuple[str, ...], NoDecode] = Field(
+        (), description="comma-separated host names the server answers to (the request's `Host`, without its port), "
+                        "e.g. `localhost,127.0.0.1,::1`; `*.example.org`: its subdomains. Another `Host` is refused, "
+                        "400 `invalid_host`, except on `/healthz` and `/readyz` (DNS rebinding; see Security). "
+                        "Default: any")
     workers: int = Field(default_factory=_cores, ge=1, le=256,
                          description="worker processes, each with its own models and sessions (default: the number of cores)")
     threads: int | None = Field(None, ge=1, le=64, description="CPU threads per worker process doing recognition and "
@@ -98,7 +103,7 @@ class Settings(BaseSettings):
     run_dir: Path | None = Field(None, description="directory the worker processes share (session slots, Prometheus "
                                                     "multiprocess files); `quatrack serve` makes a fresh one and wipes it on start")
 
-    @field_validator("cors_origins", "learn_views", "tracker_sources", mode="before")
+    @field_validator("cors_origins", "learn_views", "tracker_sources", "allowed_hosts", mode="before")
     @classmethod
     def _split_origins(cls, v):
         if isinstance(v, str):
@@ -129,6 +134,22 @@ class Settings(BaseSettings):
         # error names QUATRACK_TRACKER_SOURCES, not "settings")
         TrackerParams(sources=v)
         return v
+
+    @field_validator("allowed_hosts", mode="after")
+    @classmethod
+    def _host_names(cls, v: tuple[str, ...]) -> tuple[str, ...]:
+        """Names as they are compared (lower case, an IPv6 address without brackets, no final
+        dot); a URL or a port is refused, naming the entry: ``Host`` is compared without its port."""
+        out = []
+        for entry in v:
+            name = entry.lower().rstrip(".")
+            if name.startswith("[") and name.endswith("]"):
+                name = name[1:-1]
+            if "/" in name or name.count(":") == 1 or not name:
+                raise ValueError(f"{entry!r} is not a host name (give names or addresses without a scheme or port, "
+                                 f"e.g. localhost,127.0.0.1)")
+            out.append(name)
+        return tuple(out)
 
     @field_validator("host", mode="after")
     @classmethod

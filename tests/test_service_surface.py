@@ -82,3 +82,68 @@ def test_a_token_read_with_its_line_end_is_the_token_clients_send(tmp_path):
     with TestClient(create_app(_settings(tmp_path, api_token="s3cret\n"))) as c:
         assert c.get("/v1/objects", headers={"Authorization": "Bearer s3cret"}).status_code == 200
         assert c.get("/v1/objects").status_code == 401
+
+
+# --- QUATRACK_ALLOWED_HOSTS ----------------------------------------------------------------------
+
+def test_without_allowed_hosts_any_host_is_answered(client):
+    """The default keeps every existing behaviour: whatever the ``Host``."""
+    for host in ("testserver", "127.0.0.1:8000", "attacker.example", "[::1]:8000"):
+        assert client.get("/v1/objects", headers={"Host": host}).status_code == 200, host
+
+
+@pytest.mark.parametrize("host, ok", [
+    ("localhost", True), ("LOCALHOST:8000", True), ("127.0.0.1:8000", True), ("[::1]:8000", True), ("::1", True),
+    ("localhost.", True), ("cam.lab.example.org", True), ("lab.example.org", False),
+    ("rebind.attacker.example", False), ("localhost.attacker.example", False), ("", False), ("[::1", False),
+])
+def test_allowed_hosts_refuse_another_host_with_the_contract_s_error(tmp_path, host, ok):
+    """DNS rebinding: a page of ``rebind.attacker.example`` (resolving to 127.0.0.1) reached a
+    local server without a token as its own origin. With ``QUATRACK_ALLOWED_HOSTS`` its ``Host``
+    is refused; the probes still answer (health checks call them by address)."""
+    settings = _settings(tmp_path, allowed_hosts="localhost, 127.0.0.1,[::1],*.lab.example.org")
+    with TestClient(create_app(settings)) as c:
+        r = c.get("/v1/objects", headers={"Host": host})
+        if ok:
+            assert r.status_code == 200, (host, r.text)
+        else:
+            assert r.status_code == 400 and r.json()["error"]["code"] == "invalid_host", (host, r.text)
+            assert "QUATRACK_ALLOWED_HOSTS" in r.json()["error"]["message"]
+            assert r.headers["x-content-type-options"] == "nosniff"
+        for probe in ("/healthz", "/readyz"):
+            assert c.get(probe, headers={"Host": host}).status_code == 200, (probe, host)
+
+
+def test_allowed_hosts_refuse_a_websocket_handshake(tmp_path):
+    from starlette.testclient import WebSocketDenialResponse
+
+    settings = _settings(tmp_path, allowed_hosts="localhost")
+    with TestClient(create_app(settings)) as c:
+        with pytest.raises(WebSocketDenialResponse) as refused:
+            with c.websocket_connect("/v1/objects/cookie-box/track", headers={"Host": "rebind.attacker.example"}):
+                pass
+        assert refused.value.status_code == 400 and refused.value.json()["error"]["code"] == "invalid_host"
+
+
+def test_allowed_hosts_over_uvicorn(tmp_path):
+    """On the wire (a real WebSocket handshake is answered 400 with the JSON error)."""
+    from websockets.exceptions import InvalidStatus
+    from websockets.sync.client import connect
+
+    with BackgroundServer(_settings(tmp_path, allowed_hosts="127.0.0.1")) as srv:
+        ok = _raw(srv.port, b"GET /v1/objects HTTP/1.1\r\nHost: 127.0.0.1:1\r\nConnection: close\r\n\r\n")
+        bad = _raw(srv.port, b"GET /v1/objects HTTP/1.1\r\nHost: rebind.attacker.example\r\nConnection: close\r\n\r\n")
+        assert ok.startswith(b"HTTP/1.1 200"), ok[:200]
+        assert bad.startswith(b"HTTP/1.1 400") and b'"invalid_host"' in bad, bad[:300]
+        with pytest.raises(InvalidStatus) as refused:
+            with connect(f"{srv.ws_url}/v1/objects/cookie-box/track", open_timeout=30,
+                         additional_headers={"Host": "rebind.attacker.example"}):
+                pass
+        assert refused.value.response.status_code == 400 and b"invalid_host" in refused.value.response.body
+
+
+@pytest.mark.parametrize("value", ["http://localhost", "localhost:8000", "a,,b/c"])
+def test_allowed_hosts_are_names_without_scheme_or_port(monkeypatch, value):
+    monkeypatch.setenv("QUATRACK_ALLOWED_HOSTS", value)
+    with pytest.raises(ValueError, match="^environment variable QUATRACK_ALLOWED_HOSTS=.*is not a host name"):
+        Settings.from_env()
