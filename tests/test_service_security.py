@@ -227,6 +227,31 @@ def test_nginx_passes_the_token_and_its_log_format_leaves_it_out(server, tmp_pat
     assert SECRET not in text, text
 
 
+@pytest.mark.skipif(__import__("quatrack.testing.balancer", fromlist=["find_nginx"]).find_nginx() is None,
+                    reason="nginx is not installed")
+def test_nginx_error_log_keeps_a_websocket_token_out(tmp_path):
+    """nginx's error log writes the request line, query included, when a replica cannot be
+    reached (down, restarting): a browser's ``?token=`` on the WebSocket went with it. The
+    WebSocket's location logs no errors; a REST request's failure is still logged."""
+    from websockets.exceptions import InvalidStatus
+    from websockets.sync.client import connect
+
+    from quatrack.testing import balancer
+    from quatrack.testing.loopback import free_port
+
+    dead = free_port()  # nothing listens there: every proxied request fails
+    with balancer.Nginx(tmp_path / "nginx", [dead]) as lb, httpx.Client(base_url=lb.url, timeout=60) as c:
+        for path in ("/v1/objects/cookie-box/track", "/v1/objects/cookie-box/track/", "/v1/objects/cookie-box/%74rack"):
+            with pytest.raises(InvalidStatus) as failed:
+                with connect(f"{lb.ws_url}{path}?token={SECRET}", open_timeout=30):
+                    pass
+            assert failed.value.response.status_code == 502, path
+        assert c.get("/v1/objects", params={"probe": "rest-request-logged"}).status_code == 502
+    log = lb.error_log.read_text()
+    assert "rest-request-logged" in log, log[-2000:]  # the error log is on and tells of the dead replica
+    assert SECRET not in log and "/track" not in log, log[-2000:]
+
+
 def test_the_image_gets_no_secrets_nor_history():
     """The Dockerfile copies the whole folder (COPY . /app) and there was no .dockerignore: a
     checkout's .env (QUATRACK_API_TOKEN=…), .git and .venv went into an image layer. It runs as
