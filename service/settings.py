@@ -135,6 +135,34 @@ class Settings(BaseSettings):
         TrackerParams(sources=v)
         return v
 
+    @field_validator("cors_origins", mode="after")
+    @classmethod
+    def _origins(cls, v: tuple[str, ...]) -> tuple[str, ...]:
+        """Origins as browsers send them (``Origin: https://example.org``, compared whole by the
+        CORS middleware and the WebSocket's origin check): ``https://example.org/`` (a trailing
+        slash, as copied from the address bar), ``https://Example.org`` or ``https://example.org:443``
+        never matched, silently; they are normalised. A name without a scheme or a URL with a path
+        matches nothing: refused, naming the entry. ``*`` and ``null`` stay as they are."""
+        from urllib.parse import urlsplit
+
+        out = []
+        for entry in v:
+            if entry in ("*", "null"):
+                out.append(entry)
+                continue
+            try:
+                u = urlsplit(entry)
+                port = u.port
+            except ValueError:
+                u, port = None, None
+            if u is None or not u.scheme or not u.hostname or u.path not in ("", "/") or u.query or u.fragment \
+                    or u.username is not None:
+                raise ValueError(f"{entry!r} is not an origin (scheme://host[:port], e.g. https://example.org)")
+            host = f"[{u.hostname}]" if ":" in u.hostname else u.hostname
+            default = {"http": 80, "https": 443}.get(u.scheme.lower())
+            out.append(f"{u.scheme.lower()}://{host}" + (f":{port}" if port is not None and port != default else ""))
+        return tuple(out)
+
     @field_validator("allowed_hosts", mode="after")
     @classmethod
     def _host_names(cls, v: tuple[str, ...]) -> tuple[str, ...]:

@@ -147,3 +147,28 @@ def test_allowed_hosts_are_names_without_scheme_or_port(monkeypatch, value):
     monkeypatch.setenv("QUATRACK_ALLOWED_HOSTS", value)
     with pytest.raises(ValueError, match="^environment variable QUATRACK_ALLOWED_HOSTS=.*is not a host name"):
         Settings.from_env()
+
+
+# --- QUATRACK_CORS_ORIGINS as operators write them -----------------------------------------------
+
+@pytest.mark.parametrize("written", ["https://app.example/", "https://App.Example", "https://app.example:443"])
+def test_an_origin_written_with_a_slash_case_or_default_port_still_matches(tmp_path, written):
+    """``QUATRACK_CORS_ORIGINS=https://app.example/`` (copied from the address bar) was compared
+    whole with the browser's ``Origin: https://app.example``: no CORS header, and the page's
+    WebSocket refused 403 ``forbidden_origin``, with nothing said at start."""
+    from starlette.testclient import WebSocketDenialResponse
+
+    origin = {"Origin": "https://app.example"}
+    with TestClient(create_app(_settings(tmp_path, cors_origins=written))) as c:
+        assert c.get("/healthz", headers=origin).headers.get("access-control-allow-origin") == "https://app.example"
+        with pytest.raises(WebSocketDenialResponse) as refused:  # past the origin check: the store is empty
+            with c.websocket_connect("/v1/objects/cookie-box/track", headers=origin):
+                pass
+        assert refused.value.json()["error"]["code"] == "unknown_object"
+
+
+@pytest.mark.parametrize("value", ["app.example", "https://app.example/page", "localhost:8080"])
+def test_an_entry_that_is_no_origin_is_refused(monkeypatch, value):
+    monkeypatch.setenv("QUATRACK_CORS_ORIGINS", value)
+    with pytest.raises(ValueError, match="^environment variable QUATRACK_CORS_ORIGINS=.*is not an origin"):
+        Settings.from_env()
