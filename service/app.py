@@ -237,7 +237,10 @@ class RequestLog:
         if scope["type"] != "http":
             return await self.app(scope, receive, send)
         given = dict(scope.get("headers") or []).get(b"x-request-id", b"").decode("latin-1")
-        rid = given if 0 < len(given) <= 64 and given.replace("-", "").isalnum() else uuid.uuid4().hex[:16]
+        # ASCII letters, digits and '-' only: str.isalnum() also passes '²' or 'ª' (the header's
+        # bytes read as latin-1), which were echoed UTF-8-encoded, other bytes than the client's
+        sane = 0 < len(given) <= 64 and given.isascii() and given.replace("-", "").isalnum()
+        rid = given if sane else uuid.uuid4().hex[:16]
         status = 500
         t0 = time.perf_counter()
 

@@ -172,3 +172,17 @@ def test_an_entry_that_is_no_origin_is_refused(monkeypatch, value):
     monkeypatch.setenv("QUATRACK_CORS_ORIGINS", value)
     with pytest.raises(ValueError, match="^environment variable QUATRACK_CORS_ORIGINS=.*is not an origin"):
         Settings.from_env()
+
+
+def test_a_request_id_is_echoed_only_when_it_is_ascii(tmp_path):
+    """``X-Request-ID: ²³`` (bytes B2 B3) passed the check (``str.isalnum``) and came back as
+    C2 B2 C2 B3: another id than the client's, in its answer and the log."""
+    with BackgroundServer(_settings(tmp_path)) as srv:
+        def rid(value: bytes) -> bytes:
+            answer = _raw(srv.port, b"GET /healthz HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n"
+                                    b"X-Request-ID: " + value + b"\r\n\r\n")
+            return next(line.split(b": ", 1)[1] for line in answer.split(b"\r\n") if line.lower().startswith(b"x-request-id:"))
+
+        assert rid(b"abc-123") == b"abc-123"
+        fresh = rid(b"\xb2\xb3")
+        assert fresh.isascii() and fresh.isalnum() and len(fresh) == 16, fresh
