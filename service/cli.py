@@ -62,6 +62,23 @@ def check_address(host: str, port: int) -> None:
             raise ValueError(f"--host {host} --port {port}: cannot listen there: {exc.strerror or exc}{hint}") from None
 
 
+def exposed_without_token(host: str, token: str | None) -> str | None:
+    """The warning for a server that listens beyond this machine without a token, else None:
+    every endpoint (the objects, pose, tracking sessions, reload, metrics) is then open to
+    whoever reaches the port. Loopback addresses and ``localhost`` are quiet."""
+    import ipaddress
+
+    if token is not None or host.strip().lower() == "localhost":
+        return None
+    try:
+        if ipaddress.ip_address(host.strip().strip("[]")).is_loopback:
+            return None
+    except ValueError:
+        pass  # a name other than localhost: it resolves to an address others may reach
+    return (f"listening on {host} without a token: anyone who can reach the port may use every endpoint "
+            f"(set QUATRACK_API_TOKEN, or listen on 127.0.0.1)")
+
+
 def run_serve(args: argparse.Namespace) -> int:
     import os
     import shutil
@@ -86,6 +103,9 @@ def run_serve(args: argparse.Namespace) -> int:
     if settings.store.exists() and not settings.store.is_dir():
         raise ValueError(f"--store {settings.store}: not a directory")
     check_address(settings.host, settings.port)
+    exposed = exposed_without_token(settings.host, settings.api_token)
+    if exposed:
+        print(f"quatrack serve: warning: {exposed}", file=sys.stderr, flush=True)
     from .workers import prepare_run_dir
 
     settings, run_dir, made = prepare_run_dir(settings)  # before uvicorn (and prometheus-client) start

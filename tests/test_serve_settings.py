@@ -237,3 +237,28 @@ def test_a_token_s_surrounding_whitespace_is_removed(clean_env):
     assert s.api_token == "s3cret token"
     assert s.to_env()["QUATRACK_API_TOKEN"] == "s3cret token"  # what the worker processes get
     assert Settings(api_token="s3cret").api_token == "s3cret"
+
+
+@pytest.mark.parametrize("host, token, warned", [
+    ("0.0.0.0", None, True), ("::", None, True), ("192.168.1.20", None, True), ("0.0.0.0", "s3cret", False),
+    ("127.0.0.1", None, False), ("127.0.0.2", None, False), ("::1", None, False), ("localhost", None, False),
+])
+def test_listening_beyond_loopback_without_a_token_is_warned_of(no_server, capsys, tmp_path, host, token, warned):
+    """``--host 0.0.0.0`` (the image's default) without ``QUATRACK_API_TOKEN`` started in silence,
+    every endpoint open to the network. The server still starts."""
+    import uvicorn
+
+    from quatrack.service.cli import exposed_without_token
+
+    assert (exposed_without_token(host, token) is not None) == warned
+    if host in ("0.0.0.0", "127.0.0.1"):  # addresses this machine surely has: through `quatrack serve`
+        from quatrack.testing.loopback import free_port
+
+        started = []
+        no_server.setattr(uvicorn, "run", lambda *a, **k: started.append(k["host"]))
+        if token:
+            no_server.setenv("QUATRACK_API_TOKEN", token)
+        code = main(["serve", "--store", str(tmp_path), "--host", host, "--port", str(free_port()), "--workers", "1"])
+        err = capsys.readouterr().err
+        assert code == 0 and started == [host], err
+        assert ("quatrack serve: warning: listening on 0.0.0.0 without a token" in err) == warned, err
