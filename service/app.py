@@ -27,18 +27,18 @@ from importlib.metadata import version
 import cv2
 from fastapi import FastAPI
 from fastapi.middleware.cors import CORSMiddleware
-from starlette.responses import JSONResponse
 from starlette.websockets import WebSocket
 
 from quatrack.recognition.runtime import compile_hot_loops, limit_blas_threads, tune_allocator
 
 from . import docs, errors, pose_all, viewer
 from .errors import ApiError, error_body
-from .logs import install_filters, mark_refused
+from .logs import install_filters
 from .metrics import Metrics, worker_exit
 from .placement import placement_of_running_loop, read_board
 from .registry import ModelRegistry
 from .routes import ServiceState, api, health, ops, sockets
+from .routes import _deny as deny_websocket
 from .settings import Settings
 from .workers import ReadyBoard, count_open, ready_board, session_limiter
 
@@ -159,16 +159,12 @@ class AllowedHosts:
         host = dict(scope.get("headers") or []).get(b"host", b"").decode("latin-1")
         if self.allowed(host):
             return await self.app(scope, receive, send)
-        body = error_body("invalid_host", f"this server does not answer to the host {host[:80]!r} "
-                                          f"(QUATRACK_ALLOWED_HOSTS)")
+        message = f"this server does not answer to the host {host[:80]!r} (QUATRACK_ALLOWED_HOSTS)"
         if scope["type"] == "http":
-            return await _send_json(send, 400, body)
-        ws = WebSocket(scope, receive, send)
-        try:  # an HTTP answer to the handshake where the server supports it, as routes._deny
-            await ws.send_denial_response(JSONResponse(body, status_code=400))
-            mark_refused()
-        except RuntimeError:
-            await ws.close(1008)
+            return await _send_json(send, 400, error_body("invalid_host", message))
+        # as the routes refuse a handshake: an HTTP answer where the server supports it, logged,
+        # counted in quatrack_ws_refused_total
+        await deny_websocket(WebSocket(scope, receive, send), 400, "invalid_host", message, 1008)
 
 
 class HeadAsGet:

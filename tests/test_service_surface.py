@@ -123,6 +123,7 @@ def test_allowed_hosts_refuse_a_websocket_handshake(tmp_path):
             with c.websocket_connect("/v1/objects/cookie-box/track", headers={"Host": "rebind.attacker.example"}):
                 pass
         assert refused.value.status_code == 400 and refused.value.json()["error"]["code"] == "invalid_host"
+        assert 'quatrack_ws_refused_total{code="invalid_host"} 1.0' in c.get("/metrics", headers={"Host": "localhost"}).text
 
 
 def test_allowed_hosts_over_uvicorn(tmp_path):
