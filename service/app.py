@@ -11,6 +11,7 @@ SIGTERM is uvicorn's WebSocket protocol's business (``shutdown.py``, given as ``
 from __future__ import annotations
 
 import asyncio
+import functools
 import json
 import logging
 import os
@@ -319,12 +320,9 @@ def create_app(settings: Settings | None = None, whole_process: bool = False) ->
     # default, several times per request): ask them to hand it over sooner.
     sys.setswitchinterval(settings.switch_interval_ms / 1e3)
     sessions = session_limiter(settings)  # shared by all worker processes when run_dir is set
-    per_worker = None
+    per_worker = None  # with several workers: each live one's sessions, from the placement board (service/placement.py)
     if settings.run_dir is not None and settings.workers > 1:
-        board_dir = Path(settings.run_dir) / "placement"
-
-        def per_worker():  # each live worker's sessions, from the placement board (service/placement.py)
-            return read_board(board_dir)
+        per_worker = functools.partial(read_board, Path(settings.run_dir) / "placement")
     metrics = Metrics(lambda: count_open(sessions), per_worker)
 
     @asynccontextmanager
