@@ -185,7 +185,8 @@ class Settings(BaseSettings):
         # (on the field, so that the one-line error names QUATRACK_HOST or --host, not "settings")
         if not v.strip():
             raise ValueError("the address must not be blank")
-        return v
+        # an IPv6 address as URLs write it ([::1]): uvicorn and getaddrinfo want it bare ("cannot resolve it")
+        return v[1:-1] if v.startswith("[") and v.endswith("]") else v
 
     @field_validator("api_token", mode="after")
     @classmethod

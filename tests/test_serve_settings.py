@@ -262,3 +262,11 @@ def test_listening_beyond_loopback_without_a_token_is_warned_of(no_server, capsy
         err = capsys.readouterr().err
         assert code == 0 and started == [host], err
         assert ("quatrack serve: warning: listening on 0.0.0.0 without a token" in err) == warned, err
+
+
+def test_an_ipv6_host_written_as_in_a_url_is_taken_bare(clean_env):
+    """``--host [::1]`` (as in ``http://[::1]:8000``) was ``cannot resolve it``."""
+    assert Settings.from_env(host="[::1]").host == "::1"
+    clean_env.setenv("QUATRACK_HOST", "[::]")
+    assert Settings.from_env().host == "::"
+    assert Settings.from_env(host="127.0.0.1").host == "127.0.0.1"
