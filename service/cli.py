@@ -102,6 +102,9 @@ def run_serve(args: argparse.Namespace) -> int:
         raise ValueError(text) from None
     if settings.store.exists() and not settings.store.is_dir():
         raise ValueError(f"--store {settings.store}: not a directory")
+    if not settings.store.exists():  # (a typo in --store or QUATRACK_STORE: ready, with no object, in silence)
+        print(f"quatrack serve: warning: the store {settings.store} does not exist: no object to serve until "
+              f"one is trained into it (quatrack train --store {settings.store} ...)", file=sys.stderr, flush=True)
     check_address(settings.host, settings.port)
     exposed = exposed_without_token(settings.host, settings.api_token)
     if exposed:

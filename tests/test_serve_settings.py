@@ -270,3 +270,18 @@ def test_an_ipv6_host_written_as_in_a_url_is_taken_bare(clean_env):
     clean_env.setenv("QUATRACK_HOST", "[::]")
     assert Settings.from_env().host == "::"
     assert Settings.from_env(host="127.0.0.1").host == "127.0.0.1"
+
+
+def test_a_store_that_does_not_exist_is_warned_of(no_server, capsys, tmp_path):
+    """``--store /data/modles`` (a typo) started a server ready with no object, in silence; it
+    still starts (a store trained into later is picked up), with a warning."""
+    import uvicorn
+
+    from quatrack.testing.loopback import free_port
+
+    no_server.setattr(uvicorn, "run", lambda *a, **k: None)
+    for store, warned in ((tmp_path / "modles", True), (tmp_path, False)):
+        code = main(["serve", "--store", str(store), "--port", str(free_port()), "--workers", "1"])
+        err = capsys.readouterr().err
+        assert code == 0, err
+        assert (f"quatrack serve: warning: the store {store} does not exist" in err) == warned, err
