@@ -280,7 +280,7 @@ def zoo_scenes(models: dict, scenes_per_model: int, seed: int, progress: bool = 
     cam = Z.zoo_camera()
     bgs = Z.real_backgrounds() if bgs is None else bgs
     rng = np.random.default_rng(seed) if rng is None else rng
-    cv2.setRNGSeed(seed)  # OpenCV's RANSAC and FLANN draw from it
+    cv2.setRNGSeed(seed)  # (kept for any OpenCV draw; RANSAC seeds its own RNG per call, FLANN its forest in its thread)
     for key, (model, train_poses) in tqdm(models.items(), desc="zoo scenes", disable=not progress, unit="model"):
         name, views, grey = key
         obj = Z.textured(name)

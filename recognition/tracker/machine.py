@@ -64,7 +64,7 @@ from quatrack.viewsets.learn import is_new_direction, learned_viewset, with_lear
 from quatrack.viewsets.store import ObjectModel
 from quatrack.viewsets.viewset import Viewset, params_from_manifest
 
-from ..images import MIN_SIDE, ImageError, to_bgr8
+from ..images import MIN_SIDE, ImageError, to_bgr8, too_small
 from ..klt import Frame, make_frame
 from ..locate import check_inputs, locate
 from ..match import ModelIndex, index_for
@@ -280,7 +280,7 @@ class Tracker:
         if min(h, w) < MIN_SIDE:
             # (as locate's: the frame was refused only when recognition ran — a frame after
             # init_pose, or while tracking, went through KLT and the sources on 1 × N pixels)
-            raise ImageError(f"the image is too small ({w}×{h} px; at least {MIN_SIDE} px a side)")
+            raise ImageError(too_small(w, h))
         if cam.width is None or cam.height is None:
             self.camera = cam = replace(cam, width=w, height=h)
         state = self.filter.state
