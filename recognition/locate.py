@@ -23,6 +23,7 @@ from quatrack.viewsets.features import Features
 from quatrack.viewsets.store import ObjectModel
 
 from .appearance import texture_agreement
+from .fields import check_field_kinds
 from .images import DEFAULT_MAX_PIXELS, prepare_image
 from .window_search import Window, WindowSearchParams, search_window
 from .match import ModelIndex, index_for, rank_viewsets
@@ -85,6 +86,7 @@ class LocateParams:
         v = self.max_pixels
         if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)) or v < 1:
             raise ValueError(f"max_pixels must be a whole number of pixels, at least 1, got {v!r}"[:120])
+        check_field_kinds(self, {"WindowSearchParams": WindowSearchParams, "PoseParams": PoseParams})
 
 
 @dataclass

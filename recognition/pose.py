@@ -28,11 +28,15 @@ from quatrack.viewsets.render import render
 
 from .evidence import (EdgeEvidence, EdgeFit, EdgeParams, edge_fit, inlier_spread, measure_edges, pose_sd_ratio,
                        pose_shift, silhouette_inside)
+from .fields import check_field_kinds
 
 
 @dataclass(frozen=True)
 class PoseParams:
     """RANSAC and verification thresholds (pixels of the query image)."""
+
+    def __post_init__(self) -> None:  # (ransac_px="6" failed inside OpenCV: recognition.fields)
+        check_field_kinds(self, {"EdgeParams": EdgeParams})
 
     ransac_px: float = 6.0
     # RANSAC's draws at most (it stops sooner once a consensus makes ransac_confidence sure): 300

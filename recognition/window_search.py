@@ -45,6 +45,8 @@ from quatrack.tracking.jit import lazily_compiled
 from quatrack.viewsets.rfch import RFCHModel, descriptor_planes, nearest_centres, neighbour_planes
 from quatrack.viewsets.store import ObjectModel
 
+from .fields import check_field_kinds
+
 
 @dataclass(frozen=True)
 class WindowSearchParams:
@@ -54,6 +56,9 @@ class WindowSearchParams:
     which a pixel stays unlabelled; window sides span ``size_factors`` × the training sizes seen
     through the query camera, ``n_sizes`` of them at each of ``aspects``; ``ring``: the surround's
     width as a fraction of the window; ``max_chi2`` gates a detection."""
+
+    def __post_init__(self) -> None:  # (cell=8.5 or a string failed deep in the window search: recognition.fields)
+        check_field_kinds(self)
 
     label_side: int = 320
     cell: int = 8

@@ -9,14 +9,15 @@ a die or a car, gives the same track up to the unit (tests/test_tracker_units.py
 from __future__ import annotations
 
 import types
-from collections.abc import Iterable, Mapping
-from dataclasses import dataclass, field, fields, replace
+from collections.abc import Mapping
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from quatrack.tracking.adjust import AdjustOptions
 from quatrack.tracking.pose import Pose
 
+from ..fields import check_field_kinds, is_number
 from ..klt import KLTParams
 from ..locate import LocateParams
 from ..pose import PoseParams, value_key
@@ -58,9 +59,6 @@ def motion_noise(motion_model: str, diameter: float, overrides: dict | None = No
     return out
 
 
-def _number(value) -> bool:
-    """A real number, not a bool or a string (np.isfinite raised a TypeError naming no field)."""
-    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
 
 
 class _defaults_on_class:
@@ -360,7 +358,7 @@ class TrackerParams:
         if bad or not self.sources:
             raise ValueError(f"unknown measurement source(s) {sorted(bad)}; expected some of 'trained', 'mesh', "
                              "'edges', 'contour'")
-        if self.relocate_interval_s is not None and not (_number(self.relocate_interval_s)
+        if self.relocate_interval_s is not None and not (is_number(self.relocate_interval_s)
                                                           and np.isfinite(self.relocate_interval_s)
                                                           and self.relocate_interval_s >= 0):
             raise ValueError(f"relocate_interval_s must be None or a number of seconds >= 0, "
@@ -372,7 +370,7 @@ class TrackerParams:
         for key, value in self.motion_noise.items():
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not (np.isfinite(value) and value >= 0):
                 raise ValueError(f"motion_noise[{key!r}] must be a finite number >= 0, not {value!r}")
-        if not (_number(self.sigma_px) and np.isfinite(self.sigma_px) and self.sigma_px > 0):
+        if not (is_number(self.sigma_px) and np.isfinite(self.sigma_px) and self.sigma_px > 0):
             raise ValueError(f"sigma_px must be a number of pixels above 0, not {self.sigma_px!r}")
         for name in ("max_points", "min_points", "min_inliers"):
             if int(getattr(self, name)) < 1:
@@ -389,24 +387,7 @@ class TrackerParams:
         if not isinstance(self.motion_noise, Mapping):
             raise ValueError(f"motion_noise must be a dict of noise parameters (mesh units), "
                              f"not {type(self.motion_noise).__name__}")
-        for f in fields(self):
-            kind, value = f.type, getattr(self, f.name)
-            if value is None and kind.endswith("| None"):
-                continue
-            kind = kind.removesuffix(" | None")
-            if kind == "int":
-                if not (_number(value) and np.isfinite(value) and float(value).is_integer() and value >= 0):
-                    raise ValueError(f"{f.name} must be a whole number >= 0, not {value!r}"[:120])
-                object.__setattr__(self, f.name, int(value))  # (150.0, numpy's ints: Python's int)
-            elif kind == "float":
-                if not (_number(value) and np.isfinite(value)):
-                    raise ValueError(f"{f.name} must be a finite number, not {value!r}"[:120])
-            elif kind == "tuple[float, ...]":
-                if isinstance(value, (str, bytes)) or not isinstance(value, Iterable) \
-                        or not all(_number(v) and np.isfinite(v) for v in value):
-                    raise ValueError(f"{f.name} must be a tuple of numbers, e.g. (20.0,), not {value!r}"[:120])
-            elif kind in _SETTINGS and not isinstance(value, _SETTINGS[kind]):
-                raise TypeError(f"{f.name}: a {kind}, got {type(value).__name__}")
+        check_field_kinds(self, _SETTINGS)
 
     def motion_noise_params(self, diameter: float) -> dict[str, float]:
         """The motion model's noise parameters (mesh units) for an object of this diameter."""
