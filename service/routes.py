@@ -101,12 +101,6 @@ async def readyz(state: State):
     return JSONResponse(body.model_dump(), status_code=200 if body.ready else 503)
 
 
-# HEAD too (monitors and load balancers often probe with it; GET-only routes answered 405), left
-# out of the OpenAPI schema: one operation per path there (two methods gave one duplicate id)
-for _path, _probe in (("/healthz", healthz), ("/readyz", readyz)):
-    health.add_api_route(_path, _probe, methods=["HEAD"], include_in_schema=False)
-
-
 @ops.get("/metrics", response_class=PlainTextResponse, summary="Prometheus metrics (text format 0.0.4)")
 def metrics(state: State) -> PlainTextResponse:
     """A plain ``def``: FastAPI runs it in a thread. Rendering merges every worker's sample files

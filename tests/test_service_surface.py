@@ -48,6 +48,20 @@ def test_head_of_what_has_no_get_is_still_refused(client):
         assert head.content == b"" and head.headers.get("allow") == get.headers.get("allow")
 
 
+def test_the_probes_answer_head_through_the_middleware_ready_or_not(client):
+    """The probes have no HEAD routes of their own any more (``HeadAsGet`` answers HEAD for every
+    GET route): ``/readyz`` not ready is 503 to HEAD as to GET, with the same headers, no body."""
+    state = client.app.state.quatrack
+    state.registry.ready = False
+    try:
+        get, head = client.get("/readyz"), client.head("/readyz")
+    finally:
+        state.registry.ready = True
+    assert head.status_code == get.status_code == 503 and head.content == b""
+    assert head.headers["content-length"] == get.headers["content-length"] != "0"
+    assert client.head("/healthz").status_code == 200
+
+
 def test_head_is_logged_and_counted_as_head(client):
     assert client.head("/viewer/").status_code == 200
     metrics = client.get("/metrics").text
