@@ -38,8 +38,7 @@ from .logs import install_filters
 from .metrics import Metrics, worker_exit
 from .placement import placement_of_running_loop, read_board
 from .registry import ModelRegistry
-from .routes import ServiceState, api, health, ops, sockets
-from .routes import _deny as deny_websocket
+from .routes import ServiceState, api, deny_websocket, health, ops, sockets
 from .settings import Settings
 from .workers import ReadyBoard, count_open, ready_board, session_limiter
 

@@ -363,24 +363,24 @@ async def track(websocket: WebSocket, name: str) -> None:
         token = auth[7:].strip()
     token = token or websocket.query_params.get("token")
     if not _token_ok(state.settings.api_token, token):
-        return await _deny(websocket, 401, "unauthorized", "a valid bearer token is required (the Authorization header, or the query parameter token)", 1008)
+        return await deny_websocket(websocket, 401, "unauthorized", "a valid bearer token is required (the Authorization header, or the query parameter token)", 1008)
     if not origin_allowed(state.settings, websocket.headers):
-        return await _deny(websocket, 403, "forbidden_origin",
+        return await deny_websocket(websocket, 403, "forbidden_origin",
                            "a page of another site may not open this server's WebSocket (its origin is not "
                            "this server's; allow it with QUATRACK_CORS_ORIGINS, or set QUATRACK_API_TOKEN)", 1008)
     try:
         state.registry.check_name(name)
     except ApiError as exc:
-        return await _deny(websocket, exc.status_code, exc.code, exc.message, 1008)
+        return await deny_websocket(websocket, exc.status_code, exc.code, exc.message, 1008)
     if not state.registry.is_known(name):
-        return await _deny(websocket, 404, "unknown_object", f"no object named {name!r} in the store", 1008)
+        return await deny_websocket(websocket, 404, "unknown_object", f"no object named {name!r} in the store", 1008)
     try:
         unit = ros.ros_unit(websocket.query_params)  # ?format=ros&mesh_unit=cm
     except ApiError as exc:
-        return await _deny(websocket, exc.status_code, exc.code, exc.message, 1008)
+        return await deny_websocket(websocket, exc.status_code, exc.code, exc.message, 1008)
     sid = state.sessions.try_open()
     if sid is None:
-        return await _deny(websocket, 503, "too_many_sessions",
+        return await deny_websocket(websocket, 503, "too_many_sessions",
                            f"{state.settings.max_sessions} tracking sessions are open; retry later", 1013,
                            {"Retry-After": str(state.settings.retry_after_s)})
     m = state.metrics
@@ -389,7 +389,7 @@ async def track(websocket: WebSocket, name: str) -> None:
         try:  # the session keeps this model to its end, whatever a retraining does meanwhile
             model = await asyncio.get_running_loop().run_in_executor(state.executor, state.registry.get, name)
         except ApiError as exc:  # e.g. a corrupt model: 503 naming the object
-            return await _deny(websocket, exc.status_code, exc.code, exc.message, 1011)
+            return await deny_websocket(websocket, exc.status_code, exc.code, exc.message, 1011)
         try:
             await websocket.accept()
         except OSError:  # (uvicorn's ClientDisconnected) the client gave up while the model loaded: no
@@ -403,10 +403,15 @@ async def track(websocket: WebSocket, name: str) -> None:
         m.sessions.labels(outcome).inc()
 
 
-async def _deny(ws: WebSocket, status: int, code: str, message: str, close_code: int, headers=None) -> None:
+async def deny_websocket(ws: WebSocket, status: int, code: str, message: str, close_code: int, headers=None) -> None:
     """Refuse a WebSocket with an HTTP error response where the server supports it, else accept,
     send the error message and close (1008 policy / 1013 try again later). Logged at info level
-    with the reason: a refusal is the service working, not an error (see ``logs.mark_refused``)."""
+    with the reason: a refusal is the service working, not an error (see ``logs.mark_refused``),
+    and counted in ``quatrack_ws_refused_total{code}``.
+
+    Public because every refusal of a handshake goes through it, the routes' and the app's
+    middleware's (``app.AllowedHosts``: a ``Host`` not allowed): one log line, one metric, one
+    answer format, wherever the refusal is decided."""
     log.info("websocket refused", extra={"status": status, "code": code, "reason": message, "path": ws.url.path})
     get_ws_state(ws).metrics.ws_refused.labels(code).inc()
     try:
