@@ -71,11 +71,23 @@ def _token_ok(expected: str | None, given: str | None) -> bool:
     return expected is None or (given is not None and hmac.compare_digest(given.encode(), expected.encode()))
 
 
+def bearer_token(authorization: str | None) -> str | None:
+    """The token of an ``Authorization: Bearer <token>`` header (the scheme in any case, blanks
+    around the token ignored), else None. The one rule of the REST endpoints and the WebSocket:
+    REST took HTTPBearer's reading, which keeps the blanks (``Bearer  tok``, two spaces, or a
+    trailing blank was 401), while the WebSocket stripped them and accepted the same header."""
+    scheme, _, token = (authorization or "").strip().partition(" ")
+    return (token.strip() or None) if scheme.lower() == "bearer" else None
+
+
 def require_token(
     state: Annotated[ServiceState, Depends(get_state)],
-    creds: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
+    request: Request,
+    _scheme: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
 ) -> None:
-    if not _token_ok(state.settings.api_token, creds.credentials if creds else None):
+    """``_scheme`` only declares the bearer scheme in the OpenAPI description (the docs' Authorize
+    button); the header is read by :func:`bearer_token`, as the WebSocket reads it."""
+    if not _token_ok(state.settings.api_token, bearer_token(request.headers.get("authorization"))):
         raise ApiError(401, "unauthorized", "a valid bearer token is required", {"WWW-Authenticate": "Bearer"})
 
 
@@ -357,11 +369,7 @@ def origin_allowed(settings: Settings, headers) -> bool:
 async def track(websocket: WebSocket, name: str) -> None:
     """Camera JSON first, then binary frames; one JSON message per frame (see the README)."""
     state = get_ws_state(websocket)
-    token = None
-    auth = websocket.headers.get("authorization", "")
-    if auth.lower().startswith("bearer "):
-        token = auth[7:].strip()
-    token = token or websocket.query_params.get("token")
+    token = bearer_token(websocket.headers.get("authorization")) or websocket.query_params.get("token")
     if not _token_ok(state.settings.api_token, token):
         return await deny_websocket(websocket, 401, "unauthorized", "a valid bearer token is required (the Authorization header, or the query parameter token)", 1008)
     if not origin_allowed(state.settings, websocket.headers):
