@@ -1,7 +1,9 @@
 """The browser viewer (``GET /viewer``) and the object wireframe it draws (``GET /v1/objects/{name}/mesh``).
 
 The page is plain HTML + one small script, served from ``service/static/`` (package data; no
-build step, no CDN, so it works on a machine without internet). It streams the browser's
+build step, no CDN, so it works on a machine without internet). Its URLs are relative (the
+script finds the service's root from its own URL), so it works behind a proxy that serves the
+service under a path prefix. It streams the browser's
 webcam or a dropped video file over the existing WebSocket ``/v1/objects/{name}/track`` and
 draws each answer. The page itself is open (it holds no data); the mesh and the socket need the
 token when the server has one, which the page sends from its token field.
@@ -49,7 +51,12 @@ mesh_api = APIRouter(prefix="/v1", tags=["objects"], dependencies=[Depends(requi
 
 @viewer.get("/viewer")
 async def viewer_page() -> RedirectResponse:
-    return RedirectResponse("/viewer/")
+    """307 to ``viewer/``, a Location relative to ``…/viewer``: behind a proxy serving the service
+    under a path prefix it lands on ``/prefix/viewer/`` (``/viewer/`` left the prefix). Not the
+    page itself: its script and style are relative to it (for the same proxies), which resolve to
+    ``/viewer/…`` only from ``/viewer/``; a ``<base>`` would fix the other one, and its CSP
+    (``base-uri 'none'``) refuses any."""
+    return RedirectResponse("viewer/")
 
 
 _PAGE_HEADERS = {"Content-Security-Policy": VIEWER_CSP, "Referrer-Policy": "no-referrer"}

@@ -17,12 +17,18 @@ const AXIS_BANDS = AXIS_RGB.map(([r, g, b]) => `rgba(${r},${g},${b},0.25)`);
 // refused frame header: out_of_order, bad_message) is not, and the frame's answer still comes.
 const REFUSED_FRAME = new Set(["camera_required", "rate_limited", "too_large", "unsupported_image"]);
 
+// The service's root, from this script's own URL (…/viewer/viewer.js → …/): every request and the
+// socket are made relative to it, so the page works behind a proxy serving the service under a
+// path prefix (the page at /quatrack/viewer/); absolute paths (/v1/…) left the prefix.
+const ROOT = new URL("../", (document.currentScript && document.currentScript.src) || location.href);
+function api(path) { return new URL(path, ROOT); }  // path: relative, "v1/…"
+
 function token() { return $("token").value.trim(); }
 function headers() { return token() ? { Authorization: "Bearer " + token() } : {}; }
 function message(text) { $("message").textContent = text || ""; }
 
 async function getJSON(path) {
-  const r = await fetch(path, { headers: headers() });
+  const r = await fetch(api(path), { headers: headers() });
   const body = await r.json().catch(() => ({}));
   if (!r.ok) throw new Error((body.error && body.error.code + ": " + body.error.message) || "HTTP " + r.status);
   return body;
@@ -40,7 +46,7 @@ async function loadObjects() {
   const mine = ++listing;
   const sel = $("object");
   try {
-    const list = await getJSON("/v1/objects");
+    const list = await getJSON("v1/objects");
     if (mine !== listing) return;
     const keep = sel.value;
     sel.innerHTML = "";
@@ -284,7 +290,7 @@ async function start(id, source) {  // id: this run; a stop or a newer run makes
   const w = v.videoWidth, h = v.videoHeight;
   if (!w || !h) throw new Error("this file has no picture (audio only?)");
   await v.play();
-  const mesh = await getJSON(`/v1/objects/${encodeURIComponent(name)}/mesh`);
+  const mesh = await getJSON(`v1/objects/${encodeURIComponent(name)}/mesh`);
   const camera = cameraFor(pasted, w, h);
   if (!current()) return;  // (a newer run's wireframe, camera and count are not touched)
   state.edges = mesh.edges; state.bbox = mesh.bbox; state.camera = camera;
@@ -292,9 +298,10 @@ async function start(id, source) {  // id: this run; a stop or a newer run makes
   $("drop").classList.add("hidden");
   message(camera.guessed ? "camera guessed (60° field of view): paste your calibration for accurate poses"
           : camera.scaled ? `the pasted ${pasted.width}×${pasted.height} camera is scaled to the video's ${w}×${h}` : "");
-  const proto = location.protocol === "https:" ? "wss:" : "ws:";
-  const q = token() ? "?token=" + encodeURIComponent(token()) : "";
-  const ws = new WebSocket(`${proto}//${location.host}/v1/objects/${encodeURIComponent(name)}/track${q}`);
+  const url = api(`v1/objects/${encodeURIComponent(name)}/track`);
+  url.protocol = url.protocol === "https:" ? "wss:" : "ws:";
+  if (token()) url.search = "?token=" + encodeURIComponent(token());
+  const ws = new WebSocket(url.href);
   state.ws = ws;
   const answers = channel(ws);
   try {
