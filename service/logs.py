@@ -4,7 +4,7 @@ Two things every line passes through (a filter on the one handler, so uvicorn's 
 
 - Secrets are never written: a ``token`` query parameter (WebSocket clients that cannot set a
   header send ``?token=…``; uvicorn logs the path with its query) is replaced by ``[redacted]``.
-- A WebSocket the service refused on purpose (401, 404, 503: see ``routes._deny``) is logged by
+- A WebSocket the service refused on purpose (401, 404, 503: see ``routes.deny_websocket``) is logged by
   the service at info level with its reason; uvicorn's error "ASGI callable returned without
   completing handshake", which it writes after every denial response, is dropped for those
   connections only (:func:`mark_refused` sets a context variable in the connection's task, which
