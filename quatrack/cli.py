@@ -537,13 +537,18 @@ def _run_train_many(args: argparse.Namespace, params, store) -> int:
             print(f"{r.name!r} is already trained from {r.spec} in {store}: nothing to do")
         else:
             s = r.summary
-            print(f"trained {r.name!r} -> {r.path}  ({s['viewsets']} viewsets, {s['points3d_total']} 3-D points, "
-                  f"{r.seconds:.1f} s)", flush=True)
+            learned = ""  # (as one spec's "views learned while tracking" line)
+            if r.learned_kept or r.learned_dropped:
+                learned = f", views learned while tracking: {r.learned_kept} kept" + (
+                    f", {r.learned_dropped} dropped" + (" (--drop-learned)" if args.drop_learned else "")
+                    if r.learned_dropped else "")
+            print(f"trained {r.name!r} -> {r.path}  ({s['viewsets']} viewsets, {s['points3d_total']} 3-D points"
+                  f"{learned}, {r.seconds:.1f} s)", flush=True)
 
     results = train_many(args.spec, store, params, jobs=args.jobs, overwrite=not args.no_overwrite,
                          skip_existing=args.skip_existing, ray_address=args.ray, on_done=done,
                          warn=_train_warning,
-                         check=_registration_doubts)
+                         check=_registration_doubts, keep_learned=not args.drop_learned)
     failed = sum(r.error is not None for r in results)
     where = f"on Ray ({args.ray})" if args.ray else f"locally, --jobs {args.jobs}"
     print(f"{len(results) - failed} of {len(results)} objects trained {where} in {time.perf_counter() - t0:.1f} s")

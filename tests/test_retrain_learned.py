@@ -136,3 +136,60 @@ def test_an_unreadable_model_with_learned_views_is_replaced_saying_they_were_los
     err = capsys.readouterr().err
     assert "held 1 view(s) learned while tracking; 1 dropped: the stored model cannot be read" in err, err
     assert _learned(store) == []
+
+
+# -- several specs in one `train` (viewsets/batch.py): as one spec does ---------------------------
+
+def _train_many(store, *specs, extra=()) -> int:
+    """``train`` with the cookie box's spec(s) and a second object (test_train_many's renamed
+    spec): the several-specs path, in this process (``--jobs 1``)."""
+    return main(["train", *map(str, specs), "--store", str(store), "--jobs", "1", *FAST_TRAIN, *extra])
+
+
+def test_several_specs_keep_the_learned_views_as_one_does(store, tmp_path, capsys):
+    """They were dropped, after a warning that retraining replaces them, when the spec was
+    trained with another (viewsets/batch.py saved with save_model, not save_trained)."""
+    from test_train_many import renamed_spec
+
+    model = S.load_model(store, NAME)
+    assert L.merge_learned(store, NAME, turned_views(model), model.mesh)[1] == 2
+    capsys.readouterr()
+    assert _train_many(store, EXAMPLE / "object.json", renamed_spec(tmp_path, "box-two")) == 0
+    out, err = capsys.readouterr()
+    assert "learned" not in err, err
+    line = next(x for x in out.splitlines() if x.startswith(f"trained {NAME!r}"))
+    assert ", views learned while tracking: 2 kept," in line, out
+    assert "learned" not in next(x for x in out.splitlines() if x.startswith("trained 'box-two'"))
+    assert _learned(store) == ["learned1", "learned2"] and S.load_model(store, NAME).manifest["learned_viewsets"] == 2
+
+
+def test_several_specs_pass_drop_learned_through(store, tmp_path, capsys):
+    from test_train_many import renamed_spec
+
+    model = S.load_model(store, NAME)
+    L.merge_learned(store, NAME, turned_views(model), model.mesh)
+    capsys.readouterr()
+    assert _train_many(store, EXAMPLE / "object.json", renamed_spec(tmp_path, "box-two"), extra=["--drop-learned"]) == 0
+    out, err = capsys.readouterr()
+    assert "learned" not in err and ", views learned while tracking: 0 kept, 2 dropped (--drop-learned)," in out, (out, err)
+    assert _learned(store) == []
+
+
+def test_several_specs_say_per_object_why_learned_views_were_dropped(store, tmp_path, capsys):
+    from test_train_many import renamed_spec
+
+    model = S.load_model(store, NAME)
+    L.merge_learned(store, NAME, turned_views(model), model.mesh)
+    capsys.readouterr()
+    spec_dir = tmp_path / "spec"
+    shutil.copytree(EXAMPLE, spec_dir, ignore=shutil.ignore_patterns("*.mp4"))
+    mesh = trimesh.load(spec_dir / "box.ply", process=False)
+    mesh.vertices = mesh.vertices * 1.002
+    mesh.export(spec_dir / "box.ply")
+    assert _train_many(store, spec_dir / "object.json", renamed_spec(tmp_path, "box-two")) == 0
+    out, err = capsys.readouterr()
+    warned = [x for x in err.splitlines() if "learned while tracking" in x]
+    assert warned == [f"quatrack train: warning: {spec_dir / 'object.json'}: 'cookie-box' in {store} held 2 view(s) "
+                      f"learned while tracking; 2 dropped: the mesh changed (their 3-D points lie on the old one) "
+                      f"(track --learn learns them again)"], err
+    assert ", views learned while tracking: 0 kept, 2 dropped," in out and _learned(store) == []

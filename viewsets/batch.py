@@ -2,7 +2,9 @@
 
 Every spec is loaded (and so checked) before any training starts, so a typo in the last spec
 costs no work. Each object is then trained by :func:`quatrack.viewsets.train.train_object` and
-written by :func:`quatrack.viewsets.store.save_model`, which renames a complete model into place:
+written by :func:`quatrack.viewsets.learn.save_trained` (as one spec is: the replaced model's
+views learned while tracking are kept where they fit) through
+:func:`quatrack.viewsets.store.save_model`, which renames a complete model into place:
 many trainings — on one machine or on many machines sharing the store (NFS, a cluster volume) —
 never leave a half-written model, and a replica reading the store sees the old model or the new.
 
@@ -27,7 +29,8 @@ from typing import Callable
 
 from .errors import SpecError, StoreError
 from .spec import load_spec
-from .store import learned_views_warning, model_path, save_model, trained_from
+from .learn import save_trained
+from .store import model_path, trained_from
 from .train import TrainParams, train_object
 
 
@@ -42,16 +45,22 @@ class Trained:
     seconds: float = 0.0
     skipped: bool = False  # already trained from this very spec (skip_existing)
     error: str | None = None
-    warnings: tuple[str, ...] = ()  # training's own (weak texture, ...) and ``check``'s, in order
+    warnings: tuple[str, ...] = ()  # training's own (weak texture, ...), ``check``'s, then the learned views' note
+    learned_kept: int = 0  # views the replaced model learned while tracking, carried into the new one
+    learned_dropped: int = 0  # ... and not (another mesh or descriptors, ``keep_learned=False``)
 
 
 def train_one(spec_path: str, store: str, params: TrainParams, overwrite: bool = True,
-              skip_existing: bool = False, check: Callable | None = None) -> Trained:
+              skip_existing: bool = False, check: Callable | None = None, keep_learned: bool = True) -> Trained:
     """Train one spec into ``store`` (atomically). Errors of the spec's content come back in
     :attr:`Trained.error` rather than raised, so that one bad object does not stop the others.
     Warnings come back in :attr:`Trained.warnings`: training's own, then ``check(spec, mesh)``'s
     (a picklable function of the spec and the model's run-time mesh giving a list of messages:
-    the CLI's doubts about a registered pose, which this layer cannot judge)."""
+    the CLI's doubts about a registered pose, which this layer cannot judge), then the note of
+    views learned while tracking that the new model could not keep. The model is saved as one
+    spec's is, by :func:`~.learn.save_trained`: the replaced model's learned views are carried
+    where they fit (``keep_learned=False``, ``train --drop-learned``: none), so training several
+    specs at once no longer drops them all."""
     t0 = time.perf_counter()
     name = "?"
     warnings: list[str] = []
@@ -60,19 +69,19 @@ def train_one(spec_path: str, store: str, params: TrainParams, overwrite: bool =
         name = spec.name
         if skip_existing and trained_from(store, name, spec.checksum):
             return Trained(spec_path, name, str(model_path(store, name)), skipped=True)
-        if (learned := learned_views_warning(store, name)) is not None:  # (retraining replaces them)
-            warnings.append(learned)
         model = train_object(spec, params, warn=warnings.append)
         if check is not None:
             warnings.extend(check(spec, model.mesh.run_time))
         try:
-            path = save_model(store, model, overwrite=overwrite)
+            saved = save_trained(store, model, overwrite=overwrite, keep_learned=keep_learned)
         except OSError as exc:  # (a full disk said "[Errno 28] No space left on device", naming nothing)
             raise StoreError(f"cannot save {name!r} in {store}: {exc.strerror or exc}") from None
     except (SpecError, StoreError, ValueError, OSError) as exc:
         return Trained(spec_path, name, error=str(exc), seconds=time.perf_counter() - t0, warnings=tuple(warnings))
-    return Trained(spec_path, name, str(path), model.manifest["training_summary"], time.perf_counter() - t0,
-                   warnings=tuple(warnings))
+    if (note := saved.note(name, store)) is not None:  # (dropped unasked: the mesh or the descriptors changed)
+        warnings.append(note)
+    return Trained(spec_path, name, str(saved.path), model.manifest["training_summary"], time.perf_counter() - t0,
+                   warnings=tuple(warnings), learned_kept=saved.kept, learned_dropped=saved.dropped)
 
 
 def check_specs(spec_paths: list[str], store: Path, no_overwrite: bool, warn=None) -> list[str]:
@@ -102,14 +111,15 @@ def check_specs(spec_paths: list[str], store: Path, no_overwrite: bool, warn=Non
 def train_many(spec_paths: list[str], store: str | Path, params: TrainParams = TrainParams(), jobs: int = 2,
                overwrite: bool = True, skip_existing: bool = False, ray_address: str | None = None,
                on_done: Callable[[Trained], None] | None = None,
-               warn: Callable[[str], None] | None = None, check: Callable | None = None) -> list[Trained]:
+               warn: Callable[[str], None] | None = None, check: Callable | None = None,
+               keep_learned: bool = True) -> list[Trained]:
     """Train every spec into ``store``; results in the order of ``spec_paths``.
 
     ``jobs`` is the CPU budget (see the module docstring); ``ray_address`` sends each spec to a
     Ray cluster instead ("auto" finds a local one, "local" starts a private one for this call).
     ``on_done`` is called as each spec finishes (for progress lines); ``warn`` is told of fields
     a spec does not know, as the specs are checked; ``check``: as :func:`train_one`'s (each
-    result's ``warnings``).
+    result's ``warnings``); ``keep_learned``: as :func:`train_one`'s (False: ``--drop-learned``).
     """
     if jobs < 1:
         raise ValueError("jobs must be at least 1")
@@ -118,19 +128,20 @@ def train_many(spec_paths: list[str], store: str | Path, params: TrainParams = T
     Path(store).mkdir(parents=True, exist_ok=True)
     if ray_address is not None:
         results = _on_ray(specs, store, dataclasses.replace(params, jobs=jobs), overwrite, skip_existing,
-                          ray_address, on_done, check)
+                          ray_address, on_done, check, keep_learned)
     else:
         processes = min(jobs, len(specs))
         per = dataclasses.replace(params, jobs=max(1, jobs // processes))
-        results = _local(specs, store, per, overwrite, skip_existing, processes, on_done, check)
+        results = _local(specs, store, per, overwrite, skip_existing, processes, on_done, check, keep_learned)
     return [results[p] for p in specs]
 
 
-def _local(specs, store, params, overwrite, skip_existing, processes, on_done, check=None) -> dict[str, Trained]:
+def _local(specs, store, params, overwrite, skip_existing, processes, on_done, check=None,
+           keep_learned=True) -> dict[str, Trained]:
     if processes == 1:
         out = {}
         for p in specs:
-            out[p] = train_one(p, store, params, overwrite, skip_existing, check)
+            out[p] = train_one(p, store, params, overwrite, skip_existing, check, keep_learned)
             if on_done:
                 on_done(out[p])
         return out
@@ -140,7 +151,7 @@ def _local(specs, store, params, overwrite, skip_existing, processes, on_done, c
     # spawn, not fork: the parent may hold OpenCV/BLAS thread pools that fork would copy mid-use
     with ProcessPoolExecutor(processes, mp_context=multiprocessing.get_context("spawn"),
                              initializer=_ignore_ctrl_c) as pool:
-        futures = {pool.submit(train_one, p, store, params, overwrite, skip_existing, check): p for p in specs}
+        futures = {pool.submit(train_one, p, store, params, overwrite, skip_existing, check, keep_learned): p for p in specs}
         try:
             for f in as_completed(futures):
                 out[futures[f]] = f.result()
@@ -164,7 +175,8 @@ def _ignore_ctrl_c() -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
-def _on_ray(specs, store, params, overwrite, skip_existing, address, on_done, check=None) -> dict[str, Trained]:
+def _on_ray(specs, store, params, overwrite, skip_existing, address, on_done, check=None,
+            keep_learned=True) -> dict[str, Trained]:
     try:
         import ray
     except ImportError:
@@ -182,7 +194,7 @@ def _on_ray(specs, store, params, overwrite, skip_existing, address, on_done, ch
             raise ValueError(f"--ray {address}: cannot connect to a Ray cluster ({exc})") from None
     try:
         remote = ray.remote(num_cpus=params.jobs, max_retries=1)(train_one)
-        refs = {remote.remote(p, store, params, overwrite, skip_existing, check): p for p in specs}
+        refs = {remote.remote(p, store, params, overwrite, skip_existing, check, keep_learned): p for p in specs}
         out = {}
         pending = list(refs)
         while pending:

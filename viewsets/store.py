@@ -274,8 +274,9 @@ def trained_from(store: str | Path, name: str, checksum: str) -> bool:
 
 def learned_views_warning(store: str | Path, name: str) -> str | None:
     """The warning a retraining of ``name`` that replaces the model with :func:`save_model` owes
-    when the stored model holds views learned while tracking, else None. (Several specs in one
-    ``train``: :mod:`.batch`. One spec keeps them where they fit: :func:`.learn.save_trained`.)"""
+    when the stored model holds views learned while tracking, else None. (For callers that
+    replace a model with :func:`save_model` themselves: ``train`` — one spec or several — keeps
+    them where they fit, :func:`.learn.save_trained`, and says what it dropped.)"""
     if not model_path(Path(store), name).exists():
         return None
     try:
