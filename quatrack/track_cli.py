@@ -120,6 +120,7 @@ class _Setup:
     tracker: object
     source: object
     store: object = None
+    init_pose: str | None = None  # --init-pose's file, when its pose waits for the first frame
 
 
 def _check_outputs(args: argparse.Namespace) -> None:
@@ -166,7 +167,7 @@ def _setup(args: argparse.Namespace) -> _Setup:
         from quatrack.tracking import quaternion as quat
 
         tracker.init_pose(init.t, quat.from_matrix(init.R), 0.0)
-    return _Setup(model, camera, tracker, source, store)
+    return _Setup(model, camera, tracker, source, store, args.init_pose if init is not None else None)
 
 
 def _track_frames(s: _Setup, rows, video, progress) -> tuple[list, bool]:
@@ -218,6 +219,9 @@ def _track_frames(s: _Setup, rows, video, progress) -> tuple[list, bool]:
                 continue
             except ValueError as exc:
                 raise UserError(f"{s.source.where(i)}: {exc}") from None
+            if not stepped and s.init_pose is not None and step.status == "lost":
+                progress.close()  # (its line cleared: the warning gets a line of its own)
+                _refused_pose(s.init_pose, step.frame, step.reason)
             stepped = True
             last = to_bgr8(image) if video is not None else None
             emit(step, last)
@@ -227,6 +231,16 @@ def _track_frames(s: _Setup, rows, video, progress) -> tuple[list, bool]:
     finally:
         s.source.close()
     return steps, False
+
+
+def _refused_pose(path: str, frame: int, reason: str | None) -> None:
+    """Say once on stderr that the tracker refused ``--init-pose``'s pose at its first frame, and
+    why: only ``--format jsonl`` rows carried the reason; the CSV said ``lost`` and recognition
+    took over, so a pose given camera → object went unnoticed."""
+    why = (reason or "no reason given").removeprefix("given pose refused: ").removeprefix("given pose: ")
+    print(f"quatrack track: warning: --init-pose {path}: the pose was refused at frame {frame} ({why}); "
+          f"the object is searched for by recognition instead (is the pose object → camera, in the mesh's "
+          f"units?)", file=sys.stderr)
 
 
 @dataclass

@@ -1,0 +1,68 @@
+"""What the command line tells its user beside its results (helper session h7): a refused
+``track --init-pose``, an empty ``models list``, an object name the store does not hold, and
+Python warnings raised under a command. The store is conftest's ``base_store`` (the cookie box
+trained without synthetic views); frames are the box rendered on a seeded trajectory."""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from conftest import EXAMPLE
+from quatrack.cli import main
+from quatrack.testing.scenes import Renderer
+from quatrack.testing.sequences import clutter_background, compose, lively_trajectory
+from quatrack.viewsets.camera import load_camera
+
+NAME = "cookie-box"
+
+
+@pytest.fixture(scope="module")
+def frames(tmp_path_factory):
+    """Three rendered frames of the box (PNG files) and its true poses."""
+    root = tmp_path_factory.mktemp("frames")
+    camera = load_camera(EXAMPLE / "camera.json")
+    renderer = Renderer.from_spec(EXAMPLE / "object.json")
+    trajectory = lively_trajectory(renderer, seed=3)
+    bg, rng = clutter_background(1), np.random.default_rng(0)
+    poses = [trajectory.pose(k / 30) for k in range(3)]
+    for k, p in enumerate(poses):
+        cv2.imwrite(str(root / f"f{k:03d}.png"), compose(renderer, camera, p, bg, rng))
+    return root, poses
+
+
+def _track(store, root, pose_file, out, fmt="csv"):
+    return main(["track", "--object", NAME, "--camera", str(EXAMPLE / "camera.json"), "--store", str(store),
+                 "--images", str(root / "*.png"), "--fps", "30", "--init-pose", str(pose_file), "--out", str(out),
+                 "--format", fmt, "--quiet"])
+
+
+def test_a_refused_init_pose_is_said_once_on_stderr_with_its_reason(base_store, frames, tmp_path, capsys):
+    """A pose given camera → object (the inverse): the CSV said lost, stderr nothing; the reason
+    was in --format jsonl rows only."""
+    root, poses = frames
+    R, t = poses[0].R, poses[0].t
+    pose_file = tmp_path / "inverted.json"
+    pose_file.write_text(json.dumps({"R": R.T.tolist(), "t": (-R.T @ t).tolist()}))
+    assert _track(base_store, root, pose_file, tmp_path / "poses.jsonl", "jsonl") == 0
+    first = json.loads((tmp_path / "poses.jsonl").read_text().splitlines()[0])
+    assert first["status"] == "lost" and first["reason"].startswith("given pose")
+    why = first["reason"].removeprefix("given pose refused: ").removeprefix("given pose: ")
+    capsys.readouterr()
+    assert _track(base_store, root, pose_file, tmp_path / "poses.csv") == 0
+    err = [x for x in capsys.readouterr().err.splitlines() if "--init-pose" in x]
+    assert len(err) == 1, err
+    assert err[0].startswith(f"quatrack track: warning: --init-pose {pose_file}: the pose was refused at frame 0 ("
+                             f"{why}); the object is searched for by recognition instead"), err
+
+
+def test_an_accepted_init_pose_is_not_warned_of(base_store, frames, tmp_path, capsys):
+    root, poses = frames
+    pose_file = tmp_path / "pose.json"
+    pose_file.write_text(json.dumps({"rvec": poses[0].rvec.tolist(), "tvec": poses[0].t.tolist()}))
+    assert _track(base_store, root, pose_file, tmp_path / "poses.csv") == 0
+    assert (tmp_path / "poses.csv").read_text().splitlines()[1].split(",")[2] == "init"
+    assert "--init-pose" not in capsys.readouterr().err
