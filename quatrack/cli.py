@@ -567,6 +567,7 @@ def _add_models(parser: argparse.ArgumentParser) -> None:
 
 def _run_models(args: argparse.Namespace) -> int:
     import json
+    import shlex
 
     from quatrack.viewsets.store import delete_model, list_models, load_manifest, load_model, remove_stale, resolve_store
 
@@ -575,7 +576,12 @@ def _run_models(args: argparse.Namespace) -> int:
         raise UserError(f"--store {store}: not a directory")
     if args.action == "list":
         remove_stale(store)
-        for name in list_models(store):
+        names = list_models(store)
+        if not names:  # (said on stderr: stdout stays the rows, none, for scripts; it printed nothing at all)
+            where = "" if store.is_dir() else " (no such folder)"
+            print(f"quatrack models: no trained object in {store}{where}; train one with `quatrack train SPEC.json"
+                  f"{'' if args.store is None else ' --store ' + shlex.quote(str(store))}`", file=sys.stderr)
+        for name in names:
             try:  # fully loaded, so that a model `locate`/`serve` cannot use is marked broken here
                 m = load_model(store, name).manifest
             except ValueError as exc:

@@ -66,3 +66,23 @@ def test_an_accepted_init_pose_is_not_warned_of(base_store, frames, tmp_path, ca
     assert _track(base_store, root, pose_file, tmp_path / "poses.csv") == 0
     assert (tmp_path / "poses.csv").read_text().splitlines()[1].split(",")[2] == "init"
     assert "--init-pose" not in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("exists", [True, False])
+def test_models_list_of_an_empty_store_says_so_on_stderr(tmp_path, capsys, exists):
+    """It printed nothing, exit 0: an empty store and a typo in --store looked alike. Stdout
+    stays empty (one row per object, for scripts)."""
+    store = tmp_path / "models"
+    if exists:
+        store.mkdir()
+    assert main(["models", "list", "--store", str(store)]) == 0
+    out, err = capsys.readouterr()
+    assert out == ""
+    assert err == (f"quatrack models: no trained object in {store}{'' if exists else ' (no such folder)'}; "
+                   f"train one with `quatrack train SPEC.json --store {store}`\n")
+
+
+def test_models_list_of_a_store_with_objects_says_nothing_more(base_store, capsys):
+    assert main(["models", "list", "--store", str(base_store)]) == 0
+    out, err = capsys.readouterr()
+    assert out.startswith(f"{NAME}\t") and err == ""
