@@ -75,7 +75,7 @@ def _output(out_dir: Path, name: str, ext: str, option: str) -> str | None:
 def _check(args: argparse.Namespace) -> _Plan:
     from quatrack.client import base_urls
     from quatrack.viewsets.camera import load_camera
-    from quatrack.viewsets.store import list_models, load_model
+    from quatrack.viewsets.store import list_models, load_model, unknown_object
 
     from quatrack.service.settings import Settings
 
@@ -105,7 +105,7 @@ def _check(args: argparse.Namespace) -> _Plan:
     settings = Settings.from_env(store=args.store, api_token=token)
     in_store = settings.store.is_dir() and args.object in list_models(settings.store)
     if args.url is None and not in_store:
-        raise ValueError(f"no object {args.object!r} in {settings.store}: train it first "
+        raise ValueError(f"{unknown_object(settings.store, args.object)}: train it first "  # (the objects it holds, the nearest)
                          f"(quatrack train {example / 'object.json'}), or give --url of a server that has it")
     if args.mesh:
         from quatrack.viewsets.mesh import load_mesh
@@ -164,7 +164,7 @@ def _stream_video(plan: _Plan, args: argparse.Namespace):
             res = asyncio.run(stream(url, camera_to_dict(plan.camera), frames(), fps=args.fps, token=plan.token,
                                      on_answer=lambda msg: progress.update(msg.get("status"))))
         except QuatrackError as exc:
-            raise ValueError(_explain(exc, args)) from None
+            raise ValueError(_explain(exc, args, _server_names(plan) if exc.code == "unknown_object" else None)) from None
         finally:
             progress.close()
         if plan.mesh is None and args.overlay.lower() != "none":
@@ -172,14 +172,30 @@ def _stream_video(plan: _Plan, args: argparse.Namespace):
     return res, times, list(source.skipped)
 
 
-def _explain(exc, args) -> str:
-    """A server's refusal as a one-line message naming the culprit."""
+def _server_names(plan: _Plan) -> list[str] | None:
+    """The objects the server holds (``GET /v1/objects``), or None when it does not say."""
+    from quatrack.client import Client, QuatrackError
+
+    try:
+        with Client(plan.http_url, None, plan.token) as c:
+            return [o.name for o in c.objects().objects]
+    except (QuatrackError, ValueError):
+        return None
+
+
+def _explain(exc, args, names: list[str] | None = None) -> str:
+    """A server's refusal as a one-line message naming the culprit; an unknown object with the
+    server's objects (``names``) and the nearest (:func:`~quatrack.viewsets.store.names_hint`)."""
     if exc.code == "unauthorized":
         if args.token or os.environ.get("QUATRACK_API_TOKEN"):  # (one was given: it is the wrong one)
             source = "--token" if args.token else "QUATRACK_API_TOKEN"
             return f"{args.url or 'the server'} refused the token of {source}: not the server's QUATRACK_API_TOKEN"
         return f"{args.url or 'the server'} needs a token: give --token or set QUATRACK_API_TOKEN"
     if exc.code == "unknown_object":
+        if names is not None:
+            from quatrack.viewsets.store import names_hint
+
+            return f"--object {args.object}: the server has no such object{names_hint(args.object, names)}"
         return f"--object {args.object}: the server has no such object ({exc.message})"
     if exc.code == "unreachable":
         return f"--url {args.url}: no server answers there ({exc.message})"

@@ -86,3 +86,38 @@ def test_models_list_of_a_store_with_objects_says_nothing_more(base_store, capsy
     assert main(["models", "list", "--store", str(base_store)]) == 0
     out, err = capsys.readouterr()
     assert out.startswith(f"{NAME}\t") and err == ""
+
+
+@pytest.mark.parametrize("command", ["locate", "track", "show", "delete"])
+def test_an_unknown_object_lists_the_store_and_the_nearest_name(base_store, frames, tmp_path, capsys, command):
+    """It said "no object named 'cookie-bx' in STORE" alone, for every command naming an object."""
+    root, _ = frames
+    common = ["--camera", str(EXAMPLE / "camera.json"), "--store", str(base_store)]
+    argv = {"locate": ["locate", str(root / "f000.png"), "--object", "cookie-bx", *common],
+            "track": ["track", "--images", str(root / "*.png"), "--object", "cookie-bx", "--out",
+                      str(tmp_path / "poses.csv"), *common],
+            "show": ["models", "show", "cookie-bx", "--store", str(base_store)],
+            "delete": ["models", "delete", "cookie-bx", "--store", str(base_store)]}[command]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.endswith(f": error: no object named 'cookie-bx' in {base_store}; did you mean 'cookie-box'? "
+                        f"(it holds cookie-box)\n") and err.count("\n") == 1, err
+    assert not (tmp_path / "poses.csv").exists()
+
+
+def test_the_unknown_object_message_says_an_empty_or_missing_store(tmp_path):
+    from quatrack.viewsets.store import unknown_object
+
+    assert str(unknown_object(tmp_path / "nowhere", "box")) == f"no object named 'box' in {tmp_path / 'nowhere'} (no such folder)"
+    assert str(unknown_object(tmp_path, "box")) == f"no object named 'box' in {tmp_path} (it holds none)"
+
+
+def test_the_nearest_name_is_told_apart_from_none_near():
+    from quatrack.viewsets.store import names_hint
+
+    names = ["cookie-box", "mug", "tea-tin"]
+    assert names_hint("Cookie-Box", names) == "; did you mean 'cookie-box'? (it holds cookie-box, mug, tea-tin)"
+    assert names_hint("mugg", names) == "; did you mean 'mug'? (it holds cookie-box, mug, tea-tin)"
+    assert names_hint("gearwheel", names) == " (it holds cookie-box, mug, tea-tin)"
+    many = [f"obj{k:02d}" for k in range(20)]
+    assert names_hint("zzz", many, shown=3) == " (it holds obj00, obj01, obj02, ... (20 in all))"

@@ -164,13 +164,13 @@ def test_demo_against_a_server_from_any_folder(server, tmp_path, monkeypatch, ca
 
 
 @pytest.mark.parametrize("case, message", [
-    ("unknown-object", "--object no-such-box: the server has no such object"),
+    ("unknown-object", "--object no-such-box: the server has no such object (it holds cookie-box)"),
     ("http-url-with-path", "without a path"),
     ("no-token", "needs a token"),
     ("wrong-token", "refused the token of --token"),
     ("not-a-url", "give the server's address"),
     ("nobody-there", "no server answers there"),
-    ("local-untrained", "train it first"),
+    ("local-untrained", "(no such folder): train it first"),
     ("camera-of-another-size", "refused every frame of --video"),
 ])
 def test_demo_errors_are_one_line(server, tmp_path, monkeypatch, capsys, case, message):

@@ -43,7 +43,7 @@ from .viewset import Viewset, ViewsetParams
 
 __all__ = ["ObjectModel", "StoreError", "load_model", "save_model", "list_models", "delete_model",
            "model_lock", "default_store", "resolve_store", "model_path", "load_manifest", "model_stamp",
-           "trained_from", "learned_views_warning", "remove_stale"]
+           "trained_from", "learned_views_warning", "remove_stale", "unknown_object", "names_hint"]
 
 SCHEMA_VERSION = 1
 MANIFEST = "manifest.json"
@@ -250,7 +250,7 @@ def load_manifest(store: str | Path, name: str) -> dict:
     its arrays; :class:`StoreError` when there is no such object or the manifest is unreadable."""
     path = model_path(Path(store), name) / MANIFEST
     if not path.is_file():
-        raise StoreError(f"no object named {name!r} in {store}")
+        raise unknown_object(store, name)
     try:
         manifest = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, ValueError, RecursionError) as exc:
@@ -423,6 +423,31 @@ def list_models(store: str | Path) -> list[str]:
     )
 
 
+def unknown_object(store: str | Path, name: str) -> StoreError:
+    """The error for an object ``name`` that ``store`` does not hold, for every command that names
+    one (``locate``, ``track``, ``models show|delete``, ``demo``): the objects it holds, or that it
+    holds none or does not exist, and the nearest name (:func:`names_hint`). It said only
+    "no object named 'mybx' in STORE"."""
+    msg = f"no object named {name!r} in {store}"
+    if not Path(store).is_dir():
+        return StoreError(f"{msg} (no such folder)")
+    return StoreError(msg + names_hint(name, list_models(store)))
+
+
+def names_hint(name: str, names: list[str], shown: int = 12) -> str:
+    """What follows "no object named NAME" (the store's, or a server's, ``names``): ``; did you
+    mean 'NEAR'?`` when one is near — another case, a typo (:func:`difflib.get_close_matches`) —
+    then `` (it holds A, B, ...)``, at most ``shown`` of them, or `` (it holds none)``."""
+    import difflib
+
+    if not names:
+        return " (it holds none)"
+    lower = {n.lower(): n for n in names}
+    key = name.lower() if name.lower() in lower else next(iter(difflib.get_close_matches(name.lower(), list(lower), n=1)), None)
+    held = ", ".join(names[:shown]) + (f", ... ({len(names)} in all)" if len(names) > shown else "")
+    return (f"; did you mean {lower[key]!r}?" if key is not None else "") + f" (it holds {held})"
+
+
 def model_stamp(store: str | Path, name: str) -> tuple | None:
     """What changes when ``store/NAME`` is replaced (an atomic rename brings new inodes and
     times) or removed (``None``): compared by the service to reload a retrained model."""
@@ -483,7 +508,7 @@ def delete_model(store: str | Path, name: str) -> None:
     store = Path(store)
     final = model_path(store, name)
     if not (final / MANIFEST).is_file():
-        raise StoreError(f"no object named {name!r} in {store}")
+        raise unknown_object(store, name)
     try:
         trash = Path(tempfile.mkdtemp(prefix=f".del-{name}-", dir=store))
     except OSError as exc:  # (a read-only store: the message named the temporary folder)
@@ -491,7 +516,7 @@ def delete_model(store: str | Path, name: str) -> None:
     try:
         with model_lock(store, name):  # (not between a merge's read and its write: the model came back)
             if not (final / MANIFEST).is_file():
-                raise StoreError(f"no object named {name!r} in {store}")
+                raise unknown_object(store, name)
             os.replace(final, trash / "model")
     finally:
         shutil.rmtree(trash, ignore_errors=True)
