@@ -14,6 +14,7 @@ import dataclasses
 import os
 import select
 import sys
+import warnings
 from typing import Callable
 
 import numpy as np
@@ -839,7 +840,28 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("quatrack: interrupted", file=sys.stderr)
         return 130
-    run = COMMANDS[args.command][2]
+    with warnings.catch_warnings():  # (showwarning restored on return: main() may be called in-process)
+        warnings.showwarning = _warning_line(args.command)
+        return _run(COMMANDS[args.command][2], args)
+
+
+def _warning_line(command: str):
+    """A :func:`warnings.showwarning` printing ``quatrack COMMAND: warning: MESSAGE`` on one line,
+    as the commands' own warnings read: Python's default format gave the library's source file,
+    line number, class and a second line of code (``recognition.images.BitDepthWarning`` for a
+    10- or 12-bit image given to ``locate``)."""
+    def show(message, category, filename, lineno, file=None, line=None) -> None:
+        text = " ".join(str(message).split())  # (one line)
+        try:
+            print(f"quatrack {command}: warning: {text}", file=file if file is not None else sys.stderr)
+        except (OSError, ValueError):  # (stderr gone: as warnings' own, nothing to say it on)
+            pass
+
+    return show
+
+
+def _run(run, args: argparse.Namespace) -> int:
+    """``run(args)`` with the errors the module docstring describes turned into one line."""
     try:
         tune_allocator()
         limit_blas_threads()  # recognition's small BLAS products: one thread (runtime.py says why)

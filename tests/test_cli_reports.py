@@ -121,3 +121,28 @@ def test_the_nearest_name_is_told_apart_from_none_near():
     assert names_hint("gearwheel", names) == " (it holds cookie-box, mug, tea-tin)"
     many = [f"obj{k:02d}" for k in range(20)]
     assert names_hint("zzz", many, shown=3) == " (it holds obj00, obj01, obj02, ... (20 in all))"
+
+
+def test_a_python_warning_under_a_command_is_one_line_naming_it(base_store, tmp_path, capsys, monkeypatch):
+    """A 12-bit PNG given to `locate`: recognition.images warns (BitDepthWarning), which printed in
+    Python's default format — the library's file and line, the class, and a line of its code."""
+    import warnings
+
+    from quatrack.recognition import images
+
+    monkeypatch.setattr(images, "_depth_warned", False)  # (warned once a process)
+    camera = load_camera(EXAMPLE / "camera.json")
+    png = tmp_path / "raw12.png"
+    pixels = np.random.default_rng(0).integers(0, 4000, (camera.height, camera.width), dtype=np.uint16)
+    assert cv2.imwrite(str(png), pixels)
+    before = warnings.showwarning
+    with warnings.catch_warnings():
+        warnings.simplefilter("always")  # (whatever filters the test run has, the warning is shown)
+        rc = main(["locate", str(png), "--object", NAME, "--camera", str(EXAMPLE / "camera.json"),
+                   "--store", str(base_store)])
+    assert rc == 0 and warnings.showwarning is before  # (the formatter is the command's only)
+    err = capsys.readouterr().err.splitlines()
+    warned = [x for x in err if "16-bit" in x]
+    assert len(warned) == 1 and warned[0].startswith("quatrack locate: warning: a 16-bit image whose values all lie "
+                                                     "below 4096"), err
+    assert "BitDepthWarning" not in "\n".join(err) and ".py:" not in "\n".join(err), err
