@@ -551,8 +551,10 @@ def _run_train_many(args: argparse.Namespace, params, store) -> int:
                          warn=_train_warning,
                          check=_registration_doubts, keep_learned=not args.drop_learned)
     failed = sum(r.error is not None for r in results)
+    skipped = sum(r.skipped for r in results)  # (counted as trained: "3 of 3 objects trained" when none was)
     where = f"on Ray ({args.ray})" if args.ray else f"locally, --jobs {args.jobs}"
-    print(f"{len(results) - failed} of {len(results)} objects trained {where} in {time.perf_counter() - t0:.1f} s")
+    print(f"{len(results) - failed - skipped} of {len(results)} objects trained {where} in {time.perf_counter() - t0:.1f} s"
+          + (f"; {skipped} already trained from their spec (--skip-existing)" if skipped else ""))
     return 2 if failed else 0
 
 

@@ -58,7 +58,9 @@ def test_several_specs_in_parallel_processes(tmp_path, capsys):
     assert "3 of 3 objects trained locally" in out
     # the same call again with --skip-existing trains nothing
     assert main(["train", *map(str, specs), "--store", str(store), "--skip-existing", *CHEAP]) == 0
-    assert capsys.readouterr().out.count("nothing to do") == 3
+    out = capsys.readouterr().out
+    assert out.count("nothing to do") == 3  # (and not counted as trained: "3 of 3 objects trained")
+    assert "0 of 3 objects trained locally" in out and "; 3 already trained from their spec (--skip-existing)\n" in out, out
 
 
 def test_a_bad_spec_stops_the_batch_before_any_training(tmp_path, capsys):
