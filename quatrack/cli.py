@@ -700,8 +700,8 @@ def _locate_all(args: argparse.Namespace, camera, params) -> int:
 
     store = resolve_store(args.store)
     names = list_models(store)
-    if not names:
-        raise UserError(f"no trained object in {store}")
+    if not names:  # (as models list says it: a typo in --store read as an empty store)
+        raise UserError(f"no trained object in {store}" + ("" if store.is_dir() else " (no such folder)"))
     from quatrack.viewsets.errors import StoreError
 
     models = []

@@ -146,3 +146,15 @@ def test_a_python_warning_under_a_command_is_one_line_naming_it(base_store, tmp_
     assert len(warned) == 1 and warned[0].startswith("quatrack locate: warning: a 16-bit image whose values all lie "
                                                      "below 4096"), err
     assert "BitDepthWarning" not in "\n".join(err) and ".py:" not in "\n".join(err), err
+
+
+@pytest.mark.parametrize("exists", [True, False])
+def test_locate_all_in_an_empty_or_missing_store_says_which(frames, tmp_path, capsys, exists):
+    root, _ = frames
+    store = tmp_path / "models"
+    if exists:
+        store.mkdir()
+    assert main(["locate", str(root / "f000.png"), "--object", "all", "--camera", str(EXAMPLE / "camera.json"),
+                 "--store", str(store)]) == 2
+    assert capsys.readouterr().err == (f"quatrack locate: error: no trained object in {store}"
+                                       f"{'' if exists else ' (no such folder)'}\n")
