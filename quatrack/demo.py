@@ -79,6 +79,12 @@ def _check(args: argparse.Namespace) -> _Plan:
 
     from quatrack.service.settings import Settings
 
+    from quatrack.viewsets.names import check_object_name
+
+    try:  # (a name no store can hold: with --url it went into the WebSocket's URL, "the server refused: 403 ...")
+        check_object_name(args.object)
+    except ValueError as exc:
+        raise ValueError(f"--object: {exc}") from None
     example = bundled_example()
     video = args.video or str(example / "box.mp4")
     camera_file = args.camera or str(example / "camera.json")

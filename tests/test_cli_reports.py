@@ -158,3 +158,18 @@ def test_locate_all_in_an_empty_or_missing_store_says_which(frames, tmp_path, ca
                  "--store", str(store)]) == 2
     assert capsys.readouterr().err == (f"quatrack locate: error: no trained object in {store}"
                                        f"{'' if exists else ' (no such folder)'}\n")
+
+
+@pytest.mark.parametrize("name", ["my box", "a/b", "box?x", ".hidden"])
+def test_demo_refuses_a_name_no_store_can_hold_before_any_connection(tmp_path, capsys, name):
+    """With --url the name went into the WebSocket's URL: "the server refused: 403 http_error:
+    HTTP 403" (or 400 "Invalid HTTP request received."). Nothing listens at this URL: the name
+    is refused before any connection."""
+    from quatrack.service.server import free_port
+
+    assert main(["demo", "--url", f"http://127.0.0.1:{free_port()}", "--object", name,
+                 "--out-dir", str(tmp_path / "out"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"quatrack demo: error: --object: invalid object name {name!r}: use 1-64 letters") \
+        and err.count("\n") == 1, err
+    assert not (tmp_path / "out").exists()
