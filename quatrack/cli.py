@@ -854,8 +854,10 @@ def _warning_line(command: str):
     10- or 12-bit image given to ``locate``)."""
     def show(message, category, filename, lineno, file=None, line=None) -> None:
         text = " ".join(str(message).split())  # (one line)
-        try:
-            print(f"quatrack {command}: warning: {text}", file=file if file is not None else sys.stderr)
+        file = file if file is not None else sys.stderr
+        try:  # (on a terminal, a progress line being drawn is cleared first: the warning was appended to it)
+            clear = "\r\x1b[K" if getattr(file, "isatty", lambda: False)() else ""
+            print(f"{clear}quatrack {command}: warning: {text}", file=file)
         except (OSError, ValueError):  # (stderr gone: as warnings' own, nothing to say it on)
             pass
 

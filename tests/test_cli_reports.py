@@ -173,3 +173,22 @@ def test_demo_refuses_a_name_no_store_can_hold_before_any_connection(tmp_path, c
     assert err.startswith(f"quatrack demo: error: --object: invalid object name {name!r}: use 1-64 letters") \
         and err.count("\n") == 1, err
     assert not (tmp_path / "out").exists()
+
+
+def test_a_warning_on_a_terminal_clears_the_progress_line_first():
+    """`track`'s progress line is drawn without a newline: a warning under it was appended to it."""
+    import io
+
+    from quatrack.cli import _warning_line
+
+    class Terminal(io.StringIO):
+        def isatty(self):
+            return True
+
+    tty, log = Terminal(), io.StringIO()
+    show = _warning_line("track")
+    for f in (tty, log):
+        f.write("\rtracking: 10 frames")
+        show(UserWarning("two\nlines"), UserWarning, "x.py", 1, file=f)
+    assert tty.getvalue() == "\rtracking: 10 frames\r\x1b[Kquatrack track: warning: two lines\n"
+    assert log.getvalue() == "\rtracking: 10 frames" + "quatrack track: warning: two lines\n"  # (a log: no control codes)
