@@ -572,7 +572,8 @@ def _run_models(args: argparse.Namespace) -> int:
     import json
     import shlex
 
-    from quatrack.viewsets.store import delete_model, list_models, load_manifest, load_model, remove_stale, resolve_store
+    from quatrack.viewsets.store import (MANIFEST, delete_model, list_models, load_manifest, load_model, remove_stale,
+                                         resolve_store, store_note)
 
     store = resolve_store(args.store)
     if store.exists() and not store.is_dir():  # (else listed as an empty store, exit 0)
@@ -581,9 +582,10 @@ def _run_models(args: argparse.Namespace) -> int:
         remove_stale(store)
         names = list_models(store)
         if not names:  # (said on stderr: stdout stays the rows, none, for scripts; it printed nothing at all)
-            where = "" if store.is_dir() else " (no such folder)"
-            print(f"quatrack models: no trained object in {store}{where}; train one with `quatrack train SPEC.json"
-                  f"{'' if args.store is None else ' --store ' + shlex.quote(str(store))}`", file=sys.stderr)
+            note = store_note(store)
+            train = f"; train one with `quatrack train SPEC.json{'' if args.store is None else ' --store ' + shlex.quote(str(store))}`"
+            print(f"quatrack models: no trained object in {store}{note}{'' if (store / MANIFEST).is_file() else train}",
+                  file=sys.stderr)  # (a model's own folder: "train one" there was the wrong advice)
         for name in names:
             try:  # fully loaded, so that a model `locate`/`serve` cannot use is marked broken here
                 m = load_model(store, name).manifest
@@ -696,12 +698,12 @@ def _locate_all(args: argparse.Namespace, camera, params) -> int:
 
     from quatrack.recognition.images import ImageError, read_image
     from quatrack.recognition.locate import locate_all
-    from quatrack.viewsets.store import list_models, load_model, resolve_store
+    from quatrack.viewsets.store import list_models, load_model, resolve_store, store_note
 
     store = resolve_store(args.store)
     names = list_models(store)
     if not names:  # (as models list says it: a typo in --store read as an empty store)
-        raise UserError(f"no trained object in {store}" + ("" if store.is_dir() else " (no such folder)"))
+        raise UserError(f"no trained object in {store}{store_note(store)}")
     from quatrack.viewsets.errors import StoreError
 
     models = []

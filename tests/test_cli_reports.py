@@ -192,3 +192,19 @@ def test_a_warning_on_a_terminal_clears_the_progress_line_first():
         show(UserWarning("two\nlines"), UserWarning, "x.py", 1, file=f)
     assert tty.getvalue() == "\rtracking: 10 frames\r\x1b[Kquatrack track: warning: two lines\n"
     assert log.getvalue() == "\rtracking: 10 frames" + "quatrack track: warning: two lines\n"  # (a log: no control codes)
+
+
+def test_a_models_own_folder_given_as_the_store_is_said_so(base_store, frames, capsys):
+    """`--store STORE/cookie-box` (the model's folder, not its store) read as an empty store:
+    `models list` printed nothing, `locate` said only "no object named 'cookie-box' in ..."."""
+    root, _ = frames
+    folder = base_store / NAME
+    note = f" (the folder of object {NAME!r} itself: its store is {base_store})"
+    assert main(["models", "list", "--store", str(folder)]) == 0
+    assert capsys.readouterr() == ("", f"quatrack models: no trained object in {folder}{note}\n")
+    assert main(["locate", str(root / "f000.png"), "--object", NAME, "--camera", str(EXAMPLE / "camera.json"),
+                 "--store", str(folder)]) == 2
+    assert capsys.readouterr().err == f"quatrack locate: error: no object named {NAME!r} in {folder}{note}\n"
+    assert main(["locate", str(root / "f000.png"), "--object", "all", "--camera", str(EXAMPLE / "camera.json"),
+                 "--store", str(folder)]) == 2
+    assert capsys.readouterr().err == f"quatrack locate: error: no trained object in {folder}{note}\n"

@@ -43,7 +43,8 @@ from .viewset import Viewset, ViewsetParams
 
 __all__ = ["ObjectModel", "StoreError", "load_model", "save_model", "list_models", "delete_model",
            "model_lock", "default_store", "resolve_store", "model_path", "load_manifest", "model_stamp",
-           "trained_from", "learned_views_warning", "remove_stale", "unknown_object", "names_hint"]
+           "trained_from", "learned_views_warning", "remove_stale", "unknown_object", "names_hint",
+           "store_note"]
 
 SCHEMA_VERSION = 1
 MANIFEST = "manifest.json"
@@ -429,9 +430,19 @@ def unknown_object(store: str | Path, name: str) -> StoreError:
     holds none or does not exist, and the nearest name (:func:`names_hint`). It said only
     "no object named 'mybx' in STORE"."""
     msg = f"no object named {name!r} in {store}"
-    if not Path(store).is_dir():
-        return StoreError(f"{msg} (no such folder)")
-    return StoreError(msg + names_hint(name, list_models(store)))
+    return StoreError(msg + (store_note(store) or names_hint(name, list_models(store))))
+
+
+def store_note(store: str | Path) -> str:
+    """Why ``store`` holds no object although it was given as one, or "": `` (no such folder)``
+    (a typo), or `` (the folder of object 'NAME' itself: its store is PARENT)`` — a model's own
+    folder given as ``--store`` read as an empty store."""
+    store = Path(store)
+    if not store.is_dir():
+        return " (no such folder)"
+    if (store / MANIFEST).is_file():
+        return f" (the folder of object {store.name!r} itself: its store is {store.parent})"
+    return ""
 
 
 def names_hint(name: str, names: list[str], shown: int = 12) -> str:
