@@ -659,9 +659,11 @@ def _run_locate(args: argparse.Namespace) -> int:
     model = load_model(resolve_store(args.store), args.object)
     index = index_for(model)
     failed = False
+    said: set = set()
     for path in args.images:
         try:
-            result = locate(read_image(path), camera, model, params, index=index)
+            image = read_image(path)
+            result = locate(image, _resized(camera, image, said), model, params, index=index)
         except ImageError as exc:
             failed = True
             if args.json:
@@ -679,6 +681,20 @@ def _run_locate(args: argparse.Namespace) -> int:
         else:
             print(f"{path}: not found ({result.reason})  {result.time_ms['total']:.0f} ms")
     return 1 if failed else 0
+
+
+def _resized(camera, image, said: set):
+    """``camera``, scaled when ``image`` is its images resized (:func:`~quatrack.viewsets.camera.
+    resized_for`: the same aspect ratio), said once per size on stderr; otherwise as it is (an
+    image of another aspect ratio is refused by ``locate``, as before)."""
+    from quatrack.viewsets.camera import resized_for
+
+    h, w = image.shape[:2]
+    fitted, note = resized_for(camera, w, h)
+    if note is not None and (w, h) not in said:
+        said.add((w, h))
+        print(f"quatrack locate: warning: {note}", file=sys.stderr)
+    return fitted
 
 
 def _position_text(t, extent: float) -> str:
@@ -716,10 +732,12 @@ def _locate_all(args: argparse.Namespace, camera, params) -> int:
         raise UserError(f"no usable trained object in {store}")
     extent = {m.name: m.mesh.extent for m in models}
     failed = False
+    said: set = set()
     for path in args.images:
         t0 = time.perf_counter()
         try:
-            results = locate_all(read_image(path), camera, models, params)
+            image = read_image(path)
+            results = locate_all(image, _resized(camera, image, said), models, params)
         except ImageError as exc:
             failed = True
             if args.json:

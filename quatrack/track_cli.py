@@ -206,6 +206,8 @@ def _track_frames(s: _Setup, rows, video, progress) -> tuple[list, bool]:
     try:
         for i, t, image in s.source:
             skipped_until(i)
+            if not stepped and (fit := _camera_resized(s, image)) is not None:
+                s = fit  # (the overlay draws with it too: emit reads s)
             try:
                 step = s.tracker.step(image, t)
             except ImageError as exc:
@@ -231,6 +233,25 @@ def _track_frames(s: _Setup, rows, video, progress) -> tuple[list, bool]:
     finally:
         s.source.close()
     return steps, False
+
+
+def _camera_resized(s: _Setup, image) -> _Setup | None:
+    """The setup with its camera scaled to the first frame when the frames are the camera's
+    images resized (:func:`~quatrack.viewsets.camera.resized_for`), said once on stderr; None
+    when the camera fits as it is (or not at all: the tracker refuses it, as before)."""
+    from dataclasses import replace
+
+    from quatrack.viewsets.camera import resized_for
+
+    shape = getattr(image, "shape", None)
+    if shape is None or len(shape) < 2:
+        return None
+    camera, note = resized_for(s.camera, int(shape[1]), int(shape[0]))
+    if note is None:
+        return None
+    print(f"quatrack track: warning: {note}", file=sys.stderr)
+    s.tracker.camera = camera  # (before its first step: nothing was computed for the old one)
+    return replace(s, camera=camera)
 
 
 def _refused_pose(path: str, frame: int, reason: str | None) -> None:

@@ -7,6 +7,7 @@ module only parses files into it and checks what a user can get wrong.
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 import math
 import numbers
 import re
@@ -19,7 +20,8 @@ from quatrack.tracking.camera import PinholeCamera
 
 from .errors import SpecError
 
-__all__ = ["load_camera", "camera_from_dict", "camera_to_dict", "check_plausible", "misspelt_field", "within_pixels"]
+__all__ = ["load_camera", "camera_from_dict", "camera_to_dict", "check_plausible", "misspelt_field", "resized_for",
+           "within_pixels"]
 
 _KEYS = ("fx", "fy", "cx", "cy")
 CAMERA_FIELDS = ("width", "height", "fx", "fy", "cx", "cy", "dist_coeffs")
@@ -252,3 +254,33 @@ def camera_to_dict(camera: PinholeCamera) -> dict:
         "fx": camera.fx, "fy": camera.fy, "cx": camera.cx, "cy": camera.cy,
         "dist_coeffs": [float(x) for x in camera.dist_coeffs],
     }
+
+
+RESIZE_ASPECT_TOLERANCE = 0.01  # relative difference of the two scale factors still read as one resize
+
+
+def resized_for(camera: PinholeCamera, width: int, height: int) -> tuple[PinholeCamera, str | None]:
+    """The camera for ``width`` × ``height`` images when they are its own images resized (the
+    same aspect ratio, the two scale factors within 1 %): its intrinsics scaled
+    (:meth:`~quatrack.tracking.camera.PinholeCamera.scaled`, pixel centres kept), with a note
+    saying so; otherwise the camera as it is and None (a camera sized by its images, the same
+    size, or another aspect ratio, which the caller refuses as before). Why: a video recorded
+    at 1280 × 720 and shared at 640 × 360 was refused frame by frame with a camera calibrated at
+    full size, while the browser viewer scaled it.
+
+    >>> cam = PinholeCamera(1000.0, 1000.0, 639.5, 359.5, width=1280, height=720)
+    >>> small, note = resized_for(cam, 640, 360)
+    >>> small.fx, small.cx, small.width, note
+    (500.0, 319.5, 640, 'the camera is for 1280×720 px images and these are 640×360 px: its intrinsics scaled by 0.5 (a resized video)')
+    >>> resized_for(cam, 640, 480)[1] is None
+    True
+    """
+    if camera.width is None or camera.height is None or (camera.width, camera.height) == (width, height):
+        return camera, None
+    sx, sy = width / camera.width, height / camera.height
+    if abs(sx - sy) > RESIZE_ASPECT_TOLERANCE * max(sx, sy):
+        return camera, None
+    s = 0.5 * (sx + sy)
+    return (replace(camera.scaled(sx, width, height), fy=camera.fy * sy, cy=sy * (camera.cy + 0.5) - 0.5),
+            f"the camera is for {camera.width}×{camera.height} px images and these are {width}×{height} px: "
+            f"its intrinsics scaled by {s:.3g} (a resized video)")
