@@ -65,16 +65,22 @@ def test_drop_learned_forgets_them_without_a_warning(store, capsys):
     assert _learned(store) == [] and not S.load_model(store, NAME).manifest.get("learned_viewsets")
 
 
+def _remodelled_spec(tmp_path):
+    """The example's spec copied with its box scaled by 1.002 (a remodelled box: the learned
+    views' points no longer lie on it); returns the spec's path."""
+    spec_dir = tmp_path / "spec"
+    shutil.copytree(EXAMPLE, spec_dir, ignore=shutil.ignore_patterns("*.mp4"))
+    mesh = trimesh.load(spec_dir / "box.ply", process=False)
+    mesh.vertices = mesh.vertices * 1.002
+    mesh.export(spec_dir / "box.ply")
+    return spec_dir / "object.json"
+
+
 def test_a_new_mesh_drops_them_with_a_warning_saying_how_many(store, tmp_path, capsys):
     model = S.load_model(store, NAME)
     L.merge_learned(store, NAME, turned_views(model), model.mesh)
     capsys.readouterr()
-    spec_dir = tmp_path / "spec"
-    shutil.copytree(EXAMPLE, spec_dir, ignore=shutil.ignore_patterns("*.mp4"))
-    mesh = trimesh.load(spec_dir / "box.ply", process=False)
-    mesh.vertices = mesh.vertices * 1.002  # (a remodelled box: its points no longer lie on the old one)
-    mesh.export(spec_dir / "box.ply")
-    assert _train(store, spec=spec_dir / "object.json") == 0
+    assert _train(store, spec=_remodelled_spec(tmp_path)) == 0
     out, err = capsys.readouterr()
     assert (f"quatrack train: warning: 'cookie-box' in {store} held 2 view(s) learned while tracking; 2 dropped: "
             f"the mesh changed (their 3-D points lie on the old one) (track --learn learns them again)") in err, err
@@ -181,12 +187,7 @@ def test_several_specs_say_per_object_why_learned_views_were_dropped(store, tmp_
     model = S.load_model(store, NAME)
     L.merge_learned(store, NAME, turned_views(model), model.mesh)
     capsys.readouterr()
-    spec_dir = tmp_path / "spec"
-    shutil.copytree(EXAMPLE, spec_dir, ignore=shutil.ignore_patterns("*.mp4"))
-    mesh = trimesh.load(spec_dir / "box.ply", process=False)
-    mesh.vertices = mesh.vertices * 1.002
-    mesh.export(spec_dir / "box.ply")
-    assert _train_many(store, spec_dir / "object.json", renamed_spec(tmp_path, "box-two")) == 0
+    assert _train_many(store, _remodelled_spec(tmp_path), renamed_spec(tmp_path, "box-two")) == 0
     out, err = capsys.readouterr()
     warned = [x for x in err.splitlines() if "learned while tracking" in x]
     assert warned == [f"quatrack train: warning: {spec_dir / 'object.json'}: 'cookie-box' in {store} held 2 view(s) "
