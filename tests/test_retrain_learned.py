@@ -187,10 +187,11 @@ def test_several_specs_say_per_object_why_learned_views_were_dropped(store, tmp_
     model = S.load_model(store, NAME)
     L.merge_learned(store, NAME, turned_views(model), model.mesh)
     capsys.readouterr()
-    assert _train_many(store, _remodelled_spec(tmp_path), renamed_spec(tmp_path, "box-two")) == 0
+    spec = _remodelled_spec(tmp_path)
+    assert _train_many(store, spec, renamed_spec(tmp_path, "box-two")) == 0
     out, err = capsys.readouterr()
     warned = [x for x in err.splitlines() if "learned while tracking" in x]
-    assert warned == [f"quatrack train: warning: {spec_dir / 'object.json'}: 'cookie-box' in {store} held 2 view(s) "
+    assert warned == [f"quatrack train: warning: {spec}: 'cookie-box' in {store} held 2 view(s) "
                       f"learned while tracking; 2 dropped: the mesh changed (their 3-D points lie on the old one) "
                       f"(track --learn learns them again)"], err
     assert ", views learned while tracking: 0 kept, 2 dropped," in out and _learned(store) == []
