@@ -47,3 +47,16 @@ def test_the_finding_and_tracking_example_runs_and_its_conversions_agree(capsys)
     np.testing.assert_allclose(scope["T"][:3, 3], step.t)
     lines = capsys.readouterr().out.splitlines()
     assert lines[0].startswith("True Pose(q_wxyz=[") and lines[1].startswith("tracking [")
+
+
+def test_the_table_of_contents_links_every_section_and_only_sections():
+    """Each ## / ### heading is listed, and each link reaches a heading (GitHub's anchors: lower
+    case, punctuation dropped, spaces as hyphens): a renamed heading breaks no link unseen."""
+    text = README.read_text(encoding="utf-8")
+
+    def anchor(title: str) -> str:
+        return re.sub(r"[^\w\- ]", "", title.strip().lower()).replace(" ", "-")
+
+    heads = [anchor(t) for t in re.findall(r"^#{2,3} (.+)$", text, re.M)]
+    links = re.findall(r"^\s*- \[[^\]]+\]\(#([^)]+)\)$", text, re.M)
+    assert links == heads
