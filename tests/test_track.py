@@ -290,7 +290,7 @@ def test_cli_track_bad_input(cli_env, tmp_path, capsys, case):
     elif case == "size-mismatch":
         small = tmp_path / "small"
         small.mkdir()
-        cv2.imwrite(str(small / "a.png"), np.zeros((240, 320, 3), np.uint8))
+        cv2.imwrite(str(small / "a.png"), np.zeros((200, 320, 3), np.uint8))  # (another aspect: 320×240 is now the camera scaled)
         args = ["--images", str(small / "*.png")]
     elif case == "bad-pose":
         (tmp_path / "pose.json").write_text('{"rvec": [1, 2]}')

@@ -208,10 +208,10 @@ def test_an_image_of_another_size_in_a_sequence_is_a_lost_row_and_the_track_goes
     rows = list(csv.reader(out.open()))[1:]
     assert [int(r[0]) for r in rows] == list(range(5)) and [r[2] for r in rows][2:] == ["lost", "tracking", "tracking"]
     assert "frame 2 cannot be read" in err and "0002.png" in err and "320×240" in err
-    assert cv2.imwrite(str(tmp_path / "0000.png"), cv2.resize(frames[0], (320, 240)))
-    assert _track(tmp_path, "--images", str(tmp_path / "*.png"), "--out", str(tmp_path / "again.csv")) == 2
+    assert cv2.imwrite(str(tmp_path / "0000.png"), cv2.resize(frames[0], (320, 200)))  # (another aspect ratio:
+    assert _track(tmp_path, "--images", str(tmp_path / "*.png"), "--out", str(tmp_path / "again.csv")) == 2  # 4:3 is scaled)
     err = capsys.readouterr().err.strip()
-    assert "0000.png: the camera is for 640×480 px images but the frame is 320×240 px" in err and "\n" not in err
+    assert "0000.png: the camera is for 640×480 px images but the frame is 320×200 px" in err and "\n" not in err
     assert not (tmp_path / "again.csv").exists()
 
 
