@@ -161,6 +161,27 @@ def _outputs(args: argparse.Namespace) -> tuple[Path, Path, Path | None]:
     return spec_path, out_path, overlay
 
 
+def _recheck_clicks(view, where: str, problems: dict, warn) -> None:
+    """The clicks' checks that need the photo's size (``load_spec`` passed them for a camera
+    sized by its images, which has none: a click 40 px off was then taken and trained on):
+    their pixels inside the photo and their RMS within :func:`~quatrack.viewsets.register.max_rms_px`
+    for a pose solved from them (a problem: ``problems[index]``), the given pose's agreement
+    with them otherwise (a warning, as ``load_spec`` gives)."""
+    from quatrack.viewsets.errors import SpecError
+    from quatrack.viewsets.register import pose_from_points
+    from quatrack.viewsets.spec import _points_disagree
+
+    if view.points is None or view.index in problems:
+        return
+    if view.pose_from_points:
+        try:
+            pose_from_points(view.points, view.camera, where)
+        except SpecError as exc:
+            problems[view.index] = str(exc)
+    elif view.pose is not None and (msg := _points_disagree(view.points, view.camera, view.pose)) is not None:
+        warn(f"view {view.index}: {msg}")
+
+
 def _register_view(view, grey: np.ndarray, mesh, args: argparse.Namespace, origin: str):
     """One view's final pose, its line for stdout, and what is wrong with it (None: nothing):
     its clicks off the mesh, or the mesh's edges at the pose not on the photo's as a pose
@@ -236,6 +257,7 @@ def run(args: argparse.Namespace) -> int:
         cam = view.camera
         if cam.width is None:  # (a camera sized by its images)
             view = replace(view, camera=replace(cam, width=photo.shape[1], height=photo.shape[0]))
+            _recheck_clicks(view, f"{spec_path}: view {view.index}", problems, warn)
         views.append(view)
     found, not_found = _locate_missing(spec, [v for v in views if v.index not in problems], photos) if args.locate else ({}, {})
     problems.update(not_found)

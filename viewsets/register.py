@@ -321,6 +321,7 @@ def refined_view(view, image: np.ndarray, mesh, click_sigma_px: float = 2.0):
 
     if (msg := off_mesh_message(view.points.model, mesh, f"view {view.index}")) is not None:
         raise SpecError(msg)
+    pose_from_points(view.points, view.camera, f"view {view.index}")  # (checks a camera sized by its photo could not have at load_spec)
     grey = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
     reg = refine_with_edges(grey, mesh.run_time, view.camera, _registration(view.points, view.camera, view.pose),
                             view.points, click_sigma_px)

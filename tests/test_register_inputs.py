@@ -1,0 +1,76 @@
+"""Registering photos with awkward inputs, as users give them (session 63's trial): a camera
+sized by its images, clicks outside the photo, a mistyped model coordinate, absurd numbers.
+
+Ground truth: the zoo's photos rendered at known poses, clicked with seeded noise
+(:func:`quatrack.testing.clicks.zoo_clicks`), and points projected at known poses.
+"""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from quatrack.cli import main
+from quatrack.testing.clicks import zoo_clicks
+from quatrack.tracking.camera import PinholeCamera
+from quatrack.tracking.pose import Pose
+from quatrack.viewsets.register import PointPairs, PointsMisfit, refined_view
+from quatrack.viewsets.spec import load_spec
+
+CAM = PinholeCamera(600.0, 600.0, 319.5, 239.5, np.zeros(5), width=640, height=480)
+BOX = np.array([[x, y, z] for x in (0, 8) for y in (0, 6) for z in (0, 4)], float)  # a box's corners
+TRUTH = Pose.from_matrix(cv2.Rodrigues(np.array([0.4, -0.3, 0.2]))[0], np.array([-4.0, -3.0, 40.0]))
+
+
+def _clicks(noise: float = 0.5, seed: int = 0) -> PointPairs:
+    uv = CAM.project(BOX @ TRUTH.R.T + TRUTH.t)
+    return PointPairs(BOX.copy(), uv + np.random.default_rng(seed).normal(0, noise, uv.shape))
+
+
+def _sized_by_images_spec(tmp_path, wrong_px: float = 0.0):
+    """A zoo photo clicked at 6–8 corners, its camera an OpenCV YAML without the image size;
+    click 2 moved ``wrong_px`` to the right (a neighbour's corner)."""
+    spec, v, mesh, pairs = zoo_clicks("small-cube-cm", tmp_path / "obj", 0, 1.0)
+    c = v.camera
+    (spec.path.parent / "cam.yml").write_text(
+        "%YAML:1.0\n---\ncamera_matrix: !!opencv-matrix\n   rows: 3\n   cols: 3\n   dt: d\n"
+        f"   data: [ {c.fx!r}, 0., {c.cx!r}, 0., {c.fy!r}, {c.cy!r}, 0., 0., 1. ]\n"
+        "distortion_coefficients: !!opencv-matrix\n   rows: 1\n   cols: 5\n   dt: d\n   data: [ 0., 0., 0., 0., 0. ]\n")
+    data = json.loads(spec.path.read_text())
+    view = data["views"][0]
+    del view["pose"]
+    view["camera"] = "cam.yml"
+    pixel = pairs.pixel.copy()
+    pixel[2, 0] += wrong_px
+    view["points"] = [{"model": [float(x) for x in X], "pixel": [float(x) for x in p]} for X, p in zip(pairs.model, pixel)]
+    spec.path.write_text(json.dumps(data))
+    return spec.path, mesh
+
+
+def test_a_wrong_click_is_refused_with_a_camera_sized_by_its_images(tmp_path, capsys):
+    """A camera file without the image size (OpenCV YAML, as the contract allows) has no
+    diagonal to bound the clicks' RMS by when the spec is read: a click 40 px off (RMS ~12 px,
+    the bar 8 px at 640 × 480) was taken, refitted and trained on. Now register and train check
+    the clicks once the photo sizes the camera."""
+    from quatrack.viewsets.mesh import load_mesh
+    from quatrack.viewsets.train import _read_image, _sized_by
+
+    path, _ = _sized_by_images_spec(tmp_path, wrong_px=40.0)
+    assert main(["register", str(path), "--overlay", str(tmp_path / "ov")]) == 2
+    err = capsys.readouterr().err
+    assert "do not fit one pose" in err and "point 2 lies" in err and "Traceback" not in err
+    assert (tmp_path / "ov" / "view-0.png").is_file() and not path.with_name("object.registered.json").exists()
+    spec = load_spec(path)
+    view = _sized_by(spec.views[0], image := _read_image(spec.views[0]))
+    with pytest.raises(PointsMisfit, match="point 2 lies"):
+        refined_view(view, image, load_mesh(spec.mesh_path))
+
+
+def test_good_clicks_register_with_a_camera_sized_by_its_images(tmp_path, capsys):
+    path, _ = _sized_by_images_spec(tmp_path)
+    assert main(["register", str(path)]) == 0
+    assert "view 0: pose solved from its points" in capsys.readouterr().out
+    assert load_spec(path.with_name("object.registered.json")).views[0].pose is not None
