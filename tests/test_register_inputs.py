@@ -8,6 +8,7 @@ Ground truth: the zoo's photos rendered at known poses, clicked with seeded nois
 from __future__ import annotations
 
 import json
+import warnings
 
 import cv2
 import numpy as np
@@ -17,7 +18,8 @@ from quatrack.cli import main
 from quatrack.testing.clicks import zoo_clicks
 from quatrack.tracking.camera import PinholeCamera
 from quatrack.tracking.pose import Pose
-from quatrack.viewsets.register import PointPairs, PointsMisfit, refined_view
+from quatrack.viewsets.errors import SpecError
+from quatrack.viewsets.register import PointPairs, PointsMisfit, parse_points, pose_from_points, refined_view
 from quatrack.viewsets.spec import load_spec
 
 CAM = PinholeCamera(600.0, 600.0, 319.5, 239.5, np.zeros(5), width=640, height=480)
@@ -74,3 +76,56 @@ def test_good_clicks_register_with_a_camera_sized_by_its_images(tmp_path, capsys
     assert main(["register", str(path)]) == 0
     assert "view 0: pose solved from its points" in capsys.readouterr().out
     assert load_spec(path.with_name("object.registered.json")).views[0].pose is not None
+
+
+def test_clicks_outside_the_photo_are_named(tmp_path):
+    """Clicks read off a resized copy of the photo (here twice its size) fit no pose; the
+    message blamed "no one point" and the mesh's units. Now it names a pixel outside the photo."""
+    pairs = _clicks()
+    with pytest.raises(SpecError, match=r"point \d's pixel \(.*\) lies outside the 640×480 photo \(\d of 8 clicks do\): "
+                                        r"give the pixels of this photo at its full size"):
+        pose_from_points(PointPairs(pairs.model, 2 * pairs.pixel), CAM, "view 0")
+    edge = pairs.pixel.copy()
+    edge[0] = [-0.5, 479.5]  # (the outer edge of the corner pixels: still in the photo)
+    with pytest.raises(PointsMisfit):  # (that click is far from its corner, but inside: a misfit, not "outside")
+        pose_from_points(PointPairs(pairs.model, edge), CAM, "view 0")
+
+
+@pytest.mark.parametrize("factor", [1000.0, 1e200])
+def test_one_mistyped_model_coordinate_is_named_not_called_a_line(factor):
+    """One model coordinate mistyped (8008 for 8 on an 8-unit box) stretched the points' spread
+    so that the others looked like a line beside it: "add points off that line" for a typo.
+    Now PnP's misfit names the point (its removal lets the others fit)."""
+    pairs = _clicks()
+    model = pairs.model.copy()
+    model[5, 0] = model[5, 0] * factor + 8.0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # (no overflow warning on the way: the user sees one line)
+        with pytest.raises(SpecError) as exc:
+            pose_from_points(PointPairs(model, pairs.pixel), CAM, "view 0")
+    assert "one line" not in str(exc.value)
+    if factor == 1000.0:
+        assert "point 5 lies" in str(exc.value)
+
+
+def test_points_on_a_line_are_still_refused():
+    X = np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0], [3, 0, 0], [400, 0, 0]], float)
+    pairs = PointPairs(X, np.array([[100, 100], [120, 100], [140, 100], [160, 100], [300, 100]], float))
+    with pytest.raises(SpecError, match="lie on one line"):
+        pose_from_points(pairs, CAM, "view 0")
+
+
+def test_an_absurd_coordinate_is_not_every_pair_the_same_point():
+    """A duplicate's tolerance was relative to the largest coordinate: one at 1e300 made every
+    pair "the same point" (and overflowed, a warning on the way)."""
+    value = [{"model": [float(x) for x in X], "pixel": [100.0 + 10 * i, 50.0 + 3 * i * i]} for i, X in enumerate(BOX)]
+    value[3]["pixel"] = [1e300, 1e300]
+    value[4]["model"] = [1e300, 0.0, 0.0]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        pairs = parse_points(value, "view 0")
+        with pytest.raises(SpecError, match=r"point 3's pixel \(1e\+300, 1e\+300\) lies outside"):
+            pose_from_points(pairs, CAM, "view 0")
+    value[1]["pixel"] = list(value[0]["pixel"])
+    with pytest.raises(SpecError, match="points 0 and 1 are the same pixel"):
+        parse_points(value, "view 0")

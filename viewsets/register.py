@@ -104,8 +104,10 @@ def parse_points(value: Any, where: str) -> PointPairs:
     X = np.asarray(model, float)
     uv = np.asarray(pixel, float)
     for name, arr in (("model", X), ("pixel", uv)):
-        d = np.linalg.norm(arr[:, None] - arr[None], axis=2)
-        i, j = np.nonzero(np.triu(d <= 1e-9 * max(float(np.abs(arr).max()), 1.0), 1))
+        # (the largest coordinate difference, relative to the median coordinate: one point given
+        # absurdly far, 1e300, made every other pair "the same" and the squares overflowed)
+        d = np.abs(arr[:, None] - arr[None]).max(axis=2)
+        i, j = np.nonzero(np.triu(d <= 1e-9 * max(float(np.median(np.abs(arr))), 1.0), 1))
         if len(i):
             what = "model point (each must be another point of the mesh)" if name == "model" else "pixel"
             raise SpecError(f"{where}: points {i[0]} and {j[0]} are the same {what}")
@@ -114,8 +116,34 @@ def parse_points(value: Any, where: str) -> PointPairs:
 
 def _collinear(X: np.ndarray) -> bool:
     """Whether the points lie (nearly) on one line: their spread's second axis is under 1 % of the first."""
+    X = X / max(float(np.abs(X).max()), 1e-300)  # (scale-free; 1e300 overflowed the SVD)
     s = np.linalg.svd(X - X.mean(axis=0), compute_uv=False)
     return s[0] <= 0 or s[1] < 1e-2 * s[0]
+
+
+def _without_farthest(X: np.ndarray) -> np.ndarray:
+    """The points but the one farthest from their median. Why: one coordinate mistyped (1608 for
+    8 on a 16-unit box) stretches the spread so that the others look like a line beside it, and
+    "on one line" sent the user to add points when one was wrong (PnP's misfit names it)."""
+    far = int(np.argmax(np.abs(X - np.median(X, axis=0)).max(axis=1)))
+    return np.delete(X, far, axis=0)
+
+
+def _outside(pixel: np.ndarray, camera: PinholeCamera) -> str | None:
+    """Why some clicked pixels cannot be this photo's (None: all lie in it; a camera sized by
+    its images is asked again once sized): outside its ``width × height``. Why: clicks read
+    off a resized copy or a zoomed viewer fit no pose, and were blamed on "no one point" or the
+    mesh's units."""
+    if camera.width is None or camera.height is None:
+        return None
+    w, h = camera.width, camera.height
+    out = np.nonzero((pixel[:, 0] < -0.5) | (pixel[:, 0] > w - 0.5) | (pixel[:, 1] < -0.5) | (pixel[:, 1] > h - 0.5))[0]
+    if not len(out):
+        return None
+    u, v = pixel[out[0]]
+    return (f"point {out[0]}'s pixel ({u:.6g}, {v:.6g}) lies outside the {w}×{h} photo ({len(out)} of {len(pixel)} "
+            f"clicks do): give the pixels of this photo at its full size (not of a resized copy or a zoomed "
+            f"view), u across from the left, v down from the top")
 
 
 def _residuals(pairs: PointPairs, camera: PinholeCamera, pose: Pose) -> np.ndarray:
@@ -140,8 +168,10 @@ def pose_from_points(pairs: PointPairs, camera: PinholeCamera, where: str = "vie
     clicked for its neighbour or a point given in other units than the mesh."""
     if len(pairs) < MIN_POINTS:
         raise SpecError(f"{where}: {len(pairs)} points given, at least {MIN_POINTS} are needed to fix a pose")
-    if _collinear(pairs.model):
+    if _collinear(pairs.model) and _collinear(_without_farthest(pairs.model)):
         raise SpecError(f"{where}: the points lie on one line in the model: add points off that line")
+    if (outside := _outside(pairs.pixel, camera)) is not None:
+        raise SpecError(f"{where}: {outside}")
     K = camera.matrix
     dist = np.asarray(camera.dist_coeffs, float)
     X = np.ascontiguousarray(pairs.model, np.float64)
