@@ -153,12 +153,34 @@ def _outputs(args: argparse.Namespace) -> tuple[Path, Path, Path | None]:
         raise UserError(f"--out {out_path}: that is the spec itself; write the registered spec to another file")
     if not out_path.name or (out_path.exists() and out_path.is_dir()):
         raise UserError(f"--out {out_path}: give a file name, not a folder")
-    if not out_path.resolve().parent.is_dir():
-        raise UserError(f"--out {out_path}: the folder {out_path.resolve().parent} does not exist")
+    folder = out_path.resolve().parent
+    if not folder.is_dir():
+        raise UserError(f"--out {out_path}: {folder} " + ("is a file, not a folder" if folder.exists() else "does not exist"))
     overlay = Path(args.overlay) if args.overlay else None
     if overlay is not None and overlay.exists() and not overlay.is_dir():
         raise UserError(f"--overlay {overlay}: not a folder")
+    if overlay is not None:  # (made now: one that cannot be was "[Errno 20] Not a directory" after the work)
+        try:
+            overlay.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise UserError(f"--overlay {overlay}: cannot make the folder ({exc.strerror or exc})") from None
     return spec_path, out_path, overlay
+
+
+def _check_mask(view, photo: np.ndarray) -> None:
+    """A view's mask read and sized as training reads it (:class:`SpecError` otherwise). Why
+    here: register ignores masks, and wrote a spec with a missing or misfit mask that ``quatrack
+    train``, as the line it printed said to run, then refused."""
+    import cv2
+
+    from quatrack.viewsets.errors import SpecError
+    from quatrack.viewsets.train import _read
+
+    if view.mask_path is None:
+        return
+    m = _read(view.mask_path, cv2.IMREAD_UNCHANGED, f"view {view.index}: mask {view.mask_path}")
+    if m.shape[:2] != photo.shape[:2]:
+        raise SpecError(f"view {view.index}: mask {view.mask_path}: size {m.shape[1::-1]} differs from the image's")
 
 
 def _recheck_clicks(view, where: str, problems: dict, warn) -> None:
@@ -254,6 +276,7 @@ def run(args: argparse.Namespace) -> int:
     photos, views = {}, []
     for view in spec.views:
         photo = photos[view.index] = _read_image(view)  # (checks the file and its size against the camera, as training does)
+        _check_mask(view, photo)
         cam = view.camera
         if cam.width is None:  # (a camera sized by its images)
             view = replace(view, camera=replace(cam, width=photo.shape[1], height=photo.shape[0]))
@@ -280,7 +303,6 @@ def run(args: argparse.Namespace) -> int:
         print(line)
         poses.append(pose)
         if overlay is not None:
-            overlay.mkdir(parents=True, exist_ok=True)
             target = overlay / f"view-{view.index}.png"
             with atomic_path(target, "--overlay") as tmp:
                 if not cv2.imwrite(tmp, _draw(photos[view.index], view, edges3d, pose)):

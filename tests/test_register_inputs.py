@@ -129,3 +129,32 @@ def test_an_absurd_coordinate_is_not_every_pair_the_same_point():
     value[1]["pixel"] = list(value[0]["pixel"])
     with pytest.raises(SpecError, match="points 0 and 1 are the same pixel"):
         parse_points(value, "view 0")
+
+
+def test_an_overlay_or_out_folder_that_cannot_be_is_said_before_the_work(tmp_path, capsys):
+    """``--overlay`` under a file was "[Errno 20] Not a directory: …" after every view was
+    registered, naming no option; ``--out`` in a file "the folder … does not exist"."""
+    spec, _, _, _ = zoo_clicks("small-cube-cm", tmp_path / "obj", 0, 1.0)
+    (tmp_path / "file").write_text("")
+    assert main(["register", str(spec.path), "--overlay", str(tmp_path / "file" / "ov")]) == 2
+    out = capsys.readouterr()
+    assert f"--overlay {tmp_path / 'file' / 'ov'}: cannot make the folder (Not a directory)" in out.err
+    assert "view 0" not in out.out  # (said before the work)
+    assert main(["register", str(spec.path), "--out", str(tmp_path / "file" / "x.json")]) == 2
+    assert f"{tmp_path / 'file'} is a file, not a folder" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("mask", ["missing", "small"])
+def test_a_mask_training_would_refuse_stops_register(tmp_path, capsys, mask):
+    """register ignored masks and wrote a spec whose missing or misfit mask ``quatrack train``
+    (the command it said to run) then refused; now it refuses it first, as a photo's."""
+    spec, _, _, _ = zoo_clicks("small-cube-cm", tmp_path / "obj", 0, 1.0)
+    data = json.loads(spec.path.read_text())
+    data["views"][0]["mask"] = "mask.png"
+    spec.path.write_text(json.dumps(data))
+    if mask == "small":
+        cv2.imwrite(str(spec.path.with_name("mask.png")), np.full((48, 64), 255, np.uint8))
+    assert main(["register", str(spec.path)]) == 2
+    err = capsys.readouterr().err
+    assert "view 0: mask" in err and ("file not found" if mask == "missing" else "size (64, 48) differs from the image's") in err
+    assert not spec.path.with_name("object.registered.json").exists()
