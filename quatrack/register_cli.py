@@ -204,6 +204,19 @@ def _recheck_clicks(view, where: str, problems: dict, warn) -> None:
         warn(f"view {view.index}: {msg}")
 
 
+def _loose(view, reg, click_sigma_px: float) -> str:
+    """What to say of a pose its clicks alone fix loosely (the edges did not refine it): ``""``
+    when they fix its rotation within :data:`~quatrack.viewsets.register.LOOSE_ROTATION_DEG`."""
+    from quatrack.viewsets.register import LOOSE_ROTATION_DEG, click_sigma, rotation_sigma_deg
+
+    n = len(view.points)
+    s = rotation_sigma_deg(view.points, view.camera, reg.pose, click_sigma(reg, n, click_sigma_px))
+    if s <= LOOSE_ROTATION_DEG:
+        return ""
+    return (f"; but its {n} points fix the rotation only to ±{s:.1f}° (1σ; at most {LOOSE_ROTATION_DEG:g}° is "
+            f"firm): click points on another face too (four corners of one face seen face-on leave its tilt loose)")
+
+
 def _register_view(view, grey: np.ndarray, mesh, args: argparse.Namespace, origin: str):
     """One view's final pose, its line for stdout, and what is wrong with it (None: nothing):
     its clicks off the mesh, or the mesh's edges at the pose not on the photo's as a pose
@@ -239,6 +252,8 @@ def _register_view(view, grey: np.ndarray, mesh, args: argparse.Namespace, origi
                 why = (f"it left the clicks {reg.refused.rms_px:.1f} px (RMS) off — the photo's print, not the "
                        f"object's outline?" if a1 >= a0 - 0.02 else f"the edges agreed less ({a0:.0%} → {a1:.0%})")
                 line += f"; a refit to the mesh's edges not kept: {why}"
+        if view.pose_from_points and reg.moved is None:
+            line += _loose(view, reg, args.click_sigma)
     e = edge_agreement(grey, mesh, view.camera, reg.pose)
     line += f"; the mesh's edges lie on the photo's for {e.agreement:.0%} of their length ({e.chance:.0%} by chance)"
     p = PoseParams()
