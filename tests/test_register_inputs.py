@@ -34,7 +34,7 @@ def _clicks(noise: float = 0.5, seed: int = 0) -> PointPairs:
 
 def _sized_by_images_spec(tmp_path, wrong_px: float = 0.0):
     """A zoo photo clicked at 6–8 corners, its camera an OpenCV YAML without the image size;
-    click 2 moved ``wrong_px`` to the right (a neighbour's corner)."""
+    click 2 moved ``wrong_px`` to the right (a neighbour's corner). Returns the spec's path and the true pose."""
     spec, v, mesh, pairs = zoo_clicks("small-cube-cm", tmp_path / "obj", 0, 1.0)
     c = v.camera
     (spec.path.parent / "cam.yml").write_text(
@@ -49,7 +49,7 @@ def _sized_by_images_spec(tmp_path, wrong_px: float = 0.0):
     pixel[2, 0] += wrong_px
     view["points"] = [{"model": [float(x) for x in X], "pixel": [float(x) for x in p]} for X, p in zip(pairs.model, pixel)]
     spec.path.write_text(json.dumps(data))
-    return spec.path, mesh
+    return spec.path, v.pose
 
 
 def test_a_wrong_click_is_refused_with_a_camera_sized_by_its_images(tmp_path, capsys):
@@ -213,3 +213,12 @@ def test_the_rotation_sigma_follows_the_clicks_noise():
     assert s2 == pytest.approx(2 * s1, rel=1e-3) and s1 < 1.0
     face = BOX[:, 2] == 0  # (one face's four corners: a looser rotation, but a finite one)
     assert s1 < rotation_sigma_deg(PointPairs(pairs.model[face], pairs.pixel[face]), CAM, TRUTH, 1.0) < 10 * s1
+
+
+def test_a_given_pose_far_from_its_clicks_is_warned_of_with_a_camera_sized_by_its_images(tmp_path, capsys):
+    path, truth = _sized_by_images_spec(tmp_path)
+    data = json.loads(path.read_text())
+    data["views"][0]["pose"] = {"q_wxyz": [float(x) for x in truth.q_wxyz], "t": [float(x) for x in truth.t * [1, 1, 1.3]]}
+    path.write_text(json.dumps(data))
+    main(["register", str(path), "--no-edges"])
+    assert "view 0: the given pose puts its points" in capsys.readouterr().err
