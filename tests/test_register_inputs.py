@@ -222,3 +222,31 @@ def test_a_given_pose_far_from_its_clicks_is_warned_of_with_a_camera_sized_by_it
     path.write_text(json.dumps(data))
     main(["register", str(path), "--no-edges"])
     assert "view 0: the given pose puts its points" in capsys.readouterr().err
+
+
+def test_points_off_a_scans_mesh_are_measured_exactly(monkeypatch):
+    """Points against a jittered scan's triangles: only those that can hold the nearest point are
+    measured now (all of them, ~0.5 s a point on a 786 432-triangle scan, were), and the same
+    points come out off the mesh, at the same distances, as against every triangle."""
+    import trimesh
+
+    from quatrack.testing import zoo as Z
+    from quatrack.testing.scans import scanned
+    from quatrack.viewsets.register import points_off_mesh
+
+    box = Z.textured("cookie-slab-cm").mesh
+    scan = scanned(box, 3, jitter=0.002)
+    rng = np.random.default_rng(4)
+    P = np.vstack([rng.uniform(box.vertices.min(0) - 3, box.vertices.max(0) + 3, (40, 3)), box.vertices])
+    tris = scan.triangles
+    brute = [float(np.linalg.norm(trimesh.triangles.closest_point(tris, np.repeat(p[None], len(tris), 0)) - p, axis=1).min())
+             for p in P]
+    limit = 0.05 * scan.extent
+    measured = []
+    closest = trimesh.triangles.closest_point
+    monkeypatch.setattr(trimesh.triangles, "closest_point", lambda t, p: measured.append(len(t)) or closest(t, p))
+    off = points_off_mesh(P, scan)
+    assert len(measured) == len(P) and max(measured) < 0.2 * len(tris)
+    assert [i for i, _ in off] == [i for i, d in enumerate(brute) if d > limit]
+    assert np.allclose([d for _, d in off], [d for d in brute if d > limit], rtol=1e-12)
+    assert 0 < len(off) < 40
