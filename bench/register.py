@@ -6,7 +6,7 @@ object's training photo is rendered at a known pose, up to 8 of its visible corn
 "clicked" with Gaussian noise of ``noise`` px per axis (:func:`quatrack.testing.clicks.zoo_clicks`),
 and the pose is registered as ``quatrack register`` does: PnP from the clicks
 (:func:`~quatrack.viewsets.register.pose_from_points`), then the refit to the mesh's edges
-(:func:`~quatrack.viewsets.register.refine_with_edges`). Reported per noise level: the errors of
+(:func:`~quatrack.recognition.registration.refine_with_edges`). Reported per noise level: the errors of
 both against the truth (centre, % of the diameter; rotation, degrees: median, 90th percentile,
 max), how many refits were kept, and the time per view.
 """
@@ -26,7 +26,8 @@ def run(objects=None, photos: int = 4, noises=(1.0, 2.0, 4.0), grey: bool = Fals
     from quatrack.testing import zoo as Z
     from quatrack.testing.clicks import zoo_clicks
     from quatrack.testing.scenes import pose_errors
-    from quatrack.viewsets.register import pose_from_points, refine_with_edges
+    from quatrack.recognition.registration import refine_with_edges
+    from quatrack.viewsets.register import pose_from_points
 
     names = list(objects) if objects else [o.name for o in Z.ZOO]
     out = {"objects": names, "photos": photos, "grey": grey, "noise": {}}

@@ -4,7 +4,7 @@ A user's own object comes with a mesh and a photo, rarely with the photo's pose.
 give, instead of a view's ``pose``, the ``points`` clicked in it (``{"model": [x, y, z], "pixel":
 [u, v]}``, at least four: :mod:`quatrack.viewsets.register`). ``quatrack train`` solves such a
 view's pose by PnP from its points alone; ``register`` also pulls each view's pose (solved, or
-given) onto the mesh's edges in the photo, prints what it did, and writes a spec with the poses
+given) onto the mesh's edges in the photo (:mod:`quatrack.recognition.registration`), prints what it did, and writes a spec with the poses
 filled in — by default ``NAME.registered.json`` beside the spec — plus, with ``--overlay DIR``,
 each photo with the mesh drawn at its pose to look at before training. The written spec keeps
 everything the input had (the points too), so it can be edited and registered again.
@@ -224,7 +224,8 @@ def _register_view(view, grey: np.ndarray, mesh, args: argparse.Namespace, origi
     from quatrack.recognition.evidence import edge_agreement
     from quatrack.recognition.pose import PoseParams
     from quatrack.viewsets.errors import SpecError
-    from quatrack.viewsets.register import Registration, off_mesh_message, refine_with_edges
+    from quatrack.recognition.registration import refine_with_edges
+    from quatrack.viewsets.register import Registration, off_mesh_message
     from quatrack.viewsets.train import check_pose
 
     line = f"view {view.index}: pose {origin}"
@@ -279,7 +280,7 @@ def run(args: argparse.Namespace) -> int:
     spec_path, out_path, overlay = _outputs(args)
 
     def warn(msg: str) -> None:
-        if "`quatrack register --overlay DIR` draws it" not in msg:  # (load_spec's hint for train: this is the command)
+        if "`quatrack register` also fits it" not in msg:  # (load_spec's hint for train: this is the command)
             print(f"quatrack register: warning: {msg}", file=sys.stderr)
 
     misfits: list = []

@@ -19,7 +19,7 @@ from quatrack.testing.clicks import zoo_clicks
 from quatrack.tracking.camera import PinholeCamera
 from quatrack.tracking.pose import Pose
 from quatrack.viewsets.errors import SpecError
-from quatrack.viewsets.register import PointPairs, PointsMisfit, parse_points, pose_from_points, refined_view
+from quatrack.viewsets.register import PointPairs, PointsMisfit, check_clicked_view, parse_points, pose_from_points
 from quatrack.viewsets.spec import load_spec
 
 CAM = PinholeCamera(600.0, 600.0, 319.5, 239.5, np.zeros(5), width=640, height=480)
@@ -66,9 +66,9 @@ def test_a_wrong_click_is_refused_with_a_camera_sized_by_its_images(tmp_path, ca
     assert "do not fit one pose" in err and "point 2 lies" in err and "Traceback" not in err
     assert (tmp_path / "ov" / "view-0.png").is_file() and not path.with_name("object.registered.json").exists()
     spec = load_spec(path)
-    view = _sized_by(spec.views[0], image := _read_image(spec.views[0]))
+    view = _sized_by(spec.views[0], _read_image(spec.views[0]))
     with pytest.raises(PointsMisfit, match="point 2 lies"):
-        refined_view(view, image, load_mesh(spec.mesh_path))
+        check_clicked_view(view, load_mesh(spec.mesh_path))
 
 
 def test_good_clicks_register_with_a_camera_sized_by_its_images(tmp_path, capsys):

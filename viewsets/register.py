@@ -16,7 +16,7 @@ that leaves the clicks is not kept.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Any
 
 import cv2
@@ -28,14 +28,13 @@ from quatrack.tracking.pose import Pose
 from .camera import isfinite
 from .errors import SpecError
 
-__all__ = ["AGREEMENT_SLACK", "MIN_POINTS", "PointPairs", "PointsMisfit", "Registration", "click_limit_px", "max_rms_px", "parse_points",
-           "click_sigma", "off_mesh_message", "points_off_mesh", "pose_from_points", "refine_with_edges",
-           "refined_view", "rotation_sigma_deg", "LOOSE_ROTATION_DEG"]
+__all__ = ["LOOSE_ROTATION_DEG", "MIN_POINTS", "PointPairs", "PointsMisfit", "Registration", "check_clicked_view",
+           "click_limit_px", "click_sigma", "max_rms_px", "off_mesh_message", "parse_points", "points_off_mesh",
+           "pose_from_points", "registration_at", "rotation_sigma_deg"]
 
 MIN_POINTS = 4  # PnP's unique pose needs 4 pairs (3 leave up to four poses)
 MAX_RMS_SHARE = 0.01  # of the photo's diagonal: the clicks' RMS a registration may have (6.4 px at 640 × 480)
 MIN_MAX_RMS_PX = 3.0
-AGREEMENT_SLACK = 0.02  # a refit may lose this much edge agreement (one sample in 50: a pose already on its edges)
 
 
 @dataclass(frozen=True)
@@ -151,7 +150,7 @@ def _residuals(pairs: PointPairs, camera: PinholeCamera, pose: Pose) -> np.ndarr
     return np.linalg.norm(camera.project(Xc) - pairs.pixel, axis=1)
 
 
-def _registration(pairs: PointPairs, camera: PinholeCamera, pose: Pose, **extra) -> Registration:
+def registration_at(pairs: PointPairs, camera: PinholeCamera, pose: Pose, **extra) -> Registration:
     r = _residuals(pairs, camera, pose)
     worst = int(np.argmax(r))
     return Registration(pose, float(np.sqrt(np.mean(r ** 2))), worst, float(r[worst]), **extra)
@@ -189,7 +188,7 @@ def pose_from_points(pairs: PointPairs, camera: PinholeCamera, where: str = "vie
     if np.any(z <= 0):
         raise SpecError(f"{where}: the best pose puts point {int(np.argmin(z))} behind the camera: "
                         f"are the pixels in this photo and the model points in the mesh's units?")
-    reg = _registration(pairs, camera, pose)
+    reg = registration_at(pairs, camera, pose)
     limit = max_rms_px(camera)
     if reg.rms_px > limit:
         raise PointsMisfit(f"{where}: the points do not fit one pose: RMS {reg.rms_px:.1f} px (at most {limit:.1f}); "
@@ -285,49 +284,6 @@ def rotation_sigma_deg(pairs: PointPairs, camera: PinholeCamera, pose: Pose, sig
     return float(np.degrees(np.sqrt(max(float(np.linalg.eigvalsh(C[:3, :3]).max()), 0.0))))
 
 
-def refine_with_edges(grey: np.ndarray, mesh, camera: PinholeCamera, reg: Registration, pairs: PointPairs,
-                      click_sigma_px: float = 2.0, rounds: int = 3) -> Registration:
-    """``reg``'s pose refitted to the mesh's visible edges in the photo and the clicks together
-    (:func:`~quatrack.recognition.evidence.edge_fit`: each edge sample searches along its normal
-    for the strongest aligned gradient; Gauss–Newton with Cauchy weights, the clicks at
-    :func:`click_sigma`'s
-    σ, the edges at 1 px), measured again from each new pose (``rounds``: the
-    search is centred on the pose, so a pose several pixels off is pulled in over two or three).
-
-    The refit is kept only if it keeps the clicks (their RMS within :func:`click_limit_px`) and
-    puts as much of the model's edges on the photo's edges as before (within
-    :data:`AGREEMENT_SLACK`: a pose clicked well already has 95 % of them there); otherwise ``reg`` comes back
-    with the agreement measured and ``moved`` None. Why the clicks must hold it: a printed box's
-    decoration runs parallel to its edges a few pixels inside, and the strongest gradient the
-    search finds can be the print's. On the bundled cookie box's photo the edges alone pulled a
-    pose clicked to 1.4 px RMS by 29 % of the box's size onto its print's frame, leaving the
-    clicks 19 px off; on the zoo's photos (flat print) they brought poses 3× nearer the truth."""
-    from quatrack.recognition.evidence import edge_fit, measure_edges
-
-    sigma = click_sigma(reg, len(pairs), click_sigma_px)
-    before, image = measure_edges(grey, mesh, camera, reg.pose)
-    pose = reg.pose
-    for _ in range(rounds):
-        if image is None:
-            break
-        fit = edge_fit(image, mesh, camera, pose, pairs.model, pairs.pixel, point_sigma_px=sigma, iterations=10)
-        if fit.pose is None:
-            break
-        pose = fit.pose
-        image = measure_edges(grey, mesh, camera, pose)[1]
-    if pose is reg.pose:
-        return replace(reg, edge_agreement=(before.agreement, before.agreement))
-    after = measure_edges(grey, mesh, camera, pose)[0]
-    refit = _registration(pairs, camera, pose, edge_agreement=(before.agreement, after.agreement))
-    if after.agreement < before.agreement - AGREEMENT_SLACK or refit.rms_px > click_limit_px(len(pairs), sigma):
-        return replace(reg, edge_agreement=(before.agreement, after.agreement), refused=refit)
-    c = mesh.centre
-    dc = float(np.linalg.norm((pose.R @ c + pose.t) - (reg.pose.R @ c + reg.pose.t)))
-    dR = pose.R @ reg.pose.R.T
-    angle = float(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1.0, 1.0))))
-    return replace(refit, moved=(dc / float(mesh.extent), angle))
-
-
 OFF_MESH_SHARE = 0.05  # of the mesh's diameter: how far a clicked model point may lie from its surface
 
 
@@ -374,17 +330,18 @@ def off_mesh_message(points: np.ndarray, mesh, where: str) -> str | None:
             f"on this object?")
 
 
-def refined_view(view, image: np.ndarray, mesh, click_sigma_px: float = 2.0):
-    """A spec view whose pose was solved from its clicks (``view.pose_from_points``), with that
-    pose refitted to the mesh's edges in its photo ``image`` (:func:`refine_with_edges`; ``mesh``'s
-    run-time decimation for a scan's): ``(view, Registration)``. What ``quatrack train`` does with
-    such a view, as ``quatrack register`` does, so the model learns from the better pose."""
-    import cv2
-
+def check_clicked_view(view, mesh, warn=None) -> None:
+    """What ``quatrack train`` checks of a view whose pose was solved from its clicks, once its
+    photo has sized its camera (``view.pose_from_points``): the clicks on the mesh
+    (:func:`off_mesh_message`) and fitting one pose in the photo (:func:`pose_from_points` again:
+    a camera sized by its images had no bound at :func:`~.spec.load_spec`) — a :class:`SpecError`
+    otherwise; and ``warn`` told when they fix its rotation loosely (:func:`rotation_sigma_deg`).
+    The edges' refit is ``quatrack register``'s (:mod:`quatrack.recognition.registration`: a
+    higher layer), which brings such poses 3–6× nearer the truth."""
     if (msg := off_mesh_message(view.points.model, mesh, f"view {view.index}")) is not None:
         raise SpecError(msg)
-    pose_from_points(view.points, view.camera, f"view {view.index}")  # (checks a camera sized by its photo could not have at load_spec)
-    grey = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
-    reg = refine_with_edges(grey, mesh.run_time, view.camera, _registration(view.points, view.camera, view.pose),
-                            view.points, click_sigma_px)
-    return replace(view, pose=reg.pose), reg
+    reg = pose_from_points(view.points, view.camera, f"view {view.index}")
+    sd = rotation_sigma_deg(view.points, view.camera, view.pose, click_sigma(reg, len(view.points), 2.0))
+    if warn and sd > LOOSE_ROTATION_DEG:
+        warn(f"view {view.index}: its clicks fix the rotation only to ±{sd:.1f}° (1σ): click corners of a second "
+             f"face too, or run `quatrack register`, which also fits the pose to the mesh's edges")

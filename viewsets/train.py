@@ -22,7 +22,7 @@ from .errors import SpecError
 from .imagefile import truncated
 from .mesh import Mesh, load_mesh
 from .novel import NovelViewParams, novel_poses, render_textured_view
-from .register import refined_view
+from .register import check_clicked_view
 from .render import RenderBuffers, render
 from .rfch import RFCHParams, train_rfch
 from .spec import ObjectSpec, ViewSpec
@@ -174,11 +174,8 @@ def _sized_by(view: ViewSpec, image: np.ndarray) -> ViewSpec:
 def _prepare_view(mesh: Mesh, view: ViewSpec, warn=None) -> _View:
     image = _read_image(view)
     view = _sized_by(view, image)
-    if view.pose_from_points:  # (its pose solved from clicks by load_spec: fitted to the mesh's edges too)
-        view, reg = refined_view(view, image, mesh)
-        if warn and reg.moved is not None:
-            warn(f"view {view.index}: the pose its points give fitted to the mesh's edges in the photo (moved "
-                 f"{100 * reg.moved[0]:.2f} % of the diameter and {reg.moved[1]:.2f}°; clicks' RMS {reg.rms_px:.1f} px)")
+    if view.pose_from_points:  # (its pose solved from clicks by load_spec: checked now its camera is sized)
+        check_clicked_view(view, mesh, warn)
     full = image.shape[:2]
     view, image = _within_pixels(view, image)
     buffers = check_pose(mesh, view)
