@@ -289,6 +289,21 @@ def _setups(store, workers: list[int], threads: int | None, max_sessions: int, r
     return out
 
 
+def _check_object(store, name: str, trained_from: str | None = None) -> None:
+    """Refuse an ``--object`` the store does not hold (every stream was refused by the server: a
+    table of NaN, exit 0), as the other commands say it (:func:`~quatrack.viewsets.store.unknown_object`:
+    the nearest name, the objects held); ``trained_from``: the store is the run's own, trained
+    from that spec, so it is named instead of its temporary folder."""
+    from quatrack.viewsets.store import list_models, names_hint, unknown_object
+
+    held = list_models(store)
+    if name in held:
+        return
+    if trained_from is None:
+        raise ValueError(f"--object: {unknown_object(store, name)}")
+    raise ValueError(f"--object: no object named {name!r} in {trained_from}{names_hint(name, held)}")
+
+
 def main(args: argparse.Namespace) -> int:
     import asyncio
     import json
@@ -331,6 +346,8 @@ def main(args: argparse.Namespace) -> int:
     camera = camera_to_dict(load_camera(args.camera))
     if args.frames is not None and args.frames < 1:
         raise ValueError("--frames must be at least 1")
+    if args.store:
+        _check_object(args.store, args.object)  # (before the video is decoded)
     frames = list(video_frames(args.video, args.frames or max(1, round(args.seconds * args.fps))))
     tmp = tempfile.TemporaryDirectory(prefix="quatrack-bench-serve-")
     store = args.store
@@ -341,12 +358,7 @@ def main(args: argparse.Namespace) -> int:
 
         store = Path(tmp.name) / "store"
         save_model(store, train_object(load_spec(args.spec)))
-    from quatrack.viewsets.store import list_models
-
-    held = list_models(store)
-    if args.object not in held:  # (every stream was refused: a table of NaN, exit 0)
-        raise ValueError(f"--object {args.object}: not in {args.store or 'the model trained from ' + args.spec} "
-                         f"({'it holds ' + ', '.join(held) if held else 'no trained object there'})")
+        _check_object(store, args.object, f"the model trained from {args.spec}")
     report = {"cpu_count": cores, "load_average_at_start": os.getloadavg(), "threads_per_worker": args.threads,
               "frames_per_client": len(frames), "fps": args.fps, "setups": []}
     try:

@@ -283,7 +283,7 @@ def test_bench_serve_refuses_an_object_not_in_the_store_and_a_negative_stagger(t
     assert main(["bench", "serve", "--store", str(empty), "--replicas", "no", "--clients", "1", "--workers", "1",
                  "--frames", "1"]) == 2
     err = capsys.readouterr().err.strip()
-    assert err.startswith("quatrack bench: error: --object cookie-box: not in") and "\n" not in err, err
+    assert err.startswith("quatrack bench: error: --object: no object named 'cookie-box' in") and "\n" not in err, err
     assert main(["bench", "serve", "--stagger-s", "-1", "--replicas", "no"]) == 2
     assert "--stagger-s" in capsys.readouterr().err
     assert main(["bench", "serve", "--rest-concurrency", "0", "--replicas", "no"]) == 2  # (reported 40 requests, none sent)
