@@ -28,7 +28,7 @@ from pathlib import Path
 
 from fastapi import FastAPI
 from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html, get_swagger_ui_oauth2_redirect_html
-from fastapi.responses import HTMLResponse
+from fastapi.responses import HTMLResponse, RedirectResponse
 from fastapi.staticfiles import StaticFiles
 
 ASSETS = "/docs-assets"
@@ -64,6 +64,17 @@ def _asset_dir() -> Path:
     return Path(fastapi_offline.__file__).resolve().parent / "static"
 
 
+def _redirect(location: str):
+    """A route answering 307 to ``location``, relative: ``/docs/`` → ``../docs``. Starlette's own
+    redirect for a final slash is an absolute URL of the address the server was reached at, which
+    leaves a proxy's prefix (and names the proxy's upstream, ``127.0.0.1:8000``, when the proxy
+    does not pass ``Host``)."""
+    async def redirect() -> RedirectResponse:
+        return RedirectResponse(location)
+
+    return redirect
+
+
 def install(app: FastAPI) -> None:
     """Add ``/docs``, ``/docs/oauth2-redirect``, ``/redoc`` and the assets to ``app``, which must be
     created with ``docs_url=None, redoc_url=None``."""
@@ -82,6 +93,9 @@ def install(app: FastAPI) -> None:
         # (another FastAPI's page may word it otherwise: tests/test_docs_prefix.py says so)
         html = page.body.decode().replace(_REDIRECT_JS, "new URL('docs/oauth2-redirect', window.location.href).href")
         return HTMLResponse(html)
+
+    for page in ("docs", "redoc"):
+        app.add_api_route(f"/{page}/", _redirect(f"../{page}"), methods=["GET"], include_in_schema=False)
 
     @app.get("/docs/oauth2-redirect", include_in_schema=False)
     async def swagger_ui_redirect() -> HTMLResponse:

@@ -88,6 +88,19 @@ def test_the_oauth2_redirect_page_is_named_relative_to_the_page(proxied):
     assert proxied.get(target).status_code == 200
 
 
+@pytest.mark.parametrize("page", ["docs", "redoc"])
+def test_a_final_slash_redirects_within_the_prefix(proxied, direct, page):
+    """``/quatrack/docs/`` was Starlette's 307 to ``http://testserver/docs``: out of the prefix
+    (and to the proxy's upstream address when it does not pass ``Host``)."""
+    url = f"http://testserver{PREFIX}/{page}/"
+    r = proxied.get(url, follow_redirects=False)
+    assert r.status_code == 307 and urljoin(url, r.headers["location"]) == f"http://testserver{PREFIX}/{page}", \
+        r.headers.get("location")
+    assert proxied.get(url).status_code == 200
+    r = direct.get(f"/{page}/")
+    assert r.status_code == 200 and str(r.url) == f"http://testserver/{page}"
+
+
 def test_forwarded_prefix_names_the_server_of_the_description(tmp_path):
     with TestClient(PrefixSayingProxy(create_app(_settings(tmp_path)), PREFIX)) as c:
         assert c.get(f"{PREFIX}/openapi.json").json()["servers"] == [{"url": PREFIX}]
