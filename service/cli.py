@@ -79,6 +79,25 @@ def exposed_without_token(host: str, token: str | None) -> str | None:
             f"(set QUATRACK_API_TOKEN, or listen on 127.0.0.1)")
 
 
+def unlearned_objects(learn_views, store) -> list[str]:
+    """One line per object named in ``QUATRACK_LEARN_VIEWS`` that the store does not hold (a
+    typo, another case): its sessions would never learn, in silence, since the names are compared
+    whole (``service/learning.py``). With the nearest name and the objects held
+    (:func:`~quatrack.viewsets.store.names_hint`). An object trained into the store later is
+    learned from, so this is a warning. Nothing for ``*`` or a store that does not exist (warned
+    of already)."""
+    from pathlib import Path
+
+    from quatrack.viewsets.store import list_models, names_hint
+
+    if "*" in learn_views or not Path(store).is_dir():
+        return []
+    held = list_models(store)
+    return [f"QUATRACK_LEARN_VIEWS names {name!r}, which the store does not hold{names_hint(name, held)}: "
+            f"its sessions learn no views until an object of that name is trained"
+            for name in learn_views if name not in held]
+
+
 def run_serve(args: argparse.Namespace) -> int:
     import os
     import shutil
@@ -105,6 +124,8 @@ def run_serve(args: argparse.Namespace) -> int:
     if not settings.store.exists():  # (a typo in --store or QUATRACK_STORE: ready, with no object, in silence)
         print(f"quatrack serve: warning: the store {settings.store} does not exist: no object to serve until "
               f"one is trained into it (quatrack train --store {settings.store} ...)", file=sys.stderr, flush=True)
+    for line in unlearned_objects(settings.learn_views, settings.store):
+        print(f"quatrack serve: warning: {line}", file=sys.stderr, flush=True)
     check_address(settings.host, settings.port)
     exposed = exposed_without_token(settings.host, settings.api_token)
     if exposed:
