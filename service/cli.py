@@ -104,6 +104,8 @@ def run_serve(args: argparse.Namespace) -> int:
 
     import sys
 
+    from quatrack.viewsets.store import store_note
+
     from .settings import Settings, env_warnings
 
     # before the settings are checked, so that a misspelt name is told even when a value is refused
@@ -124,6 +126,8 @@ def run_serve(args: argparse.Namespace) -> int:
     if not settings.store.exists():  # (a typo in --store or QUATRACK_STORE: ready, with no object, in silence)
         print(f"quatrack serve: warning: the store {settings.store} does not exist: no object to serve until "
               f"one is trained into it (quatrack train --store {settings.store} ...)", file=sys.stderr, flush=True)
+    elif note := store_note(settings.store):  # (a model's own folder: served as an empty store, in silence)
+        print(f"quatrack serve: warning: the store {settings.store} holds no object{note}", file=sys.stderr, flush=True)
     for line in unlearned_objects(settings.learn_views, settings.store):
         print(f"quatrack serve: warning: {line}", file=sys.stderr, flush=True)
     check_address(settings.host, settings.port)

@@ -1,4 +1,6 @@
-"""``QUATRACK_LEARN_VIEWS`` naming an object the store does not hold (a typo, another case) is
+"""What ``quatrack serve`` warns of when it starts (it still starts).
+
+``QUATRACK_LEARN_VIEWS`` naming an object the store does not hold (a typo, another case) is
 warned of when ``quatrack serve`` starts, with the nearest name: the names are compared whole, so
 those sessions learned nothing, in silence. The server still starts (an object of that name
 trained later is learned from)."""
@@ -57,3 +59,15 @@ def test_no_such_warning_for_a_store_that_does_not_exist(not_started, capsys, tm
     assert main(["serve", "--store", str(tmp_path / "nowhere"), "--port", str(free_port()), "--workers", "1"]) == 0
     err = capsys.readouterr().err
     assert "does not exist" in err and "QUATRACK_LEARN_VIEWS" not in err, err
+
+
+def test_a_models_own_folder_as_the_store_is_warned_of(not_started, capsys):
+    """``--store STORE/cookie-box`` (the model's folder) served a store without objects, in
+    silence, as ``models list`` read it before (``viewsets.store.store_note``)."""
+    store = example_store()
+    assert main(["serve", "--store", str(store / "cookie-box"), "--port", str(free_port()), "--workers", "1"]) == 0
+    err = capsys.readouterr().err
+    assert (f"quatrack serve: warning: the store {store / 'cookie-box'} holds no object (the folder of object "
+            f"'cookie-box' itself: its store is {store})\n") in err, err
+    assert main(["serve", "--store", str(store), "--port", str(free_port()), "--workers", "1"]) == 0
+    assert "holds no object" not in capsys.readouterr().err
