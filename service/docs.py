@@ -34,7 +34,8 @@ from fastapi.staticfiles import StaticFiles
 ASSETS = "/docs-assets"
 # A path prefix as a proxy may send it: segments of URL path characters, no empty segment; a
 # value starting "//" would name another host, where "Try it out" would send the user's token.
-_PREFIX = re.compile(r"(?:/[A-Za-z0-9._~!$&'()*+,;=:@%-]+)+/?")
+# No comma: proxies in a chain may each append theirs ("/a,/b"), which is no one path.
+_PREFIX = re.compile(r"(?:/[A-Za-z0-9._~!$&+=:;@%-]+)+/?")
 # FastAPI's Swagger page prefixes the redirect page's URL with the origin (the host's root):
 # resolved against the page's own URL instead, it stays within a proxy's prefix.
 _REDIRECT_JS = "window.location.origin + '/docs/oauth2-redirect'"

@@ -109,7 +109,7 @@ def test_forwarded_prefix_names_the_server_of_the_description(tmp_path):
 
 
 @pytest.mark.parametrize("value", ["", "/", "//evil.example", "https://evil.example/x", "/a//b", "a/b",
-                                   "/a b", "/x\"y"])
+                                   "/a b", "/x\"y", "/a,/b"])
 def test_a_forwarded_prefix_that_is_not_a_path_is_ignored(direct, value):
     """No ``servers``, as without the header: ``//evil.example`` would send "Try it out"'s
     requests, with the token typed in, to another host."""
