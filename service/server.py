@@ -144,10 +144,14 @@ class ServeProcess(Loopback):
         import signal
         import subprocess
 
-        if self.proc is not None and self.proc.poll() is None:
+        if self.proc is not None:
+            # the whole process group, also when the supervisor has died already: its workers
+            # (multiprocessing children, no death signal of their own) outlived it and kept the port
+            alive = self.proc.poll() is None
             try:
                 os.killpg(self.proc.pid, sig or signal.SIGTERM)
-                self.proc.wait(timeout=timeout)
+                if alive:
+                    self.proc.wait(timeout=timeout)
             except subprocess.TimeoutExpired:
                 os.killpg(self.proc.pid, signal.SIGKILL)
                 self.proc.wait(timeout=timeout)

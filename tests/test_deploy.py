@@ -236,3 +236,32 @@ def test_stopping_a_server_closes_every_session_with_1012(tmp_path):
             assert [s.close_code for s in sessions] == [1012] * 3, (tmp_path / "serve.log").read_text()[-3000:]
 
         asyncio.run(scenario())
+
+
+@pytest.mark.slow
+def test_stop_ends_the_workers_of_a_supervisor_that_died(tmp_path):
+    """The supervisor of ``quatrack serve --workers 2`` killed (SIGKILL: no time to stop its
+    workers): ``ServeProcess.stop`` still ends the workers — they kept the port and a benchmark's
+    next server could not bind it — by signalling the whole process group."""
+    import os
+    import signal
+
+    srv = ServeProcess(example_store(), workers=2, env={"QUATRACK_THREADS": "1"}, log_path=tmp_path / "serve.log")
+    with srv:
+        workers = srv.worker_pids()
+        assert len(workers) == 2
+        os.kill(srv.proc.pid, signal.SIGKILL)
+        srv.proc.wait(timeout=30)
+
+        def alive(pid: int) -> bool:
+            try:
+                with open(f"/proc/{pid}/stat") as f:
+                    return f.read().rsplit(")", 1)[1].split()[0] != "Z"
+            except OSError:
+                return False
+
+        assert any(alive(p) for p in workers)  # (the workers outlived it)
+    deadline = time.monotonic() + 30
+    while any(alive(p) for p in workers) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert not any(alive(p) for p in workers)
