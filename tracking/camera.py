@@ -16,8 +16,10 @@ array([[360., 220.]])
 
 from __future__ import annotations
 
+import math
 import numbers
 from dataclasses import dataclass, field, replace
+from functools import lru_cache
 
 import numpy as np
 
@@ -26,6 +28,44 @@ from quatrack.tracking.jit import lazily_compiled
 __all__ = ["PinholeCamera"]
 
 _MAX_DIST = 8  # k1 k2 p1 p2 k3 k4 k5 k6 (thin-prism and tilt terms are not supported)
+
+
+@lru_cache(maxsize=64)
+def valid_radius2(d: tuple) -> float:
+    """The squared normalised radius ``r²`` (``r = |(x, y)|``, ``x = X/Z``) up to which OpenCV's
+    radial model ``r_d = r·(1 + k1 r² + k2 r⁴ + k3 r⁶)/(1 + k4 r² + k5 r⁴ + k6 r⁶)`` still
+    grows with ``r`` (inf when it always does). Why: beyond it the polynomial turns back, so a
+    point far outside the field of view lands inside the image (k1 = −0.42, k2 = 0.2,
+    k3 = −0.05 put a point 62° off the axis at pixel (202, 154) of a 640 × 480 image). ``d``:
+    the 8 coefficients as a tuple (cached: cameras are rebuilt by every crop and resize).
+    The tangential terms move a point along its direction by ``3r²(p1·sin θ + p2·cos θ)``, so the
+    radius is where ``d r_d/d r`` falls to their worst slope, ``6r·√(p1² + p2²)``: the distance
+    from the principal point grows along every direction within it.
+
+    >>> round(valid_radius2((-0.45, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)), 6)   # d(r − 0.45 r³)/dr = 0
+    0.740741
+    >>> valid_radius2((-0.35, 0.15, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0))            # 1 − 1.05 r² + 0.75 r⁴ > 0
+    inf
+    """
+    k1, k2, p1, p2, k3, k4, k5, k6 = (float(v) for v in d)
+    p = math.hypot(p1, p2)
+
+    def turns(s: float) -> bool:
+        # d r_d / d r = ((N + 2sN')·D − 2s·N·D')/D² (s = r²); a denominator reaching zero is the
+        # model's end too (the radius runs off to infinity and returns from the far side)
+        N, dN = 1.0 + s * (k1 + s * (k2 + s * k3)), k1 + s * (2.0 * k2 + 3.0 * k3 * s)
+        D, dD = 1.0 + s * (k4 + s * (k5 + s * k6)), k4 + s * (2.0 * k5 + 3.0 * k6 * s)
+        return D <= 0.0 or ((N + 2.0 * s * dN) * D - 2.0 * s * N * dD) / (D * D) <= 6.0 * math.sqrt(s) * p
+
+    grid = np.geomspace(1e-6, 1e4, 2001)  # r from 0.001 to 100 (89.4° off the axis)
+    k = next((i for i, s in enumerate(grid) if turns(float(s))), None)
+    if k is None:
+        return math.inf
+    lo, hi = (0.0 if k == 0 else float(grid[k - 1])), float(grid[k])
+    for _ in range(60):  # (bisection to the last bits: the same radius on every machine)
+        mid = 0.5 * (lo + hi)
+        lo, hi = (lo, mid) if turns(mid) else (mid, hi)
+    return lo
 
 
 def _rig_array(value, shape: tuple, name: str) -> np.ndarray:
@@ -55,6 +95,9 @@ class PinholeCamera:
     t_rig: np.ndarray = field(default_factory=lambda: np.zeros(3))
     # derived once: they are asked on every projection
     has_distortion: bool = field(init=False, repr=False, compare=False)
+    # r² (normalised) beyond which the radial model turns back (valid_radius2; inf without
+    # distortion or when it never does): points beyond it are projected outwards, see project()
+    valid_r2: float = field(init=False, repr=False, compare=False)
     is_reference: bool = field(init=False, repr=False, compare=False)
     # set by cropped(): (x0, y0, width, height) of this crop in the whole image, so that the
     # per-pixel rays of a distorted camera's crops are sliced from the whole image's, computed
@@ -99,6 +142,8 @@ class PinholeCamera:
         object.__setattr__(self, "t_rig", _rig_array(self.t_rig, (3,), "t_rig"))
         # True when there are distortion terms to apply
         object.__setattr__(self, "has_distortion", bool(np.any(d != 0.0)))
+        object.__setattr__(self, "valid_r2", valid_radius2(tuple(np.pad(d, (0, _MAX_DIST - d.size)).tolist()))
+                           if self.has_distortion else math.inf)
         # True when this camera *is* the reference frame (no rig transform to apply)
         object.__setattr__(
             self, "is_reference", bool(np.array_equal(self.R_rig, np.eye(3)) and not np.any(self.t_rig))
@@ -161,7 +206,14 @@ class PinholeCamera:
                        crop_of=None)
 
     def project(self, X_cam: np.ndarray) -> np.ndarray:
-        """Pixel coordinates (n, 2) of points (n, 3) given in *this* camera's frame."""
+        """Pixel coordinates (n, 2) of points (n, 3) given in *this* camera's frame.
+
+        With distortion, a point beyond the radius where the lens model turns back
+        (:attr:`valid_r2`, :func:`valid_radius2`) is projected along its direction from the
+        model's last valid point, as far out again as it is beyond that radius
+        (``(x_d, y_d) = (r/r_max)·distort((x, y)·r_max/r)``): continuous, growing with ``r``, so
+        outside the image the model describes — where the polynomial itself folded it back
+        into the image (cv2.projectPoints does). Within that radius: OpenCV's model exactly."""
         return self.project_with_jacobian(X_cam, jacobian=False)[0]
 
     def project_with_jacobian(
@@ -197,21 +249,31 @@ class PinholeCamera:
         J = np.empty((n, 2, 3)) if jacobian else np.empty((0, 2, 3))
         _compiled_distorted_pass()(np.ascontiguousarray(x, np.float64), np.ascontiguousarray(y, np.float64),
                                    np.ascontiguousarray(iz, np.float64), d, float(self.fx), float(self.fy),
-                                   float(self.cx), float(self.cy), bool(jacobian), uv, J)
+                                   float(self.cx), float(self.cy), bool(jacobian), uv, J, float(self.valid_r2))
         return uv, (J if jacobian else None)
 
     def _project_distorted_numpy(self, x, y, iz, jacobian: bool):
         """:meth:`_project_distorted` in numpy, as it was until session 51 (the reference of its
-        test: tests/test_measurements.py)."""
+        test: tests/test_measurements.py), with the outward projection beyond :attr:`valid_r2`."""
         d = np.zeros(_MAX_DIST)
         d[: self.dist_coeffs.size] = self.dist_coeffs
         k1, k2, p1, p2, k3, k4, k5, k6 = d
+        x_in, y_in = x, y
         r2 = x * x + y * y
+        beyond = r2 > self.valid_r2
+        if beyond.any():  # (the model at the last valid point of the same direction)
+            c = np.ones_like(r2)
+            c[beyond] = np.sqrt(self.valid_r2 / r2[beyond])
+            x, y = np.where(beyond, x * c, x), np.where(beyond, y * c, y)
+            r2 = np.where(beyond, x * x + y * y, r2)
         num = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
         den = 1.0 + r2 * (k4 + r2 * (k5 + r2 * k6))
         radial = num / den
         xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
         yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+        if beyond.any():
+            xq, yq = xd, yd
+            xd, yd = np.where(beyond, xd / c, xd), np.where(beyond, yd / c, yd)
         uv = np.stack([self.fx * xd + self.cx, self.fy * yd + self.cy], axis=-1)
         if not jacobian:
             return uv, None
@@ -223,6 +285,13 @@ class PinholeCamera:
         dxd_dy = x * dradial * 2 * y + 2 * p1 * x + p2 * 2 * y
         dyd_dx = y * dradial * 2 * x + p1 * 2 * x + 2 * p2 * y
         dyd_dy = radial + y * dradial * 2 * y + p1 * 6 * y + 2 * p2 * x
+        if beyond.any():  # ∂/∂(x, y) of (r/r_max)·distort(u·r_max): distort·uᵀ/r_max + J_distort (I − u uᵀ)
+            x, y = x_in, y_in
+            b = np.flatnonzero(beyond)
+            a00, a01, a10, a11 = (v[b].copy() for v in (dxd_dx, dxd_dy, dyd_dx, dyd_dy))
+            u0, u1 = _outward(a00, a01, a10, a11, xq[b], yq[b], x[b], y[b], self.valid_r2)
+            for out, val in zip((dxd_dx, dxd_dy, dyd_dx, dyd_dy), (*u0, *u1)):
+                out[b] = val
         n = x.shape[0]
         J = np.empty((n, 2, 3))
         # ∂(x, y)/∂X = iz [[1, 0, -x], [0, 1, -y]]
@@ -235,21 +304,45 @@ class PinholeCamera:
         return uv, J
 
 
-def _distorted_pass(x, y, iz, d, fx, fy, cx, cy, jacobian, uv, J):  # pragma: no cover (compiled)
+def _outward(a00, a01, a10, a11, xq, yq, x, y, r2max):
+    """The Jacobian ``∂(x_d, y_d)/∂(x, y)`` of the outward projection ``(r/r_m)·distort(u·r_m)``
+    (``u = (x, y)/r``, ``r_m² = r2max``) from the model's own ``[[a00, a01], [a10, a11]]`` and
+    value ``(xq, yq)`` at ``u·r_m``: ``distort·uᵀ/r_m + J (I − u uᵀ)``, as two rows of two."""
+    r = np.sqrt(x * x + y * y)
+    rm = np.sqrt(r2max)
+    ux, uy = x / r, y / r
+    pxx, pxy, pyy = 1.0 - ux * ux, -ux * uy, 1.0 - uy * uy
+    return ((xq * ux / rm + a00 * pxx + a01 * pxy, xq * uy / rm + a00 * pxy + a01 * pyy),
+            (yq * ux / rm + a10 * pxx + a11 * pxy, yq * uy / rm + a10 * pxy + a11 * pyy))
+
+
+def _distorted_pass(x, y, iz, d, fx, fy, cx, cy, jacobian, uv, J, r2max):  # pragma: no cover (compiled)
     """Per point, :meth:`PinholeCamera._project_distorted_numpy`'s expressions term for term
     (OpenCV's model: ``r² = x² + y²``, ``radial = (1 + k1 r² + k2 r⁴ + k3 r⁶)/(1 + k4 r² + k5 r⁴
     + k6 r⁶)``, ``x_d = x·radial + 2p1·x·y + p2(r² + 2x²)``, ``y_d = y·radial + p1(r² + 2y²) +
     2p2·x·y``, ``u = fx x_d + cx``, ``v = fy y_d + cy``), and the chain rule through
-    ``∂(x, y)/∂X = 1/z [[1, 0, −x], [0, 1, −y]]`` into ``J`` when ``jacobian``."""
+    ``∂(x, y)/∂X = 1/z [[1, 0, −x], [0, 1, −y]]`` into ``J`` when ``jacobian``. A point beyond
+    ``r2max`` (:func:`valid_radius2`) takes the model at ``(x, y)·c``, ``c = √(r2max/r²)``,
+    divided by ``c`` (and :func:`_outward`'s Jacobian)."""
     k1, k2, p1, p2, k3, k4, k5, k6 = d[0], d[1], d[2], d[3], d[4], d[5], d[6], d[7]
     for i in range(x.shape[0]):
         xi, yi, izi = x[i], y[i], iz[i]
         r2 = xi * xi + yi * yi
+        beyond = r2 > r2max
+        c = 1.0
+        x0, y0 = xi, yi
+        if beyond:
+            c = np.sqrt(r2max / r2)
+            xi, yi = xi * c, yi * c
+            r2 = xi * xi + yi * yi
         num = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
         den = 1.0 + r2 * (k4 + r2 * (k5 + r2 * k6))
         radial = num / den
         xd = xi * radial + 2.0 * p1 * xi * yi + p2 * (r2 + 2.0 * xi * xi)
         yd = yi * radial + p1 * (r2 + 2.0 * yi * yi) + 2.0 * p2 * xi * yi
+        xq, yq = xd, yd
+        if beyond:
+            xd, yd = xd / c, yd / c
         uv[i, 0] = fx * xd + cx
         uv[i, 1] = fy * yd + cy
         if not jacobian:
@@ -261,6 +354,17 @@ def _distorted_pass(x, y, iz, d, fx, fy, cx, cy, jacobian, uv, J):  # pragma: no
         dxd_dy = xi * dradial * 2.0 * yi + 2.0 * p1 * xi + p2 * 2.0 * yi
         dyd_dx = yi * dradial * 2.0 * xi + p1 * 2.0 * xi + 2.0 * p2 * yi
         dyd_dy = radial + yi * dradial * 2.0 * yi + p1 * 6.0 * yi + 2.0 * p2 * xi
+        if beyond:
+            xi, yi = x0, y0
+            rr = np.sqrt(xi * xi + yi * yi)
+            rm = np.sqrt(r2max)
+            ux, uy = xi / rr, yi / rr
+            pxx, pxy, pyy = 1.0 - ux * ux, -ux * uy, 1.0 - uy * uy
+            a00, a01, a10, a11 = dxd_dx, dxd_dy, dyd_dx, dyd_dy
+            dxd_dx = xq * ux / rm + a00 * pxx + a01 * pxy
+            dxd_dy = xq * uy / rm + a00 * pxy + a01 * pyy
+            dyd_dx = yq * ux / rm + a10 * pxx + a11 * pxy
+            dyd_dy = yq * uy / rm + a10 * pxy + a11 * pyy
         J[i, 0, 0] = fx * dxd_dx * izi
         J[i, 0, 1] = fx * dxd_dy * izi
         J[i, 0, 2] = -fx * (dxd_dx * xi + dxd_dy * yi) * izi
