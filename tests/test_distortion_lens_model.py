@@ -141,3 +141,26 @@ def test_a_plane_filling_the_view_through_a_lens_that_turns_back_covers_every_pi
     assert (buf.face >= 0).all()
     np.testing.assert_allclose(buf.depth, 1.0, rtol=1e-9)
 
+
+@pytest.mark.parametrize("dist", [[-50.0, 0.0, 0.0, 0.0], [-3.0, 0.0, 0.0, 0.0, 0.0], [0.0, -40.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]])
+def test_a_lens_model_turning_back_inside_the_image_is_refused_naming_it(dist, tmp_path):
+    """Coefficients that turn back before the image's nearest side (a typo, the wrong order) are
+    refused where cameras are read, naming dist_coeffs; they were accepted, and every search
+    said "not found". One turning back only near the corners (k1 = −0.45) is a lens."""
+    from quatrack.viewsets.camera import camera_from_dict, load_camera
+    from quatrack.viewsets.errors import SpecError
+
+    base = {"width": 640, "height": 480, "fx": F, "fy": F, "cx": 319.5, "cy": 239.5}
+    with pytest.raises(SpecError, match=r"camera: field 'dist_coeffs' .* turns back .* inside the 640×480 image"):
+        camera_from_dict({**base, "dist_coeffs": dist})
+    yml = tmp_path / "cam.yml"
+    fs = cv2.FileStorage(str(yml), cv2.FILE_STORAGE_WRITE)
+    fs.write("camera_matrix", np.array([[F, 0, 319.5], [0, F, 239.5], [0, 0, 1]]))
+    fs.write("distortion_coefficients", np.array(dist, float).reshape(1, -1))
+    fs.write("image_width", 640)
+    fs.write("image_height", 480)
+    fs.release()
+    with pytest.raises(SpecError, match="dist_coeffs"):
+        load_camera(yml)
+    for name in LENSES:
+        assert camera_from_dict({**base, "dist_coeffs": LENSES[name]}).has_distortion

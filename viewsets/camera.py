@@ -20,8 +20,8 @@ from quatrack.tracking.camera import PinholeCamera
 
 from .errors import SpecError
 
-__all__ = ["load_camera", "camera_from_dict", "camera_to_dict", "check_plausible", "misspelt_field", "resized_for",
-           "within_pixels"]
+__all__ = ["load_camera", "camera_from_dict", "camera_to_dict", "check_lens", "check_plausible", "lens_reach_px",
+           "misspelt_field", "resized_for", "within_pixels"]
 
 _KEYS = ("fx", "fy", "cx", "cy")
 CAMERA_FIELDS = ("width", "height", "fx", "fy", "cx", "cy", "dist_coeffs")
@@ -146,12 +146,50 @@ def check_plausible(fx: float, fy: float, cx: float, cy: float, width: int | Non
                             f"(expected {-0.5 * n:g}..{1.5 * n:g} px)")
 
 
+def lens_reach_px(camera: PinholeCamera) -> tuple[float, float]:
+    """How far (pixels, along x and along y) from the principal point the lens model reaches
+    before it turns back (:attr:`~quatrack.tracking.camera.PinholeCamera.valid_r2`: its radial
+    polynomial stops growing); inf for a camera without distortion or a lens that never does.
+
+    >>> lens_reach_px(PinholeCamera(600.0, 600.0, 320.0, 240.0, [-0.45, 0.0, 0.0, 0.0]))   # r_d ≤ 0.5738
+    (344.26..., 344.26...)
+    """
+    if not math.isfinite(camera.valid_r2):
+        return math.inf, math.inf
+    r = math.sqrt(camera.valid_r2)
+    (ux, vx), (uy, vy) = camera.project([[r, 0.0, 1.0], [0.0, r, 1.0]])  # the last valid points on the axes
+    return (camera.fx * math.hypot((ux - camera.cx) / camera.fx, (vx - camera.cy) / camera.fy),
+            camera.fy * math.hypot((uy - camera.cx) / camera.fx, (vy - camera.cy) / camera.fy))
+
+
+def check_lens(camera: PinholeCamera, where: str = "camera") -> None:
+    """Raise :class:`SpecError` when the lens model turns back before it reaches the image's
+    nearest side (:func:`lens_reach_px`): then points well outside the field of view have the
+    same pixels as points in the middle of the image, and no calibration fitted to the image's
+    pixels gives that — typed coefficients in the wrong order or scale (``k1 = 1e6``, or
+    ``k1 = -50``), which made every search "not found" without a word. A model that turns back
+    only towards the corners is accepted (its corners' rays are continued outwards). A camera
+    sized by its images (no size) is not checked here."""
+    if not camera.has_distortion or camera.width is None or camera.height is None:
+        return
+    ax, ay = lens_reach_px(camera)
+    near_x = min(camera.cx + 0.5, camera.width - 0.5 - camera.cx)
+    near_y = min(camera.cy + 0.5, camera.height - 0.5 - camera.cy)
+    if ax < near_x or ay < near_y:
+        raise SpecError(f"{where}: field 'dist_coeffs' = {_shown([float(v) for v in camera.dist_coeffs])}: this lens "
+                        f"model turns back {min(ax, ay):.3g} px from the principal point, inside the "
+                        f"{camera.width}×{camera.height} image (points outside the view would be seen in it); "
+                        f"check the coefficients and their order (k1, k2, p1, p2[, k3[, k4, k5, k6]])")
+
+
 def _make(fx, fy, cx, cy, dist, width, height, where) -> PinholeCamera:
     check_plausible(fx, fy, cx, cy, width, height, where)
     try:
-        return PinholeCamera(fx, fy, cx, cy, np.asarray(dist, float), width=width, height=height)
+        camera = PinholeCamera(fx, fy, cx, cy, np.asarray(dist, float), width=width, height=height)
     except ValueError as exc:
         raise SpecError(f"{where}: {exc}") from None
+    check_lens(camera, where)
+    return camera
 
 
 def _opencv_detail(exc: BaseException) -> str:
