@@ -17,7 +17,8 @@ import cv2
 import numpy as np
 
 from quatrack.tracking.camera import PinholeCamera
-from quatrack.viewsets.camera import within_pixels
+from quatrack.viewsets.camera import check_lens, within_pixels
+from quatrack.viewsets.errors import SpecError
 from quatrack.viewsets.imagefile import FORMAT_NAMES, sniff, truncated
 
 MIN_SIDE = 32
@@ -277,4 +278,10 @@ def prepare_image(image: np.ndarray, camera: PinholeCamera, max_pixels: int = DE
         raise ImageError(
             f"the camera is for {camera.width}×{camera.height} px images but the image is {w}×{h} px"
         )
+    if camera.width is None or camera.height is None:  # (a camera sized by its images: its lens checked at
+        camera = replace(camera, width=w, height=h)  # their size, as a sized camera's is when it is read)
+        try:
+            check_lens(camera)
+        except SpecError as exc:
+            raise ImageError(str(exc)) from None
     return PreparedImage(*within_pixels(img, replace(camera, width=w, height=h), max_pixels, MIN_SIDE))

@@ -164,3 +164,17 @@ def test_a_lens_model_turning_back_inside_the_image_is_refused_naming_it(dist, t
         load_camera(yml)
     for name in LENSES:
         assert camera_from_dict({**base, "dist_coeffs": LENSES[name]}).has_distortion
+
+
+def test_a_camera_sized_by_its_images_has_its_lens_checked_at_their_size():
+    """An OpenCV YAML with camera_matrix / distortion_coefficients alone takes its images' size;
+    a lens model turning back inside them is then refused as a sized camera's is (it went on,
+    and the search said "not found")."""
+    from quatrack.recognition.images import ImageError, prepare_image
+
+    img = np.zeros((480, 640, 3), np.uint8)
+    bad = PinholeCamera(F, F, 319.5, 239.5, np.array([-50.0, 0.0, 0.0, 0.0]))
+    with pytest.raises(ImageError, match=r"dist_coeffs.*turns back .* inside the 640×480 image"):
+        prepare_image(img, bad)
+    good = PinholeCamera(F, F, 319.5, 239.5, np.array(LENSES["rational"]))
+    assert prepare_image(img, good).camera.width == 640
