@@ -178,3 +178,16 @@ def test_a_camera_sized_by_its_images_has_its_lens_checked_at_their_size():
         prepare_image(img, bad)
     good = PinholeCamera(F, F, 319.5, 239.5, np.array(LENSES["rational"]))
     assert prepare_image(img, good).camera.width == 640
+
+
+def test_the_service_refuses_such_a_lens_as_bad_camera():
+    """The REST and WebSocket cameras are read by camera_from_dict: 422 bad_camera naming the
+    field, also when the image's size fills a camera given without one."""
+    from quatrack.service.errors import ApiError
+    from quatrack.service.schemas import CameraIn
+
+    cam = CameraIn(fx=F, fy=F, cx=319.5, cy=239.5, dist_coeffs=[-50.0, 0.0, 0.0, 0.0])
+    with pytest.raises(ApiError) as err:
+        cam.to_camera((640, 480))
+    assert (err.value.status_code, err.value.code) == (422, "bad_camera")
+    assert "field 'dist_coeffs'" in err.value.message and "turns back" in err.value.message
