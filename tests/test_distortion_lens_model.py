@@ -191,3 +191,23 @@ def test_the_service_refuses_such_a_lens_as_bad_camera():
         cam.to_camera((640, 480))
     assert (err.value.status_code, err.value.code) == (422, "bad_camera")
     assert "field 'dist_coeffs'" in err.value.message and "turns back" in err.value.message
+
+
+@pytest.mark.parametrize("dist", [[0.0, 0.0, 0.0, 0.0, 0.0, -1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0, 0.0, -5.0, 0.0, 0.0],
+                                  [-1e8, 0.0, 0.0, 0.0]])
+def test_degenerate_lens_models_project_without_raising(dist):
+    """A rational denominator reaching 0 (1 − r² at r = 1), points at infinity or on the camera
+    plane: the compiled projection raises no ZeroDivisionError (numba raises where numpy gives
+    inf; `track` with k4 = −5 stopped on a traceback), and equals the numpy one bit for bit."""
+    cam = PinholeCamera(F, F, 319.5, 239.5, np.array(dist), width=640, height=480)
+    X = np.vstack([[[1.0, 0.0, 1.0], [0.0, 1.0, 1.0], [1e200, 0.0, 1.0], [np.inf, 0.0, 1.0], [0.0, 0.0, 0.0],
+                    [1.0, 0.0, 0.0], [np.sqrt(cam.valid_r2), 0.0, 1.0]], points(3, 500, 3.0)])
+    with np.errstate(all="ignore"):
+        iz = 1.0 / X[:, 2]
+        x, y = X[:, 0] * iz, X[:, 1] * iz
+        uv, J = cam._project_distorted(x, y, iz, True)
+        uv_ref, J_ref = cam._project_distorted_numpy(x, y, iz, True)
+        rays = undistort_pixels(cam, np.array([[0.0, 0.0], [639.0, 479.0], [320.0, 240.0]]))
+    np.testing.assert_array_equal(uv, uv_ref)
+    np.testing.assert_array_equal(J, J_ref)
+    assert np.isfinite(uv[:2]).all() and np.isfinite(rays[2]).all()

@@ -65,7 +65,7 @@ def valid_radius2(d: tuple) -> float:
     for _ in range(60):  # (bisection to the last bits: the same radius on every machine)
         mid = 0.5 * (lo + hi)
         lo, hi = (lo, mid) if turns(mid) else (mid, hi)
-    return lo
+    return max(lo, 1e-300)  # (above 0: it divides; a model turning back at once projects to NaN)
 
 
 def _rig_array(value, shape: tuple, name: str) -> np.ndarray:
@@ -262,10 +262,11 @@ class PinholeCamera:
         r2 = x * x + y * y
         beyond = r2 > self.valid_r2
         if beyond.any():  # (the model at the last valid point of the same direction)
-            c = np.ones_like(r2)
-            c[beyond] = np.sqrt(self.valid_r2 / r2[beyond])
+            k = np.ones_like(r2)
+            k[beyond] = np.sqrt(r2[beyond] / self.valid_r2)
+            c = 1.0 / k
             x, y = np.where(beyond, x * c, x), np.where(beyond, y * c, y)
-            r2 = np.where(beyond, x * x + y * y, r2)
+            r2 = np.where(beyond, self.valid_r2, r2)  # (on the circle: not rounded past it)
         num = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
         den = 1.0 + r2 * (k4 + r2 * (k5 + r2 * k6))
         radial = num / den
@@ -273,7 +274,7 @@ class PinholeCamera:
         yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
         if beyond.any():
             xq, yq = xd, yd
-            xd, yd = np.where(beyond, xd / c, xd), np.where(beyond, yd / c, yd)
+            xd, yd = np.where(beyond, xd * k, xd), np.where(beyond, yd * k, yd)
         uv = np.stack([self.fx * xd + self.cx, self.fy * yd + self.cy], axis=-1)
         if not jacobian:
             return uv, None
@@ -322,19 +323,20 @@ def _distorted_pass(x, y, iz, d, fx, fy, cx, cy, jacobian, uv, J, r2max):  # pra
     + k6 r⁶)``, ``x_d = x·radial + 2p1·x·y + p2(r² + 2x²)``, ``y_d = y·radial + p1(r² + 2y²) +
     2p2·x·y``, ``u = fx x_d + cx``, ``v = fy y_d + cy``), and the chain rule through
     ``∂(x, y)/∂X = 1/z [[1, 0, −x], [0, 1, −y]]`` into ``J`` when ``jacobian``. A point beyond
-    ``r2max`` (:func:`valid_radius2`) takes the model at ``(x, y)·c``, ``c = √(r2max/r²)``,
-    divided by ``c`` (and :func:`_outward`'s Jacobian)."""
+    ``r2max`` (:func:`valid_radius2`) takes the model at ``(x, y)/k``, ``k = √(r²/r2max)``,
+    times ``k`` (and :func:`_outward`'s Jacobian)."""
     k1, k2, p1, p2, k3, k4, k5, k6 = d[0], d[1], d[2], d[3], d[4], d[5], d[6], d[7]
     for i in range(x.shape[0]):
         xi, yi, izi = x[i], y[i], iz[i]
         r2 = xi * xi + yi * yi
         beyond = r2 > r2max
-        c = 1.0
+        k = 1.0
         x0, y0 = xi, yi
-        if beyond:
-            c = np.sqrt(r2max / r2)
+        if beyond:  # (no division by a quantity that can be 0: numba raises where numpy gives inf)
+            k = np.sqrt(r2 / r2max)
+            c = 1.0 / k
             xi, yi = xi * c, yi * c
-            r2 = xi * xi + yi * yi
+            r2 = r2max  # (on the circle: not rounded past it, where a denominator may be 0)
         num = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
         den = 1.0 + r2 * (k4 + r2 * (k5 + r2 * k6))
         radial = num / den
@@ -342,7 +344,7 @@ def _distorted_pass(x, y, iz, d, fx, fy, cx, cy, jacobian, uv, J, r2max):  # pra
         yd = yi * radial + p1 * (r2 + 2.0 * yi * yi) + 2.0 * p2 * xi * yi
         xq, yq = xd, yd
         if beyond:
-            xd, yd = xd / c, yd / c
+            xd, yd = xd * k, yd * k
         uv[i, 0] = fx * xd + cx
         uv[i, 1] = fy * yd + cy
         if not jacobian:
