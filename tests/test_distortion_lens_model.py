@@ -211,3 +211,33 @@ def test_degenerate_lens_models_project_without_raising(dist):
     np.testing.assert_array_equal(uv, uv_ref)
     np.testing.assert_array_equal(J, J_ref)
     assert np.isfinite(uv[:2]).all() and np.isfinite(rays[2]).all()
+
+
+def _covered(cam: PinholeCamera, V: np.ndarray) -> np.ndarray:
+    """Pixels whose ray lies inside the camera-frame triangle ``V`` (the render's own test, over
+    every pixel of the image: no box)."""
+    r = pixel_rays(cam)
+    p = V[:, :2] / V[:, 2:3]
+    e = [(p[(i + 1) % 3, 0] - p[i, 0]) * (r[..., 1] - p[i, 1]) - (p[(i + 1) % 3, 1] - p[i, 1]) * (r[..., 0] - p[i, 0])
+         for i in range(3)]
+    return (np.minimum(np.minimum(e[0], e[1]), e[2]) >= 0) | (np.maximum(np.maximum(e[0], e[1]), e[2]) <= 0)
+
+
+@pytest.mark.parametrize("name", ["barrel-k1k2", "rational", "turns-k3", "k1-only"])
+def test_a_triangle_reaching_out_of_the_view_draws_every_pixel_it_covers(name):
+    """Triangles with corners far outside the view (seeded, up to 50 units off a depth of 1):
+    render draws each pixel whose ray falls in the triangle. Their pixel boxes came from nine
+    samples per edge, which left out the lens's curve of an edge between them: the triangle
+    (−47, −0.4, 1), (33, −0.4, 1), (0, 40, 1) lost tens of thousands of its pixels."""
+    cam = camera(name)
+    rng = np.random.default_rng(7)
+    tris = [np.array([[-47.0, -0.4, 1.0], [33.0, -0.4, 1.0], [0.0, 40.0, 1.0]])]
+    for _ in range(12):
+        V = np.column_stack([rng.uniform(-1, 1, (3, 2)) * rng.choice([0.8, 3.0, 50.0], (3, 1)), np.ones(3)])
+        tris.append(V * rng.uniform(0.5, 2.0, (3, 1)))
+    for V in tris:
+        mesh = make_mesh(V, np.array([[0, 1, 2]]), "triangle")
+        drawn = render(mesh, cam, Pose(np.array([1.0, 0.0, 0.0, 0.0]), np.zeros(3))).face >= 0
+        want = _covered(cam, V)
+        assert not (want & ~drawn).any(), (V.tolist(), int((want & ~drawn).sum()))
+        assert not (drawn & ~want).any()

@@ -170,11 +170,79 @@ def _pixel_bboxes(camera: PinholeCamera, tris: np.ndarray, w: int, h: int) -> np
     else:
         pts = tris
     uv = camera.project(pts.reshape(-1, 3)).reshape(len(tris), -1, 2)
-    lo = np.floor(uv.min(axis=1)) - 1
-    hi = np.ceil(uv.max(axis=1)) + 1
+    lo, hi = uv.min(axis=1), uv.max(axis=1)
+    if camera.has_distortion:
+        lo, hi = _inside_the_view(camera, tris, lo, hi)
+    lo = np.floor(lo) - 1
+    hi = np.ceil(hi) + 1
     x0, y0 = np.clip(lo[:, 0], 0, w), np.clip(lo[:, 1], 0, h)
     x1, y1 = np.clip(hi[:, 0], -1, w - 1), np.clip(hi[:, 1], -1, h - 1)
     return np.column_stack([x0, y0, x1, y1]).astype(np.int64)
+
+
+_CLIPPED_SAMPLES = 65  # per edge inside the view's ray box, and per side of the box
+
+
+@lru_cache(maxsize=32)
+def _ray_box(camera: PinholeCamera) -> tuple[float, float, float, float]:
+    """(x0, y0, x1, y1): the box of the normalised rays of the image's border pixels (with a
+    lens growing outwards, of all its pixels), per camera (cameras hash by their fields)."""
+    rays = pixel_rays(camera)
+    border = np.concatenate([rays[0], rays[-1], rays[:, 0], rays[:, -1]])
+    (x0, y0), (x1, y1) = np.nanmin(border, axis=0), np.nanmax(border, axis=0)
+    return float(x0), float(y0), float(x1), float(y1)
+
+
+def _inside_the_view(camera: PinholeCamera, tris: np.ndarray, lo: np.ndarray, hi: np.ndarray):
+    """``lo``, ``hi`` (m, 2) of the triangles' sampled edges, widened by what their parts inside
+    the view project to, for the triangles reaching out of the box of the image's rays. Why:
+    nine samples of an edge running far out of the view project far away, and the curve the
+    lens makes of the edge between them inside the image was left out of the box (a triangle
+    reaching 47 units off a depth of 1, through the rational lens of
+    tests/test_distortion_lens_model.py, lost tens of thousands of its pixels). The
+    boundary of (triangle ∩ ray box) bounds what the triangle shows in the image: its edges
+    clipped to the box (Liang–Barsky), sampled densely, and the box's sides inside the triangle
+    (whose pixels lie at or beyond the image's border)."""
+    # (a corner outside the box projects outside the image: only triangles with a sample there are looked at)
+    k = np.flatnonzero(~((lo >= 0).all(axis=1) & (hi[:, 0] <= camera.width - 1) & (hi[:, 1] <= camera.height - 1)))
+    if not len(k):
+        return lo, hi
+    bx0, by0, bx1, by1 = _ray_box(camera)
+    p = tris[k, :, :2] / tris[k, :, 2:3]  # normalised corners (every corner is in front)
+    out = (p[..., 0] < bx0) | (p[..., 0] > bx1) | (p[..., 1] < by0) | (p[..., 1] > by1)
+    k = k[out.any(axis=1)]
+    if not len(k):
+        return lo, hi
+    p = tris[k, :, :2] / tris[k, :, 2:3]
+    a, b = p, p[:, [1, 2, 0]]  # edges a → b, (n, 3, 2)
+    d = b - a
+    t0, t1 = np.zeros(d.shape[:2]), np.ones(d.shape[:2])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for dd, q in ((-d[..., 0], a[..., 0] - bx0), (d[..., 0], bx1 - a[..., 0]),
+                      (-d[..., 1], a[..., 1] - by0), (d[..., 1], by1 - a[..., 1])):
+            t = q / dd
+            t0 = np.where(dd < 0, np.maximum(t0, t), t0)
+            t1 = np.where(dd > 0, np.minimum(t1, t), t1)
+            t1 = np.where((dd == 0) & (q < 0), -1.0, t1)  # parallel to this side and outside it
+    s = np.linspace(0.0, 1.0, _CLIPPED_SAMPLES)
+    t = t0[..., None] + (t1 - t0)[..., None] * s  # (n, 3, S)
+    xy = a[:, :, None] + t[..., None] * d[:, :, None]
+    xy[t0 > t1] = np.nan  # (an edge missing the box)
+    uv = camera.project(np.concatenate([xy.reshape(-1, 2), np.ones((xy.size // 2, 1))], axis=1)).reshape(len(k), -1, 2)
+    # the box's sides, sampled, where inside each triangle (the three edge functions of one sign)
+    g = np.linspace(0.0, 1.0, _CLIPPED_SAMPLES)
+    side = np.concatenate([np.column_stack([bx0 + (bx1 - bx0) * g, np.full_like(g, v)]) for v in (by0, by1)]
+                          + [np.column_stack([np.full_like(g, v), by0 + (by1 - by0) * g]) for v in (bx0, bx1)])
+    e = [(b[:, i, None, 0] - a[:, i, None, 0]) * (side[None, :, 1] - a[:, i, None, 1])
+         - (b[:, i, None, 1] - a[:, i, None, 1]) * (side[None, :, 0] - a[:, i, None, 0]) for i in range(3)]
+    inside = (np.minimum(np.minimum(e[0], e[1]), e[2]) >= 0) | (np.maximum(np.maximum(e[0], e[1]), e[2]) <= 0)
+    uv_side = camera.project(np.column_stack([side, np.ones(len(side))]))
+    lo, hi = lo.copy(), hi.copy()
+    for pts in (uv, np.where(inside[..., None], uv_side[None], np.nan)):
+        finite = np.isfinite(pts).all(axis=2, keepdims=True)
+        lo[k] = np.fmin(lo[k], np.where(finite, pts, np.inf).min(axis=1))
+        hi[k] = np.fmax(hi[k], np.where(finite, pts, -np.inf).max(axis=1))
+    return lo, hi
 
 
 def render(mesh: Mesh, camera: PinholeCamera, pose: Pose) -> RenderBuffers:
