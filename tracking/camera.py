@@ -209,11 +209,11 @@ class PinholeCamera:
         """Pixel coordinates (n, 2) of points (n, 3) given in *this* camera's frame.
 
         With distortion, a point beyond the radius where the lens model turns back
-        (:attr:`valid_r2`, :func:`valid_radius2`) is projected along its direction from the
-        model's last valid point, as far out again as it is beyond that radius
-        (``(x_d, y_d) = (r/r_max)·distort((x, y)·r_max/r)``): continuous, growing with ``r``, so
-        outside the image the model describes — where the polynomial itself folded it back
-        into the image (cv2.projectPoints does). Within that radius: OpenCV's model exactly."""
+        (:attr:`valid_r2`, :func:`valid_radius2`) takes the model's last valid point in its
+        direction, scaled outwards in proportion to its radius (``(x_d, y_d) = (r/r_max)·
+        distort((x, y)·r_max/r)``): continuous and growing with ``r``, so outside the image the
+        model describes, where the polynomial itself folds it back into the image (as
+        cv2.projectPoints does). Within that radius: OpenCV's model exactly."""
         return self.project_with_jacobian(X_cam, jacobian=False)[0]
 
     def project_with_jacobian(
