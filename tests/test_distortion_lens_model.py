@@ -180,6 +180,40 @@ def test_a_camera_sized_by_its_images_has_its_lens_checked_at_their_size():
     assert prepare_image(img, good).camera.width == 640
 
 
+def test_the_tracker_and_training_check_a_sized_by_images_camera_too(tmp_path):
+    """The tracker sizes such a camera from its first frame, training from its photo: the same
+    lens check (a track with k1 = -50 was lost at every frame, training learned through it)."""
+    import json
+
+    from conftest import EXAMPLE
+    from quatrack.recognition.images import ImageError
+    from quatrack.recognition.video import Tracker
+    from quatrack.testing.scenes import example_store
+    from quatrack.viewsets.spec import load_spec
+    from quatrack.viewsets.errors import SpecError
+    from quatrack.viewsets.store import load_model
+    from quatrack.viewsets.train import TrainParams, train_object
+
+    model = load_model(example_store(), "cookie-box")
+    bad = PinholeCamera(F, F, 319.5, 239.5, np.array([-50.0, 0.0, 0.0, 0.0]))
+    with pytest.raises(ImageError, match="dist_coeffs"):
+        Tracker(model, bad).step(np.zeros((480, 640, 3), np.uint8), 0.0)
+
+    spec = json.loads((EXAMPLE / "object.json").read_text())
+    cam = spec["views"][0]["camera"]
+    yml = tmp_path / "camera.yml"
+    fs = cv2.FileStorage(str(yml), cv2.FILE_STORAGE_WRITE)
+    fs.write("camera_matrix", np.array([[cam["fx"], 0, cam["cx"]], [0, cam["fy"], cam["cy"]], [0, 0, 1]]))
+    fs.write("distortion_coefficients", np.array([[-50.0, 0.0, 0.0, 0.0, 0.0]]))
+    fs.release()
+    spec["views"][0]["camera"] = str(yml)
+    spec["views"][0]["image"] = str(EXAMPLE / spec["views"][0]["image"])
+    spec["mesh"] = str(EXAMPLE / spec["mesh"])
+    (tmp_path / "object.json").write_text(json.dumps(spec))
+    with pytest.raises(SpecError, match=r"view 0: camera: field 'dist_coeffs'"):
+        train_object(load_spec(tmp_path / "object.json"), TrainParams(novel=None))
+
+
 def test_the_service_refuses_such_a_lens_as_bad_camera():
     """The REST and WebSocket cameras are read by camera_from_dict: 422 bad_camera naming the
     field, also when the image's size fills a camera given without one."""

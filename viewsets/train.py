@@ -17,7 +17,7 @@ from typing import Callable
 import cv2
 import numpy as np
 
-from .camera import check_plausible, within_pixels
+from .camera import check_lens, check_plausible, within_pixels
 from .errors import SpecError
 from .imagefile import truncated
 from .mesh import Mesh, load_mesh
@@ -168,7 +168,9 @@ def _sized_by(view: ViewSpec, image: np.ndarray) -> ViewSpec:
         return view
     h, w = image.shape[:2]
     check_plausible(cam.fx, cam.fy, cam.cx, cam.cy, w, h, f"view {view.index}: camera")
-    return dataclasses.replace(view, camera=dataclasses.replace(cam, width=w, height=h))
+    sized = dataclasses.replace(cam, width=w, height=h)
+    check_lens(sized, f"view {view.index}: camera")  # (its lens model at the photo's size, as a sized camera's)
+    return dataclasses.replace(view, camera=sized)
 
 
 def _prepare_view(mesh: Mesh, view: ViewSpec, warn=None) -> _View:

@@ -60,6 +60,8 @@ from quatrack.tracking.motion import make_motion_model
 from quatrack.tracking.pose import Pose
 from quatrack.tracking.state import FilterState
 from quatrack.tracking.systematic import carried_covariance, image_floor, systematic_floor
+from quatrack.viewsets.camera import check_lens
+from quatrack.viewsets.errors import SpecError
 from quatrack.viewsets.learn import is_new_direction, learned_viewset, with_learned
 from quatrack.viewsets.store import ObjectModel
 from quatrack.viewsets.viewset import Viewset, params_from_manifest
@@ -282,7 +284,12 @@ class Tracker:
             # init_pose, or while tracking, went through KLT and the sources on 1 × N pixels)
             raise ImageError(too_small(w, h))
         if cam.width is None or cam.height is None:
-            self.camera = cam = replace(cam, width=w, height=h)
+            sized = replace(cam, width=w, height=h)
+            try:
+                check_lens(sized)  # (a camera sized by its frames: its lens model checked at their size, as locate's)
+            except SpecError as exc:
+                raise ImageError(str(exc)) from None
+            self.camera = cam = sized
         state = self.filter.state
         last = state.t if state is not None else self._last_time  # (lost too: a clock gone back)
         if last is not None and time_s < last:
