@@ -18,7 +18,7 @@ from quatrack.service.app import create_app
 from quatrack.service.server import BackgroundServer
 from quatrack.service.settings import Settings
 
-from test_viewer import CHROMEDRIVER, CHROMIUM
+from test_viewer import chromium
 from test_viewer_prefix import PREFIX, PathPrefixProxy
 
 
@@ -127,21 +127,10 @@ def test_swagger_ui_tries_a_request_within_the_prefix_in_a_browser(tmp_path):
     """In Chromium, through the proxy: the page renders the API, every resource it loaded came
     from under the prefix, and "Try it out" on ``GET /v1/objects`` is answered (the proxy answers
     404 outside the prefix)."""
-    if not (CHROMIUM and CHROMEDRIVER):
-        pytest.skip("needs Debian's chromium and chromium-driver (listed in .ci/apt-packages)")
-    webdriver = pytest.importorskip("selenium.webdriver", reason="needs selenium (the test extra)")
-    from selenium.webdriver.chrome.service import Service
-
-    opts = webdriver.ChromeOptions()
-    opts.binary_location = CHROMIUM
-    for flag in ("--headless", "--no-sandbox", "--disable-gpu", "--no-first-run", "--disable-background-networking",
-                 "--disable-component-update", "--disable-sync", "--disable-dev-shm-usage",
-                 f"--user-data-dir={tmp_path / 'profile'}", "--window-size=1300,1000"):
-        opts.add_argument(flag)
     srv = BackgroundServer(_settings(tmp_path))
     srv.server.config.app = PrefixSayingProxy(srv.app, PREFIX)  # (uvicorn loads the app when it starts)
     with srv:
-        driver = webdriver.Chrome(service=Service(executable_path=CHROMEDRIVER), options=opts)
+        driver = chromium(tmp_path)
         try:
             def wait(script, what):
                 deadline = time.monotonic() + 120  # a bound for a hung browser, not a speed requirement

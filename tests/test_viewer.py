@@ -78,7 +78,9 @@ def test_viewer_files_are_served_without_a_cdn(server):
         assert missing.status_code == 404 and missing.json()["error"]["code"] == "unknown_object"
 
 
-def _driver(tmp_path: Path, y4m: Path):
+def chromium(tmp_path: Path, *flags: str):
+    """A headless Chromium (selenium) with a profile in ``tmp_path`` and ``flags`` added; the test
+    is skipped where Chromium, its driver or selenium is missing (CI installs them)."""
     if not (CHROMIUM and CHROMEDRIVER):
         pytest.skip("needs Debian's chromium and chromium-driver (listed in .ci/apt-packages)")
     webdriver = pytest.importorskip("selenium.webdriver", reason="needs selenium (the test extra)")
@@ -89,10 +91,15 @@ def _driver(tmp_path: Path, y4m: Path):
     for flag in ("--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
                  "--disable-background-networking", "--disable-component-update", "--disable-sync",
                  "--disable-dev-shm-usage", f"--user-data-dir={tmp_path / 'profile'}", "--window-size=1300,1000",
-                 "--use-fake-device-for-media-stream", "--use-fake-ui-for-media-stream",
-                 f"--use-file-for-fake-video-capture={y4m}"):
+                 *flags):
         opts.add_argument(flag)
     return webdriver.Chrome(service=Service(executable_path=CHROMEDRIVER), options=opts)
+
+
+def _driver(tmp_path: Path, y4m: Path):
+    """:func:`chromium` with a fake webcam playing ``y4m``."""
+    return chromium(tmp_path, "--use-fake-device-for-media-stream", "--use-fake-ui-for-media-stream",
+                    f"--use-file-for-fake-video-capture={y4m}")
 
 
 def _finished(driver) -> bool:
