@@ -361,3 +361,19 @@ def test_register_then_train_learns_from_a_pose_nearer_the_truth(tmp_path, capsy
             errors[tag].append(max(t / mesh.extent / 0.05, deg / 5.0))
     capsys.readouterr()
     assert np.median(errors["registered"]) < 0.6 * np.median(errors["clicks"])
+
+def test_the_overlay_draws_hidden_edges_apart():
+    """A cube seen obliquely (three faces) shows 9 of its 12 edges; the 3 meeting at the hidden
+    corner are drawn apart (thin grey), not as boldly as the rest."""
+    from quatrack.recognition.visibility import mesh_edges
+    from quatrack.register_cli import _edge_runs
+    from quatrack.testing import zoo as Z
+
+    obj, cam = Z.textured("small-cube-cm"), Z.zoo_camera()
+    pose = Z.orbit_pose(obj, cam, 35.0, 25.0)
+    edges = mesh_edges(obj.mesh)
+    assert len(edges) == 12
+    shown, hidden = _edge_runs(obj.mesh, cam, pose, edges, samples=32)
+    whole = lambda runs: sum(len(r) >= 28 for r in runs)  # noqa: E731 (an edge drawn (nearly) whole)
+    assert whole(shown) == 9 and whole(hidden) == 3  # (a hidden edge's end at the outline may show)
+    assert sum(map(len, shown)) + sum(map(len, hidden)) <= 12 * 32
