@@ -306,3 +306,29 @@ def test_cli_track_bad_input(cli_env, tmp_path, capsys, case):
     assert rc == 2 and err.startswith("quatrack track: error:") and "\n" not in err and "Traceback" not in err
     assert not out.exists()
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".poses.csv")]
+
+
+def test_reset_new_run_starts_as_a_new_tracker():
+    """``reset()`` keeps the run's keyframes and frame count (the same object, the same camera: the
+    replayed video's first frame is re-found on a keyframe, numbered on); ``reset(new_run=True)``
+    answers the first frame as a new Tracker does, numbered 0 (a library user's second scene)."""
+    from quatrack.examples import example_dir
+    from quatrack.recognition.video import Tracker
+    from quatrack.testing.scenes import example_store
+    from quatrack.viewsets.camera import load_camera
+    from quatrack.viewsets.store import load_model
+
+    ex = example_dir()
+    model, camera = load_model(example_store(), "cookie-box"), load_camera(ex / "camera.json")
+    cap = cv2.VideoCapture(str(ex / "box.mp4"))
+    frames = [cap.read()[1] for _ in range(40)]
+    tracker = Tracker(model, camera)
+    first = [tracker.step(f, k / 30) for k, f in enumerate(frames)][0]
+    assert len(tracker.keyframes) > 0
+    tracker.reset()
+    again = tracker.step(frames[0], 0.0)
+    assert again.frame == 40 and "keyframe" in (again.reason or "")
+    tracker.reset(new_run=True)
+    fresh = tracker.step(frames[0], 0.0)
+    assert (fresh.frame, fresh.status, fresh.reason) == (first.frame, first.status, first.reason) == (0, "init", "recognition")
+    assert np.allclose(fresh.t, first.t) and len(tracker.keyframes) == 0

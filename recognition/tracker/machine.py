@@ -150,18 +150,9 @@ class Tracker:
         self.learned: list[Viewset] = []  # learned in this run (also in self.model once learned)
         self._learn_wait = 0
         # what the object looked like earlier in this run, to find it again after a loss; kept
-        # across losses and resets (same object, same camera)
-        self.keyframes = Keyframes(model.mesh.centre, params.keyframes_max, params.keyframe_min_angle_deg,
-                                   params.keyframe_renew_s)
-        self._keyframe_wait = 0
-        self._frame = -1
+        # across losses and resets (same object, same camera; reset(new_run=True) starts them afresh)
+        self._new_run()
         self._pending: tuple[Pose, float | None] | None = None
-        # the track was started on this run's keyframes (re-found after a loss), not on the model's
-        # own views nor the user's pose: it keeps no view (TrackerParams.capture_second_hand)
-        self._second_hand = False
-        # the object points of the latest anchors taken from the keyframes' texture
-        # (_texture_audit; TrackerParams.texture_anchors): measured, they do not anchor a frame
-        self._keyframe_anchors: set[tuple] = set()
         # (reset: _relocated_at, the frame time of the latest recognition while lost
         # (TrackerParams.relocate_interval_s), None once a track holds: the first frame of the
         # next loss searches at once; _last_time, the latest frame's time)
@@ -171,10 +162,30 @@ class Tracker:
             executor.submit(lambda: self._index()._matcher())  # warm the anchor thread's index
 
     # -- public -------------------------------------------------------------------------------
-    def reset(self) -> None:
+    def _new_run(self) -> None:
+        """What a run remembers beyond its state (its keyframes, frame count), as at its start."""
+        p = self.params
+        self.keyframes = Keyframes(self.model.mesh.centre, p.keyframes_max, p.keyframe_min_angle_deg,
+                                   p.keyframe_renew_s)
+        self._keyframe_wait = 0
+        self._frame = -1
+        # the track was started on this run's keyframes (re-found after a loss), not on the model's
+        # own views nor the user's pose: it keeps no view (TrackerParams.capture_second_hand)
+        self._second_hand = False
+        # the object points of the latest anchors taken from the keyframes' texture
+        # (_texture_audit; TrackerParams.texture_anchors): measured, they do not anchor a frame
+        self._keyframe_anchors: set[tuple] = set()
+
+    def reset(self, new_run: bool = False) -> None:
         """Forget the state and the last pose: the next frame re-initialises by recognition (at
         once: the ``relocate_interval_s`` clock restarts), and its time may start again (a new
-        stream: until then frame times must not go back, lost or not)."""
+        stream: until then frame times must not go back, lost or not). The run's keyframes (how
+        the object looked earlier, to re-find it after a loss) and its frame count are kept — the
+        same object before the same camera — unless ``new_run``: another scene or camera, whose
+        first frame is then frame 0 and re-found on the model's views alone, as a new Tracker's
+        (the views learned so far, :meth:`learned_viewsets`, are kept either way)."""
+        if new_run:
+            self._new_run()
         self._relocated_at: float | None = None
         self._last_time: float | None = None
         self.filter.state = None
