@@ -26,6 +26,7 @@ def check_field_kinds(obj, settings: dict[str, type] | None = None) -> None:
     """Every field of the (frozen) dataclass ``obj`` of the kind its annotation says, or a
     ValueError naming it (a TypeError for a nested settings object of the wrong type). Checked
     kinds: ``int`` (a whole number ≥ 0; stored as Python's ``int``), ``float`` (a finite number),
+    ``bool`` (True or False, not a truthy string),
     ``tuple[float, ...]`` (numbers), any of those ``| None`` (None allowed), and the class names
     in ``settings`` (an instance of it); other annotations are left alone.
 
@@ -56,6 +57,10 @@ def check_field_kinds(obj, settings: dict[str, type] | None = None) -> None:
         elif kind == "float":
             if not (is_number(value) and np.isfinite(value)):
                 raise ValueError(f"{f.name} must be a finite number, not {value!r}"[:120])
+        elif kind == "bool":
+            if not isinstance(value, (bool, np.bool_)):  # (learn="yes" was taken as true, "no" too)
+                raise ValueError(f"{f.name} must be True or False, not {value!r}"[:120])
+            object.__setattr__(obj, f.name, bool(value))
         elif kind == "tuple[float, ...]":
             if isinstance(value, (str, bytes)) or not isinstance(value, Iterable) \
                     or not all(is_number(v) and np.isfinite(v) for v in value):

@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 
 from quatrack.tracking.camera import PinholeCamera
-from quatrack.viewsets.camera import check_lens, within_pixels
+from quatrack.viewsets.camera import check_lens, resized_for, within_pixels
 from quatrack.viewsets.errors import SpecError
 from quatrack.viewsets.imagefile import FORMAT_NAMES, sniff, truncated
 
@@ -167,6 +167,15 @@ def read_image(path: str) -> np.ndarray:
         raise ImageError(f"{path}: {exc}") from None
 
 
+def resize_hint(camera, w: int, h: int) -> str:
+    """The end of a size-mismatch message: how to pass a camera for images that are its own
+    resized (the same aspect ratio: :func:`~quatrack.viewsets.camera.resized_for`), else ""."""
+    _, note = resized_for(camera, w, h)
+    if note is None:
+        return ""
+    return f" (its images resized by {w / camera.width:.3g}? pass camera.scaled({w / camera.width:.3g}, {w}, {h}))"
+
+
 def too_small(w: int, h: int) -> str:
     """The message refusing a ``w``×``h`` image below :data:`MIN_SIDE` (an empty one too)."""
     return f"the image is too small ({w}×{h} px; at least {MIN_SIDE} px a side)"
@@ -275,9 +284,8 @@ def prepare_image(image: np.ndarray, camera: PinholeCamera, max_pixels: int = DE
     if w * h > MAX_DECODE_PIXELS:
         raise ImageError(f"the image is too large ({w}×{h} px; at most {MAX_DECODE_PIXELS} pixels)")
     if camera.width is not None and camera.height is not None and (camera.width, camera.height) != (w, h):
-        raise ImageError(
-            f"the camera is for {camera.width}×{camera.height} px images but the image is {w}×{h} px"
-        )
+        raise ImageError(f"the camera is for {camera.width}×{camera.height} px images but the image is {w}×{h} px"
+                         + resize_hint(camera, w, h))
     if camera.width is None or camera.height is None:  # (a camera sized by its images: its lens checked at
         camera = replace(camera, width=w, height=h)  # their size, as a sized camera's is when it is read)
         try:

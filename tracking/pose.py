@@ -88,16 +88,22 @@ class Pose:
         return cls(quat.IDENTITY, np.zeros(3))
 
     @classmethod
-    def from_matrix(cls, R: Any, t: Any) -> "Pose":
+    def from_matrix(cls, R: Any, t: Any = None) -> "Pose":
         """From a 3×3 rotation matrix (rows) and a translation. ``R`` must be a rotation:
         orthonormal within 1e-3 (``RRᵀ ≈ I``) and ``det R > 0`` — a reflection or a scaled
-        matrix has no quaternion, and was read as some rotation without a word.
+        matrix has no quaternion, and was read as some rotation without a word. A 4×4 (or 3×4)
+        matrix alone, as :meth:`as_matrix` gives, is :meth:`from_homogeneous`'s (it was
+        "missing 't'").
 
         >>> Pose.from_matrix(np.diag([1.0, 1.0, -1.0]), [0.0, 0.0, 1.0])
         Traceback (most recent call last):
         ...
         ValueError: R is not a rotation matrix (orthonormal, det +1)
         """
+        if t is None:
+            if np.shape(R) in ((4, 4), (3, 4)):
+                return cls.from_homogeneous(R)
+            raise TypeError("Pose.from_matrix(R, t): give t with a 3×3 R, or a 4×4 [[R, t], [0, 1]] alone")
         R = _numbers(R, (3, 3), "R")
         if not (np.all(np.isfinite(R)) and np.allclose(R @ R.T, np.eye(3), atol=1e-3) and np.linalg.det(R) > 0):
             raise ValueError("R is not a rotation matrix (orthonormal, det +1)")

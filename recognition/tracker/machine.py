@@ -66,7 +66,7 @@ from quatrack.viewsets.learn import is_new_direction, learned_viewset, with_lear
 from quatrack.viewsets.store import ObjectModel
 from quatrack.viewsets.viewset import Viewset, params_from_manifest
 
-from ..images import MIN_SIDE, ImageError, to_bgr8, too_small
+from ..images import MIN_SIDE, ImageError, resize_hint, to_bgr8, too_small
 from ..klt import Frame, make_frame
 from ..locate import check_inputs, locate
 from ..match import ModelIndex, index_for
@@ -289,7 +289,8 @@ class Tracker:
         h, w = img.shape[:2]
         cam = self.camera
         if cam.width is not None and cam.height is not None and (cam.width, cam.height) != (w, h):
-            raise ImageError(f"the camera is for {cam.width}×{cam.height} px images but the frame is {w}×{h} px")
+            raise ImageError(f"the camera is for {cam.width}×{cam.height} px images but the frame is {w}×{h} px"
+                             + resize_hint(cam, w, h))
         if min(h, w) < MIN_SIDE:
             # (as locate's: the frame was refused only when recognition ran — a frame after
             # init_pose, or while tracking, went through KLT and the sources on 1 × N pixels)

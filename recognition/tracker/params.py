@@ -356,8 +356,10 @@ class TrackerParams:
             raise ValueError(f"sources: a tuple of names, e.g. ({self.sources!r},), not a string")
         bad = set(self.sources) - {"trained", "mesh", "edges", "contour"}
         if bad or not self.sources:
-            raise ValueError(f"unknown measurement source(s) {sorted(bad)}; expected some of 'trained', 'mesh', "
-                             "'edges', 'contour'")
+            raise ValueError((f"unknown measurement source(s) {sorted(bad)}" if bad else "sources: none given") +
+                             "; expected some of 'trained', 'mesh', 'edges', 'contour'")
+        if self.max_gap_s is not None and not self.max_gap_s > 0:  # (0 or less: every frame ended the track)
+            raise ValueError(f"max_gap_s must be None or a number of seconds above 0, not {self.max_gap_s!r}")
         if self.relocate_interval_s is not None and not (is_number(self.relocate_interval_s)
                                                           and np.isfinite(self.relocate_interval_s)
                                                           and self.relocate_interval_s >= 0):
