@@ -73,10 +73,6 @@ def _rebased(data: dict, old_base: Path, new_base: Path) -> dict:
     return out
 
 
-def _pose_json(pose) -> dict:
-    return {"q_wxyz": [round(float(x), 9) for x in pose.q_wxyz], "t": [float(f"{x:.9g}") for x in pose.t]}
-
-
 def _edge_runs(mesh, camera, pose, edges: np.ndarray, samples: int = 32) -> tuple[list, list]:
     """The projected model edges (k, 2, 3) split into runs the object shows and runs it hides
     (each a polyline of pixels × 16: OpenCV's 4 fractional bits): a sample is hidden when the
@@ -206,19 +202,13 @@ def _outputs(args: argparse.Namespace) -> tuple[Path, Path, Path | None]:
 
 
 def _check_mask(view, photo: np.ndarray) -> None:
-    """A view's mask read and sized as training reads it (:class:`SpecError` otherwise). Why
-    here: register ignores masks, and wrote a spec with a missing or misfit mask that ``quatrack
-    train``, as the line it printed said to run, then refused."""
-    import cv2
+    """A view's mask read and sized as training reads it (:func:`~quatrack.viewsets.train.read_mask`:
+    a :class:`SpecError` otherwise). Why here: register ignores masks, and wrote a spec with a
+    missing or misfit mask that ``quatrack train``, as the line it printed said to run, then refused."""
+    from quatrack.viewsets.train import read_mask
 
-    from quatrack.viewsets.errors import SpecError
-    from quatrack.viewsets.train import _read
-
-    if view.mask_path is None:
-        return
-    m = _read(view.mask_path, cv2.IMREAD_UNCHANGED, f"view {view.index}: mask {view.mask_path}")
-    if m.shape[:2] != photo.shape[:2]:
-        raise SpecError(f"view {view.index}: mask {view.mask_path}: size {m.shape[1::-1]} differs from the image's")
+    if view.mask_path is not None:
+        read_mask(view, photo.shape[:2])
 
 
 def _recheck_clicks(view, where: str, problems: dict, warn) -> None:
@@ -261,9 +251,9 @@ def _register_view(view, grey: np.ndarray, mesh, args: argparse.Namespace, origi
     ``locate`` finds must be (:class:`~quatrack.recognition.pose.PoseParams`' bars)."""
     from quatrack.recognition.evidence import edge_agreement
     from quatrack.recognition.pose import PoseParams
+    from quatrack.recognition.registration import AGREEMENT_SLACK, refine_with_edges
     from quatrack.viewsets.errors import SpecError
-    from quatrack.recognition.registration import refine_with_edges
-    from quatrack.viewsets.register import Registration, off_mesh_message
+    from quatrack.viewsets.register import Registration, off_mesh_message, registration_at
     from quatrack.viewsets.train import check_pose
 
     line = f"view {view.index}: pose {origin}"
@@ -276,9 +266,7 @@ def _register_view(view, grey: np.ndarray, mesh, args: argparse.Namespace, origi
     if view.points is None:  # (no clicks to hold a refit: the edges alone may take a print's line)
         reg = Registration(view.pose, float("nan"), -1, float("nan"))
     else:
-        r = np.linalg.norm(view.camera.project(view.points.model @ view.pose.R.T + view.pose.t) - view.points.pixel, axis=1)
-        worst = int(np.argmax(r))
-        reg = Registration(view.pose, float(np.sqrt(np.mean(r ** 2))), worst, float(r[worst]))
+        reg = registration_at(view.points, view.camera, view.pose)
         line += f" ({len(view.points)} points, RMS {reg.rms_px:.2f} px, worst: point {reg.worst} at {reg.worst_px:.1f} px)"
         if not args.no_edges:
             reg = refine_with_edges(grey, mesh, view.camera, reg, view.points, click_sigma_px=args.click_sigma)
@@ -289,7 +277,7 @@ def _register_view(view, grey: np.ndarray, mesh, args: argparse.Namespace, origi
                          f"clicks' RMS {reg.rms_px:.2f} px")
             elif reg.refused is not None:
                 why = (f"it left the clicks {reg.refused.rms_px:.1f} px (RMS) off — the photo's print, not the "
-                       f"object's outline?" if a1 >= a0 - 0.02 else f"the edges agreed less ({a0:.0%} → {a1:.0%})")
+                       f"object's outline?" if a1 >= a0 - AGREEMENT_SLACK else f"the edges agreed less ({a0:.0%} → {a1:.0%})")
                 line += f"; a refit to the mesh's edges not kept: {why}"
         if view.pose_from_points and reg.moved is None:
             line += _loose(view, reg, args.click_sigma)
@@ -369,7 +357,7 @@ def run(args: argparse.Namespace) -> int:
                         f"{out_path} not written")
     data = _rebased(raw, spec_path.resolve().parent, out_path.resolve().parent)
     for v, pose in zip(data["views"], poses):
-        v["pose"] = _pose_json(pose)
+        v["pose"] = pose.to_json()  # (the contract's {"t", "q_wxyz"})
     with atomic_path(out_path, "--out") as tmp:
         Path(tmp).write_text(json.dumps(data, indent=1) + "\n", encoding="utf-8")
     print(f"wrote {out_path}{drawn}; train it with: quatrack train {out_path}")

@@ -9,6 +9,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from quatrack.tracking import quaternion as quat
 from quatrack.tracking.camera import PinholeCamera
 from quatrack.viewsets.register import PointPairs, Registration, click_limit_px, click_sigma, registration_at
 
@@ -24,9 +25,9 @@ def refine_with_edges(grey: np.ndarray, mesh, camera: PinholeCamera, reg: Regist
     """``reg``'s pose refitted to the mesh's visible edges in the photo and the clicks together
     (:func:`~quatrack.recognition.evidence.edge_fit`: each edge sample searches along its normal
     for the strongest aligned gradient; Gauss–Newton with Cauchy weights, the clicks at
-    :func:`click_sigma`'s
-    σ, the edges at 1 px), measured again from each new pose (``rounds``: the
-    search is centred on the pose, so a pose several pixels off is pulled in over two or three).
+    :func:`~quatrack.viewsets.register.click_sigma`'s σ, the edges at 1 px), measured again from
+    each new pose (``rounds``: the search is centred on the pose, so a pose several pixels off is
+    pulled in over two or three).
 
     The refit is kept only if it keeps the clicks (their RMS within :func:`click_limit_px`) and
     puts as much of the model's edges on the photo's edges as before (within
@@ -38,7 +39,7 @@ def refine_with_edges(grey: np.ndarray, mesh, camera: PinholeCamera, reg: Regist
     clicks 19 px off; on the zoo's photos (flat print) they brought poses 3× nearer the truth."""
     sigma = click_sigma(reg, len(pairs), click_sigma_px)
     before, image = measure_edges(grey, mesh, camera, reg.pose)
-    pose = reg.pose
+    pose, after = reg.pose, before
     for _ in range(rounds):
         if image is None:
             break
@@ -46,15 +47,13 @@ def refine_with_edges(grey: np.ndarray, mesh, camera: PinholeCamera, reg: Regist
         if fit.pose is None:
             break
         pose = fit.pose
-        image = measure_edges(grey, mesh, camera, pose)[1]
+        after, image = measure_edges(grey, mesh, camera, pose)  # (the next round's edges, and the last's agreement)
     if pose is reg.pose:
         return replace(reg, edge_agreement=(before.agreement, before.agreement))
-    after = measure_edges(grey, mesh, camera, pose)[0]
     refit = registration_at(pairs, camera, pose, edge_agreement=(before.agreement, after.agreement))
     if after.agreement < before.agreement - AGREEMENT_SLACK or refit.rms_px > click_limit_px(len(pairs), sigma):
         return replace(reg, edge_agreement=(before.agreement, after.agreement), refused=refit)
     c = mesh.centre
     dc = float(np.linalg.norm((pose.R @ c + pose.t) - (reg.pose.R @ c + reg.pose.t)))
-    dR = pose.R @ reg.pose.R.T
-    angle = float(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1.0, 1.0))))
+    angle = float(np.degrees(quat.angle_between(pose.q_wxyz, reg.pose.q_wxyz)))
     return replace(refit, moved=(dc / float(mesh.extent), angle))

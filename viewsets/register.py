@@ -5,8 +5,8 @@ but can always name a few points on both: "this corner of the box, ``[0, 0, 6]``
 at pixel (312, 188)" — read off any image viewer. Four or more such pairs fix the pose by PnP
 (:func:`pose_from_points`), to within the clicks' error of a pixel or two; the mesh's visible
 edges, which the photo shows along their whole length, then pull it onto the image
-(:func:`refine_with_edges`: :func:`quatrack.recognition.evidence.edge_fit` with the clicks as
-its points). On the zoo's 32 training photos (8 objects × 4), 5–8 visible corners clicked with
+(:func:`quatrack.recognition.registration.refine_with_edges`:
+:func:`quatrack.recognition.evidence.edge_fit` with the clicks as its points). On the zoo's 32 training photos (8 objects × 4), 5–8 visible corners clicked with
 2 px of noise gave poses 1.33 % of the diameter / 1.29° off (median; 90th percentile 2.8 % /
 2.3°) by PnP, and 0.30 % / 0.42° (1.4 % / 1.2°) with the edges, which were kept for 30 of the 32;
 with 4 px, 2.67 % / 2.55° and 0.47 % / 0.79° (``quatrack bench register``; ``bench/RESULTS.md``,
@@ -151,6 +151,7 @@ def _residuals(pairs: PointPairs, camera: PinholeCamera, pose: Pose) -> np.ndarr
 
 
 def registration_at(pairs: PointPairs, camera: PinholeCamera, pose: Pose, **extra) -> Registration:
+    """The clicks' figures at ``pose`` (their RMS, the worst one), ``extra`` fields added."""
     r = _residuals(pairs, camera, pose)
     worst = int(np.argmax(r))
     return Registration(pose, float(np.sqrt(np.mean(r ** 2))), worst, float(r[worst]), **extra)
@@ -171,19 +172,9 @@ def pose_from_points(pairs: PointPairs, camera: PinholeCamera, where: str = "vie
         raise SpecError(f"{where}: the points lie on one line in the model: add points off that line")
     if (outside := _outside(pairs.pixel, camera)) is not None:
         raise SpecError(f"{where}: {outside}")
-    K = camera.matrix
-    dist = np.asarray(camera.dist_coeffs, float)
-    X = np.ascontiguousarray(pairs.model, np.float64)
-    uv = np.ascontiguousarray(pairs.pixel, np.float64)
-    try:
-        ok, rvec, tvec = cv2.solvePnP(X, uv, K, dist, flags=cv2.SOLVEPNP_SQPNP)
-        if ok:
-            rvec, tvec = cv2.solvePnPRefineLM(X, uv, K, dist, rvec, tvec)
-    except cv2.error:
-        ok = False
-    if not ok or not (np.all(np.isfinite(rvec)) and np.all(np.isfinite(tvec))):
+    pose = _solve(pairs.model, pairs.pixel, camera, polish=True)
+    if pose is None:
         raise SpecError(f"{where}: no pose fits the points (are the pixels in this photo and the model points in the mesh's units?)")
-    pose = Pose.from_matrix(cv2.Rodrigues(rvec)[0], tvec.ravel())
     z = (pairs.model @ pose.R.T + pose.t)[:, 2]
     if np.any(z <= 0):
         raise SpecError(f"{where}: the best pose puts point {int(np.argmin(z))} behind the camera: "
@@ -205,12 +196,20 @@ class PointsMisfit(SpecError):
         self.registration = registration
 
 
-def _solve(X: np.ndarray, uv: np.ndarray, camera: PinholeCamera) -> Pose | None:
+def _solve(X: np.ndarray, uv: np.ndarray, camera: PinholeCamera, polish: bool = False) -> Pose | None:
+    """SQPnP's pose of the pairs (``polish``: then Levenberg–Marquardt on the reprojection
+    error), None when OpenCV finds none or a non-finite one."""
+    K, dist = camera.matrix, np.asarray(camera.dist_coeffs, float)
+    X, uv = np.ascontiguousarray(X, np.float64), np.ascontiguousarray(uv, np.float64)
     try:
-        ok, rvec, tvec = cv2.solvePnP(X, uv, camera.matrix, np.asarray(camera.dist_coeffs, float), flags=cv2.SOLVEPNP_SQPNP)
+        ok, rvec, tvec = cv2.solvePnP(X, uv, K, dist, flags=cv2.SOLVEPNP_SQPNP)
+        if ok and polish:
+            rvec, tvec = cv2.solvePnPRefineLM(X, uv, K, dist, rvec, tvec)
     except cv2.error:
         return None
-    return Pose.from_matrix(cv2.Rodrigues(rvec)[0], tvec.ravel()) if ok and np.all(np.isfinite(tvec)) else None
+    if not ok or not (np.all(np.isfinite(rvec)) and np.all(np.isfinite(tvec))):
+        return None
+    return Pose.from_matrix(cv2.Rodrigues(rvec)[0], tvec.ravel())
 
 
 def _culprit(pairs: PointPairs, camera: PinholeCamera, reg: Registration, limit: float) -> str:

@@ -24,7 +24,7 @@ from quatrack.tracking.pose import Pose
 from .camera import camera_from_dict, isfinite, load_camera
 from .errors import SpecError, StoreError
 from .names import check_object_name
-from .register import MIN_POINTS, PointPairs, PointsMisfit, max_rms_px, parse_points, pose_from_points
+from .register import MIN_POINTS, PointPairs, PointsMisfit, max_rms_px, parse_points, pose_from_points, registration_at
 
 __all__ = ["ObjectSpec", "ViewSpec", "load_spec", "parse_pose"]
 
@@ -176,11 +176,9 @@ def _repeated_photos(views: list[ViewSpec], path: Path) -> list[str]:
 def _points_disagree(points: PointPairs, camera: PinholeCamera, pose: Pose) -> str | None:
     """Why a given pose and the view's clicked points disagree (None: they agree): the points'
     RMS at the pose beyond what a registration may have (:func:`~.register.max_rms_px`)."""
-    Xc = points.model @ pose.R.T + pose.t
-    if np.any(Xc[:, 2] <= 0):
+    if np.any(pose.apply(points.model)[:, 2] <= 0):
         return "the given pose puts some of its points behind the camera (is it object → camera?)"
-    r = np.linalg.norm(camera.project(Xc) - points.pixel, axis=1)
-    rms, limit = float(np.sqrt(np.mean(r ** 2))), max_rms_px(camera)
+    rms, limit = registration_at(points, camera, pose).rms_px, max_rms_px(camera)
     if rms <= limit:
         return None
     return (f"the given pose puts its points {rms:.1f} px (RMS) from their pixels (at most {limit:.1f}); "

@@ -173,6 +173,19 @@ def _sized_by(view: ViewSpec, image: np.ndarray) -> ViewSpec:
     return dataclasses.replace(view, camera=sized)
 
 
+def read_mask(view: ViewSpec, shape: tuple[int, int]) -> np.ndarray:
+    """The view's mask as stored, one channel (non-zero: the object), checked against its photo's
+    ``shape`` (h, w) — a :class:`SpecError` naming it otherwise. Read as stored: a 16-bit mask's
+    labels (1 = object) were 0 once brought to 8 bits; a colour mask's any channel non-zero, with
+    transparency its alpha channel (a cut-out)."""
+    m = _read(view.mask_path, cv2.IMREAD_UNCHANGED, f"view {view.index}: mask {view.mask_path}")
+    if m.ndim == 3:
+        m = m[..., 3] if m.shape[2] == 4 else m.max(axis=2)
+    if m.shape != tuple(shape):
+        raise SpecError(f"view {view.index}: mask {view.mask_path}: size {m.shape[::-1]} differs from the image's")
+    return m
+
+
 def _prepare_view(mesh: Mesh, view: ViewSpec, warn=None) -> _View:
     image = _read_image(view)
     view = _sized_by(view, image)
@@ -183,12 +196,7 @@ def _prepare_view(mesh: Mesh, view: ViewSpec, warn=None) -> _View:
     buffers = check_pose(mesh, view)
     mask = buffers.mask
     if view.mask_path is not None:
-        # read as stored: a 16-bit mask's labels (1 = object) were 0 once brought to 8 bits
-        m = _read(view.mask_path, cv2.IMREAD_UNCHANGED, f"view {view.index}: mask {view.mask_path}")
-        if m.ndim == 3:  # colour: any channel non-zero; with transparency, the alpha channel (a cut-out)
-            m = m[..., 3] if m.shape[2] == 4 else m.max(axis=2)
-        if m.shape != full:
-            raise SpecError(f"view {view.index}: mask {view.mask_path}: size {m.shape[::-1]} differs from the image's")
+        m = read_mask(view, full)
         if m.shape != mask.shape:  # (the photo was downscaled)
             m = cv2.resize((m > 0).astype(np.uint8), mask.shape[::-1], interpolation=cv2.INTER_NEAREST)
         mask = np.where(m > 0, 255, 0).astype(np.uint8)
