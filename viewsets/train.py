@@ -30,7 +30,7 @@ from .store import ObjectModel
 from .texture import crop_reference
 from .viewset import Viewset, ViewsetParams, build_viewset
 
-__all__ = ["TrainParams", "train_object", "check_pose", "keypoint_density"]
+__all__ = ["TrainParams", "train_object", "check_pose", "keypoint_density", "read_mask"]
 
 
 @dataclass(frozen=True)
