@@ -221,7 +221,9 @@ class Tracker:
 
     def init_pose(self, t, q_wxyz=None, time_s: float | None = None) -> None:
         """Start from a user-given pose (object → camera) at the next frame (or at ``time_s``):
-        ``t`` (3 numbers) and ``q_wxyz`` (4), or a :class:`~quatrack.tracking.pose.Pose` as ``t``."""
+        ``t`` (3 numbers) and ``q_wxyz`` (4), or a :class:`~quatrack.tracking.pose.Pose` as ``t``.
+        With ``time_s``, a frame (or :meth:`skip`) before it is refused as a frame going back in
+        time is (ValueError); the pose stays pending for the next frame at or after it."""
         pose = t if isinstance(t, Pose) and q_wxyz is None else _check_pose(t, q_wxyz)
         if time_s is not None:
             time_s = _seconds(time_s)
@@ -234,12 +236,23 @@ class Tracker:
         ``reason``. The track is kept: the next frame predicts across the gap, as after a
         dropped frame."""
         time_s = _seconds(time_s)
-        last = self.filter.state.t if self.filter.state is not None else self._last_time
-        if last is not None and time_s < last:  # (as step: a skipped frame went back in time unnoticed)
-            raise ValueError(f"time goes backwards ({time_s} s after {last} s)")
+        self._check_clock(time_s)  # (as step: a skipped frame went back in time unnoticed)
         self._frame += 1
         self._last_time = time_s
         return TrackStep(self._frame, time_s, "lost", reason=reason)
+
+    def _check_clock(self, time_s: float) -> None:
+        """Refuse a frame time before the latest one the tracker holds: the track's, the latest
+        frame's while lost (a clock gone back), or the time a pose was given at
+        (``init_pose(..., time_s)``: a frame before it was started from the pose all the same,
+        as if taken at the pose's time)."""
+        last = self.filter.state.t if self.filter.state is not None else self._last_time
+        if last is not None and time_s < last:
+            raise ValueError(f"time goes backwards ({time_s} s after {last} s)")
+        given = self._pending[1] if self._pending is not None else None
+        if given is not None and time_s < given:
+            raise ValueError(f"time goes backwards ({time_s} s before the pose given at {given} s by init_pose; "
+                             f"give it no time_s to start from the next frame)")
 
     @property
     def tracking(self) -> bool:
@@ -303,9 +316,7 @@ class Tracker:
                 raise ImageError(str(exc)) from None
             self.camera = cam = sized
         state = self.filter.state
-        last = state.t if state is not None else self._last_time  # (lost too: a clock gone back)
-        if last is not None and time_s < last:
-            raise ValueError(f"time goes backwards ({time_s} s after {last} s)")
+        self._check_clock(time_s)
         self._last_time = time_s
         self._frame += 1
         timings: dict[str, float] = {}
@@ -554,7 +565,7 @@ class Tracker:
                                           f"(its nearest vertex at z = {z.min():.3g} mesh units)")
             cov, how = self._initial_covariance(), "given pose"
             self._second_hand, self._birth = False, None
-            time_s0 = time_s if t_given is None or t_given > time_s else t_given
+            time_s0 = time_s if t_given is None else t_given  # (a frame before t_given: refused, _check_clock)
         else:
             wait = self.params.relocate_interval_s
             if wait and self._relocated_at is not None and time_s - self._relocated_at < wait:
