@@ -32,7 +32,7 @@ from starlette.websockets import WebSocket
 
 from quatrack.recognition.runtime import compile_hot_loops, limit_blas_threads, tune_allocator
 
-from . import docs, errors, pose_all, viewer
+from . import docs, errors, pose_all, slashes, viewer
 from .errors import ApiError, error_body
 from .logs import install_filters
 from .metrics import Metrics, worker_exit
@@ -369,6 +369,7 @@ def create_app(settings: Settings | None = None, whole_process: bool = False) ->
     app.include_router(sockets)
     app.include_router(viewer.router)  # /viewer page + GET /v1/objects/{name}/mesh (service/viewer.py)
     app.include_router(pose_all.router)  # POST /v1/pose: every trained object searched (service/pose_all.py)
+    slashes.install(app)  # /v1/objects/ → ../objects: a relative Location, within a proxy's prefix
     app.add_middleware(HeadAsGet)  # innermost: HEAD reaches the routes as GET (their body dropped)
     app.add_middleware(BodyLimit, limit=settings.max_body_bytes)
     if settings.cors_origins:

@@ -19,6 +19,8 @@ host's root, which the proxy does not serve: a proxy that says its prefix in
 X-Forwarded-Prefix /quatrack;``) gets ``servers: [{"url": "/quatrack"}]`` in ``/openapi.json``
 (:class:`ForwardedPrefix`). A relative server (``.``) would need no header, but tools reading the
 description (schemathesis, client generators) resolve it against the host, not the document.
+``/docs/`` and ``/redoc/`` redirect to ``../docs``, ``../redoc`` as every final-slash redirect
+does (:mod:`.slashes`).
 """
 
 from __future__ import annotations
@@ -28,7 +30,7 @@ from pathlib import Path
 
 from fastapi import FastAPI
 from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html, get_swagger_ui_oauth2_redirect_html
-from fastapi.responses import HTMLResponse, RedirectResponse
+from fastapi.responses import HTMLResponse
 from fastapi.staticfiles import StaticFiles
 
 ASSETS = "/docs-assets"
@@ -65,17 +67,6 @@ def _asset_dir() -> Path:
     return Path(fastapi_offline.__file__).resolve().parent / "static"
 
 
-def _redirect(location: str):
-    """A route answering 307 to ``location``, relative: ``/docs/`` → ``../docs``. Starlette's own
-    redirect for a final slash is an absolute URL of the address the server was reached at, which
-    leaves a proxy's prefix (and names the proxy's upstream, ``127.0.0.1:8000``, when the proxy
-    does not pass ``Host``)."""
-    async def redirect() -> RedirectResponse:
-        return RedirectResponse(location)
-
-    return redirect
-
-
 def install(app: FastAPI) -> None:
     """Add ``/docs``, ``/docs/oauth2-redirect``, ``/redoc`` and the assets to ``app``, which must be
     created with ``docs_url=None, redoc_url=None``."""
@@ -94,9 +85,6 @@ def install(app: FastAPI) -> None:
         # (another FastAPI's page may word it otherwise: tests/test_docs_prefix.py says so)
         html = page.body.decode().replace(_REDIRECT_JS, "new URL('docs/oauth2-redirect', window.location.href).href")
         return HTMLResponse(html)
-
-    for page in ("docs", "redoc"):
-        app.add_api_route(f"/{page}/", _redirect(f"../{page}"), methods=["GET"], include_in_schema=False)
 
     @app.get("/docs/oauth2-redirect", include_in_schema=False)
     async def swagger_ui_redirect() -> HTMLResponse:
