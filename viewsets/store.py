@@ -26,6 +26,7 @@ import os
 import shutil
 import tempfile
 import time
+import warnings
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -43,7 +44,7 @@ from .viewset import Viewset, ViewsetParams
 
 __all__ = ["ObjectModel", "StoreError", "load_model", "save_model", "list_models", "delete_model",
            "model_lock", "default_store", "resolve_store", "model_path", "load_manifest", "model_stamp",
-           "trained_from", "learned_views_warning", "remove_stale", "unknown_object", "names_hint",
+           "trained_from", "learned_count", "learned_views_warning", "remove_stale", "unknown_object", "names_hint",
            "store_note"]
 
 SCHEMA_VERSION = 1
@@ -192,7 +193,14 @@ def _appearance(a: dict[str, np.ndarray]) -> list[TextureReference]:
 def save_model(store: str | Path, model: ObjectModel, overwrite: bool = True, locked: bool = False) -> Path:
     """Write ``model`` atomically as ``store/NAME``; refuses an existing name unless ``overwrite``.
     The files are written first, then put in place under the store's :func:`model_lock` (taken
-    here unless ``locked``: the caller holds it)."""
+    here unless ``locked``: the caller holds it).
+
+    A stored model replaced by one with fewer views learned while tracking (``learned=True``: a
+    retraining saved with this function) loses them: that is warned of (``UserWarning``, naming
+    how many), since :func:`quatrack.viewsets.learn.save_trained` — what ``quatrack train`` uses —
+    keeps those that fit the new model and says what it drops (``keep_learned=False``: drops them
+    without a warning). Callers holding the lock (``locked``) read and merge the stored model
+    themselves (``learn.save_trained``, ``learn.merge_learned``) and say what they drop: no warning."""
     if not isinstance(model, ObjectModel):  # (a spec, a name: AttributeError 'name')
         raise TypeError(f"model: an ObjectModel (quatrack.viewsets.train.train_object(spec) makes one), "
                         f"got {type(model).__name__}")
@@ -228,6 +236,8 @@ def save_model(store: str | Path, model: ObjectModel, overwrite: bool = True, lo
             f.flush()
             os.fsync(f.fileno())
         with contextlib.nullcontext() if locked else model_lock(store, model.name):
+            # (read under the lock: views a track --learn run merges meanwhile are counted too)
+            dropped = 0 if locked else learned_count(store, model.name) - sum(v.learned for v in model.viewsets)
             if final.exists():
                 if not overwrite:
                     raise StoreError(f"object {model.name!r} already exists in {store} (and --no-overwrite was given)")
@@ -243,7 +253,23 @@ def save_model(store: str | Path, model: ObjectModel, overwrite: bool = True, lo
         raise
     if old is not None:
         shutil.rmtree(old, ignore_errors=True)
+    if dropped > 0:
+        warnings.warn(f"save_model: {model.name!r} in {store} held {dropped} more view(s) learned while tracking than "
+                      f"the model saved in its place: {dropped} dropped (quatrack.viewsets.learn.save_trained(store, "
+                      f"model) keeps those that fit a retrained model, as quatrack train does)", UserWarning, stacklevel=2)
     return final
+
+
+def learned_count(store: str | Path, name: str) -> int:
+    """How many views learned while tracking the stored model's manifest lists (``"learned":
+    true``; 0: none, no model, an unreadable manifest)."""
+    if not (model_path(Path(store), name) / MANIFEST).is_file():
+        return 0  # (before load_manifest: its unknown-object message lists the store for a hint)
+    try:
+        entries = load_manifest(store, name).get("viewsets")
+    except StoreError:
+        return 0
+    return sum(isinstance(e, dict) and e.get("learned") is True for e in entries) if isinstance(entries, list) else 0
 
 
 def load_manifest(store: str | Path, name: str) -> dict:
