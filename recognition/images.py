@@ -29,8 +29,15 @@ MAX_DECODE_PIXELS = 100_000_000  # refuse to even decode images larger than this
 # black: most likely 10- or 12-bit camera data, which to_bgr8 warns of once (BitDepthWarning)
 LOW_DEPTH_MAX = 4096
 LOW_DEPTH_MIN_PIXELS = 64 * 64
+# A float image's range, from its largest value (_float_to_8): 0..1 up to FLOAT_SLACK above 1 (a
+# resampled image's overshoot, clipped); 0..255 from FLOAT_255_MIN up to FLOAT_SLACK above 255;
+# between the two (read as 0..255 it would be black to within 1 %: 0..2 was) 0..1, clipped, and
+# warned of once (FloatRangeWarning); above, neither (ImageError)
+FLOAT_SLACK = 0.1
+FLOAT_255_MIN = 2.0
 
-__all__ = ["DEFAULT_MAX_PIXELS", "MAX_DECODE_PIXELS", "MIN_SIDE", "BitDepthWarning", "ImageError", "PreparedImage",
+__all__ = ["DEFAULT_MAX_PIXELS", "MAX_DECODE_PIXELS", "MIN_SIDE", "BitDepthWarning", "FloatRangeWarning", "ImageError",
+           "PreparedImage",
            "decode_image", "header_size", "prepare_image", "read_image", "sniff", "to_bgr8", "too_small", "truncated"]
 
 
@@ -42,7 +49,12 @@ class BitDepthWarning(UserWarning):
     """A 16-bit image that looks like 10- or 12-bit data read as full-range 16-bit (almost black)."""
 
 
+class FloatRangeWarning(UserWarning):
+    """A float image whose largest value is neither within 0..1 nor that of a 0..255 image."""
+
+
 _depth_warned = False  # (BitDepthWarning is given once a process: a stream would repeat it every frame)
+_float_warned = False  # (FloatRangeWarning too)
 
 
 @dataclass(frozen=True)
@@ -229,10 +241,35 @@ def _uint16_to_8(img: np.ndarray, bits: int | None) -> np.ndarray:
     return (img >> (bits - 8)).astype(np.uint8)
 
 
+def _float_to_8(img: np.ndarray) -> np.ndarray:
+    """Float pixels as 8-bit, their range told by the largest value (NaN and -inf as 0, +inf as
+    1): up to 1.1, 0..1 (scaled by 255; above 1, a resampled image's overshoot, clipped); from
+    2 to 280.5, 0..255 (clipped). Between 1.1 and 2 the image is 0..1 with values above it (HDR
+    data, an exposure gain): read as 0..255 it came out black, so it is read as 0..1, clipped,
+    and warned of once (:class:`FloatRangeWarning`). Above 280.5 it is neither (16-bit data as
+    floats?): :class:`ImageError` naming the value. Values below 0 are clipped to 0."""
+    global _float_warned
+    finite = np.nan_to_num(img, nan=0.0, posinf=1.0, neginf=0.0)
+    top = float(finite.max())
+    if top > 255 * (1 + FLOAT_SLACK):
+        raise ImageError(f"a float image's values reach {top:.6g}: neither 0..1 nor 0..255 (at most "
+                         f"{255 * (1 + FLOAT_SLACK):g}); scale it to one of them (N-bit data: image / (2**N - 1) for 0..1)")
+    if FLOAT_255_MIN <= top:
+        return np.clip(finite, 0, 255).astype(np.uint8)
+    if top > 1 + FLOAT_SLACK and not _float_warned:
+        _float_warned = True
+        warnings.warn(f"a float image whose values reach {top:.3g} is read as 0..1, clipped at 1 (as 0..255 it "
+                      f"would be all but black); scale it to 0..1 (image / image.max()) or to 0..255 (at least "
+                      f"{FLOAT_255_MIN:g}) to say which. Warned once.", FloatRangeWarning, stacklevel=_caller_level())
+    return np.clip(finite * 255.0, 0, 255).astype(np.uint8)
+
+
 def to_bgr8(image: np.ndarray, *, bits: int | None = None) -> np.ndarray:
     """8-bit, 3-channel BGR from grey, BGRA, 16-bit or float images: ``uint16`` as full-range
-    16-bit (its top 8 bits), floats as 0..1 (0..255 when a value exceeds 1). Colour is taken as
-    OpenCV's BGR order: an RGB image cannot be told apart and passes as it is.
+    16-bit (its top 8 bits), floats as 0..1 (up to 1.1, clipped), as 0..255 when the largest
+    value is 2 or more (up to 280.5; beyond, refused), in between as 0..1 clipped, warned of
+    once (:class:`FloatRangeWarning`). Colour is taken as OpenCV's BGR order: an RGB image cannot
+    be told apart and passes as it is.
 
     ``bits`` (8–16): the significant bits of ``uint16`` pixels (10- or 12-bit camera data stored
     as 16-bit: ``bits=12`` maps 0..4095 to 0..255); ignored for other pixel types. Without it a
@@ -258,8 +295,7 @@ def to_bgr8(image: np.ndarray, *, bits: int | None = None) -> np.ndarray:
     if img.dtype == np.uint16:
         img = _uint16_to_8(img, bits)
     elif img.dtype in (np.float32, np.float64):
-        finite = np.nan_to_num(img, nan=0.0, posinf=1.0, neginf=0.0)
-        img = np.clip(finite * 255.0 if finite.max() <= 1.0 else finite, 0, 255).astype(np.uint8)
+        img = _float_to_8(img)
     elif img.dtype != np.uint8:
         raise ImageError(f"unsupported pixel type {img.dtype}: expected uint8, uint16, or float32/float64 in 0..1 "
                          f"(convert with image.astype(np.uint8) when the values are 0..255)")
