@@ -345,8 +345,7 @@ def image_paths(patterns: str | Sequence[str]) -> list[str]:
     frame is a ``lost`` row in its place (it was left out, and the frames after it came one index
     early). ``locate`` expands its IMAGE arguments with this too, one at a time."""
     paths: list[str] = []
-    for pattern in [patterns] if isinstance(patterns, str) else patterns:
-        path = os.path.expanduser(pattern)
+    for path in _expanded(patterns):
         if os.path.isfile(path) and path.lower().endswith(LIST_SUFFIXES):
             paths += list_file(path)
         elif os.path.isfile(path) or not (globlib.has_magic(path) or os.path.isdir(path)):
@@ -356,9 +355,19 @@ def image_paths(patterns: str | Sequence[str]) -> list[str]:
     return list(dict.fromkeys(paths))
 
 
+def _expanded(patterns: str | Sequence[str]) -> list[str]:
+    """``--images``' arguments (one string or several), each with ``~`` expanded."""
+    return [os.path.expanduser(p) for p in ([patterns] if isinstance(patterns, str) else patterns)]
+
+
 def _numbered(path: str) -> list:
     """A sort key reading the numbers in a path as numbers: ``frame_2`` before ``frame_10``."""
     return [(int(part), "") if part.isdigit() else (-1, part) for part in re.split(r"(\d+)", path)]
+
+
+def _first_descent(files: Sequence[str]) -> tuple[str, str] | None:
+    """The first two neighbours of ``files`` whose numbers (:func:`_numbered`) go down, or None."""
+    return next(((a, b) for a, b in zip(files, files[1:]) if _numbered(b) < _numbered(a)), None)
 
 
 def misordered(patterns: str | Sequence[str]) -> tuple[str, str] | None:
@@ -375,15 +384,8 @@ def misordered(patterns: str | Sequence[str]) -> tuple[str, str] | None:
     ['f10.png', 'f2.png']
     >>> import shutil; shutil.rmtree(d)
     """
-    for pattern in [patterns] if isinstance(patterns, str) else patterns:
-        path = os.path.expanduser(pattern)
-        if os.path.isfile(path):
-            continue
-        matches = glob_files(path)
-        for a, b in zip(matches, matches[1:]):
-            if _numbered(b) < _numbered(a):
-                return a, b
-    return None
+    globs = (path for path in _expanded(patterns) if not os.path.isfile(path))
+    return next((pair for path in globs if (pair := _first_descent(glob_files(path))) is not None), None)
 
 
 def _jumbled(files: list[str]) -> tuple[str, str] | None:
@@ -396,12 +398,8 @@ def _jumbled(files: list[str]) -> tuple[str, str] | None:
     """
     if len(files) < 3 or len({re.sub(r"\d+", "#", f) for f in files}) != 1:
         return None
-    keys = [_numbered(f) for f in files]
-    pairs = list(zip(keys, keys[1:]))
-    if all(a <= b for a, b in pairs) or all(a >= b for a, b in pairs):
-        return None
-    k = next(k for k, (a, b) in enumerate(pairs) if b < a)
-    return files[k], files[k + 1]
+    pair = _first_descent(files)  # (None: ascending)
+    return None if pair is None or _first_descent(files[::-1]) is None else pair  # (descending: None too)
 
 
 def misordered_given(patterns: str | Sequence[str]) -> tuple[str, str] | None:
@@ -410,8 +408,7 @@ def misordered_given(patterns: str | Sequence[str]) -> tuple[str, str] | None:
     each list file's lines (often ``ls``'s output) — jumbled numbered sequences (:func:`_jumbled`),
     which were tracked without a word while the same glob quoted was warned of."""
     runs: list[list[str]] = [[]]
-    for pattern in [patterns] if isinstance(patterns, str) else patterns:
-        path = os.path.expanduser(pattern)
+    for path in _expanded(patterns):
         if os.path.isfile(path) and path.lower().endswith(LIST_SUFFIXES):
             runs += [list_file(path), []]
         elif os.path.isfile(path):
