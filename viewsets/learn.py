@@ -54,7 +54,7 @@ from .features import RUN_TIME_STRETCH
 from .mesh import Mesh
 from .render import RenderBuffers, footprint, render_window
 from .rfch import RFCHModel, cooccurrence, descriptor_planes, label_planes
-from .store import ObjectModel, load_manifest, load_model, model_lock, model_path, save_model
+from .store import ObjectModel, learned_count, load_model, model_lock, model_path, save_model
 from .viewset import Viewset, ViewsetParams, build_viewset
 
 MAX_LEARNED = 24  # learned viewsets per model at most
@@ -326,15 +326,6 @@ def carry_learned(stored: ObjectModel | None, model: ObjectModel) -> tuple[Objec
     return merged, len(merged.viewsets) - len(model.viewsets), None
 
 
-def _learned_count(store: Path, name: str) -> int:
-    """How many learned views the stored model's manifest lists (0: none, no model, unreadable)."""
-    try:
-        entries = load_manifest(store, name).get("viewsets")
-    except StoreError:
-        return 0
-    return sum(isinstance(e, dict) and e.get("learned") is True for e in entries) if isinstance(entries, list) else 0
-
-
 def save_trained(store: str | Path, model: ObjectModel, overwrite: bool = True, keep_learned: bool = True) -> Retrained:
     """Save a new training ``model`` of an object (:func:`~.store.save_model`, atomic) keeping the
     views the stored model learned while tracking where they fit it (:func:`carry_learned`;
@@ -345,7 +336,7 @@ def save_trained(store: str | Path, model: ObjectModel, overwrite: bool = True, 
     cannot be read (broken) is replaced, as before, with nothing to carry."""
     store = Path(store)
     with model_lock(store, model.name):
-        n = _learned_count(store, model.name)
+        n = learned_count(store, model.name)
         stored = None
         if n and keep_learned:
             try:

@@ -274,7 +274,8 @@ class Tracker:
         and the colours the tracker learns are then swapped; or grey (H, W) or (H, W, 1), or BGRA.
         ``uint8``; ``uint16`` as full-range 16-bit (its top 8 bits: scale a 10- or 12-bit camera's
         values to 16 bits first, ``img << 4`` for 12 bits, else it reads as nearly black);
-        ``float32``/``float64`` in 0..1 (or 0..255 when a value exceeds 1). Any strides (slices,
+        ``float32``/``float64`` in 0..1 (up to 1.1, the overshoot clipped), or 0..255 when the
+        largest value is 2 or more (refused above 280.5; :mod:`~quatrack.recognition.images`). Any strides (slices,
         views, Fortran order) are fine. The image must be the camera's size (a camera without one
         takes the first frame's). Raises :class:`~quatrack.recognition.images.ImageError` (a
         ValueError) for an image it cannot use, ValueError for a time that is not a finite number
