@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import io
+import re
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
@@ -363,11 +365,19 @@ def load_mesh(path: str | Path, warn=None) -> Mesh:
         raise SpecError(f"{path}: a folder, not a mesh file (name the mesh file in it)")
     if not path.is_file():
         raise SpecError(f"{path}: mesh file not found")
+    obj = _obj_text_resolved(path) if path.suffix.lower() == ".obj" else None
+
+    def read(**kw):  # (an OBJ whose relative indices were resolved is read from its new text)
+        if obj is None:
+            return trimesh.load(str(path), process=False, **kw)
+        return trimesh.load(io.BytesIO(obj), file_type="obj", process=False,
+                            resolver=trimesh.resolvers.FilePathResolver(str(path)), **kw)
+
     try:
-        loaded = trimesh.load(str(path), process=False)
+        loaded = read()
         notes = mesh_notes(loaded, path) if warn is not None else []
         if isinstance(loaded, trimesh.Scene):  # e.g. an OBJ with several objects: merge them
-            loaded = trimesh.load(str(path), process=False, force="mesh")
+            loaded = read(force="mesh")
     except NotImplementedError:  # (trimesh's "file_type 'png' not supported": a photo named as the mesh)
         raise SpecError(f"{path}: not a mesh file format quatrack reads ({path.suffix or 'no extension'}; "
                         f"use {MESH_FORMATS})") from None
@@ -398,6 +408,39 @@ def load_mesh(path: str | Path, warn=None) -> Mesh:
     if len(used) == len(mesh.vertices):
         return mesh
     return Mesh(mesh.vertices[used], faces.reshape(mesh.faces.shape).astype(np.int32))
+
+
+# an OBJ face line giving a negative (relative) index
+_OBJ_RELATIVE = re.compile(rb"^[ \t]*f[ \t][^\n]*-", re.M)
+
+
+def _obj_text_resolved(path: Path) -> bytes | None:
+    """The OBJ file's text with its relative face indices (``f -3 -2 -1``: the last three
+    vertices given so far) made absolute, or None when it has none. Why: trimesh 5.2 counts them
+    back from the file's last vertex, not from the face's line; a file giving three vertices and
+    then a face, again and again (valid OBJ, as some exporters write it), was read as one triangle
+    repeated, and trained as a one-triangle model."""
+    data = path.read_bytes()
+    if not _OBJ_RELATIVE.search(data):
+        return None
+    given = {b"v": 0, b"vt": 0, b"vn": 0}
+    lines = data.split(b"\n")
+    for k, line in enumerate(lines):
+        words = line.split()
+        if not words:
+            continue
+        if words[0] in given:
+            given[words[0]] += 1
+        elif words[0] == b"f":
+            corners = []
+            for word in words[1:]:
+                parts = word.split(b"/")
+                for j, (part, kind) in enumerate(zip(parts, (b"v", b"vt", b"vn"))):
+                    if part.startswith(b"-") and part[1:].isdigit():
+                        parts[j] = b"%d" % (given[kind] + 1 + int(part))
+                corners.append(b"/".join(parts))
+            lines[k] = b"f " + b" ".join(corners)
+    return b"\n".join(lines)
 
 
 def _tell(warn, message: str) -> None:
