@@ -235,7 +235,8 @@ def simplified(mesh: Mesh, faces: int) -> Mesh:
     """``mesh`` decimated to about ``faces`` triangles by quadric error metrics (Garland &
     Heckbert 1997, the fast-simplification package: each edge collapse places its vertex where
     the squared distances to the planes it merges are least, so flat and sharp parts keep their
-    shape while a scan's jitter averages out), in the same frame and units, faces wound outwards.
+    shape while a scan's jitter averages out), in the same frame and units, faces wound outwards;
+    the same in any unit (a mesh scaled by s gives its decimation scaled by s).
     First every collapse that changes nothing (``lossless``: a finely tessellated flat face
     becomes two triangles again), then, if still more than ``faces``, the least costly ones.
 
@@ -248,11 +249,16 @@ def simplified(mesh: Mesh, faces: int) -> Mesh:
     import fast_simplification
 
     V, F = joined(mesh.vertices, mesh.faces)
-    V, F = fast_simplification.simplify(np.asarray(V, np.float64), np.asarray(F, np.int32), lossless=True)
+    # in a frame of unit size (the bounding box's centre at 0, its diagonal 1), scaled back after:
+    # the package's thresholds are absolute, and one scan in mm, cm and m was decimated to other
+    # facets, other planar groups, other locate results
+    centre, size = mesh.centre, max(mesh.extent, 1e-300)
+    V = (np.asarray(V, np.float64) - centre) / size
+    V, F = fast_simplification.simplify(V, np.asarray(F, np.int32), lossless=True)
     if len(F) > faces:
         V, F = fast_simplification.simplify(np.asarray(V, np.float64), np.asarray(F, np.int32),
                                             target_reduction=1.0 - faces / len(F))
-    V2, F2 = np.asarray(V, float), np.asarray(F)
+    V2, F2 = np.asarray(V, float) * size + centre, np.asarray(F)
     return make_mesh(V2, outward_faces(V2, np.asarray(F2, np.int64)), "simplified mesh")
 
 
