@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from quatrack.examples import example_dir
+from quatrack.viewsets.errors import SpecError
 from quatrack.viewsets.mesh import load_mesh, make_mesh, simplified
 
 
@@ -52,3 +53,70 @@ def test_a_scan_is_decimated_alike_in_mm_and_m():
     in_mm = simplified(make_mesh(metres.vertices * 1000.0, metres.faces), 800)
     assert np.array_equal(in_mm.faces, in_m.faces)
     assert np.allclose(in_mm.vertices, in_m.vertices * 1000.0, rtol=0, atol=1e-9 * 1000.0 * metres.extent)
+
+
+def _load_error(path):
+    with pytest.raises(SpecError) as info:
+        load_mesh(path, warn=lambda _: None)
+    return str(info.value)
+
+
+def test_an_empty_mesh_file_is_named_as_empty(tmp_path):
+    # (was "the mesh has no vertices", or "cannot read mesh (ValueError: Not a ply file!)")
+    for name in ("empty.obj", "empty.stl", "empty.ply"):
+        (tmp_path / name).write_bytes(b"")
+        assert _load_error(tmp_path / name) == f"{tmp_path / name}: the file is empty (0 bytes)"
+
+
+@pytest.mark.parametrize("real, named", [("ply", "obj"), ("stl", "obj"), ("off", "obj"), ("ply", "stl"),
+                                         ("stl", "ply"), ("obj", "ply"), ("glb", "ply")])
+def test_a_mesh_file_under_another_format_s_extension_is_told_to_be_renamed(tmp_path, box, real, named):
+    # (a PLY/STL/OFF as .obj, a PLY as .stl: "the mesh has no vertices"; an STL/OBJ/GLB as .ply:
+    # "cannot read mesh (ValueError: Not a ply file!)")
+    import trimesh
+
+    tm = trimesh.Trimesh(box.vertices, box.faces, process=False)
+    path = tmp_path / f"box.{named}"
+    data = tm.export(file_type=real)
+    path.write_bytes(data.encode() if isinstance(data, str) else data)
+    name = {"ply": "PLY", "stl": "STL", "off": "OFF", "obj": "OBJ", "glb": "GLB"}
+    assert _load_error(path) == (f"{path}: its content looks like {name[real]}, not {name[named]} as its extension "
+                                 f"says (rename it to .{real})")
+    renamed = path.rename(tmp_path / f"box.{real}")
+    assert len(load_mesh(renamed, warn=lambda _: None).faces) == 12
+
+
+def test_a_binary_stl_cut_short_says_so(tmp_path, box):
+    import trimesh
+
+    data = trimesh.Trimesh(box.vertices, box.faces, process=False).export(file_type="stl")
+    (tmp_path / "cut.stl").write_bytes(data[:300])
+    assert _load_error(tmp_path / "cut.stl") == (f"{tmp_path / 'cut.stl'}: not a whole binary STL file: its header "
+                                                 f"counts 12 triangles, 684 bytes, the file has 300 (cut short?)")
+    # a binary STL whose header begins with "solid" (as some exporters write it) is read as binary
+    (tmp_path / "solid.stl").write_bytes(b"solid box" + data[9:])
+    assert len(load_mesh(tmp_path / "solid.stl", warn=lambda _: None).faces) == 12
+
+
+def test_an_obj_face_naming_a_vertex_the_file_lacks_names_both(tmp_path, box):
+    # (was "cannot read mesh (IndexError: index 98 is out of bounds for axis 0 with size 8)")
+    lines = ["v %.17g %.17g %.17g" % tuple(p) for p in box.vertices]
+    lines += ["f %d %d %d" % tuple(f + 1) for f in box.faces] + ["f 1 2 99"]
+    (tmp_path / "bad.obj").write_text("\n".join(lines) + "\n")
+    assert _load_error(tmp_path / "bad.obj") == f"{tmp_path / 'bad.obj'}: face 13 refers to vertex 99 of 8"
+    (tmp_path / "bad.obj").write_text("v 0 0 0\nv 1 0 0\nf -1 -2 -3\n")
+    assert _load_error(tmp_path / "bad.obj") == f"{tmp_path / 'bad.obj'}: face 1 refers to vertex -3 of the 2 given before it"
+
+
+def test_a_gltf_without_its_buffer_file_names_the_missing_file(tmp_path, box):
+    # (was "cannot read mesh (FileNotFoundError: gltf_buffer_0.bin)")
+    import trimesh
+
+    scene = trimesh.Scene(trimesh.Trimesh(box.vertices, box.faces, process=False))
+    for name, data in scene.export(file_type="gltf").items():
+        (tmp_path / name).write_bytes(data)
+    buffers = sorted(p.name for p in tmp_path.glob("*.bin"))
+    assert buffers and len(load_mesh(tmp_path / "model.gltf", warn=lambda _: None).faces) == 12
+    (tmp_path / buffers[0]).rename(tmp_path / "elsewhere")
+    assert _load_error(tmp_path / "model.gltf") == (f"{tmp_path / 'model.gltf'}: the glTF's buffer file {buffers[0]} "
+                                                    f"is missing beside it")

@@ -371,6 +371,7 @@ def load_mesh(path: str | Path, warn=None) -> Mesh:
         raise SpecError(f"{path}: a folder, not a mesh file (name the mesh file in it)")
     if not path.is_file():
         raise SpecError(f"{path}: mesh file not found")
+    _check_file(path)
     obj = _obj_text_resolved(path) if path.suffix.lower() == ".obj" else None
 
     def read(**kw):  # (an OBJ whose relative indices were resolved is read from its new text)
@@ -388,6 +389,8 @@ def load_mesh(path: str | Path, warn=None) -> Mesh:
         raise SpecError(f"{path}: not a mesh file format quatrack reads ({path.suffix or 'no extension'}; "
                         f"use {MESH_FORMATS})") from None
     except Exception as exc:  # trimesh raises many types on malformed files
+        if isinstance(exc, IndexError) and path.suffix.lower() == ".obj":
+            _obj_text_resolved(path, check=True)  # (names the face and the vertex it misses)
         raise SpecError(f"{path}: cannot read mesh ({exc.__class__.__name__}: {exc})") from None
     faces = getattr(loaded, "faces", None)
     vertices = getattr(loaded, "vertices", None)
@@ -420,17 +423,27 @@ def load_mesh(path: str | Path, warn=None) -> Mesh:
 _OBJ_RELATIVE = re.compile(rb"^[ \t]*f[ \t][^\n]*-", re.M)
 
 
-def _obj_text_resolved(path: Path) -> bytes | None:
+def _obj_text_resolved(path: Path, check: bool = False) -> bytes | None:
     """The OBJ file's text with its relative face indices (``f -3 -2 -1``: the last three
-    vertices given so far) made absolute, or None when it has none. Why: trimesh 5.2 counts them
-    back from the file's last vertex, not from the face's line; a file giving three vertices and
-    then a face, again and again (valid OBJ, as some exporters write it), was read as one triangle
-    repeated, and trained as a one-triangle model."""
+    vertices given so far) made absolute, or None when it has none (and ``check`` is not asked).
+    Why: trimesh 5.2 counts them back from the file's last vertex, not from the face's line; a
+    file giving three vertices and then a face, again and again (valid OBJ, as some exporters
+    write it), was read as one triangle repeated, and trained as a one-triangle model.
+
+    A face naming a vertex the file does not give raises SpecError ``face N refers to vertex I
+    of V`` (a relative index: of the V given before it); ``check`` reads every face for it (after
+    trimesh's IndexError, ``index 98 is out of bounds``, which named neither)."""
     data = path.read_bytes()
-    if not _OBJ_RELATIVE.search(data):
+    if not check and not _OBJ_RELATIVE.search(data):
         return None
-    given = {b"v": 0, b"vt": 0, b"vn": 0}
     lines = data.split(b"\n")
+    total = {b"v": 0, b"vt": 0, b"vn": 0}
+    for line in lines:
+        words = line.split(None, 1)
+        if words and words[0] in total:
+            total[words[0]] += 1
+    given = dict.fromkeys(total, 0)
+    face = 0
     for k, line in enumerate(lines):
         words = line.split()
         if not words:
@@ -438,15 +451,103 @@ def _obj_text_resolved(path: Path) -> bytes | None:
         if words[0] in given:
             given[words[0]] += 1
         elif words[0] == b"f":
+            face += 1
             corners = []
             for word in words[1:]:
                 parts = word.split(b"/")
                 for j, (part, kind) in enumerate(zip(parts, (b"v", b"vt", b"vn"))):
-                    if part.startswith(b"-") and part[1:].isdigit():
-                        parts[j] = b"%d" % (given[kind] + 1 + int(part))
+                    if not part.lstrip(b"-").isdigit():
+                        continue
+                    index = int(part)
+                    if index < 0:
+                        if -index > given[kind]:
+                            raise SpecError(f"{path}: face {face} refers to vertex {index} of the {given[kind]} "
+                                            f"given before it" if kind == b"v" else
+                                            f"{path}: face {face} refers to {kind.decode()} {index} of the "
+                                            f"{given[kind]} given before it")
+                        parts[j] = b"%d" % (given[kind] + 1 + index)
+                    elif not 0 < index <= total[kind]:
+                        raise SpecError(f"{path}: face {face} refers to vertex {index} of {total[kind]}"
+                                        if kind == b"v" else
+                                        f"{path}: face {face} refers to {kind.decode()} {index} of {total[kind]}")
                 corners.append(b"/".join(parts))
             lines[k] = b"f " + b" ".join(corners)
     return b"\n".join(lines)
+
+
+# the mesh formats by extension, as the messages name them
+_FORMAT_OF_SUFFIX = {".ply": "PLY", ".obj": "OBJ", ".stl": "STL", ".off": "OFF", ".glb": "GLB", ".gltf": "glTF"}
+# an OBJ line's first word (the first such line after comments tells an OBJ file)
+_OBJ_WORDS = {b"v", b"vt", b"vn", b"f", b"o", b"g", b"s", b"mtllib", b"usemtl", b"l", b"p"}
+
+
+def _content_format(head: bytes, size: int) -> str | None:
+    r"""The mesh format a file's first bytes (``head``) and its size show, or None: the magic of
+    PLY (``ply``), GLB (``glTF``), OFF (``OFF``, ``COFF``, ...), an ASCII STL (``solid``), a
+    binary STL's length (84 bytes and 50 a triangle, as its header counts them; checked first:
+    some binary STL headers begin with ``solid``), a glTF's JSON, an OBJ's keywords.
+
+    >>> obj = b"# made by hand\nv 0 0 0"
+    >>> _content_format(b"ply\nformat ascii 1.0", 100), _content_format(obj, len(obj))
+    ('PLY', 'OBJ')
+    """
+    if head.startswith(b"ply"):
+        return "PLY"
+    if head.startswith(b"glTF"):
+        return "GLB"
+    if size >= 84 and len(head) >= 84 and 84 + 50 * int.from_bytes(head[80:84], "little") == size:
+        return "STL"
+    text = head.lstrip()
+    if text.startswith(b"solid"):
+        return "STL"
+    if re.match(rb"(ST)?C?N?4?n?OFF\s", text):
+        return "OFF"
+    if text.startswith(b"{"):
+        return "glTF"
+    lines = text.split(b"\n")
+    for line in lines[:-1] if len(head) < size else lines:  # (whole lines only)
+        words = line.split(None, 1)
+        if words and not words[0].startswith(b"#"):
+            return "OBJ" if words[0] in _OBJ_WORDS else None
+    return None
+
+
+def _check_file(path: Path) -> None:
+    """Refuse, with its cause, a mesh file trimesh would misread or fail on with a message that
+    names none (``the mesh has no vertices``, ``Not a ply file!``, ``gltf_buffer_0.bin``): an
+    empty file, a file whose content is another format than its extension says, a binary STL cut
+    short, a glTF whose buffer file is missing. Files of other extensions are left to trimesh."""
+    said = _FORMAT_OF_SUFFIX.get(path.suffix.lower())
+    size = path.stat().st_size
+    if size == 0:
+        raise SpecError(f"{path}: the file is empty (0 bytes)")
+    if said is None:
+        return
+    with open(path, "rb") as fh:
+        head = fh.read(4096)
+    seen = _content_format(head, size)
+    if seen is not None and seen != said:
+        suffix = {v: k for k, v in _FORMAT_OF_SUFFIX.items()}[seen]
+        raise SpecError(f"{path}: its content looks like {seen}, not {said} as its extension says "
+                        f"(rename it to {suffix})")
+    if said == "STL" and seen is None:
+        if size < 84:
+            raise SpecError(f"{path}: too short for an STL file ({size} bytes; a binary STL's header alone is 84)")
+        n = int.from_bytes(head[80:84], "little")
+        raise SpecError(f"{path}: not a whole binary STL file: its header counts {n} triangles, "
+                        f"{84 + 50 * n} bytes, the file has {size} (cut short?)")
+    if said == "glTF":
+        import json
+        from urllib.parse import unquote
+
+        try:
+            buffers = json.loads(path.read_bytes()).get("buffers", [])
+            uris = [b.get("uri") for b in buffers if isinstance(b, dict)]
+        except (ValueError, AttributeError):
+            return  # (not JSON: trimesh's message)
+        for uri in uris:
+            if isinstance(uri, str) and not uri.startswith("data:") and not (path.parent / unquote(uri)).is_file():
+                raise SpecError(f"{path}: the glTF's buffer file {uri} is missing beside it")
 
 
 def _tell(warn, message: str) -> None:
