@@ -120,3 +120,54 @@ def test_a_gltf_without_its_buffer_file_names_the_missing_file(tmp_path, box):
     (tmp_path / buffers[0]).rename(tmp_path / "elsewhere")
     assert _load_error(tmp_path / "model.gltf") == (f"{tmp_path / 'model.gltf'}: the glTF's buffer file {buffers[0]} "
                                                     f"is missing beside it")
+
+
+def _octagon_box():
+    """A 2×2×2 box whose six sides are each one polygon of 8 corners: its 4 corners and the
+    midpoints of its 4 edges between them (as a CAD exporter writes a side its neighbours split)."""
+    points, polygons = [], []
+
+    def at(p):
+        p = tuple(float(c) for c in p)
+        if p not in points:
+            points.append(p)
+        return points.index(p)
+
+    for axis in range(3):
+        u, v = [a for a in range(3) if a != axis]
+        for sign in (-1, 1):
+            ring = []
+            for cu, cv in [(-1, -1), (1, -1), (1, 1), (-1, 1)]:
+                p = np.zeros(3)
+                p[axis], p[u], p[v] = sign, cu, cv
+                ring.append(p)
+            corners = []
+            for k in range(4):
+                corners += [at(ring[k]), at((ring[k] + ring[(k + 1) % 4]) / 2)]
+            polygons.append(corners)
+    return points, polygons
+
+
+@pytest.mark.parametrize("kind", ["obj", "off", "ply"])
+def test_faces_dropped_from_triangulated_polygons_are_not_blamed_on_the_file(tmp_path, kind):
+    # trimesh fans a polygon out from one corner: an 8-corner side with its edges' midpoints gives
+    # triangles of zero area (and repeated ones), and the warning said the file gave them
+    points, polygons = _octagon_box()
+    path = tmp_path / f"octagons.{kind}"
+    if kind == "obj":
+        text = "".join("v %g %g %g\n" % p for p in points) + "".join(
+            "f " + " ".join(str(i + 1) for i in poly) + "\n" for poly in polygons)
+    elif kind == "off":
+        text = f"OFF\n{len(points)} {len(polygons)} 0\n" + "".join("%g %g %g\n" % p for p in points) + "".join(
+            f"{len(poly)} " + " ".join(map(str, poly)) + "\n" for poly in polygons)
+    else:
+        text = (f"ply\nformat ascii 1.0\nelement vertex {len(points)}\nproperty float x\nproperty float y\n"
+                f"property float z\nelement face {len(polygons)}\nproperty list uchar int vertex_indices\n"
+                f"end_header\n" + "".join("%g %g %g\n" % p for p in points)
+                + "".join(f"{len(poly)} " + " ".join(map(str, poly)) + "\n" for poly in polygons))
+    path.write_text(text)
+    told = []
+    mesh = load_mesh(path, warn=told.append)
+    assert len(told) == 1 and told[0].startswith(f"{path}: dropped ")
+    assert told[0].endswith(" after triangulating its polygons") and "given again" not in told[0]
+    assert np.allclose(mesh.vertices.min(axis=0), -1) and np.allclose(mesh.vertices.max(axis=0), 1)

@@ -406,10 +406,12 @@ def load_mesh(path: str | Path, warn=None) -> Mesh:
         faces = faces[~repeated]
     mesh = make_mesh(vertices, outward_faces(vertices, faces), str(path))
     r, z = int(repeated.sum()), len(faces) - len(mesh.faces)
-    dropped = [f"{r} repeated face{'s' if r != 1 else ''} (a triangle given again, in any corner order)"] if r else []
+    split = (r or z) and _polygons_split(path, loaded, obj)
+    dropped = [f"{r} repeated face{'s' if r != 1 else ''}"
+               + ("" if split else " (a triangle given again, in any corner order)")] if r else []
     dropped += [f"{z} face{'s' if z != 1 else ''} of zero area"] if z else []
-    if dropped:
-        _tell(warn, f"{path}: dropped {' and '.join(dropped)}")
+    if dropped:  # (of a file of polygons, what trimesh's triangulation made: not the file's own triangles)
+        _tell(warn, f"{path}: dropped {' and '.join(dropped)}" + (" after triangulating its polygons" if split else ""))
     # vertices no face uses (an exporter's leftovers, a CAD file's origin point) are dropped: far
     # off, one moved the bounding box's centre, about which the synthetic views turn the object,
     # out of the object (each kept no keypoint) and its extent, the mesh's length scale
@@ -548,6 +550,28 @@ def _check_file(path: Path) -> None:
         for uri in uris:
             if isinstance(uri, str) and not uri.startswith("data:") and not (path.parent / unquote(uri)).is_file():
                 raise SpecError(f"{path}: the glTF's buffer file {uri} is missing beside it")
+
+
+def _polygons_split(path: Path, loaded, obj: bytes | None) -> bool:
+    """Whether trimesh split polygons of the file into triangles: it gave more faces than the file
+    has (PLY: its face element's count; OBJ: its ``f`` lines; OFF: its header's count). Why: its
+    triangulation fans a polygon out from one corner, and a polygon with corners on its sides (an
+    8-corner face of a box with its edges' midpoints) gives triangles of zero area and repeated
+    ones; the warning that dropped them blamed the file for triangles it does not hold."""
+    suffix = path.suffix.lower()
+    given = None
+    try:
+        if suffix == ".ply":
+            given = loaded.metadata["_ply_raw"]["face"]["length"]
+        elif suffix == ".obj":
+            given = len(re.findall(rb"^[ \t]*f[ \t]", obj if obj is not None else path.read_bytes(), re.M))
+        elif suffix == ".off":
+            words = [w for line in path.read_bytes()[:4096].split(b"\n") if not line.lstrip().startswith(b"#")
+                     for w in line.split()]
+            given = int(words[2]) if words and words[0].endswith(b"OFF") else int(words[1])
+    except (KeyError, TypeError, AttributeError, IndexError, ValueError, OSError):
+        return False
+    return given is not None and len(loaded.faces) > int(given)
 
 
 def _tell(warn, message: str) -> None:
