@@ -171,3 +171,28 @@ def test_faces_dropped_from_triangulated_polygons_are_not_blamed_on_the_file(tmp
     assert len(told) == 1 and told[0].startswith(f"{path}: dropped ")
     assert told[0].endswith(" after triangulating its polygons") and "given again" not in told[0]
     assert np.allclose(mesh.vertices.min(axis=0), -1) and np.allclose(mesh.vertices.max(axis=0), 1)
+
+
+def test_the_seam_between_two_bodies_of_a_scene_that_touch_flat_is_no_edge(tmp_path):
+    # two halves of a box joined at x = 0, each placed by its node's translation: each half's side
+    # at x = 0 lay inside the object, and the ring round it (four faces on each edge) was a sharp
+    # edge of the model the photo does not show
+    import trimesh
+
+    from quatrack.recognition.visibility import sharp_edges
+
+    scene = trimesh.Scene()
+    for name, x in (("left", -40.0), ("right", 40.0)):
+        scene.add_geometry(trimesh.creation.box(extents=(80, 110, 60)), node_name=name,
+                           transform=trimesh.transformations.translation_matrix([x, 0, 0]))
+    scene.export(str(tmp_path / "halves.glb"))
+    told = []
+    mesh = load_mesh(tmp_path / "halves.glb", warn=told.append)
+    assert told[-1] == f"{tmp_path / 'halves.glb'}: dropped 4 faces where its meshes touch (inside the object)"
+    assert mesh.closed_outward and len(mesh.faces) == 20
+    E, _ = sharp_edges(mesh)
+    whole = sharp_edges(make_mesh(trimesh.creation.box(extents=(160, 110, 60)).vertices,
+                                  trimesh.creation.box(extents=(160, 110, 60)).faces))[0]
+    assert not np.any(np.all(np.abs(E[:, :, 0]) < 1e-9, axis=1))  # no edge runs along the seam
+    length = lambda e: float(np.linalg.norm(e[:, 1] - e[:, 0], axis=1).sum())  # noqa: E731
+    assert length(E) == pytest.approx(length(whole))

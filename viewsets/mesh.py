@@ -383,7 +383,9 @@ def load_mesh(path: str | Path, warn=None) -> Mesh:
     try:
         loaded = read()
         notes = mesh_notes(loaded, path) if warn is not None else []
+        bodies = 1
         if isinstance(loaded, trimesh.Scene):  # e.g. an OBJ with several objects: merge them
+            bodies = sum(len(getattr(g, "faces", ())) > 0 for g in loaded.geometry.values())
             loaded = read(force="mesh")
     except NotImplementedError:  # (trimesh's "file_type 'png' not supported": a photo named as the mesh)
         raise SpecError(f"{path}: not a mesh file format quatrack reads ({path.suffix or 'no extension'}; "
@@ -404,12 +406,16 @@ def load_mesh(path: str | Path, warn=None) -> Mesh:
     repeated = repeated_faces(vertices, faces)
     if repeated.any():  # (before winding: a copy wound the other way makes the surface one-sided)
         faces = faces[~repeated]
+    walls = inner_walls(vertices, faces) if bodies > 1 else np.zeros(len(faces), bool)
+    if walls.any() and not walls.all():
+        faces = faces[~walls]
     mesh = make_mesh(vertices, outward_faces(vertices, faces), str(path))
-    r, z = int(repeated.sum()), len(faces) - len(mesh.faces)
+    r, z, w = int(repeated.sum()), len(faces) - len(mesh.faces), int(walls.sum()) if not walls.all() else 0
     split = (r or z) and _polygons_split(path, loaded, obj)
     dropped = [f"{r} repeated face{'s' if r != 1 else ''}"
                + ("" if split else " (a triangle given again, in any corner order)")] if r else []
     dropped += [f"{z} face{'s' if z != 1 else ''} of zero area"] if z else []
+    dropped += [f"{w} face{'s' if w != 1 else ''} where its meshes touch (inside the object)"] if w else []
     if dropped:  # (of a file of polygons, what trimesh's triangulation made: not the file's own triangles)
         _tell(warn, f"{path}: dropped {' and '.join(dropped)}" + (" after triangulating its polygons" if split else ""))
     # vertices no face uses (an exporter's leftovers, a CAD file's origin point) are dropped: far
@@ -550,6 +556,48 @@ def _check_file(path: Path) -> None:
         for uri in uris:
             if isinstance(uri, str) and not uri.startswith("data:") and not (path.parent / unquote(uri)).is_file():
                 raise SpecError(f"{path}: the glTF's buffer file {uri} is missing beside it")
+
+
+def inner_walls(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Mask (m,) of the faces inside an object made of several bodies that touch: on one plane,
+    faces turned one way and faces turned the other covering the same region (the same area and
+    the same outline, corners joined by position) — where two halves of a box meet, each half's
+    side. Why they are dropped: the seam round them had four faces on each edge, a sharp edge of
+    the model that the photo does not show (lowering the edge agreement), and the surface was not
+    closed. Planes whose two sides do not match exactly (bodies that only partly touch) are kept.
+
+    >>> half = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0.0]])
+    >>> inner_walls(np.r_[half, half], np.array([[0, 1, 2], [3, 5, 4]])).tolist()
+    [True, True]
+    """
+    V, F = np.asarray(vertices, float), np.asarray(faces)
+    out = np.zeros(len(F), bool)
+    if len(F) < 2:
+        return out
+    tri = V[F]
+    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    area = np.linalg.norm(cross, axis=1)
+    n = cross / np.maximum(area, 1e-300)[:, None]
+    lead = n[np.arange(len(n)), np.argmax(np.abs(n) > 1e-6, axis=1)]
+    sign = np.where(lead < 0, -1, 1)
+    size = max(float(np.ptp(V, axis=0).max()), 1e-300)
+    key = np.round(np.column_stack([n * sign[:, None], np.einsum("ij,ij->i", n, tri[:, 0]) * sign / size]), 6)
+    _, plane = np.unique(key, axis=0, return_inverse=True)
+    plane = plane.reshape(-1)
+    both = np.intersect1d(plane[sign > 0], plane[sign < 0])
+    at = first_at_position(V)[F]
+
+    def outline(mask):  # the edges of these faces that only one of them has, by position
+        e = np.sort(np.concatenate([at[mask][:, [0, 1]], at[mask][:, [1, 2]], at[mask][:, [2, 0]]]), axis=1)
+        edges, count = np.unique(e, axis=0, return_counts=True)
+        return edges[count == 1]
+
+    for p in both:
+        up, down = (plane == p) & (sign > 0), (plane == p) & (sign < 0)
+        if (np.isclose(area[up].sum(), area[down].sum(), rtol=1e-9, atol=0)
+                and np.array_equal(outline(up), outline(down))):
+            out |= up | down
+    return out
 
 
 def _polygons_split(path: Path, loaded, obj: bytes | None) -> bool:
