@@ -138,12 +138,14 @@ LOCATE_MIN_CONFIDENCE = 0.98
 LOCATE_MIN_EDGES = 0.7
 
 
-def _locate_missing(spec, views: list, photos: dict) -> tuple[dict, dict]:
+def _locate_missing(spec, views: list, photos: dict, refused: int = 0) -> tuple[dict, dict]:
     """``{view index: (pose, how it was found)}`` for the views without a pose, found by
     recognition (:func:`quatrack.recognition.locate.locate`, verified as any found pose) with a
     model trained in memory from the views that have one; trained again with the views found,
     while that finds more (a photo 60° from the clicked one may be found from one found at 30°).
-    Second: ``{view index: why it was not found}``."""
+    Second: ``{view index: why it was not found}``. ``refused``: how many views the caller left
+    out (their clicks fit no pose): with none left to train on, each view to find is said not
+    looked for — "no view has points" was false, and stopped before the misfit was said."""
     from quatrack.recognition.locate import locate
     from quatrack.viewsets.train import TrainParams, train_object
 
@@ -153,6 +155,10 @@ def _locate_missing(spec, views: list, photos: dict) -> tuple[dict, dict]:
     while missing:
         posed = [replace(v, pose=found[v.index][0]) if v.index in found else v for v in views]
         posed = [v for v in posed if v.pose is not None]
+        if not posed and refused:
+            return {}, {v.index: f"view {v.index}: not looked for by recognition: no view is registered to train it "
+                                 f"from: fix the view(s) named here with clicks that fit no pose, then run again"
+                        for v in missing}
         if not posed:
             raise UserError("--locate: no view has a pose or points to start from: give at least one view 'points' "
                             "(clicked corners) or a 'pose'")
@@ -300,6 +306,7 @@ def run(args: argparse.Namespace) -> int:
     from quatrack.recognition.trackio import atomic_path
     from quatrack.recognition.visibility import mesh_edges
     from quatrack.viewsets.mesh import load_mesh
+    from quatrack.viewsets.register import MIN_POINTS
     from quatrack.viewsets.spec import load_spec
     from quatrack.viewsets.train import _read_image
 
@@ -310,8 +317,15 @@ def run(args: argparse.Namespace) -> int:
             print(f"quatrack register: warning: {msg}", file=sys.stderr)
 
     misfits: list = []
-    spec = load_spec(spec_path, warn=warn, pose_required=not args.locate, misfits=misfits)
+    # (pose_required=False even without --locate: a view missing its pose is one problem among
+    # all said, not the end of the reading before a misfit of another view was said)
+    spec = load_spec(spec_path, warn=warn, pose_required=False, misfits=misfits)
     problems = {i: str(exc) for i, exc in misfits}
+    if not args.locate:
+        problems.update({v.index: f"{spec_path}: view {v.index}: missing field 'pose' (or 'points': at least "
+                                  f"{MIN_POINTS} clicked model points and their pixels, from which the pose is "
+                                  f"solved; or run with --locate to find it by recognition)"
+                         for v in spec.views if v.pose is None})
     raw = json.loads(spec_path.read_bytes().decode("utf-8-sig"))
     mesh = load_mesh(spec.mesh_path, warn=warn).run_time  # (a scan's decimation: the edges the tracker sees)
     edges3d = mesh_edges(mesh)
@@ -324,7 +338,8 @@ def run(args: argparse.Namespace) -> int:
             view = replace(view, camera=replace(cam, width=photo.shape[1], height=photo.shape[0]))
             _recheck_clicks(view, f"{spec_path}: view {view.index}", problems, warn)
         views.append(view)
-    found, not_found = _locate_missing(spec, [v for v in views if v.index not in problems], photos) if args.locate else ({}, {})
+    found, not_found = (_locate_missing(spec, [v for v in views if v.index not in problems], photos, len(problems))
+                        if args.locate else ({}, {}))
     problems.update(not_found)
     poses = []
     for view in views:

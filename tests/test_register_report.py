@@ -1,0 +1,44 @@
+"""What `quatrack register` reports when some views are not registered: every problem said, the
+views it can draw drawn, and the command it prints to copy quoted for the shell."""
+
+from __future__ import annotations
+
+import json
+
+from quatrack.cli import main
+
+from test_register import _four_photos_one_clicked
+
+
+def _one_click_moved(path, px: float = 45.0) -> None:
+    """View 0's click 2 moved ``px`` pixels right: a misfit its leave-one-out names."""
+    data = json.loads(path.read_text())
+    data["views"][0]["points"][2]["pixel"][0] += px
+    path.write_text(json.dumps(data))
+
+
+def test_a_misfit_beside_views_to_locate_is_named_and_drawn(tmp_path, capsys):
+    """View 0's clicks misfit, the others to be located: --locate has nothing to train on, which
+    is said of the views to locate — not "no view has points" (view 0 has) — and the misfit is
+    named and drawn at its clicks' best pose; nothing else is written, exit 2."""
+    path, _, _ = _four_photos_one_clicked(tmp_path)
+    _one_click_moved(path)
+    ov = tmp_path / "ov"
+    assert main(["register", str(path), "--locate", "--overlay", str(ov)]) == 2
+    err = capsys.readouterr().err
+    assert "no view has a pose or points" not in err
+    assert "do not fit one pose" in err and "point 2 lies" in err
+    assert "view 1: not looked for by recognition" in err
+    assert sorted(p.name for p in ov.iterdir()) == ["view-0.png"]
+    assert not path.with_name("object.registered.json").exists()
+
+
+def test_without_locate_a_misfit_is_said_with_the_views_missing_a_pose(tmp_path, capsys):
+    path, _, _ = _four_photos_one_clicked(tmp_path)
+    _one_click_moved(path)
+    assert main(["register", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert "do not fit one pose" in err and "point 2 lies" in err
+    assert "view 1: missing field 'pose' (or 'points'" in err and "--locate" in err
+    assert "4 of 4 view(s) not registered" in err
+    assert not path.with_name("object.registered.json").exists()
