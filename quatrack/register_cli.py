@@ -107,9 +107,10 @@ def _edge_runs(mesh, camera, pose, edges: np.ndarray, samples: int = 32) -> tupl
     return shown_runs, hidden_runs
 
 
-def _draw(photo: np.ndarray, view, mesh, mesh_edges: np.ndarray, pose) -> np.ndarray:
+def _draw(photo: np.ndarray, view, mesh, mesh_edges: np.ndarray, pose, note: str = "") -> np.ndarray:
     """The photo with the mesh's edges at ``pose`` (those the object shows green, those it hides
-    thin grey), the clicks (yellow, numbered) and their points' projections (red)."""
+    thin grey), the clicks (yellow, numbered) and their points' projections (red); ``note`` after
+    the view's number in its label (a view drawn but not registered says so on its picture)."""
     import cv2
 
     from quatrack.recognition.images import to_bgr8
@@ -126,7 +127,7 @@ def _draw(photo: np.ndarray, view, mesh, mesh_edges: np.ndarray, pose) -> np.nda
             if np.all(np.isfinite(p)) and np.all(np.abs(p) < 1e5):
                 cv2.circle(out, tuple(int(round(x)) for x in p), 2, (40, 40, 230), -1, cv2.LINE_AA)
             cv2.putText(out, str(i), (int(c[0]) + 7, int(c[1]) - 7), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 230, 255), 1, cv2.LINE_AA)
-    draw_label(out, f"view {view.index}")
+    draw_label(out, f"view {view.index}{note}")
     return out
 
 
@@ -138,12 +139,13 @@ LOCATE_MIN_CONFIDENCE = 0.98
 LOCATE_MIN_EDGES = 0.7
 
 
-def _locate_missing(spec, views: list, photos: dict, refused: int = 0) -> tuple[dict, dict]:
+def _locate_missing(spec, views: list, photos: dict, refused: int = 0) -> tuple[dict, dict, dict]:
     """``{view index: (pose, how it was found)}`` for the views without a pose, found by
     recognition (:func:`quatrack.recognition.locate.locate`, verified as any found pose) with a
     model trained in memory from the views that have one; trained again with the views found,
     while that finds more (a photo 60° from the clicked one may be found from one found at 30°).
-    Second: ``{view index: why it was not found}``. ``refused``: how many views the caller left
+    Second: ``{view index: why it was not found}``; third: ``{view index: pose}`` of those found,
+    but not surely enough to train on (drawn, not taken). ``refused``: how many views the caller left
     out (their clicks fit no pose): with none left to train on, each view to find is said not
     looked for — "no view has points" was false, and stopped before the misfit was said."""
     from quatrack.recognition.locate import locate
@@ -152,13 +154,14 @@ def _locate_missing(spec, views: list, photos: dict, refused: int = 0) -> tuple[
     found: dict = {}
     missing = [v for v in views if v.pose is None]
     reasons: dict = {}
+    unsure: dict = {}
     while missing:
         posed = [replace(v, pose=found[v.index][0]) if v.index in found else v for v in views]
         posed = [v for v in posed if v.pose is not None]
         if not posed and refused:
             return {}, {v.index: f"view {v.index}: not looked for by recognition: no view is registered to train it "
                                  f"from: fix the view(s) named here with clicks that fit no pose, then run again"
-                        for v in missing}
+                        for v in missing}, {}
         if not posed:
             raise UserError("--locate: no view has a pose or points to start from: give at least one view 'points' "
                             "(clicked corners) or a 'pose'")
@@ -168,10 +171,13 @@ def _locate_missing(spec, views: list, photos: dict, refused: int = 0) -> tuple[
         for v in missing:
             res = locate(photos[v.index], v.camera, model)
             edges = (res.verification or {}).get("edge_agreement") or 0.0
+            unsure.pop(v.index, None)
             if res.found and res.confidence >= LOCATE_MIN_CONFIDENCE and edges >= LOCATE_MIN_EDGES:
                 found[v.index] = (res.pose, f"found by recognition ({res.inliers} inliers, confidence "
                                             f"{res.confidence:.2f}, from viewset {res.viewset})")
             else:
+                if res.found:
+                    unsure[v.index] = res.pose
                 reasons[v.index] = (res.reason or "not found") if not res.found else (
                     f"found, but not surely enough to train on: confidence {res.confidence:.2f}, {edges:.0%} of the "
                     f"edges on the photo's (at least {LOCATE_MIN_CONFIDENCE}, {LOCATE_MIN_EDGES:.0%})")
@@ -180,7 +186,7 @@ def _locate_missing(spec, views: list, photos: dict, refused: int = 0) -> tuple[
             break
         missing = still
     return found, {v.index: f"view {v.index}: not found by recognition ({reasons[v.index]}): give it 'points' "
-                            f"(clicked corners)" for v in missing}
+                            f"(clicked corners)" for v in missing}, unsure
 
 
 def _outputs(args: argparse.Namespace) -> tuple[Path, Path, Path | None]:
@@ -300,6 +306,18 @@ def _register_view(view, grey: np.ndarray, mesh, args: argparse.Namespace, origi
     return reg.pose, line, None
 
 
+def _drawn_note(overlay: Path | None, drawn: list, n_views: int) -> str:
+    """What the last line says of the overlays: every view drawn, or which were and which had no
+    pose to draw (not found by --locate, none given): it said "each view drawn" of those too."""
+    if overlay is None:
+        return ""
+    if len(drawn) == n_views:
+        return f" (each view drawn at its pose in {overlay})"
+    undrawn = ", ".join(str(i) for i in range(n_views) if i not in drawn)
+    return (f" (view(s) {', '.join(map(str, drawn)) or 'none'} drawn in {overlay}; view(s) {undrawn} not: no pose "
+            f"to draw them at)")
+
+
 def run(args: argparse.Namespace) -> int:
     import cv2
 
@@ -338,17 +356,20 @@ def run(args: argparse.Namespace) -> int:
             view = replace(view, camera=replace(cam, width=photo.shape[1], height=photo.shape[0]))
             _recheck_clicks(view, f"{spec_path}: view {view.index}", problems, warn)
         views.append(view)
-    found, not_found = (_locate_missing(spec, [v for v in views if v.index not in problems], photos, len(problems))
-                        if args.locate else ({}, {}))
+    found, not_found, unsure = (_locate_missing(spec, [v for v in views if v.index not in problems], photos,
+                                                len(problems)) if args.locate else ({}, {}, {}))
     problems.update(not_found)
-    poses = []
+    poses, drawn = [], []
     for view in views:
         if view.index in found:
             view = replace(view, pose=found[view.index][0])
-        if view.pose is None:  # (--locate did not find it)
+        if view.index in unsure:  # (found, not surely: drawn at that pose for a look, not taken)
+            view = replace(view, pose=unsure[view.index])
+            pose, line = view.pose, f"view {view.index}: found by recognition, but not surely enough (below)"
+        elif view.pose is None:  # (--locate did not find it, or no pose without --locate)
             poses.append(None)
             continue
-        if view.index in problems:  # (its clicks fit no pose: only drawn, at their best pose)
+        elif view.index in problems:  # (its clicks fit no pose: only drawn, at their best pose)
             pose, line = view.pose, f"view {view.index}: the clicks fit no pose (below)"
         else:
             origin = ("solved from its points" if view.pose_from_points
@@ -361,10 +382,12 @@ def run(args: argparse.Namespace) -> int:
         poses.append(pose)
         if overlay is not None:
             target = overlay / f"view-{view.index}.png"
+            note = ": NOT registered" if view.index in problems else ""
             with atomic_path(target, "--overlay") as tmp:
-                if not cv2.imwrite(tmp, _draw(photos[view.index], view, mesh, edges3d, pose)):
+                if not cv2.imwrite(tmp, _draw(photos[view.index], view, mesh, edges3d, pose, note)):
                     raise UserError(f"--overlay {target}: cannot write the image")
-    drawn = f" (each view drawn at its pose in {overlay})" if overlay is not None else ""
+            drawn.append(view.index)
+    drawn = _drawn_note(overlay, drawn, len(views))
     if problems:
         lines = "\n".join(f"quatrack register: {problems[i]}" for i in sorted(problems))
         print(lines, file=sys.stderr)

@@ -42,3 +42,28 @@ def test_without_locate_a_misfit_is_said_with_the_views_missing_a_pose(tmp_path,
     assert "view 1: missing field 'pose' (or 'points'" in err and "--locate" in err
     assert "4 of 4 view(s) not registered" in err
     assert not path.with_name("object.registered.json").exists()
+
+
+def test_a_view_found_but_not_surely_is_drawn_at_the_found_pose(tmp_path, capsys, monkeypatch):
+    """A view --locate finds but not surely enough to train on is not taken, and drawn at the
+    pose found (marked not registered) for the user to judge, as the error's "drawn" promises;
+    a view with no pose at all is said not drawn rather than "each view drawn". (The bar raised
+    above any agreement: every found view is then unsure, whatever recognition's figures.)"""
+    from quatrack import register_cli
+
+    monkeypatch.setattr(register_cli, "LOCATE_MIN_EDGES", 1.01)
+    path, _, _ = _four_photos_one_clicked(tmp_path)
+    ov = tmp_path / "ov"
+    assert main(["register", str(path), "--locate", "--overlay", str(ov)]) == 2
+    text, err = capsys.readouterr()
+    for i in (1, 2):
+        assert f"view {i}: not found by recognition (found, but not surely enough" in err
+        assert f"view {i}: found by recognition, but not surely enough" in text
+        assert (ov / f"view-{i}.png").is_file()
+    drawn = sorted(p.name for p in ov.iterdir())
+    if len(drawn) == 4:
+        assert "each view drawn at its pose" in err
+    else:
+        assert drawn == ["view-0.png", "view-1.png", "view-2.png"]
+        assert "view(s) 0, 1, 2 drawn in" in err and "view(s) 3 not: no pose" in err
+    assert not path.with_name("object.registered.json").exists()
