@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shlex
 import sys
 from dataclasses import replace
 from pathlib import Path
@@ -398,5 +399,6 @@ def run(args: argparse.Namespace) -> int:
         v["pose"] = pose.to_json()  # (the contract's {"t", "q_wxyz"})
     with atomic_path(out_path, "--out") as tmp:
         Path(tmp).write_text(json.dumps(data, indent=1) + "\n", encoding="utf-8")
-    print(f"wrote {out_path}{drawn}; train it with: quatrack train {out_path}")
+    # (quoted: a path with a space, copied as printed, was two arguments to train)
+    print(f"wrote {out_path}{drawn}; train it with: quatrack train {shlex.quote(str(out_path))}")
     return 0

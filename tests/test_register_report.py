@@ -4,10 +4,11 @@ views it can draw drawn, and the command it prints to copy quoted for the shell.
 from __future__ import annotations
 
 import json
+import shlex
 
 from quatrack.cli import main
 
-from test_register import _four_photos_one_clicked
+from test_register import _four_photos_one_clicked, _points_spec
 
 
 def _one_click_moved(path, px: float = 45.0) -> None:
@@ -67,3 +68,13 @@ def test_a_view_found_but_not_surely_is_drawn_at_the_found_pose(tmp_path, capsys
         assert drawn == ["view-0.png", "view-1.png", "view-2.png"]
         assert "view(s) 0, 1, 2 drawn in" in err and "view(s) 3 not: no pose" in err
     assert not path.with_name("object.registered.json").exists()
+
+
+def test_the_train_command_printed_is_quoted_for_the_shell(tmp_path, capsys):
+    """A spec in a folder with a space (and a non-ASCII letter): the printed `quatrack train …`
+    must run as copied — its path one argument, the written file."""
+    path, _, _ = _points_spec(tmp_path, folder="my objects ü")
+    assert main(["register", str(path)]) == 0
+    line = capsys.readouterr().out.strip().splitlines()[-1]
+    command = shlex.split(line.split("train it with: ", 1)[1])
+    assert command == ["quatrack", "train", str(path.with_name(f"{path.stem}.registered.json"))]
