@@ -325,8 +325,7 @@ def run(args: argparse.Namespace) -> int:
     from quatrack.recognition.trackio import atomic_path
     from quatrack.recognition.visibility import mesh_edges
     from quatrack.viewsets.mesh import load_mesh
-    from quatrack.viewsets.register import MIN_POINTS
-    from quatrack.viewsets.spec import load_spec
+    from quatrack.viewsets.spec import load_spec, missing_pose
     from quatrack.viewsets.train import _read_image
 
     spec_path, out_path, overlay = _outputs(args)
@@ -341,9 +340,7 @@ def run(args: argparse.Namespace) -> int:
     spec = load_spec(spec_path, warn=warn, pose_required=False, misfits=misfits)
     problems = {i: str(exc) for i, exc in misfits}
     if not args.locate:
-        problems.update({v.index: f"{spec_path}: view {v.index}: missing field 'pose' (or 'points': at least "
-                                  f"{MIN_POINTS} clicked model points and their pixels, from which the pose is "
-                                  f"solved; or run with --locate to find it by recognition)"
+        problems.update({v.index: missing_pose(f"{spec_path}: view {v.index}", "or run with --locate to find it by recognition")
                          for v in spec.views if v.pose is None})
     raw = json.loads(spec_path.read_bytes().decode("utf-8-sig"))
     mesh = load_mesh(spec.mesh_path, warn=warn).run_time  # (a scan's decimation: the edges the tracker sees)

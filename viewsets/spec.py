@@ -185,6 +185,13 @@ def _points_disagree(points: PointPairs, camera: PinholeCamera, pose: Pose) -> s
             f"the pose is used — drop it to solve the pose from the points")
 
 
+def missing_pose(where: str, hint: str = "") -> str:
+    """The one message for a view given neither ``pose`` nor ``points`` (``where``: the spec's
+    path and the view; ``hint``: what else the caller can do, e.g. register's ``--locate``)."""
+    return (f"{where}: missing field 'pose' (or 'points': at least {MIN_POINTS} clicked model points and their "
+            f"pixels, from which the pose is solved{'; ' + hint if hint else ''})")
+
+
 def load_spec(path: str | Path, warn=None, pose_required: bool = True, misfits: list | None = None) -> ObjectSpec:
     """Parse and check an object spec file; cameras given as paths are loaded too. ``warn``
     (optional) receives one message per object or view with fields the spec does not know.
@@ -227,8 +234,7 @@ def load_spec(path: str | Path, warn=None, pose_required: bool = True, misfits: 
             if key not in v:
                 raise SpecError(f"{where}: missing field {key!r}")
         if "pose" not in v and "points" not in v and pose_required:
-            raise SpecError(f"{where}: missing field 'pose' (or 'points': at least {MIN_POINTS} clicked model points "
-                            f"and their pixels, from which the pose is solved)")
+            raise SpecError(missing_pose(where))
         _unknown(v, ("image", "camera", "pose", "mask", "points"), where, warn)
         image = _path(base, v["image"], where, "image")
         cam = v["camera"]
