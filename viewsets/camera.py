@@ -27,14 +27,32 @@ _KEYS = ("fx", "fy", "cx", "cy")
 CAMERA_FIELDS = ("width", "height", "fx", "fy", "cx", "cy", "dist_coeffs")
 
 
+# Other programs' names for the contract's fields (OpenCV's calibration output, ROS's CameraInfo
+# "K"/"D" and ROS 2's "k"/"d", per-coefficient k1…p2 forms): lowercased name → the field(s) meant.
+# They are refused with the contract's name, not read: "K" is a 3×3 matrix (row-major in ROS, a
+# nested list in OpenCV dumps), "D" may follow another lens model (ROS's "equidistant") — a
+# reading that guesses wrong gives a wrong pose, which is what ignoring them gave (5 % in depth).
+FIELD_ALIASES = {
+    **dict.fromkeys(("dist", "d", "distortion", "distortion_coefficients", "distortion_coeffs", "distcoeffs",
+                     "dist_coefs", "k1", "k2", "k3", "k4", "k5", "k6", "p1", "p2"), ("dist_coeffs",)),
+    **dict.fromkeys(("k", "camera_matrix", "cameramatrix", "intrinsics", "intrinsic_matrix"), _KEYS),
+    **dict.fromkeys(("image_width", "imagewidth"), ("width",)),
+    **dict.fromkeys(("image_height", "imageheight"), ("height",)),
+}
+
+
 def misspelt_field(data: dict, known=CAMERA_FIELDS, where: str = "camera") -> str | None:
     """A message naming a field of ``data`` that looks like a misspelling of a known field it
-    lacks (``dist_coeff`` for ``dist_coeffs``, ``fxx`` for ``fx``; difflib's ratio ≥ 0.75), else
-    None. Why: other fields are ignored (a camera file may carry its own notes), so a misspelt
-    ``dist_coeffs`` dropped the lens's distortion without a word, everywhere a camera is read.
+    lacks (``dist_coeff`` for ``dist_coeffs``, ``fxx`` for ``fx``; difflib's ratio ≥ 0.75) or is
+    another program's name for it (:data:`FIELD_ALIASES`: ``dist``, ``D``, ``k1``, ``K``,
+    ``camera_matrix``), else None. Why: other fields are ignored (a camera file may carry its own
+    notes), so a misspelt or OpenCV/ROS-named ``dist_coeffs`` dropped the lens's distortion without
+    a word, everywhere a camera is read.
 
     >>> misspelt_field({"fx": 600, "dist_coeff": [0.1, 0, 0, 0]})
     "camera: unknown field 'dist_coeff' (did you mean 'dist_coeffs'?)"
+    >>> misspelt_field({"fx": 600, "D": [0.1, 0, 0, 0, 0]})
+    "camera: unknown field 'D' (did you mean 'dist_coeffs'?)"
     >>> misspelt_field({"fx": 600, "model": "pinhole"}) is None
     True
     """
@@ -44,6 +62,9 @@ def misspelt_field(data: dict, known=CAMERA_FIELDS, where: str = "camera") -> st
     for key in data:
         if not isinstance(key, str) or key in known:
             continue
+        meant = FIELD_ALIASES.get(key.lower(), ())
+        if any(k not in data for k in meant):
+            return f"{where}: unknown field {_shown(key)} (did you mean {', '.join(map(repr, meant))}?)"
         near = difflib.get_close_matches(key.lower(), absent, n=1, cutoff=0.75)
         if near:
             return f"{where}: unknown field {_shown(key)} (did you mean {near[0]!r}?)"
