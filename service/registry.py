@@ -14,7 +14,10 @@ the same objects without locks. The store is the truth, and it changes under a r
 - A model that cannot be loaded (truncated, garbled, keys missing) is *that object's* error:
   logged once per version of the files, listed by ``/readyz`` under ``failed``, answered 503
   ``model_unavailable`` naming the object — while the other objects are served. A broken
-  retraining of an object already loaded keeps the previous model in service.
+  retraining of an object already loaded takes it out of service the same way (new requests and
+  sessions 503, ``/readyz`` lists it under ``failed`` only, ``GET /v1/objects`` ``loaded: false``
+  with its ``error``): the contract's one rule for a model that cannot be read. It had kept the
+  previous model served while every endpoint also called it failed; running sessions keep theirs.
 """
 
 from __future__ import annotations
@@ -146,17 +149,17 @@ class ModelRegistry:
                     why = str(exc) if isinstance(exc, StoreError) else f"object {name!r}: {exc.__class__.__name__}: {exc}"
                     why = why.splitlines()[0][:500] if why else f"object {name!r}: cannot be loaded"
                     self._failed[name] = failed = (stamp, why)
+                    self._models.pop(name, None)  # (a broken retraining: out of service, as the contract says)
                     self._on_load("failed")
                     log.error("cannot load object %s: %s%s", name, why,
-                              "; still serving the previous model" if hit is not None else "")
+                              "; out of service until it is fixed (running sessions keep their model)"
+                              if hit is not None else "")
                 else:
                     self._models[name] = entry
                     self._failed.pop(name, None)
                     self._on_load("ok")
                     log.info("%s object %s (%d viewsets)", "reloaded" if hit else "loaded", name, len(model.viewsets))
                     return entry
-            if hit is not None:  # a broken retraining: the previous model stays in service
-                return hit
             why = failed[1]
             advice = "the other objects are served" if why.endswith("retrain it") else "fix or retrain it; the other objects are served"
             raise ApiError(503, "model_unavailable", self.public(f"{why} ({advice})"))
@@ -203,12 +206,9 @@ class ModelRegistry:
         if before is not None and before.stamp == stamp:
             return {"name": name, "status": "unchanged"}
         try:
-            entry = self._load(name, stamp)
+            self._load(name, stamp)
         except ApiError as exc:
             return {"name": name, "status": "failed", "message": exc.message}
-        if entry.stamp != stamp:  # broken files, previous model kept
-            return {"name": name, "status": "failed",
-                    "message": self.public(self._failed[name][1]) + "; still serving the previous model"}
         return {"name": name, "status": "loaded"}
 
     def load_all(self) -> None:
