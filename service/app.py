@@ -258,6 +258,41 @@ class RequestLog:
                                        "path": scope["path"], "status": status, "ms": round(dt * 1e3, 1)})
 
 
+class StopAnswer:
+    """A REST request the server's stop cut short is answered 503 ``shutting_down`` (JSON,
+    ``Connection: close``), not uvicorn's plain-text 500 with an ERROR traceback.
+
+    Why: on SIGTERM uvicorn waits ``timeout_graceful_shutdown`` seconds for requests in flight,
+    then cancels them; a slow upload still being read then raised ``CancelledError`` out of the
+    app ("Exception in ASGI application"). Only that stop cancels a request's task (a client
+    that leaves is an ``http.disconnect``, not a cancellation), so a cancellation here is the
+    server stopping: the answer tells the client to retry (on another replica), and the
+    cancellation ends here (the task has nothing left to do). A request whose answer had begun
+    is left as it is (its connection is closed)."""
+
+    def __init__(self, app) -> None:
+        self.app = app
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] != "http":
+            return await self.app(scope, receive, send)
+        started = False
+
+        async def watched(msg):
+            nonlocal started
+            started = started or msg["type"] == "http.response.start"
+            await send(msg)
+
+        try:
+            await self.app(scope, receive, watched)
+        except asyncio.CancelledError:
+            log.warning("%s %s cut short by the server's stop: answered 503 shutting_down",
+                        scope.get("method"), scope.get("path"))
+            if not started:
+                await _send_json(send, 503, error_body("shutting_down", "the server is stopping; retry the request"),
+                                 [(b"connection", b"close")])
+
+
 def _warm(state: ServiceState, freeze: bool = False) -> None:
     """Load the store's models, compile the numba loops (:func:`~quatrack.recognition.runtime.compile_hot_loops`:
     up to ~5 s where no on-disk cache exists yet, as in a fresh container) and build each worker
@@ -377,6 +412,7 @@ def create_app(settings: Settings | None = None, whole_process: bool = False) ->
                            allow_headers=["Authorization", "Content-Type", "X-Request-ID"], expose_headers=["X-Request-ID"])
     if settings.allowed_hosts:
         app.add_middleware(AllowedHosts, hosts=settings.allowed_hosts)
+    app.add_middleware(StopAnswer)  # (inside the request log: its status is logged and counted)
     app.add_middleware(SecurityHeaders)
     app.add_middleware(RequestLog, metrics=metrics)
     app.state.settings = settings
