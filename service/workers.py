@@ -26,6 +26,8 @@ What the workers share lives in one *run directory* (``Settings.run_dir``), wipe
   (which worker accepts is otherwise whichever wakes first: random), and passes a connection it
   accepted anyway (a burst) to the least-loaded one through ``placement/PID.sock``.
 - ``prometheus/``: ``$PROMETHEUS_MULTIPROC_DIR`` for prometheus-client's multiprocess mode.
+- ``server.lock``: ``flock``-ed by the server's main process (:func:`lock_run_dir`): a second
+  server given the same directory is refused instead of wiping the first one's files.
 
 ``max_pending_requests`` (REST) stays a per-worker limit: a worker's own queue is what it bounds.
 """
@@ -198,13 +200,41 @@ def ready_board(settings: Settings) -> ReadyBoard | None:
     return ReadyBoard(Path(settings.run_dir) / "ready", settings.workers)
 
 
+RUN_LOCK = "server.lock"
+_held_locks: list[int] = []  # the run directories' lock files this process holds (for its lifetime)
+
+
+def lock_run_dir(run: Path) -> None:
+    """Hold an exclusive ``flock`` on ``run/server.lock`` (with this process's id in it) for the
+    rest of the process's life, or raise ValueError naming the server that holds it.
+
+    Why: ``prepare_run_dir`` wipes the directory; a second server given the same
+    ``QUATRACK_RUN_DIR`` wiped the first one's ``ready/`` and ``prometheus/`` files in silence
+    (its ``/readyz`` then 503, its metrics gone) and shared its session slots. The kernel drops
+    the lock of a server that died, so a stale file never blocks a restart."""
+    path = run / RUN_LOCK
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o600)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        holder = os.pread(fd, 32, 0).decode("ascii", "replace").strip()
+        os.close(fd)
+        raise ValueError(f"QUATRACK_RUN_DIR {run}: another quatrack serve{f' (pid {holder})' if holder.isdigit() else ''} "
+                         f"is running with this run directory; give each server its own (or leave it unset)") from None
+    os.ftruncate(fd, 0)
+    os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+    _held_locks.append(fd)
+
+
 def prepare_run_dir(settings: Settings) -> tuple[Settings, Path, bool]:
     """Settings with a fresh, empty run directory (made in the temp dir unless given), and whether
     the caller made it (then it removes it on exit). Sets ``$PROMETHEUS_MULTIPROC_DIR`` for the
-    workers about to start; any files of a previous run there are deleted (stale counters)."""
+    workers about to start; any files of a previous run there are deleted (stale counters). A run
+    directory another live server holds is refused (:func:`lock_run_dir`), before anything is wiped."""
     made = settings.run_dir is None
     run = Path(tempfile.mkdtemp(prefix="quatrack-run-")) if made else Path(settings.run_dir)
     run.mkdir(parents=True, exist_ok=True)
+    lock_run_dir(run)
     for sub in ("sessions", "ready", "placement", "prometheus"):
         shutil.rmtree(run / sub, ignore_errors=True)
         (run / sub).mkdir()
