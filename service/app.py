@@ -293,6 +293,34 @@ class StopAnswer:
                                  [(b"connection", b"close")])
 
 
+class UnmatchedWebSocket:
+    """The router's ``default`` for a WebSocket handshake no route matched: the tracking path with
+    a final slash (``/v1/objects/NAME/track/``, which ``deploy/nginx.conf``'s ``track/?$`` passes
+    on) is served as the path without it; any other path (``..%2f``, a typo) is refused 404
+    ``not_found`` through :func:`~quatrack.service.routes.deny_websocket`, as the routes and
+    :class:`AllowedHosts` refuse a handshake (a JSON body, logged, counted). Starlette's answer
+    was a bare 403 with an empty body. HTTP requests go to the previous default (``slashes``)."""
+
+    def __init__(self, router) -> None:
+        self.router, self.fallback = router, router.default
+
+    async def __call__(self, scope, receive, send) -> None:
+        if scope["type"] != "websocket":
+            return await self.fallback(scope, receive, send)
+        from starlette.routing import Match
+
+        path = scope["path"]
+        if path.endswith("/") and not path.endswith("//"):
+            target = {**scope, "path": path[:-1]}
+            for route in self.router.routes:
+                match, child = route.matches(target)
+                if match is Match.FULL:
+                    target.update(child)
+                    return await route.handle(target, receive, send)
+        await deny_websocket(WebSocket(scope, receive, send), 404, "not_found",
+                             f"no WebSocket endpoint at {path[:120]!r}: tracking is /v1/objects/NAME/track", 1008)
+
+
 def _warm(state: ServiceState, freeze: bool = False) -> None:
     """Load the store's models, compile the numba loops (:func:`~quatrack.recognition.runtime.compile_hot_loops`:
     up to ~5 s where no on-disk cache exists yet, as in a fresh container) and build each worker
@@ -405,6 +433,7 @@ def create_app(settings: Settings | None = None, whole_process: bool = False) ->
     app.include_router(viewer.router)  # /viewer page + GET /v1/objects/{name}/mesh (service/viewer.py)
     app.include_router(pose_all.router)  # POST /v1/pose: every trained object searched (service/pose_all.py)
     slashes.install(app)  # /v1/objects/ → ../objects: a relative Location, within a proxy's prefix
+    app.router.default = UnmatchedWebSocket(app.router)  # .../track/ served, other handshakes a JSON 404
     app.add_middleware(HeadAsGet)  # innermost: HEAD reaches the routes as GET (their body dropped)
     app.add_middleware(BodyLimit, limit=settings.max_body_bytes)
     if settings.cors_origins:
