@@ -106,9 +106,20 @@ async def healthz() -> Health:
     return Health()
 
 
-@health.get("/readyz", response_model=Ready, summary="models are loaded", responses={503: {"model": Ready}})
+def serves_an_object(state: ServiceState, loaded: list[str]) -> bool:
+    """Whether the server has an object to serve: one loaded. An empty store, or one whose every
+    model is broken, is not ready: ``/readyz`` said 200 ``"models": []`` and a balancer or
+    Kubernetes sent requests that could only be 404 or 503 (the deployment did not wait for the
+    training Job); the store is polled, so the server becomes ready when a model is trained into
+    it. With ``QUATRACK_PRELOAD=0`` models load at their first request and ``/readyz`` waits for
+    none of it, as before."""
+    return bool(loaded) or not state.settings.preload
+
+
+@health.get("/readyz", response_model=Ready, summary="models are loaded (at least one)", responses={503: {"model": Ready}})
 async def readyz(state: State):
-    body = Ready(ready=state.registry.ready, models=state.registry.loaded(), tracker=TRACKER_KIND,
+    loaded = state.registry.loaded()
+    body = Ready(ready=state.registry.ready and serves_an_object(state, loaded), models=loaded, tracker=TRACKER_KIND,
                  failed=state.registry.failed())
     return JSONResponse(body.model_dump(), status_code=200 if body.ready else 503)
 

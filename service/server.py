@@ -51,12 +51,18 @@ class BackgroundServer(Loopback):
         alive = self.thread.is_alive
         try:  # listening (any answer), then ready if asked
             wait_for_http(f"{self.url}/healthz", "the service", 120, alive, accept=lambda status: True)
-            if self.wait_ready:
-                wait_for_http(f"{self.url}/readyz", "the service", 120, alive)
+            if self.wait_ready:  # (loading done: an empty store's /readyz stays 503, not ready to serve)
+                wait_for_http(f"{self.url}/readyz", "the service", 120, alive,
+                              accept=lambda status: status == 200 or self._loaded())
         except RuntimeError as exc:
             self.stop()
             raise RuntimeError(f"{exc} {self.error!r}" if self.error else str(exc)) from None
         return self
+
+    def _loaded(self) -> bool:
+        """The app's start-up loading is done (whatever ``/readyz`` answers of it)."""
+        state = getattr(self.app.state, "quatrack", None)
+        return state is not None and state.registry.ready
 
     def stop(self) -> None:
         self.server.should_exit = True
