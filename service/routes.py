@@ -94,6 +94,7 @@ def require_token(
 
 State = Annotated[ServiceState, Depends(get_state)]
 MAX_CAMERA_BYTES = 65_536  # a camera JSON is ~200 bytes
+MAX_FILES = 4  # multipart files parsed: 'image' and 'camera', and room to name one given twice
 ERRORS = {code: {"model": ErrorResponse} for code in (400, 401, 404, 413, 415, 422, 503)}
 
 health = APIRouter(tags=["health"])
@@ -206,9 +207,15 @@ def camera_query(
     request gives none there (it may come as the multipart field ``camera``)."""
     given = [v is not None for v in (fx, fy, cx, cy)]
     if not any(given):
+        if width is not None or height is not None or dist is not None:  # (they were ignored)
+            raise ApiError(422, "bad_camera", "query parameters width, height and dist go with fx, fy, cx and cy "
+                                              "(a camera in the multipart field 'camera' holds its own)")
         return None
     if not all(given):
         raise ApiError(422, "bad_camera", "query parameters fx, fy, cx and cy go together")
+    if (width is None) != (height is None):  # (as a camera file with one of them is refused)
+        raise ApiError(422, "bad_camera", "query parameters width and height go together "
+                                          "(both, or neither for the image's size)")
     coeffs = None
     if dist:
         try:
@@ -249,7 +256,7 @@ async def read_pose_request(request: Request, camera: CameraIn | None) -> tuple[
     ctype = request.headers.get("content-type", "").split(";")[0].strip().lower()
     if ctype == "multipart/form-data":
         try:
-            form = await request.form(max_files=2, max_fields=8, max_part_size=MAX_CAMERA_BYTES)
+            form = await request.form(max_files=MAX_FILES, max_fields=8, max_part_size=MAX_CAMERA_BYTES)
         except ApiError:
             raise
         except ClientDisconnect:
@@ -258,15 +265,25 @@ async def read_pose_request(request: Request, camera: CameraIn | None) -> tuple[
             if "maximum size" in str(exc.detail):
                 raise ApiError(413, "too_large", f"a multipart text field (the camera) may have at most "
                                                  f"{MAX_CAMERA_BYTES} bytes") from None
+            if "too many files" in str(exc.detail).lower():
+                raise ApiError(400, "bad_request", f"more than {MAX_FILES} files in the multipart body: a pose request "
+                                                   f"has one field 'image' and at most one 'camera'") from None
             raise ApiError(400, "bad_request", f"malformed multipart body: {exc.detail}") from None
         except Exception as exc:
             raise ApiError(400, "bad_request", f"malformed multipart body ({exc.__class__.__name__})") from None
+        for field in ("image", "camera"):  # (the first was used, the others dropped in silence)
+            if (n := len(form.getlist(field))) > 1:
+                raise ApiError(400, "bad_request", f"multipart field {field!r} is given {n} times: "
+                                                   f"a pose request has one (one image per request)")
         upload = form.get("image")
         if upload is None or isinstance(upload, str):
             raise ApiError(422, "missing_image", "multipart field 'image' (a file) is required")
         data = await upload.read()
         name = upload.filename or None
         cam_field = form.get("camera")
+        if cam_field is not None and camera is not None:  # (the multipart one won in silence)
+            raise ApiError(422, "bad_camera", "the camera is given twice, in the query (fx, fy, cx, cy) and as the "
+                                              "multipart field 'camera': give one")
         if cam_field is not None:
             if not isinstance(cam_field, str):
                 raw = await cam_field.read(MAX_CAMERA_BYTES + 1)
@@ -284,6 +301,8 @@ async def read_pose_request(request: Request, camera: CameraIn | None) -> tuple[
                        "send multipart/form-data (fields image, camera) or the raw image with an image/* content type")
     if camera is None:
         raise ApiError(422, "bad_camera", "a camera is required: multipart field 'camera' or query parameters fx, fy, cx, cy")
+    if (camera.width is None) != (camera.height is None):  # (the image's size filled the other one in silence)
+        raise ApiError(422, "bad_camera", "camera: width and height go together (both, or neither for the image's size)")
     if camera.width is not None and camera.height is not None:
         camera.to_camera()  # implausible intrinsics: 422 before any decoding
     return data, camera, name

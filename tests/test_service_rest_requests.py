@@ -40,3 +40,26 @@ def test_a_camera_for_the_full_size_names_the_intrinsics_for_the_half_size(clien
         assert msg.startswith(f"the camera is for {w}×{h} px images but the image is {w // 2}×{h // 2} px"), msg
         assert "scaled(" not in msg and f"width={w // 2}, height={h // 2}" in msg, msg
         assert f"fx={(CAMERA['fx'] * 0.5):.6g}" in msg, msg
+
+
+@pytest.mark.parametrize("params, files_camera, says", [
+    ({**INTRINSICS, "width": 640}, False, "query parameters width and height go together"),
+    ({"width": 640, "height": 480}, True, "query parameters width, height and dist go with fx, fy, cx and cy"),
+    (INTRINSICS, True, "the camera is given twice"),
+    ({}, {k: v for k, v in CAMERA.items() if k != "height"}, "camera: width and height go together"),
+])
+def test_a_half_given_or_twice_given_camera_is_refused(client, frame, params, files_camera, says):
+    data = {} if files_camera is False else {"camera": json.dumps(CAMERA if files_camera is True else files_camera)}
+    r = client.post(POSE, params=params, files={"image": ("f.jpg", jpeg(frame), "image/jpeg")}, data=data)
+    assert says in assert_error(r, 422, "bad_camera")["error"]["message"]
+
+
+def test_a_duplicated_multipart_field_is_named(client, frame):
+    img = ("f.jpg", jpeg(frame), "image/jpeg")
+    cam = ("camera.json", json.dumps(CAMERA).encode(), "application/json")
+    for files, field in (([("image", img), ("image", img), ("camera", cam)], "image"),
+                         ([("image", img), ("camera", cam), ("camera", cam)], "camera")):
+        r = client.post(POSE, files=files)
+        assert f"multipart field '{field}' is given 2 times" in assert_error(r, 400, "bad_request")["error"]["message"]
+    r = client.post(POSE, files=[("image", img)] * 5)
+    assert "a pose request has one field 'image'" in assert_error(r, 400, "bad_request")["error"]["message"]
