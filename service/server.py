@@ -10,7 +10,6 @@ addresses and their start-up wait), which sits below both layers.
 from __future__ import annotations
 
 import threading
-import time
 
 import uvicorn
 
