@@ -136,7 +136,7 @@ def run_serve(args: argparse.Namespace) -> int:
         print(f"quatrack serve: warning: {exposed}", file=sys.stderr, flush=True)
     from .workers import prepare_run_dir
 
-    settings, run_dir, made = prepare_run_dir(settings)  # before uvicorn (and prometheus-client) start
+    settings, run_dir, made, run_lock = prepare_run_dir(settings)  # before uvicorn (and prometheus-client) start
     os.environ.update(settings.to_env())  # the workers rebuild the settings from these
     # uvicorn re-raises the SIGTERM it caught once it has shut down; with the default handler that
     # killed the process before the finally below, and every 1-worker run left its run directory
@@ -173,6 +173,7 @@ def run_serve(args: argparse.Namespace) -> int:
                     host=settings.host, port=settings.port, log_config=configure(args.log_level),
                     ws_max_size=2 * settings.max_body_bytes, timeout_graceful_shutdown=5, server_header=False)
     finally:
+        os.close(run_lock)  # (the run directory free for the next server, in this process too)
         if made:
             shutil.rmtree(run_dir, ignore_errors=True)
         if previous is not None:

@@ -201,12 +201,12 @@ def ready_board(settings: Settings) -> ReadyBoard | None:
 
 
 RUN_LOCK = "server.lock"
-_held_locks: list[int] = []  # the run directories' lock files this process holds (for its lifetime)
 
 
-def lock_run_dir(run: Path) -> None:
-    """Hold an exclusive ``flock`` on ``run/server.lock`` (with this process's id in it) for the
-    rest of the process's life, or raise ValueError naming the server that holds it.
+def lock_run_dir(run: Path) -> int:
+    """Take an exclusive ``flock`` on ``run/server.lock`` (with this process's id in it) and return
+    its file descriptor, which the caller holds while it serves and closes after (the lock goes
+    with it), or raise ValueError naming the server that holds it.
 
     Why: ``prepare_run_dir`` wipes the directory; a second server given the same
     ``QUATRACK_RUN_DIR`` wiped the first one's ``ready/`` and ``prometheus/`` files in silence
@@ -223,23 +223,24 @@ def lock_run_dir(run: Path) -> None:
                          f"is running with this run directory; give each server its own (or leave it unset)") from None
     os.ftruncate(fd, 0)
     os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
-    _held_locks.append(fd)
+    return fd
 
 
-def prepare_run_dir(settings: Settings) -> tuple[Settings, Path, bool]:
-    """Settings with a fresh, empty run directory (made in the temp dir unless given), and whether
-    the caller made it (then it removes it on exit). Sets ``$PROMETHEUS_MULTIPROC_DIR`` for the
+def prepare_run_dir(settings: Settings) -> tuple[Settings, Path, bool, int]:
+    """Settings with a fresh, empty run directory (made in the temp dir unless given), whether
+    the caller made it (then it removes it on exit), and the directory's lock (a file descriptor
+    the caller closes when it stops serving: :func:`lock_run_dir`). Sets ``$PROMETHEUS_MULTIPROC_DIR`` for the
     workers about to start; any files of a previous run there are deleted (stale counters). A run
     directory another live server holds is refused (:func:`lock_run_dir`), before anything is wiped."""
     made = settings.run_dir is None
     run = Path(tempfile.mkdtemp(prefix="quatrack-run-")) if made else Path(settings.run_dir)
     run.mkdir(parents=True, exist_ok=True)
-    lock_run_dir(run)
+    lock = lock_run_dir(run)
     for sub in ("sessions", "ready", "placement", "prometheus"):
         shutil.rmtree(run / sub, ignore_errors=True)
         (run / sub).mkdir()
     os.environ[MULTIPROC_ENV] = str(run / "prometheus")
-    return settings.replace(run_dir=run), run, made
+    return settings.replace(run_dir=run), run, made, lock
 
 
 def session_limiter(settings: Settings):

@@ -9,7 +9,7 @@ import subprocess
 import sys
 
 from quatrack.service.settings import Settings
-from quatrack.service.workers import MULTIPROC_ENV, RUN_LOCK, _held_locks, prepare_run_dir
+from quatrack.service.workers import MULTIPROC_ENV, RUN_LOCK, prepare_run_dir
 
 
 def _serve(run_dir, store) -> subprocess.CompletedProcess:
@@ -35,8 +35,7 @@ def test_a_run_dir_held_by_a_live_server_is_refused_and_left_alone(tmp_path, mon
     monkeypatch.delenv(MULTIPROC_ENV, raising=False)
     run, store = tmp_path / "run", tmp_path / "store"
     store.mkdir()
-    prepare_run_dir(Settings(store=store, run_dir=run))  # the first server: holds the lock
-    fd = _held_locks.pop()
+    fd = prepare_run_dir(Settings(store=store, run_dir=run))[3]  # the first server: holds the lock
     try:
         marker = run / "ready" / "12345"
         marker.write_text("")
@@ -49,6 +48,5 @@ def test_a_run_dir_held_by_a_live_server_is_refused_and_left_alone(tmp_path, mon
     finally:
         os.close(fd)  # the first server died: its lock went with it
     monkeypatch.delenv(MULTIPROC_ENV, raising=False)
-    prepare_run_dir(Settings(store=store, run_dir=run))  # a restart in the same directory is fine
-    os.close(_held_locks.pop())
+    os.close(prepare_run_dir(Settings(store=store, run_dir=run))[3])  # a restart in the same directory is fine
     assert (run / RUN_LOCK).read_text().strip() == str(os.getpid())
