@@ -88,6 +88,7 @@ class _PendingFrame:
     arrival: float  # perf_counter
     controls: list = field(default_factory=list)
     id: int | str | None = None  # the client's id of the frame (its header's "id"), echoed in its answers
+    reason: str | None = None  # why it was not tracked, when answered ``dropped`` for another cause than a newer frame
 
 
 class _SessionError(Exception):
@@ -147,6 +148,9 @@ class TrackSession:
         self.last_time: float | None = None
         self.last_clock = 0.0  # the session clock at the latest frame's arrival
         self.header_time: float | None = None
+        # the time of a header refused as out_of_order (not after the previous frame's): its frame is
+        # answered ``dropped`` at that time, untracked, and the session's clock stays where it was
+        self.header_refused: float | None = None
         self.header_id: int | str | None = None  # the next binary frame's id (its header's "id")
         self.t0: float | None = None
         self.wakeup = asyncio.Event()
@@ -287,20 +291,23 @@ class TrackSession:
             await self.send_error(CAMERA_REQUIRED, "send the camera as a JSON text message before any frame", frame_id=fid)
             return
         if len(data) > self.settings.max_body_bytes:
-            self.header_time = None
+            self.header_time = self.header_refused = None
             self.metrics.frames.labels("error").inc()
             await self.send_error(TOO_LARGE, f"a frame may have at most {self.settings.max_body_bytes} bytes", frame_id=fid)
             return
         if sniff(data) is None:  # cheap, and keeps garbage from using a frame number or a time
-            self.header_time = None
+            self.header_time = self.header_refused = None
             self.metrics.frames.labels("error").inc()
             await self.send_error(UNSUPPORTED_IMAGE, "a binary message must be a JPEG, PNG or WebP frame", frame_id=fid)
             return
         if not self._take_token():
-            self.header_time = None
+            self.header_time = self.header_refused = None
             self.metrics.frames.labels("rate_limited").inc()
             await self.send_error(RATE_LIMITED, f"more than {self.settings.max_fps:g} frames per second; frame dropped",
                                   frame_id=fid)
+            return
+        if self.header_refused is not None:
+            self._answer_untracked(arrival, fid)
             return
         now = self.clock()
         if self.header_time is not None:
@@ -329,6 +336,21 @@ class TrackSession:
             self.metrics.frames.labels("skipped").inc()
         self.wakeup.set()
 
+    def _answer_untracked(self, arrival: float, fid) -> None:
+        """The frame after a header refused as ``out_of_order``: numbered, answered ``dropped`` at the
+        client's (refused) time, in frame order, and not tracked. Tracked at a time the session made
+        up (the previous frame's plus the gap between arrivals) it moved the session's clock past
+        the client's next times, and every later frame was refused in turn. The controls sent
+        before it wait for the next tracked frame (this one is never decoded)."""
+        time_s, self.header_refused = self.header_refused, None
+        number, self.next_frame = self.next_frame, self.next_frame + 1
+        self.metrics.frames.labels("received").inc()
+        self.metrics.frames.labels("error").inc()
+        why = f"not tracked: its time_s {time_s:g} is not after the previous frame's {self.last_time:g}"
+        with self.mailbox:
+            self.dropped.append(_PendingFrame(number, time_s, b"", arrival, [], fid, why))
+        self.wakeup.set()
+
     async def _on_text(self, text: str) -> None:
         if len(text) > MAX_TEXT:
             await self.send_error("too_large", f"a text message may have at most {MAX_TEXT} characters")
@@ -353,7 +375,7 @@ class TrackSession:
             await self.send_error("camera_required", "the first message must be the camera (JSON)")
         elif kind == "reset":
             self._control(("reset",))
-            self.header_time = None
+            self.header_time = self.header_refused = None
         elif kind == "init":
             try:
                 pose = parse_pose(msg.get("pose"), "init.pose")
@@ -380,7 +402,7 @@ class TrackSession:
         if why is not None:  # (the whole header ignored, as one with a bad time_s is)
             await self.send_error("bad_message", why)
             return
-        pending = self.header_time is not None or self.header_id is not None  # a header without its frame yet
+        pending = any(h is not None for h in (self.header_time, self.header_id, self.header_refused))  # a header without its frame yet
         if fid is not None:
             self.header_id = fid
         if self.camera is None:
@@ -391,10 +413,11 @@ class TrackSession:
         if not untimed and (ts is None or ts < 0):
             await self.send_error("bad_message", "'time_s' must be a finite number of seconds ≥ 0", frame_id=fid)
         elif pending:
-            self.header_time = None
+            self.header_time = self.header_refused = None
             await self.send_error("out_of_order", "two frame headers in a row; send the binary frame after each",
                                   frame_id=fid)
         elif ts is not None and self.last_time is not None and ts <= self.last_time:
+            self.header_refused = float(ts)  # (its frame: answered dropped at this time, untracked)
             await self.send_error("out_of_order", f"time_s {ts:g} is not after the previous frame's {self.last_time:g}",
                                   frame_id=fid)
         else:
@@ -434,7 +457,8 @@ class TrackSession:
         while not self.closed:
             await self.wakeup.wait()
             self.wakeup.clear()
-            if self.pending is None:
+            if self.pending is None:  # (no frame in flight: frames answered without tracking are owed now)
+                await self._answer_dropped(self.next_frame)
                 continue
             self.job = self.executor.submit(self._process_newest)
             taken = await asyncio.wrap_future(self.job)
@@ -460,12 +484,15 @@ class TrackSession:
         reading one answer per frame sent waited forever). Such a frame was not tracked: its
         message is ``lost`` with no pose, ``"dropped": true`` and the reason; the next processed
         frame's ``skipped`` still counts them. Sent just before the answer of the frame that
-        replaced them, so answers stay in frame order."""
+        replaced them, so answers stay in frame order. A frame answered without being tracked for
+        another reason (:meth:`_answer_untracked`: its ``reason``) goes the same way, sorted
+        among them by number."""
         with self.mailbox:
-            early = [d for d in self.dropped if d.number < before]
+            early = sorted((d for d in self.dropped if d.number < before), key=lambda d: d.number)
             self.dropped = [d for d in self.dropped if d.number >= before]
-        why = "not tracked: a newer frame arrived before this one's turn (the newest is tracked)"
+        newer = "not tracked: a newer frame arrived before this one's turn (the newest is tracked)"
         for d in early:
+            why = d.reason or newer
             msg = {**_message(d, TrackStep(d.number, d.time_s, "lost", reason=why)), "dropped": True, "skipped": 0,
                    "latency_ms": round((time.perf_counter() - d.arrival) * 1e3, 2)}
             await self.send(add_to_track_message(msg, self.ros_unit))

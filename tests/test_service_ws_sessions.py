@@ -1,0 +1,67 @@
+"""WebSocket sessions as an integrator meets them: frame times a camera repeats, lock-step
+pacing, the idle close, the stream's token and the session's log lines."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from websockets.sync.client import connect
+
+from quatrack.testing.scenes import example_store
+from quatrack.service.server import BackgroundServer
+from quatrack.service.settings import Settings
+from test_service_http import jpeg, video_frames
+from test_service_ws import CAM_ACK, recv
+
+
+@pytest.fixture(scope="module")
+def store():
+    return example_store()
+
+
+@pytest.fixture(scope="module")
+def frames():
+    return [jpeg(f) for f in video_frames(10)]
+
+
+@pytest.fixture(scope="module")
+def server(store):
+    with BackgroundServer(Settings(store=store, max_sessions=2)) as srv:
+        yield srv
+
+
+def answers_of(ws, fid) -> list[dict]:
+    """Every message about frame ``fid`` up to its pose message (an error may come first)."""
+    out = []
+    while not out or out[-1]["type"] != "pose":
+        out.append(recv(ws))
+        assert out[-1].get("id") == fid, out
+    return out
+
+
+def test_a_repeated_time_is_refused_alone_and_later_frames_keep_the_clients_times(server, frames):
+    """Frame 5 repeats frame 4's time_s: it is refused (``out_of_order``) and answered ``dropped``
+    at the client's time, untracked; the session's clock stays at frame 4's time, so frames 6..9,
+    correctly timed, are tracked with no error, each answer at the client's time. (Frame 5 was
+    tracked at previous time + arrival gap, which became the baseline: every later frame was
+    refused, and answered at a time the server made up.)"""
+    times = [i / 30 for i in range(10)]
+    times[5] = times[4]
+    with connect(f"{server.ws_url}/v1/objects/cookie-box/track", open_timeout=20) as ws:
+        ws.send(CAM_ACK)
+        assert recv(ws)["type"] == "ready"
+        got = []
+        for i, t in enumerate(times):
+            ws.send(json.dumps({"type": "frame", "time_s": t, "id": i}))
+            ws.send(frames[i])
+            got.append(answers_of(ws, i))
+    for i, msgs in enumerate(got):
+        *errors, pose = msgs
+        assert pose["frame"] == i and pose["time_s"] == times[i], msgs
+        if i == 5:
+            assert [e["error"]["code"] for e in errors] == ["out_of_order"], msgs
+            assert pose["dropped"] is True and pose["pose"] is None and "not after" in pose["reason"], pose
+        else:
+            assert errors == [] and not pose.get("dropped"), msgs
+            assert pose["status"] == ("init" if i == 0 else "tracking"), msgs
