@@ -65,3 +65,31 @@ def test_a_repeated_time_is_refused_alone_and_later_frames_keep_the_clients_time
         else:
             assert errors == [] and not pose.get("dropped"), msgs
             assert pose["status"] == ("init" if i == 0 else "tracking"), msgs
+
+
+def test_a_lock_step_client_is_paced_not_refused(store, frames):
+    """QUATRACK_MAX_FPS=5: a client that sends each frame after the previous one's answer is never
+    refused (lock-step ran faster than the default 60 frames/s and lost ~11 % of its frames as
+    ``rate_limited``); its frames wait for their token, so the limit still holds: 10 frames
+    (5 of them the bucket's burst) take at least 1 s. Frames sent ahead of the answers are
+    still refused over the rate."""
+    import time
+
+    with BackgroundServer(Settings(store=store, max_sessions=1, max_fps=5.0)) as srv:
+        with connect(f"{srv.ws_url}/v1/objects/cookie-box/track", open_timeout=20) as ws:
+            ws.send(CAM_ACK)
+            assert recv(ws)["type"] == "ready"
+            t0 = time.perf_counter()
+            got = []
+            for i in range(10):
+                ws.send(json.dumps({"type": "frame", "time_s": i / 30}))
+                ws.send(frames[i])
+                got.append(recv(ws))
+            elapsed = time.perf_counter() - t0
+            assert [(m["type"], m["frame"], m["time_s"]) for m in got] == [("pose", i, i / 30) for i in range(10)], got
+            assert elapsed >= 0.95, elapsed  # (5 held frames, 0.2 s each, less the bucket's refill meanwhile)
+            for i in range(3):  # ahead of the answers: over the rate, refused as before
+                ws.send(json.dumps({"type": "frame", "time_s": 1 + i / 30}))
+                ws.send(frames[i])
+            msgs = [recv(ws) for _ in range(3)]
+            assert "rate_limited" in [m["error"]["code"] for m in msgs if m["type"] == "error"], msgs
