@@ -26,6 +26,7 @@ import contextlib
 import json
 import math
 import os
+import re
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -42,7 +43,8 @@ class QuatrackError(Exception):
     """An error answered by the server (``code``, ``message``, HTTP ``status``), or one of the
     client's own: ``code="unreachable"`` when there is no server at the address, ``"timeout"``
     when the server does not answer within the client's ``timeout``, ``"closed"`` when the
-    connection is lost in the middle of a stream."""
+    connection is lost in the middle of a stream (a session the server ends keeps the code it
+    closes with: ``"idle_timeout"``)."""
 
     def __init__(self, code: str, message: str, status: int | None = None) -> None:
         super().__init__(f"{code}: {message}" if status is None else f"{status} {code}: {message}")
@@ -109,6 +111,9 @@ def _error_of(status: int, body: bytes | str) -> QuatrackError:
         return QuatrackError("http_error", text.strip()[:200] or f"HTTP {status}", status)
 
 
+_CODE = re.compile(r"[a-z][a-z0-9_]*")  # a close reason that is an error code (the service's: idle_timeout)
+
+
 @contextlib.contextmanager
 def _typed_stream_errors(url: str, timeout: float) -> Iterator[None]:
     """A stream's failures after the handshake raised as QuatrackError: ``"closed"`` (the
@@ -124,6 +129,11 @@ def _typed_stream_errors(url: str, timeout: float) -> Iterator[None]:
             # a frame over twice the server's QUATRACK_MAX_BODY_BYTES is not read: the server closes
             # the socket; a smaller one over the limit is answered too_large, as REST answers 413
             raise QuatrackError("too_large", f"{url}: the server closed the connection: {exc.rcvd.reason}") from None
+        if exc.rcvd is not None and exc.rcvd.code != 1000 and _CODE.fullmatch(exc.rcvd.reason or ""):
+            # the service ends a session with its error code as the close reason (idle_timeout):
+            # the error message before it may go unread when a send meets the close first
+            raise QuatrackError(exc.rcvd.reason, f"{url}: the server closed the session ({exc.rcvd.code} "
+                                                 f"{exc.rcvd.reason})") from None
         why = f" ({exc.rcvd.code} {exc.rcvd.reason})".rstrip() if exc.rcvd is not None else ""
         raise QuatrackError("closed", f"{url}: the connection was closed{why}") from None
     except TimeoutError:

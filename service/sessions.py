@@ -242,7 +242,7 @@ class TrackSession:
             await self._step_finished()
             if self.ws.client_state == WebSocketState.CONNECTED:
                 try:  # (a client that reads nothing never lets the close frame out: not waited for)
-                    await asyncio.wait_for(self.ws.close(1000), CLOSE_TIMEOUT_S)
+                    await asyncio.wait_for(self.ws.close(*_close_of(outcome)), CLOSE_TIMEOUT_S)
                 except (RuntimeError, OSError, asyncio.TimeoutError):
                     pass
             await store_session_views(self)  # QUATRACK_LEARN_VIEWS (service/learning.py)
@@ -594,6 +594,15 @@ class TrackSession:
         self.metrics.observe_stages(self.metrics.stages, getattr(step, "timings_ms", None))
         self.last_status = step.status
         return _message(item, step)
+
+
+def _close_of(outcome: str) -> tuple:
+    """The arguments of the close ending a session: idle, 1001 (going away) with its error code
+    ``idle_timeout`` as the reason, so a client whose send meets the close before it reads the
+    error message still learns why (a normal 1000 without a reason made ``Client.track`` raise
+    ``"closed"``, as if the server had gone); else 1000 (a stalled client reads nothing, the
+    close frame included)."""
+    return (1001, "idle_timeout") if outcome == "idle" else (1000,)
 
 
 def _bounded(controls: list) -> list:

@@ -12,7 +12,7 @@ from quatrack.testing.scenes import example_store
 from quatrack.service.server import BackgroundServer
 from quatrack.service.settings import Settings
 from test_service_http import jpeg, video_frames
-from test_service_ws import CAM_ACK, recv
+from test_service_ws import CAM_ACK, CAMERA, recv
 
 
 @pytest.fixture(scope="module")
@@ -93,3 +93,33 @@ def test_a_lock_step_client_is_paced_not_refused(store, frames):
                 ws.send(frames[i])
             msgs = [recv(ws) for _ in range(3)]
             assert "rate_limited" in [m["error"]["code"] for m in msgs if m["type"] == "error"], msgs
+
+
+def test_an_idle_timeout_close_carries_its_code_and_the_client_raises_it(store, frames):
+    """A session idle for QUATRACK_IDLE_TIMEOUT_S is closed with 1001 and the reason
+    ``idle_timeout`` (was 1000 without a reason), and ``Client.track`` whose next frame comes too
+    late raises ``QuatrackError.code == "idle_timeout"`` (was ``"closed"``: the server's code lost)."""
+    import time
+
+    from websockets.exceptions import ConnectionClosed
+
+    from quatrack.client import Client, QuatrackError
+
+    with BackgroundServer(Settings(store=store, max_sessions=2, idle_timeout_s=0.5)) as srv:
+        with connect(f"{srv.ws_url}/v1/objects/cookie-box/track", open_timeout=20) as ws:
+            ws.send(CAM_ACK)
+            assert recv(ws)["type"] == "ready"
+            assert recv(ws, timeout=30)["error"]["code"] == "idle_timeout"
+            with pytest.raises(ConnectionClosed) as closed:
+                ws.recv(timeout=30)
+        assert (closed.value.rcvd.code, closed.value.rcvd.reason) == (1001, "idle_timeout"), closed.value
+
+        def slow():
+            yield frames[0]
+            time.sleep(2.0)  # (4 × the idle timeout: the server closes meanwhile)
+            yield frames[1]
+
+        with Client(srv.url, object="cookie-box", timeout=30) as c, pytest.raises(QuatrackError) as e:
+            for _ in c.track(slow(), CAMERA):
+                pass
+        assert e.value.code == "idle_timeout", e.value
