@@ -51,6 +51,21 @@ class QuatrackError(Exception):
         self.code, self.message, self.status = code, message, status
 
 
+def api_token(token: str | None = None) -> str | None:
+    """The bearer token a client sends: ``token`` when given, else ``$QUATRACK_API_TOKEN``; an
+    empty one is none. The one place the client reads the variable: :class:`Client` read it and
+    :func:`stream` did not, so ``quatrack demo --fps`` and ``bench serve`` were refused where
+    ``Client`` was let in."""
+    if token is None:
+        token = os.environ.get("QUATRACK_API_TOKEN")
+    return token or None
+
+
+def auth_headers(token: str | None) -> dict[str, str]:
+    """The ``Authorization`` header of a token (none without one)."""
+    return {"Authorization": f"Bearer {token}"} if token else {}
+
+
 def base_urls(url: str) -> tuple[str, str]:
     """``(http_url, ws_url)`` of a server address given as ``http(s)://`` or ``ws(s)://`` HOST[:PORT].
     A path, query or fragment is refused: the client adds the API's own paths."""
@@ -172,12 +187,12 @@ class _Endpoint:
     def __init__(self, url: str, object: str | None, token: str | None, timeout: float) -> None:
         self.http_url, self.ws_url = base_urls(url)
         self.object = object
-        self.token = token if token is not None else os.environ.get("QUATRACK_API_TOKEN") or None
+        self.token = api_token(token)
         self.timeout = timeout
 
     @property
     def _headers(self) -> dict[str, str]:
-        return {"Authorization": f"Bearer {self.token}"} if self.token else {}
+        return auth_headers(self.token)
 
     def _name(self, object: str | None) -> str:
         """The object's name for the URL path: the store's rule (letters, digits, ``._-``), so
@@ -505,7 +520,8 @@ async def stream(url: str, camera: Any, frames: Iterable[tuple[int, float, bytes
                  token: str | None = None, timeout: float = 60.0, on_answer=None) -> StreamResult:
     """Stream ``(index, time_s, JPEG bytes)`` through one tracking session at ``url`` (the full
     ``ws://.../v1/objects/NAME/track``) and collect the answers: lock-step when ``fps`` is None,
-    else real time at ``fps`` frames/s (> 0); ``on_answer(msg)`` is called on each pose message as
+    else real time at ``fps`` frames/s (> 0); ``token`` as :class:`Client` takes it (default
+    ``$QUATRACK_API_TOKEN``); ``on_answer(msg)`` is called on each pose message as
     it arrives. Each frame goes with an id (its place in the stream), so every answer is filed
     under its own index whatever the server refused or skipped meanwhile. ``camera``: as :class:`Client` takes it (a dict, a PinholeCamera or a camera
     file's path). Raises :class:`QuatrackError` when the server refuses."""
@@ -515,7 +531,7 @@ async def stream(url: str, camera: Any, frames: Iterable[tuple[int, float, bytes
         raise ValueError(f"fps: frames per second above 0, or None for lock-step; got {fps!r}")
     hello = json.loads(Client._hello(camera))
 
-    headers = {"Authorization": f"Bearer {token}"} if token else None
+    headers = auth_headers(api_token(token)) or None
     res = StreamResult()
     t_start = time.perf_counter()
     try:

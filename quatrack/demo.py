@@ -73,7 +73,7 @@ def _output(out_dir: Path, name: str, ext: str, option: str) -> str | None:
 
 
 def _check(args: argparse.Namespace) -> _Plan:
-    from quatrack.client import base_urls
+    from quatrack.client import api_token, base_urls
     from quatrack.viewsets.camera import load_camera
     from quatrack.viewsets.store import list_models, load_model, unknown_object
 
@@ -107,7 +107,7 @@ def _check(args: argparse.Namespace) -> _Plan:
             http_url, ws_url = base_urls(args.url)
         except ValueError as exc:
             raise ValueError(f"--url {exc}") from None
-    token = args.token or os.environ.get("QUATRACK_API_TOKEN") or None
+    token = api_token(args.token or None)  # (--token "": the variable's, as before)
     settings = Settings.from_env(store=args.store, api_token=token)
     in_store = settings.store.is_dir() and args.object in list_models(settings.store)
     if args.url is None and not in_store:
@@ -193,7 +193,9 @@ def _explain(exc, args, names: list[str] | None = None) -> str:
     """A server's refusal as a one-line message naming the culprit; an unknown object with the
     server's objects (``names``) and the nearest (:func:`~quatrack.viewsets.store.names_hint`)."""
     if exc.code == "unauthorized":
-        if args.token or os.environ.get("QUATRACK_API_TOKEN"):  # (one was given: it is the wrong one)
+        from quatrack.client import api_token
+
+        if api_token(args.token or None):  # (one was given: it is the wrong one)
             source = "--token" if args.token else "QUATRACK_API_TOKEN"
             return f"{args.url or 'the server'} refused the token of {source}: not the server's QUATRACK_API_TOKEN"
         return f"{args.url or 'the server'} needs a token: give --token or set QUATRACK_API_TOKEN"

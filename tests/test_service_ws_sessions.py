@@ -123,3 +123,24 @@ def test_an_idle_timeout_close_carries_its_code_and_the_client_raises_it(store, 
             for _ in c.track(slow(), CAMERA):
                 pass
         assert e.value.code == "idle_timeout", e.value
+
+
+def test_stream_reads_the_token_from_the_environment_as_client_does(store, frames, monkeypatch):
+    """``quatrack.client.stream()`` without ``token=`` sends ``$QUATRACK_API_TOKEN``, as
+    ``Client`` does (it sent none: refused ``unauthorized`` where ``Client`` was let in); an
+    explicit token still wins."""
+    import asyncio
+
+    from quatrack.client import QuatrackError, stream
+
+    monkeypatch.setenv("QUATRACK_API_TOKEN", "sekret")
+    with BackgroundServer(Settings(store=store, max_sessions=1, api_token="sekret")) as srv:
+        url = f"{srv.ws_url}/v1/objects/cookie-box/track"
+        res = asyncio.run(stream(url, CAMERA, [(0, 0.0, frames[0])], timeout=30.0))
+        assert sorted(res.poses) == [0] and res.errors == [], res
+        with pytest.raises(QuatrackError) as e:
+            asyncio.run(stream(url, CAMERA, [(0, 0.0, frames[0])], token="wrong", timeout=30.0))
+        assert e.value.code == "unauthorized"
+    from quatrack.client import api_token  # (the one reader of the variable: Client's and stream's)
+
+    assert api_token() == "sekret" and api_token("other") == "other" and api_token("") is None
