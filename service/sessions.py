@@ -185,10 +185,16 @@ class TrackSession:
             except (WebSocketDisconnect, RuntimeError, OSError):
                 self.closed = True
 
+    def _log(self, level: int, msg: str, *args, exc_info: bool = False, **fields) -> None:
+        """One log line of this session, its id a field (``session_id``), as a request's line
+        carries ``request_id``: a session's lines are found by the field, not by reading messages."""
+        log.log(level, msg, *args, exc_info=exc_info, extra={"session_id": self.sid, **fields})
+
     def _stall(self) -> None:
         """The client read nothing for ``idle_timeout_s``: the session ends ("stalled")."""
         if not self.closed:
-            log.info("session %s: the client read no answer for %g s; closing", self.sid, self.settings.idle_timeout_s)
+            self._log(logging.INFO, "session %s: the client read no answer for %g s; closing", self.sid,
+                      self.settings.idle_timeout_s)
         self.closed = self.stalled = True
         self.answered.set()  # (wakes a receive loop waiting for the answers to be read)
 
@@ -199,12 +205,15 @@ class TrackSession:
             body["frame"] = frame
         if frame_id is not None:  # (the client's id of the frame the error is about: absent without one)
             body["id"] = frame_id
-        log.info("session %s: %s: %s", self.sid, code, message)
+        self._log(logging.INFO, "session %s: %s: %s", self.sid, code, message, code=code)
         await self.send(body)
 
     # --- receiving --------------------------------------------------------------------------------
     async def run(self) -> str:
-        """Serve until the client leaves or idles; returns the outcome for the metrics."""
+        """Serve until the client leaves or idles; returns the outcome for the metrics. Logs one
+        line as the session opens and one as it ends (outcome, frames, duration)."""
+        started = time.perf_counter()
+        self._log(logging.INFO, "session opened", object=self.name)
         processor = asyncio.create_task(self._process_loop())
         outcome = "closed"
         try:
@@ -225,7 +234,7 @@ class TrackSession:
                     elif msg.get("text") is not None:
                         await self._on_text(msg["text"])
                 except Exception:  # a bug on one message must not pass for a disconnect (RuntimeError) nor end the session
-                    log.exception("session %s: a message could not be handled", self.sid)
+                    self._log(logging.ERROR, "session %s: a message could not be handled", self.sid, exc_info=True)
                     await self.send_error("internal", "this message could not be handled (logged); the session goes on")
         except (WebSocketDisconnect, RuntimeError):  # receive() after the client left
             outcome = "disconnected"
@@ -246,6 +255,8 @@ class TrackSession:
                 except (RuntimeError, OSError, asyncio.TimeoutError):
                     pass
             await store_session_views(self)  # QUATRACK_LEARN_VIEWS (service/learning.py)
+            self._log(logging.INFO, "session ended", object=self.name, outcome=outcome, frames=self.next_frame,
+                      duration_s=round(time.perf_counter() - started, 3))
         return outcome
 
     async def _step_finished(self) -> None:
@@ -583,7 +594,8 @@ class TrackSession:
         except ValueError as exc:  # e.g. time going backwards after an init at a later time
             raise _SessionError("bad_frame", str(exc)) from None
         except Exception:  # a tracker bug must not end the session nor leak a traceback
-            log.exception("session %s: tracker failed on frame %d; resetting it", self.sid, item.number)
+            self._log(logging.ERROR, "session %s: tracker failed on frame %d; resetting it", self.sid, item.number,
+                      exc_info=True, frame=item.number)
             self.tracker.reset()
             raise _SessionError("internal", "tracking failed on this frame (logged); the tracker was reset") from None
         if step.status == "lost" and self.last_status != "lost":

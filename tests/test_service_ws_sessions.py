@@ -144,3 +144,57 @@ def test_stream_reads_the_token_from_the_environment_as_client_does(store, frame
     from quatrack.client import api_token  # (the one reader of the variable: Client's and stream's)
 
     assert api_token() == "sekret" and api_token("other") == "other" and api_token("") is None
+
+
+def test_a_session_logs_its_start_end_and_errors_with_its_id_as_a_field(tmp_path):
+    """Log lines of a session carry ``session_id`` as a field (as requests carry ``request_id``):
+    one as it opens, one as it ends (outcome, frames, duration), and its errors; the id was only
+    inside some messages' text, and a session's start and end were not logged."""
+    import asyncio
+    import logging
+    from concurrent.futures import ThreadPoolExecutor
+
+    from starlette.websockets import WebSocketState
+
+    from quatrack.service import sessions
+    from quatrack.service.logs import JsonFormatter
+    from quatrack.service.metrics import Metrics
+
+    class Scripted:  # the camera, a message of no known type, then the client leaves
+        client_state = WebSocketState.DISCONNECTED
+
+        def __init__(self) -> None:
+            self.inbox = [json.dumps(CAMERA), '{"type": "dance"}']
+
+        async def receive(self) -> dict:
+            if self.inbox:
+                return {"type": "websocket.receive", "text": self.inbox.pop(0)}
+            return {"type": "websocket.disconnect"}
+
+        async def send_text(self, text: str) -> None:
+            pass
+
+    seen: list[logging.LogRecord] = []
+    tap = logging.Handler(logging.DEBUG)
+    tap.emit = seen.append
+    logger = logging.getLogger("quatrack.service")
+    logger.addHandler(tap)
+    level, disabled = logger.level, logger.disabled  # (an earlier server's log configuration may have disabled it)
+    logger.setLevel(logging.INFO)
+    logger.disabled = False
+    try:
+        with ThreadPoolExecutor(1) as pool:
+            session = sessions.TrackSession(Scripted(), "abc123", "cookie-box", None, Settings(store=tmp_path), pool,
+                                            Metrics())
+            outcome = asyncio.run(asyncio.wait_for(session.run(), 30))
+    finally:
+        logger.removeHandler(tap)
+        logger.setLevel(level)
+        logger.disabled = disabled
+    lines = [json.loads(JsonFormatter().format(r)) for r in seen]
+    assert lines and all(ln.get("session_id") == "abc123" for ln in lines), lines
+    assert lines[0]["msg"] == "session opened" and lines[0]["object"] == "cookie-box", lines
+    assert [ln["code"] for ln in lines if "code" in ln] == ["bad_message"], lines
+    end = lines[-1]
+    assert end["msg"] == "session ended" and (end["outcome"], end["frames"]) == (outcome, 0), end
+    assert end["duration_s"] >= 0, end
