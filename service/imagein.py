@@ -12,12 +12,13 @@ from __future__ import annotations
 import numpy as np
 
 from quatrack.recognition.images import ImageError, decode_image, header_size, sniff, truncated
+from quatrack.viewsets.camera import resized_for
 
 from .errors import ApiError
 
 FORMATS = {"jpeg": "image/jpeg", "png": "image/png", "webp": "image/webp"}
 
-__all__ = ["FORMATS", "decode_upload", "header_size", "sniff"]
+__all__ = ["FORMATS", "decode_upload", "header_size", "size_mismatch", "sniff"]
 
 
 def decode_upload(data: bytes, max_pixels: int) -> np.ndarray:
@@ -42,3 +43,17 @@ def decode_upload(data: bytes, max_pixels: int) -> np.ndarray:
     if img.shape[1] * img.shape[0] > max_pixels:  # a header that lied
         raise ApiError(413, "image_too_large", f"the image has more than {max_pixels} pixels")
     return img
+
+
+def size_mismatch(cam, w: int, h: int) -> str | None:
+    """The message refusing a ``w``×``h`` image for a camera sized otherwise, in a client's terms
+    (REST and WebSocket alike), else None: for the camera's own images resized, the intrinsics to
+    send for this size (:func:`~quatrack.viewsets.camera.resized_for`). The library's message advised
+    ``pass camera.scaled(0.5, 640, 480)``, Python that a REST client has no use for."""
+    if cam.width is None or cam.height is None or (cam.width, cam.height) == (w, h):
+        return None
+    scaled, note = resized_for(cam, w, h)
+    hint = "" if note is None else (
+        f" (its images resized by {w / cam.width:.3g}? send the camera for this size: fx={scaled.fx:.6g}, "
+        f"fy={scaled.fy:.6g}, cx={scaled.cx:.6g}, cy={scaled.cy:.6g}, width={w}, height={h})")
+    return f"the camera is for {cam.width}×{cam.height} px images but the image is {w}×{h} px{hint}"

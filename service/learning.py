@@ -43,10 +43,12 @@ def learns(settings: Settings, name: str) -> bool:
     return True
 
 
-def store_views(settings: Settings, name: str, tracker) -> int:
+def store_views(settings: Settings, name: str, tracker, session_id: str | None = None) -> int:
     """Merge the views ``tracker`` learned into ``settings.store``'s model ``name``; returns how many
     were added. Blocking (file I/O): run it on a worker thread. Never raises: a store that cannot
-    take them (object deleted or retrained on another mesh, disk full) is logged."""
+    take them (object deleted or retrained on another mesh, disk full) is logged (with the
+    session's id as the ``session_id`` field when given, as its other lines carry it)."""
+    extra = {"session_id": session_id} if session_id is not None else None
     learned = tracker.learned_viewsets() if tracker is not None else []
     if not learned:
         return 0
@@ -55,10 +57,11 @@ def store_views(settings: Settings, name: str, tracker) -> int:
                                              tracker.params.learn_max_views, tracker.params.learn_min_angle_deg,
                                              learned_on=tracker.model)
     except Exception as exc:  # the session is over: nothing to answer, only to log
-        log.error("object %s: the %d view(s) a session learned were not stored: %s", name, len(learned), exc)
+        log.error("object %s: the %d view(s) a session learned were not stored: %s", name, len(learned), exc, extra=extra)
         return 0
     if added:
-        log.info("object %s: %d learned view(s) stored in %s (%d learned in all)", name, added, folder, total)
+        log.info("object %s: %d learned view(s) stored in %s (%d learned in all)", name, added, folder, total,
+                 extra=extra)
     return added
 
 
@@ -69,6 +72,7 @@ async def store_session_views(session) -> int:
         return 0
     loop = asyncio.get_running_loop()
     try:
-        return await loop.run_in_executor(session.executor, store_views, session.settings, session.name, session.tracker)
+        return await loop.run_in_executor(session.executor, store_views, session.settings, session.name, session.tracker,
+                                          session.sid)
     except RuntimeError:  # the executor is shut down (server stopping): store from this thread
-        return store_views(session.settings, session.name, session.tracker)
+        return store_views(session.settings, session.name, session.tracker, session.sid)

@@ -26,11 +26,10 @@ from starlette.requests import ClientDisconnect
 
 from quatrack.recognition.images import MIN_SIDE, ImageError
 from quatrack.recognition.locate import LocateParams, locate
-from quatrack.viewsets.camera import resized_for
 
 from . import ros
 from .errors import ApiError, error_body
-from .imagein import decode_upload
+from .imagein import decode_upload, size_mismatch
 from .logs import mark_refused
 from .metrics import CONTENT_TYPE, Metrics
 from .registry import ModelRegistry
@@ -306,20 +305,6 @@ async def read_pose_request(request: Request, camera: CameraIn | None) -> tuple[
     if camera.width is not None and camera.height is not None:
         camera.to_camera()  # implausible intrinsics: 422 before any decoding
     return data, camera, name
-
-
-def size_mismatch(cam, w: int, h: int) -> str | None:
-    """The message refusing a ``w``×``h`` image for a camera sized otherwise, in a REST client's
-    terms, else None: for the camera's own images resized, the intrinsics to send for this size
-    (:func:`~quatrack.viewsets.camera.resized_for`). The library's message advised
-    ``pass camera.scaled(0.5, 640, 480)``, Python that a REST client has no use for."""
-    if cam.width is None or cam.height is None or (cam.width, cam.height) == (w, h):
-        return None
-    scaled, note = resized_for(cam, w, h)
-    hint = "" if note is None else (
-        f" (its images resized by {w / cam.width:.3g}? send the camera for this size: fx={scaled.fx:.6g}, "
-        f"fy={scaled.fy:.6g}, cx={scaled.cx:.6g}, cy={scaled.cy:.6g}, width={w}, height={h})")
-    return f"the camera is for {cam.width}×{cam.height} px images but the image is {w}×{h} px{hint}"
 
 
 def decode_with_camera(state: ServiceState, data: bytes, camera: CameraIn):

@@ -39,7 +39,7 @@ from quatrack.viewsets.spec import parse_pose
 
 from .codes import CAMERA_REQUIRED, RATE_LIMITED, TOO_LARGE, UNSUPPORTED_IMAGE, error_body
 from .errors import ApiError
-from .imagein import decode_upload, sniff
+from .imagein import decode_upload, size_mismatch, sniff
 from .learning import learns, store_session_views
 from .metrics import Metrics
 from .ros import add_to_track_message
@@ -570,7 +570,12 @@ class TrackSession:
         h, w = image.shape[:2]
         cam_in = self.tracker_camera
         if cam_in.width is not None and (cam_in.width, cam_in.height) != (w, h):
-            raise _SessionError("bad_image", f"the camera is for {cam_in.width}×{cam_in.height} px frames but this one is {w}×{h} px")
+            try:  # (what to send for this size when the frames are the camera's own, resized)
+                msg = size_mismatch(cam_in.to_camera(), w, h)
+            except ApiError:  # (implausible intrinsics: the size is the first thing to say)
+                msg = None
+            raise _SessionError("bad_image", msg or f"the camera is for {cam_in.width}×{cam_in.height} px images but the "
+                                                    f"image is {w}×{h} px")
         if self.tracker is None:
             model, index = self.model
             try:

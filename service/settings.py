@@ -82,7 +82,7 @@ class Settings(BaseSettings):
     locate_max_pixels: int = Field(4_000_000, ge=1, description="larger images are downscaled for recognition")
     max_pending_requests: int = Field(8, ge=1, description="REST pose requests queued or running **per worker process**; then 503")
     max_sessions: int = Field(4, ge=1, le=MAX_SESSIONS, description="concurrent WebSocket sessions **for the whole server** (all workers); then 503 + Retry-After")
-    max_fps: float = Field(60.0, gt=0, allow_inf_nan=False, description="frames a session may send per second (token bucket); above: dropped")
+    max_fps: float = Field(60.0, gt=0, allow_inf_nan=False, description="frames a session may send per second (token bucket); above: refused while an earlier frame is unanswered, a lock-step frame waits for its turn")
     idle_timeout_s: float = Field(60.0, gt=0, allow_inf_nan=False, description="a session with no message for this long is closed")
     retry_after_s: int = Field(5, ge=0, description="`Retry-After` seconds sent with 503 answers")
     preload: bool = Field(True, description="load every model of the store at start-up (`/readyz` waits for it)")
@@ -101,7 +101,9 @@ class Settings(BaseSettings):
                                        "thread that the other sessions wait for; e.g. 0.25 frees most of it and finds "
                                        "the object again up to that much later")
     run_dir: Path | None = Field(None, description="directory the worker processes share (session slots, Prometheus "
-                                                    "multiprocess files); `quatrack serve` makes a fresh one and wipes it on start")
+                                                    "multiprocess files); `quatrack serve` makes a fresh one and wipes it on start. One "
+                                                    "server per directory: a second `quatrack serve` given one a live server holds "
+                                                    "(`server.lock`) is refused (exit 2)")
 
     @field_validator("cors_origins", "learn_views", "tracker_sources", "allowed_hosts", mode="before")
     @classmethod

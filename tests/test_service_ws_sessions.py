@@ -198,3 +198,28 @@ def test_a_session_logs_its_start_end_and_errors_with_its_id_as_a_field(tmp_path
     end = lines[-1]
     assert end["msg"] == "session ended" and (end["outcome"], end["frames"]) == (outcome, 0), end
     assert end["duration_s"] >= 0, end
+
+
+def test_a_frame_of_the_cameras_aspect_at_another_size_says_the_camera_to_send(server, frames):
+    """A frame half the camera's size (its own images, resized): ``bad_image`` says the camera to
+    send for that size in the message's terms (fx=…, width=…), as the REST pose route does, not
+    the library's ``camera.scaled(…)``; the session goes on."""
+    import cv2
+    import numpy as np
+
+    small = cv2.imdecode(np.frombuffer(frames[0], np.uint8), cv2.IMREAD_COLOR)
+    small = jpeg(cv2.resize(small, (small.shape[1] // 2, small.shape[0] // 2), interpolation=cv2.INTER_AREA))
+    with connect(f"{server.ws_url}/v1/objects/cookie-box/track", open_timeout=20) as ws:
+        ws.send(CAM_ACK)
+        assert recv(ws)["type"] == "ready"
+        ws.send(json.dumps({"type": "frame", "time_s": 0.0, "id": "a"}))
+        ws.send(small)
+        err = recv(ws)  # (a refused frame's one answer)
+        assert err["type"] == "error" and err["error"]["code"] == "bad_image" and err["id"] == "a", err
+        msg = err["error"]["message"]
+        w, h = CAMERA["width"], CAMERA["height"]
+        assert msg.startswith(f"the camera is for {w}×{h} px images but the image is {w // 2}×{h // 2} px"), msg
+        assert f"fx={CAMERA['fx'] / 2:.6g}" in msg and f"width={w // 2}" in msg and "scaled(" not in msg, msg
+        ws.send(json.dumps({"type": "frame", "time_s": 0.1, "id": "b"}))
+        ws.send(frames[1])
+        assert answers_of(ws, "b")[-1]["status"] == "init"
