@@ -32,7 +32,10 @@ def _serve(run_dir, store) -> subprocess.CompletedProcess:
 
 
 def test_a_run_dir_held_by_a_live_server_is_refused_and_left_alone(tmp_path, monkeypatch):
-    monkeypatch.delenv(MULTIPROC_ENV, raising=False)
+    # (prepare_run_dir sets $PROMETHEUS_MULTIPROC_DIR: set here first, so that monkeypatch puts
+    # back what was there after the test — left set, every later test's /metrics read a deleted dir)
+    monkeypatch.setenv(MULTIPROC_ENV, str(tmp_path))
+    monkeypatch.delenv(MULTIPROC_ENV)
     run, store = tmp_path / "run", tmp_path / "store"
     store.mkdir()
     fd = prepare_run_dir(Settings(store=store, run_dir=run))[3]  # the first server: holds the lock

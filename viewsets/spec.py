@@ -26,7 +26,7 @@ from .errors import SpecError, StoreError
 from .names import check_object_name
 from .register import MIN_POINTS, PointPairs, PointsMisfit, max_rms_px, parse_points, pose_from_points, registration_at
 
-__all__ = ["ObjectSpec", "ViewSpec", "load_spec", "parse_pose"]
+__all__ = ["ObjectSpec", "ViewSpec", "load_spec", "missing_pose", "parse_pose"]
 
 
 @dataclass(frozen=True)
