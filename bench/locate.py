@@ -63,7 +63,7 @@ def rendered(n: int, seed: int, model, camera, progress: bool) -> dict:
         dt, dr = (np.inf, np.inf) if not r.found else S.pose_errors(r.t, r.q_wxyz, sc.pose, model.mesh)
         rows.append({
             "angle": sc.view_angle_deg, "found": r.found, "dt": dt, "dr": dr,
-            "iou": iou(r.bbox, sc.bbox) if r.bbox else 0.0, "occluded": sc.occluded,
+            "iou": iou(r.window, sc.bbox) if r.window else 0.0, "occluded": sc.occluded,  # (the localisation's)
             "searched": r.searched, "cpu": cpu, **{k: r.time_ms.get(k, 0.0) for k in STAGES},
         })
     ok = np.array([row["dt"] <= 0.05 * diameter and row["dr"] <= 5.0 for row in rows])
@@ -129,10 +129,10 @@ def video(model, camera, every: int, sheet: str | None, progress: bool) -> dict:
             r, cpu = _located(frame, camera, model, LocateParams(), index)
             ref = locate(frame, camera, model, LocateParams(use_window=False), index=index)
             on_box = None
-            if ref.found and r.bbox is not None:
+            if ref.found and r.window is not None:
                 sil = render(model.mesh, camera, Pose(ref.q_wxyz, ref.t)).face >= 0
-                cx = int(np.clip(r.bbox[0] + r.bbox[2] / 2, 0, frame.shape[1] - 1))
-                cy = int(np.clip(r.bbox[1] + r.bbox[3] / 2, 0, frame.shape[0] - 1))
+                cx = int(np.clip(r.window[0] + r.window[2] / 2, 0, frame.shape[1] - 1))
+                cy = int(np.clip(r.window[1] + r.window[3] / 2, 0, frame.shape[0] - 1))
                 on_box = bool(sil[cy, cx])
             rows.append({"frame": i, "found": r.found, "ref_found": ref.found, "on_box": on_box, "cpu": cpu,
                          **{k: r.time_ms.get(k, 0.0) for k in STAGES}})
@@ -140,8 +140,8 @@ def video(model, camera, every: int, sheet: str | None, progress: bool) -> dict:
                 g = frame.copy()
                 if r.found:
                     draw_wireframe(g, camera, r.t, r.q_wxyz, edges, (0, 255, 0))
-                if r.bbox:
-                    x, y, w, h = (int(v) for v in r.bbox)
+                if r.window:
+                    x, y, w, h = (int(v) for v in r.window)
                     cv2.rectangle(g, (x, y), (x + w, y + h), (255, 128, 0), 2)
                 draw_label(g, f"{i} {'found' if r.found else 'not found'} {r.inliers} inliers", colour=(0, 255, 255), scale=0.8)
                 thumbs.append(cv2.resize(g, (320, 240)))

@@ -99,9 +99,9 @@ class Located:
     found)."""
 
     found: bool
-    # (x, y, w, h): the RFCH window the pose was found in, or the one searched when nothing was
-    # found; the found object's projected box when the pose came from the whole image (no window
-    # searched, or after the window's search failed); None without a window and a pose
+    # (x, y, w, h): found, the object's box in the image (its mesh projected at the pose); not
+    # found, the RFCH window searched (None when none was). Before session 64 a pose found in
+    # the window had the window's box, on a 16-px grid and often beside the object
     bbox: tuple[float, float, float, float] | None = None
     chi2: float | None = None
     viewset: str | None = None
@@ -116,6 +116,9 @@ class Located:
     searched: str = "window"  # "window" or "image": where the pose came from
     verification: dict | None = None  # the evidence for the last pose checked (issue 13)
     object: str | None = None  # the model's name
+    # (x, y, w, h): the RFCH window searched (the localisation's answer, found or not); None when
+    # the whole image was searched without one
+    window: tuple[float, float, float, float] | None = None
 
     def __eq__(self, other: object) -> bool:
         if not isinstance(other, Located):
@@ -141,6 +144,7 @@ class Located:
             "object": self.object,
             "found": self.found,
             "bbox": None if self.bbox is None else [round(float(v), 2) for v in self.bbox],
+            "window": None if self.window is None else [round(float(v), 2) for v in self.window],
             "chi2": None if self.chi2 is None else float(self.chi2),
             "viewset": self.viewset,
             "matches": int(self.matches),
@@ -488,22 +492,21 @@ def locate(
 
     timer["total"] = (time.perf_counter() - t_start) * 1e3
     inv = 1.0 / prep.scale
-    bbox = None
-    if win is not None and (est is None or searched == "window"):
-        bbox = tuple(float((v + 0.5) * inv - 0.5) if i < 2 else float(v * inv) for i, v in enumerate(win.bbox))
+    window = None if win is None else tuple(float((v + 0.5) * inv - 0.5) if i < 2 else float(v * inv)
+                                            for i, v in enumerate(win.bbox))
     if est is None:
-        return Located(False, bbox, None if win is None else win.chi2, res.viewset, res.matches, 0, None,
-                       time_ms=timer, reason=res.reason, searched=searched, verification=ver, object=model.name)
-    if bbox is None:
-        # no window searched, or a pose found in the whole image after the window's search failed
-        # (the window's box was reported: a place the object is not): the found object's
-        # projected box, in the image — the contract's bbox. chi2 stays the window's.
-        h0, w0 = np.shape(image)[:2]
-        bbox = _image_box(camera, (w0, h0), model.mesh.vertices, np.array(est.t), np.array(est.q))
+        return Located(False, window, None if win is None else win.chi2, res.viewset, res.matches, 0, None,
+                       time_ms=timer, reason=res.reason, searched=searched, verification=ver, object=model.name,
+                       window=window)
+    # found: the object's projected box, in the image — the contract's bbox — wherever the pose
+    # came from (the window's box is on a 16-px grid, and beside the object when the pose came
+    # from the whole image after the window's search failed). chi2 stays the window's.
+    h0, w0 = np.shape(image)[:2]
+    bbox = _image_box(camera, (w0, h0), model.mesh.vertices, np.array(est.t), np.array(est.q))
     return Located(
         True, bbox, None if win is None else win.chi2, res.viewset, res.matches, len(est.inliers), est.rms_px * inv,
         np.array(est.t), np.array(est.q), est.covariance, time_ms=timer, searched=searched, verification=ver,
-        object=model.name,
+        object=model.name, window=window,
     )
 
 

@@ -147,7 +147,10 @@ class LocateOut(BaseModel):
 
     image: str | None = Field(None, description="the uploaded file's name (multipart); null for a raw body")
     found: bool
-    bbox: list[float] | None = Field(None, description="[x, y, w, h] of the RFCH window, pixels")
+    bbox: list[float] | None = Field(None, description="[x, y, w, h] pixels: found, the object's box in the image (the mesh "
+                                                         "projected at the pose); not found, the RFCH window searched")
+    window: list[float] | None = Field(None, description="[x, y, w, h] of the RFCH window searched, pixels (null: the "
+                                                           "whole image was searched without one)")
     chi2: float | None = None
     viewset: str | None = None
     matches: int
@@ -162,7 +165,8 @@ class LocateOut(BaseModel):
     verification: dict | None = Field(None, description="the evidence for the pose checked, with its calibrated "
                                       "`confidence` (docs/contract.md, Extensions: issue 13)")
     model_config = ConfigDict(json_schema_extra={"examples": [{
-        "found": True, "bbox": [201.0, 118.0, 232.0, 260.0], "chi2": 0.41, "viewset": "view0",
+        "found": True, "bbox": [214.3, 131.8, 205.1, 236.4], "window": [201.0, 118.0, 232.0, 260.0], "chi2": 0.41,
+        "viewset": "view0",
         "matches": 180, "inliers": 134, "reprojection_rms_px": 1.2,
         "pose": {"t": [-1.9, 3.2, 62.0], "q_wxyz": [0.31, 0.87, -0.26, 0.28]},
         "covariance": [[0.0] * 6 for _ in range(6)],

@@ -427,6 +427,22 @@ def test_a_truncated_png_is_refused_without_the_decoders_chatter(capfd):
     assert "libpng" not in capfd.readouterr().err  # (C-level stderr: libpng's own message)
 
 
+def test_a_pose_found_in_the_window_has_the_objects_box_and_the_window_apart(model, scenes):
+    # a found pose's bbox was the RFCH window it came from (on a 16-px grid, IoU ~0.6 with the
+    # object); it is the object's projected box, as a pose from the whole image has, and the
+    # window searched is `window`
+    found = 0
+    for sc in scenes[0]:
+        r = locate(sc.image, CAMERA, model)
+        if not (r.found and r.searched == "window"):
+            continue
+        found += 1
+        assert r.window == search_window(sc.image, CAMERA, model).bbox and r.bbox != r.window
+        assert iou(r.bbox, sc.bbox) > 0.85 and iou(r.bbox, sc.bbox) > iou(r.window, sc.bbox), (r.bbox, r.window, sc.bbox)
+        assert r.to_json()["window"] == [round(v, 2) for v in r.window]
+    assert found >= 5
+
+
 def test_a_pose_found_without_a_window_still_has_its_bbox(model, scenes):
     # the contract's bbox is [x, y, w, h]; with no window searched (--whole-image) it was null on
     # a found pose: it is the found object's projected box in the image
@@ -516,4 +532,4 @@ def test_a_pose_found_in_the_whole_image_after_the_window_failed_has_the_objects
     # not found in the whole image either: the window stays the bbox, with its chi2
     blank = np.full_like(sc.image, 127)
     miss = locate(blank, CAMERA, model)
-    assert not miss.found and miss.searched == "image" and miss.bbox == corner
+    assert not miss.found and miss.searched == "image" and miss.bbox == corner == miss.window
