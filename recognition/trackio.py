@@ -7,7 +7,9 @@ hold everywhere:
 - **Frame sources** (:func:`open_frames`): a video file, a glob of images (sorted by name; or
   several globs or files, as a shell expands an unquoted glob), a camera index (``"0"``) or any
   URL ``cv2.VideoCapture`` opens (``rtsp://``, ``http://``, ...). An image of a sequence that
-  cannot be read is skipped, listed with its index and time (:attr:`FrameSource.skipped`).
+  cannot be read is skipped, listed with its index and time (:attr:`FrameSource.skipped`). A video
+  file's frames are given as recorded: its rotation metadata is not applied (the camera file
+  describes the sensor), and a :class:`SourceWarning` names it.
 - **Frame rate and time**: ``rate`` is the user's ``--fps`` if given, else the rate the container
   reports if it is finite and in (0, 1000], else 30. An image sequence's ``time_s = index / rate``;
   so is a video file's when ``--fps`` is given (the user says the rate). Else a video file's frame
@@ -54,6 +56,7 @@ import sys
 import tempfile
 import threading
 import time
+import warnings
 from dataclasses import dataclass, field
 from typing import Any, Callable, Iterator, Sequence
 
@@ -80,6 +83,11 @@ class SourceError(ValueError):
 
 class SourceEnded(SourceError):
     """The last item of a live source's frames when it ended by itself: the message says why."""
+
+
+class SourceWarning(UserWarning):
+    """Something about a frame source the user should know, which does not stop the run (``quatrack``
+    prints it as ``quatrack track: warning: ...``)."""
 
 
 class SourceStalled(SourceError):
@@ -528,6 +536,7 @@ def open_frames(video: str | None = None, images: str | Sequence[str] | None = N
                           + (f" (no answer within {waited:.0f} s)" if live and waited >= 5 else ""))
     import cv2
 
+    turned = 0.0 if live else _as_recorded(cap)
     listed = cap.get(cv2.CAP_PROP_FRAME_COUNT)
     stamps: collections.deque = collections.deque()  # (a file's: each decoded frame's container time, s)
     frames = decoded_frames(cap, f"--video {video}", live,
@@ -545,12 +554,34 @@ def open_frames(video: str | None = None, images: str | Sequence[str] | None = N
     else:
         cap.release()
         raise SourceError(f"--video {video}: no frame can be decoded")
+    if turned:
+        warnings.warn(f"--video {video}: the video says rotate {turned:g}°; its frames are tracked as recorded, "
+                      f"in the camera's own orientation (the camera file's width and height)", SourceWarning,
+                      stacklevel=2)
     timed = not live and fps is None and _increasing(stamps, frames, head)
     rate = frame_rate(fps, cap.get(cv2.CAP_PROP_FPS))
     return FrameSource(f"--video {video}", rate, live=live and fps is None, max_frames=max_frames,
                        _frames=itertools.chain(head, frames), _close=cap.release,
                        _stamp=(lambda: cap.grabbed_at) if live else None,
                        _pos=stamps.popleft if timed else None)
+
+
+def _as_recorded(cap) -> float:
+    """Turn off OpenCV's turning of a video file's frames by its rotation metadata (``rotate`` tag,
+    display matrix) and return the rotation it states, clockwise degrees (0: none).
+
+    Why: the camera file describes the sensor, whose pictures the video holds as recorded; turned
+    for display, a 640×480 phone video tagged rotate 90 was refused as 480×640 px, and one tagged
+    180 was tracked without a word with every pose turned 180°."""
+    import cv2
+
+    with contextlib.suppress(AttributeError, cv2.error):  # (an OpenCV without the property: as before)
+        cap.set(cv2.CAP_PROP_ORIENTATION_AUTO, 0)
+    try:
+        turned = float(cap.get(cv2.CAP_PROP_ORIENTATION_META)) % 360
+    except (AttributeError, TypeError, ValueError, cv2.error):
+        return 0.0
+    return turned if math.isfinite(turned) else 0.0
 
 
 #: decoded frames of a video file whose timestamps must increase for them to time its frames: a

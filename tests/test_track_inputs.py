@@ -55,3 +55,19 @@ def test_a_video_without_timestamps_is_timed_by_its_rate():
     """A capture whose timestamps do not increase (all 0) is timed index / rate, exactly."""
     source = trackio.FrameSource("--video x", 25.0, _frames=iter(frames(4)), _pos=lambda: 0.0)
     assert [t for _, t, _ in source] == [i / 25 for i in range(4)]
+
+
+@pytest.mark.parametrize("degrees", [90, 180])
+def test_a_rotated_video_is_tracked_as_recorded(tmp_path, degrees):
+    """A phone's 64×48 video tagged rotate 90 (or 180): its frames stay 64×48 as the sensor gave
+    them (OpenCV turned them: 48×64 was refused by the camera, 180 tracked upside down), warned."""
+    plain = write_video(tmp_path / "plain.mp4", frames(3), fourcc="mp4v")
+    tagged = str(tmp_path / "tagged.mp4")
+    ffmpeg("-i", plain, "-c", "copy", "-metadata:s:v:0", f"rotate={degrees}", tagged)
+    if cv2.VideoCapture(tagged).get(cv2.CAP_PROP_ORIENTATION_META) % 360 == 0:
+        pytest.skip("this ffmpeg writes no rotation metadata")
+    with pytest.warns(trackio.SourceWarning, match=r"the video says rotate \d+°; its frames are tracked as recorded"):
+        source = trackio.open_frames(video=tagged)
+    got = [image for _, _, image in source]
+    assert len(got) == 3 and all(image.shape == (48, 64, 3) for image in got)
+    assert np.array_equal(got[0], next(iter(trackio.open_frames(video=plain)))[2])  # (not turned 180°)
