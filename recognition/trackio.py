@@ -538,11 +538,11 @@ def open_frames(video: str | None = None, images: str | Sequence[str] | None = N
 
     turned = 0.0 if live else _as_recorded(cap)
     listed = cap.get(cv2.CAP_PROP_FRAME_COUNT)
+    listed = int(listed) if math.isfinite(listed) and listed > 0 else 0  # (0: unknown; a stream's -1)
     stamps: collections.deque = collections.deque()  # (a file's: each decoded frame's container time, s)
-    frames = decoded_frames(cap, f"--video {video}", live,
-                            int(listed) if math.isfinite(listed) and listed > 0 else 0)
+    frames = decoded_frames(cap, f"--video {video}", live, listed)
     if not live:
-        frames = _stamped(frames, lambda: cap.get(cv2.CAP_PROP_POS_MSEC) / 1000.0, stamps)
+        frames = _file_frames(frames, cap, listed, f"--video {video}", stamps)
     head: list[np.ndarray | SourceError] = []  # up to the first frame that decodes (a bad file fails here)
     for item in frames:
         if isinstance(item, SourceEnded):  # (a live source that gives no frame at all: say why)
@@ -590,14 +590,29 @@ def _as_recorded(cap) -> float:
 STAMP_CHECK_FRAMES = 8
 
 
-def _stamped(items: Iterator[np.ndarray | SourceError], pos: Callable[[], float],
-             stamps: collections.deque) -> Iterator[np.ndarray | SourceError]:
-    """``items`` of :func:`decoded_frames`, each decoded frame's ``pos()`` appended to ``stamps``
-    as it comes (it yields a frame right after reading it: the failures before it come first)."""
+def _file_frames(items: Iterator[np.ndarray | SourceError], cap, listed: int, label: str,
+                 stamps: collections.deque) -> Iterator[np.ndarray | SourceError]:
+    """``items`` of a video file (:func:`decoded_frames`), each decoded frame's container time (s)
+    appended to ``stamps`` as it comes (a frame is yielded right after its read: the failures
+    before it come first). At the end, a file that gave fewer frames than its header counts
+    (``listed``, 0: unknown) is warned of once (:class:`SourceWarning`): a copy or recording cut
+    short ended early without a word. A count the container only estimates from its duration
+    (Matroska: a variable-frame-rate video's is too high) is not taken for short when the last
+    frame's time reaches that duration."""
+    import cv2
+
+    n, last = 0, None
     for item in items:
+        n += 1
         if not isinstance(item, Exception):
-            stamps.append(pos())
+            last = cap.get(cv2.CAP_PROP_POS_MSEC) / 1000.0
+            stamps.append(last)
         yield item
+    rate = cap.get(cv2.CAP_PROP_FPS)
+    timed = last is not None and math.isfinite(last) and last > 0 and math.isfinite(rate) and rate > 0
+    if last is not None and n < listed and not (timed and last + 1.5 / rate >= listed / rate):  # (none: an error)
+        warnings.warn(f"{label}: the video ended after {n} of the {listed} frames its header counts "
+                      f"(cut short or damaged?)", SourceWarning, stacklevel=2)
 
 
 def _increasing(stamps: collections.deque, frames: Iterator, head: list) -> bool:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import shutil
 import subprocess
+import warnings
 
 import cv2
 import numpy as np
@@ -71,3 +72,19 @@ def test_a_rotated_video_is_tracked_as_recorded(tmp_path, degrees):
     got = [image for _, _, image in source]
     assert len(got) == 3 and all(image.shape == (48, 64, 3) for image in got)
     assert np.array_equal(got[0], next(iter(trackio.open_frames(video=plain)))[2])  # (not turned 180°)
+
+
+def test_a_video_cut_short_is_warned_of(tmp_path):
+    """An AVI copied only in part ends after 24-odd of the 40 frames its header counts: said once;
+    the whole file and a run stopped by max_frames say nothing."""
+    whole = write_video(tmp_path / "whole.avi", frames(40))
+    data = open(whole, "rb").read()
+    cut = tmp_path / "cut.avi"
+    cut.write_bytes(data[: len(data) * 6 // 10])
+    with pytest.warns(trackio.SourceWarning, match=r"the video ended after \d+ of the 40 frames its header counts") as seen:
+        n = len(list(trackio.open_frames(video=str(cut))))
+    assert 10 < n < 40 and len(seen) == 1 and f"after {n} of the 40" in str(seen[0].message)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert len(list(trackio.open_frames(video=whole))) == 40
+        assert len(list(trackio.open_frames(video=str(cut), max_frames=5))) == 5
