@@ -375,8 +375,14 @@ def list_file(path: str) -> list[str]:
 
 def glob_files(pattern: str) -> list[str]:
     """The files (not folders) a glob matches, sorted by name: the order of ``--images`` (the
-    contract's) and of ``locate``'s quoted globs."""
-    return sorted(p for p in globlib.glob(pattern) if os.path.isfile(p))
+    contract's) and of ``locate``'s quoted globs. A pattern that matches nothing is tried again
+    with its folder taken literally: ``/data/run[2]/*.png`` (a folder named with ``[ ] * ?``) gave
+    "no file matches", ``[2]`` read as a character class."""
+    found = sorted(p for p in globlib.glob(pattern) if os.path.isfile(p))
+    folder, name = os.path.split(pattern)
+    if not found and globlib.has_magic(folder):
+        found = sorted(p for p in globlib.glob(os.path.join(globlib.escape(folder), name)) if os.path.isfile(p))
+    return found
 
 
 def image_paths(patterns: str | Sequence[str]) -> list[str]:

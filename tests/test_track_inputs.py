@@ -88,3 +88,14 @@ def test_a_video_cut_short_is_warned_of(tmp_path):
         warnings.simplefilter("error")
         assert len(list(trackio.open_frames(video=whole))) == 40
         assert len(list(trackio.open_frames(video=str(cut), max_frames=5))) == 5
+
+
+def test_images_in_a_folder_named_with_glob_characters(tmp_path):
+    """'run[2]/*.png': the folder's name is taken literally when the glob as given matches nothing."""
+    folder = tmp_path / "run[2]"
+    folder.mkdir()
+    for k in (2, 1):
+        cv2.imwrite(str(folder / f"f{k}.png"), np.full((8, 8, 3), k, np.uint8))
+    source = trackio.open_frames(images=str(folder / "*.png"))
+    assert [int(image[0, 0, 0]) for _, _, image in source] == [1, 2]
+    assert trackio.image_paths(str(folder / "f?.png")) == [str(folder / "f1.png"), str(folder / "f2.png")]
