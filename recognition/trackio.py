@@ -450,6 +450,33 @@ def _jumbled(files: list[str]) -> tuple[str, str] | None:
     return None if pair is None or _first_descent(files[::-1]) is None else pair  # (descending: None too)
 
 
+def numbering_gap(files: Sequence[str]) -> tuple[str, str, int] | None:
+    """The first two neighbours of a numbered sequence (names alike but for one number, which goes
+    up) whose numbers step further than the sequence's usual step (the step of more than half its
+    neighbours, at least two), with the count of numbers missing between them, or None.
+
+    Why: an image's ``time_s`` is its index / rate, so ``frame_0004`` then ``frame_0007`` put every
+    frame after the gap two frames early, without a word.
+
+    >>> numbering_gap(["f_1.png", "f_2.png", "f_5.png", "f_6.png"]), numbering_gap(["f_0.png", "f_5.png", "f_10.png"])
+    (('f_2.png', 'f_5.png', 2), None)
+    """
+    steps: list[tuple[int, str, str]] = []
+    for a, b in zip(files, files[1:]):
+        na, nb = ([int(x) for x in re.findall(r"\d+", f)] for f in (a, b))
+        differ = [(x, y) for x, y in zip(na, nb) if x != y]
+        if len(na) != len(nb) or re.sub(r"\d+", "#", a) != re.sub(r"\d+", "#", b) or len(differ) != 1 \
+                or differ[0][1] <= differ[0][0]:
+            return None  # (not one numbered sequence going up: misordered's business, or none)
+        steps.append((differ[0][1] - differ[0][0], a, b))
+    if not steps:
+        return None
+    usual, seen = collections.Counter(step for step, _, _ in steps).most_common(1)[0]
+    if seen < 2 or 2 * seen <= len(steps):  # (no step is the usual one: 1, 2, 10 is no sequence to judge)
+        return None
+    return next(((a, b, max(1, round(step / usual) - 1)) for step, a, b in steps if step > usual), None)
+
+
 def misordered_given(patterns: str | Sequence[str]) -> tuple[str, str] | None:
     """As :func:`misordered`, for the files of ``--images`` taken in the order given: files named
     one after another (an unquoted glob, which the shell expanded and sorted by name itself) and
@@ -511,6 +538,11 @@ def open_frames(video: str | None = None, images: str | Sequence[str] | None = N
                 raise SourceError(f"--images {folder}: is a folder; give a glob of its images, "
                                   f"e.g. {os.path.join(folder, '*.png')!r}")
             raise SourceError(f"--images {label}: no file matches")
+
+        if (gap := numbering_gap(paths)) is not None:
+            warnings.warn(f"--images: the numbering skips from {gap[0]} to {gap[1]} ({gap[2]} missing?); a frame's "
+                          f"time_s is its index / rate, so the frames after it are timed early", SourceWarning,
+                          stacklevel=2)
 
         def frames() -> Iterator[np.ndarray | ImageError]:
             for p in paths:

@@ -99,3 +99,20 @@ def test_images_in_a_folder_named_with_glob_characters(tmp_path):
     source = trackio.open_frames(images=str(folder / "*.png"))
     assert [int(image[0, 0, 0]) for _, _, image in source] == [1, 2]
     assert trackio.image_paths(str(folder / "f?.png")) == [str(folder / "f1.png"), str(folder / "f2.png")]
+
+
+def test_a_gap_in_an_image_sequence_is_warned_of(tmp_path):
+    """frame_0004 then frame_0007: warned once, naming the first gap (times are index / rate);
+    a sequence numbered every 5th frame is no gap."""
+    for k in (1, 2, 3, 4, 7, 8, 10):
+        cv2.imwrite(str(tmp_path / f"frame_{k:04d}.png"), np.zeros((8, 8, 3), np.uint8))
+    with pytest.warns(trackio.SourceWarning, match=r"skips from \S*frame_0004.png to \S*frame_0007.png \(2 missing\?\)") as seen:
+        assert len(list(trackio.open_frames(images=str(tmp_path / "*.png")))) == 7
+    assert len(seen) == 1
+    steady = tmp_path / "steady"
+    steady.mkdir()
+    for k in (0, 5, 10, 15):
+        cv2.imwrite(str(steady / f"frame_{k:04d}.png"), np.zeros((8, 8, 3), np.uint8))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert len(list(trackio.open_frames(images=str(steady / "*.png")))) == 4
