@@ -22,6 +22,8 @@ hold everywhere:
   monotonic seconds from the moment its first frame was grabbed (its read returned, in the
   capture thread) to the moment this one was, since a camera drops and delays frames — not when
   the tracker took it (the first frame is read as the source opens, before the tracker is built).
+  Frames buffered by the driver or FFmpeg while the tracker was busy are read at once, so their
+  times come out compressed (:class:`LiveCapture` reads no frame ahead).
 - **Live sources** are read in a thread of their own (:class:`LiveCapture`), one frame at a time
   as the consumer asks: a read blocked in OpenCV (a stalled stream) no longer holds off Ctrl-C or
   SIGTERM, and a source that gives no frame for ``stall_timeout_s`` (default
@@ -151,7 +153,10 @@ class LiveCapture:
     call (a test's camera raising ``KeyboardInterrupt``) is raised in the caller.
 
     :attr:`grabbed_at` is the :attr:`clock` reading taken in the capture thread as the latest
-    ``read`` returned: the frame's own time, whenever the caller gets round to it."""
+    ``read`` returned. That is the frame's capture time only when no frame waited: the read is made
+    when the caller asks, so frames the driver or FFmpeg buffered while the caller was busy (a
+    camera's few V4L2 buffers, a stream's packets) come out of reads that return at once, their
+    times closer together than they were captured (nothing read ahead, nothing dropped)."""
 
     clock: Callable[[], float] = staticmethod(time.monotonic)
 
