@@ -993,26 +993,53 @@ def check_outputs(inputs: Sequence[tuple[str, str]], outputs: Sequence[tuple[str
         seen[real] = opt
 
 
+SPECIAL_ROOTS = ("/dev/", "/proc/")  # devices, and /proc/self/fd/N: a process's open files
+
+
+def written_where(target: str | os.PathLike) -> tuple[str, bool]:
+    """Where an output named ``target`` goes: ``(path, in_place)``. In place (``path`` is
+    ``target``) when it is under /dev/ or /proc/, reaches there through a link, or is a device or
+    FIFO: ``--out /dev/stdout`` with stdout redirected to a file resolves to that regular file,
+    and the rename of a temporary file onto /dev/stdout (a link to /proc/self/fd/1) replaced the
+    link, for every process, and lost the poses. Otherwise ``path`` is the file the links lead to
+    (``os.path.realpath``): the rename onto a link replaced the link, and its target was never
+    written."""
+    target = os.fspath(target)
+    path = os.path.abspath(target)
+    for _ in range(64):  # (each link of a chain, its folder resolved: a folder linked into /proc counts)
+        path = os.path.join(os.path.realpath(os.path.dirname(path)), os.path.basename(path))
+        if (path + os.sep).startswith(SPECIAL_ROOTS):
+            return target, True
+        if not os.path.islink(path):
+            break
+        path = os.path.join(os.path.dirname(path), os.readlink(path))
+    real = os.path.realpath(target)
+    if os.path.exists(real) and not os.path.isfile(real) and not os.path.isdir(real):
+        return target, True
+    return real, False
+
+
 @contextlib.contextmanager
 def atomic_path(target: str | os.PathLike, option: str = "") -> Iterator[str]:
     """A temporary path beside ``target`` (same folder, so the rename is atomic) that becomes
     ``target`` when the block ends normally, and is deleted if it raises. Permissions follow the
-    umask (``mkstemp``'s 0600 would survive the rename). A target that exists and is neither a
-    regular file nor a folder (``/dev/null``, ``/dev/stdout``, a FIFO) is yielded as it is and
-    written in place: renaming onto it replaced the device with a regular file."""
+    umask (``mkstemp``'s 0600 would survive the rename). A device, FIFO or anything under /dev/
+    or /proc/ (``/dev/null``, ``/dev/stdout``) is yielded as it is and written in place; a link
+    to a file is written at the file the link leads to, the link kept (:func:`written_where`)."""
     target = os.fspath(target)
-    folder = os.path.dirname(os.path.abspath(target))
     name = f"{option} {target}" if option else target
-    if os.path.exists(target) and not os.path.isfile(target) and not os.path.isdir(target):
-        yield target
-        return
     if not os.path.basename(target):  # ("" or "new/": the rename at the end failed, after the whole run)
         raise SourceError(f"{name}: give a file name, not a folder")
+    final, in_place = written_where(target)
+    if in_place:
+        yield target
+        return
+    folder = os.path.dirname(final)
     if not os.path.isdir(folder):
         raise SourceError(f"{name}: the folder {folder} does not exist")
-    suffix = os.path.splitext(target)[1]
+    suffix = os.path.splitext(final)[1]
     try:
-        fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(target)}.", suffix=suffix, dir=folder)
+        fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(final)}.", suffix=suffix, dir=folder)
     except OSError as exc:  # (a read-only folder: the message named the temporary file, not the option)
         raise SourceError(f"{name}: cannot write in {folder} ({exc.strerror or exc})") from None
     os.close(fd)
@@ -1022,7 +1049,7 @@ def atomic_path(target: str | os.PathLike, option: str = "") -> Iterator[str]:
     try:
         yield tmp
         if os.path.exists(tmp):  # (its writer removed it: nothing to write, the target is left as it was)
-            os.replace(tmp, target)
+            os.replace(tmp, final)
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
@@ -1120,8 +1147,8 @@ class VideoOut:
                 self._held = None
             self.writer.release()
             self.writer = None
-        elif os.path.isfile(self.path) and os.path.getsize(self.path) == 0:
-            os.unlink(self.path)
+        elif os.path.isfile(self.path) and os.path.getsize(self.path) == 0 and not written_where(self.path)[1]:
+            os.unlink(self.path)  # (not in place: an empty /dev/stdout was unlinked, the link itself)
 
 
 # --- progress --------------------------------------------------------------------------------------

@@ -1,0 +1,73 @@
+"""`quatrack track`'s outputs: where they are written (links, devices, /proc), which names they
+take, and what a Ctrl-C leaves. The trial of `track` found each of these."""
+
+from __future__ import annotations
+
+import os
+
+from quatrack.recognition import trackio
+
+
+def _write(path, text: str) -> None:
+    with open(path, "w", encoding="utf-8") as f:
+        f.write(text)
+
+
+def test_a_link_to_a_file_is_written_at_the_file_and_the_link_kept(tmp_path):
+    # `--out link.csv` replaced the link by a regular file; the file it led to was never written
+    real, link = tmp_path / "real.csv", tmp_path / "link.csv"
+    _write(real, "old\n")
+    link.symlink_to(real)
+    with trackio.atomic_path(link, "--out") as tmp:
+        assert os.path.dirname(tmp) == str(tmp_path) and not os.path.islink(tmp)
+        _write(tmp, "new\n")
+    assert link.is_symlink() and real.read_text() == "new\n"
+    dangling = tmp_path / "dangling.csv"  # (a link to a file not there yet: the file is made)
+    dangling.symlink_to(tmp_path / "made.csv")
+    with trackio.atomic_path(dangling, "--out") as tmp:
+        _write(tmp, "x\n")
+    assert dangling.is_symlink() and (tmp_path / "made.csv").read_text() == "x\n"
+
+
+def test_a_link_to_an_open_file_of_proc_is_written_in_place(tmp_path):
+    # `--out /dev/stdout` with stdout redirected to a file, as root: /dev/stdout (a link to
+    # /proc/self/fd/1) was replaced by a regular file, for every process, and the poses lost.
+    # Here a link of our own to /proc/self/fd/N, N a file we opened: the real /dev/stdout untouched
+    redirected = tmp_path / "redirected.txt"
+    fd = os.open(redirected, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+    try:
+        stdout = tmp_path / "stdout"
+        stdout.symlink_to(f"/proc/self/fd/{fd}")
+        with trackio.atomic_path(stdout, "--out") as tmp:
+            assert tmp == str(stdout)
+            _write(tmp, "poses\n")
+        assert stdout.is_symlink() and redirected.read_text() == "poses\n"
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["redirected.txt", "stdout"]
+    finally:
+        os.close(fd)
+
+
+def test_a_pipe_of_proc_is_written_in_place_and_an_empty_overlay_there_is_not_unlinked(tmp_path):
+    r, w = os.pipe()
+    try:
+        path = f"/proc/self/fd/{w}"
+        assert trackio.written_where(path) == (path, True)
+        link = tmp_path / "poses.csv"
+        link.symlink_to(path)
+        with trackio.atomic_path(link, "--out") as tmp:
+            assert tmp == str(link)
+            _write(tmp, "row\n")
+        assert link.is_symlink() and os.read(r, 100) == b"row\n"
+    finally:
+        os.close(r)
+        os.close(w)
+    empty = tmp_path / "empty.mp4"  # (an overlay with no frame on a redirected stdout: the link was unlinked)
+    fd = os.open(empty, os.O_WRONLY | os.O_CREAT, 0o644)
+    try:
+        link = tmp_path / "overlay.mp4"
+        link.symlink_to(f"/proc/self/fd/{fd}")
+        with trackio.atomic_path(link, "--overlay") as tmp:
+            trackio.VideoOut(tmp, 30.0).close()  # (no frame: a file of its own is removed, this is not)
+        assert link.is_symlink() and empty.exists()
+    finally:
+        os.close(fd)
