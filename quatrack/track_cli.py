@@ -131,6 +131,7 @@ def _check_outputs(args: argparse.Namespace) -> None:
     inputs += [("--camera", args.camera), ("--init-pose", args.init_pose)]  # (--out on either replaced it)
     # (the files open_frames reads: a quoted '~/frames/*.png' matched nothing here, and --out overwrote a frame)
     inputs += [("--images", f) for f in image_paths(args.images or [])]
+    inputs += [("--images", f) for f in args.images or []]  # (a list file: --out frames.txt replaced the list)
     check_outputs(inputs, [("--out", args.out), ("--overlay", args.overlay), ("--plot", args.plot)])
 
 

@@ -71,3 +71,17 @@ def test_a_pipe_of_proc_is_written_in_place_and_an_empty_overlay_there_is_not_un
         assert link.is_symlink() and empty.exists()
     finally:
         os.close(fd)
+
+
+def test_an_output_on_the_list_file_given_to_images_is_refused(tmp_path, capsys):
+    # `--images frames.txt --out frames.txt`: the list was replaced by the poses (the images it
+    # lists, and --video, were refused already)
+    from test_image_arguments import _frames
+    from test_track_cli import _track
+
+    _frames(tmp_path, ["0000.png"])
+    listing = tmp_path / "frames.txt"
+    listing.write_text("0000.png\n")
+    assert _track(tmp_path, "--images", str(listing), "--out", str(listing)) == 2
+    assert f"--out {listing}: is the input; give another file name" in capsys.readouterr().err
+    assert listing.read_text() == "0000.png\n"
