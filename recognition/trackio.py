@@ -1019,6 +1019,25 @@ def written_where(target: str | os.PathLike) -> tuple[str, bool]:
     return real, False
 
 
+def _temp_affixes(name: str, folder: str) -> tuple[str, str]:
+    """``mkstemp``'s prefix and suffix for a temporary ``.NAME.XXXXXXXX.ext`` beside ``NAME``,
+    NAME cut short so that the whole fits the folder's longest name (255 bytes mostly): an output
+    name of 240-255 bytes, one the filesystem takes, failed with "File name too long". The
+    extension is kept when it fits (the video writer and ``imwrite`` go by it)."""
+    try:
+        limit = os.pathconf(folder, "PC_NAME_MAX")
+    except (OSError, ValueError):
+        limit = 255
+    suffix = os.path.splitext(name)[1]
+    room = limit - len(".." + "XXXXXXXX")  # (mkstemp's 8 random characters)
+    if len(os.fsencode(suffix)) > room // 2:  # (an "extension" that is most of the name)
+        suffix = ""
+    stem = name
+    while stem and len(os.fsencode(stem + suffix)) > room:  # (by characters: a UTF-8 name is not cut mid-character)
+        stem = stem[:-1]
+    return f".{stem}.", suffix
+
+
 @contextlib.contextmanager
 def atomic_path(target: str | os.PathLike, option: str = "") -> Iterator[str]:
     """A temporary path beside ``target`` (same folder, so the rename is atomic) that becomes
@@ -1037,9 +1056,9 @@ def atomic_path(target: str | os.PathLike, option: str = "") -> Iterator[str]:
     folder = os.path.dirname(final)
     if not os.path.isdir(folder):
         raise SourceError(f"{name}: the folder {folder} does not exist")
-    suffix = os.path.splitext(final)[1]
+    prefix, suffix = _temp_affixes(os.path.basename(final), folder)
     try:
-        fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(final)}.", suffix=suffix, dir=folder)
+        fd, tmp = tempfile.mkstemp(prefix=prefix, suffix=suffix, dir=folder)
     except OSError as exc:  # (a read-only folder: the message named the temporary file, not the option)
         raise SourceError(f"{name}: cannot write in {folder} ({exc.strerror or exc})") from None
     os.close(fd)

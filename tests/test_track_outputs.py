@@ -85,3 +85,16 @@ def test_an_output_on_the_list_file_given_to_images_is_refused(tmp_path, capsys)
     assert _track(tmp_path, "--images", str(listing), "--out", str(listing)) == 2
     assert f"--out {listing}: is the input; give another file name" in capsys.readouterr().err
     assert listing.read_text() == "0000.png\n"
+
+
+def test_an_output_name_of_up_to_255_bytes_is_written(tmp_path):
+    # the temporary ".NAME.XXXXXXXX.ext" was over 255 bytes: a 250-byte name the filesystem takes
+    # failed with "File name too long"
+    for name in ("p" * 246 + ".csv", "é" * 123 + ".mp4", "x" * 255):
+        target = tmp_path / name
+        assert len(os.fsencode(name)) >= 250
+        with trackio.atomic_path(target, "--out") as tmp:
+            assert tmp.endswith(os.path.splitext(name)[1] or "")
+            _write(tmp, "rows\n")
+        assert target.read_text() == "rows\n"
+    assert len(list(tmp_path.iterdir())) == 3
