@@ -111,6 +111,9 @@ def _load_init_pose(path: str):
     return parse_pose(data, f"--init-pose {path}")
 
 
+JOIN_TIMEOUT_S = 10.0  # the longest wait at the end for the run's threads (_join_started)
+
+
 @dataclass
 class _Setup:
     """Everything a run needs, checked before any output is opened."""
@@ -300,6 +303,41 @@ def _terminate_as_interrupt():
 
 
 def run(args: argparse.Namespace) -> int:
+    """:func:`_run`, then a wait for the threads it started (:func:`_join_started`), on every path."""
+    import threading
+
+    before = set(threading.enumerate())
+    try:
+        return _run(args)
+    finally:
+        _join_started(before)
+
+
+def _join_started(before: set, timeout_s: float = JOIN_TIMEOUT_S) -> None:
+    """Wait (at most ``timeout_s`` in all) for the daemon threads started since ``before`` — a
+    FLANN forest being built, a live capture's thread letting its stream go — to end. Why: a
+    daemon thread still inside OpenCV when the interpreter shut down aborted the process as it
+    came back ("terminate called without an active exception", exit 134 instead of 0 or 130):
+    Ctrl-C during the first frame (the index still building), an RTSP URL that cannot be opened
+    (its capture still being released). A second Ctrl-C stops the wait."""
+    import os
+    import threading
+    import time
+
+    deadline = time.monotonic() + timeout_s
+    try:
+        for t in [t for t in threading.enumerate() if t not in before and t.daemon]:
+            t.join(max(0.0, deadline - time.monotonic()))
+            # (joined is not gone: the thread's native exit — OpenCV's per-thread data freed — still runs,
+            # and the process exiting under it aborted as well; on Linux its task is seen going)
+            task = f"/proc/self/task/{t.native_id}"
+            while t.native_id and os.path.exists(task) and time.monotonic() < deadline:
+                time.sleep(0.005)
+    except KeyboardInterrupt:
+        pass
+
+
+def _run(args: argparse.Namespace) -> int:
     import cv2
 
     from quatrack.recognition.overlay import plot_track

@@ -98,3 +98,32 @@ def test_an_output_name_of_up_to_255_bytes_is_written(tmp_path):
             _write(tmp, "rows\n")
         assert target.read_text() == "rows\n"
     assert len(list(tmp_path.iterdir())) == 3
+
+
+def test_the_threads_a_run_started_are_gone_when_it_returns_on_every_path(monkeypatch):
+    # Ctrl-C during the first frame aborted the process ("terminate called without an active
+    # exception", exit 134): the FLANN forest's thread was still inside OpenCV, or just leaving
+    # it, as the interpreter shut down; the same after an RTSP URL that cannot be opened (its
+    # capture thread still releasing). run() now waits for the threads it started, to the end
+    # of their native exit, whatever ends it.
+    import threading
+    import time
+
+    import pytest
+
+    from quatrack import track_cli
+
+    started = []
+
+    def body(args):
+        t = threading.Thread(target=time.sleep, args=(0.3,), daemon=True)
+        t.start()
+        started.append(t)
+        raise args
+
+    monkeypatch.setattr(track_cli, "_run", body)
+    for ending in (KeyboardInterrupt(), track_cli.UserError("the stream cannot be opened")):
+        with pytest.raises(type(ending)):
+            track_cli.run(ending)
+        t = started[-1]
+        assert not t.is_alive() and not os.path.exists(f"/proc/self/task/{t.native_id}")
