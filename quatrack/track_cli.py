@@ -314,8 +314,9 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _join_started(before: set, timeout_s: float = JOIN_TIMEOUT_S) -> None:
-    """Wait (at most ``timeout_s`` in all) for the daemon threads started since ``before`` — a
-    FLANN forest being built, a live capture's thread letting its stream go — to end. Why: a
+    """Wait (at most ``timeout_s`` in all, a live capture's thread 1 s) for the daemon threads
+    started since ``before`` — a FLANN forest being built, a live capture's thread letting its
+    stream go — to end. Why: a
     daemon thread still inside OpenCV when the interpreter shut down aborted the process as it
     came back ("terminate called without an active exception", exit 134 instead of 0 or 130):
     Ctrl-C during the first frame (the index still building), an RTSP URL that cannot be opened
@@ -327,11 +328,14 @@ def _join_started(before: set, timeout_s: float = JOIN_TIMEOUT_S) -> None:
     deadline = time.monotonic() + timeout_s
     try:
         for t in [t for t in threading.enumerate() if t not in before and t.daemon]:
-            t.join(max(0.0, deadline - time.monotonic()))
+            # (a live capture's thread blocked in a stalled stream's read may stay there 35 s: Ctrl-C
+            # stops at once, so it gets a second to let go; the exit then ends it where it waits)
+            until = min(deadline, time.monotonic() + 1.0) if t.name.startswith("capture ") else deadline
+            t.join(max(0.0, until - time.monotonic()))
             # (joined is not gone: the thread's native exit — OpenCV's per-thread data freed — still runs,
             # and the process exiting under it aborted as well; on Linux its task is seen going)
             task = f"/proc/self/task/{t.native_id}"
-            while t.native_id and os.path.exists(task) and time.monotonic() < deadline:
+            while t.native_id and os.path.exists(task) and time.monotonic() < until:
                 time.sleep(0.005)
     except KeyboardInterrupt:
         pass
