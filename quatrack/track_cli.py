@@ -233,6 +233,7 @@ def _track_frames(s: _Setup, rows, video, progress) -> tuple[list, bool]:
             emit(step, last)
         skipped_until(None)
     except KeyboardInterrupt:
+        _defer_interrupts()  # (first: the source's release below may take 0.5 s)
         return steps, True
     finally:
         s.source.close()
@@ -304,13 +305,40 @@ def _terminate_as_interrupt():
 
 def run(args: argparse.Namespace) -> int:
     """:func:`_run`, then a wait for the threads it started (:func:`_join_started`), on every path."""
+    import signal
     import threading
 
     before = set(threading.enumerate())
+    main = threading.current_thread() is threading.main_thread()
+    previous = signal.getsignal(signal.SIGINT) if main else None
     try:
         return _run(args)
     finally:
         _join_started(before)
+        if main:  # (after _defer_interrupts: main() may be called in-process)
+            signal.signal(signal.SIGINT, previous)
+
+
+def _defer_interrupts() -> None:
+    """From the Ctrl-C (or SIGTERM) that stopped the tracking on, another Ctrl-C is said once and
+    otherwise ignored, so the outputs are finished: a second Ctrl-C 10-20 ms after the first lost
+    every output (exit 130, "interrupted"); a little later the process died by the signal. Ctrl-\\
+    (SIGQUIT) still quits at once. Only in the main thread, as :func:`_terminate_as_interrupt`."""
+    import os
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return
+    said = []
+
+    def again(signum, frame) -> None:
+        if not said:  # (os.write: a print here may land inside one of the main thread's, and raise)
+            said.append(signum)
+            os.write(2, b"quatrack track: finishing the outputs; Ctrl-C again is ignored until they are complete "
+                        b"(Ctrl-\\ quits without them)\n")
+
+    signal.signal(signal.SIGINT, again)
 
 
 def _join_started(before: set, timeout_s: float = JOIN_TIMEOUT_S) -> None:

@@ -127,3 +127,37 @@ def test_the_threads_a_run_started_are_gone_when_it_returns_on_every_path(monkey
             track_cli.run(ending)
         t = started[-1]
         assert not t.is_alive() and not os.path.exists(f"/proc/self/task/{t.native_id}")
+
+
+def test_a_second_ctrl_c_while_the_outputs_are_finished_is_said_once_and_ignored(monkeypatch, tmp_path, capfd):
+    # a second Ctrl-C 10-20 ms after the first lost every output (exit 130, "interrupted"); here
+    # it comes (twice) while the overlay is being finished, after the first stopped the tracking
+    import signal
+
+    from test_output import LoopedCamera
+    from test_track_cli import _track
+
+    class Interrupted(LoopedCamera):
+        def read(self):
+            if len(self.frames) >= 3:
+                raise KeyboardInterrupt
+            return super().read()
+
+    close = trackio.VideoOut.close
+
+    def pressed_again(self):
+        os.kill(os.getpid(), signal.SIGINT)
+        os.kill(os.getpid(), signal.SIGINT)
+        close(self)
+
+    monkeypatch.setattr(trackio, "open_capture", Interrupted)
+    monkeypatch.setattr(trackio.VideoOut, "close", pressed_again)
+    out, overlay = tmp_path / "poses.csv", tmp_path / "overlay.mp4"
+    handler = signal.getsignal(signal.SIGINT)
+    rc = _track(tmp_path, "--video", "0", "--out", str(out), "--overlay", str(overlay))
+    err = capfd.readouterr().err
+    assert rc == 0 and "stopped (Ctrl-C) after 3 frames" in err, err
+    assert err.count("finishing the outputs; Ctrl-C again is ignored") == 1
+    assert len(out.read_text().splitlines()) == 4 and overlay.stat().st_size > 0
+    assert signal.getsignal(signal.SIGINT) is handler  # (put back)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["overlay.mp4", "poses.csv"]
