@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import os
 import sys
 from contextlib import ExitStack
 from dataclasses import dataclass
@@ -315,8 +316,20 @@ def run(args: argparse.Namespace) -> int:
         return _run(args)
     finally:
         _join_started(before)
-        if main:  # (after _defer_interrupts: main() may be called in-process)
-            signal.signal(signal.SIGINT, previous)
+        if main and signal.getsignal(signal.SIGINT) is not previous:  # (_defer_interrupts' handler)
+            # the program: ignored to the end (the interpreter's exit puts a Python handler back to
+            # the default, killing; SIG_IGN it keeps); main() called in-process: put back
+            signal.signal(signal.SIGINT, signal.SIG_IGN if _is_the_program() else previous)
+
+
+def _is_the_program() -> bool:
+    """Whether this process is the ``quatrack`` command (``python -m quatrack`` or the script),
+    not a program calling :func:`quatrack.cli.main`: then Ctrl-C stays ignored after an
+    interrupted run until the process exits (put back, a Ctrl-C in the last milliseconds — the
+    summary, the interpreter's exit — killed the process by the signal after the outputs were
+    complete, instead of exit 0)."""
+    spec = getattr(sys.modules.get("__main__"), "__spec__", None)
+    return getattr(spec, "name", None) == "quatrack.__main__" or os.path.basename(sys.argv[0]) == "quatrack"
 
 
 def _defer_interrupts() -> None:

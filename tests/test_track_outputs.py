@@ -161,3 +161,40 @@ def test_a_second_ctrl_c_while_the_outputs_are_finished_is_said_once_and_ignored
     assert len(out.read_text().splitlines()) == 4 and overlay.stat().st_size > 0
     assert signal.getsignal(signal.SIGINT) is handler  # (put back)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["overlay.mp4", "poses.csv"]
+
+
+_AGAIN_AFTER_THE_RUN = """
+import os, runpy, signal, sys, time
+from quatrack import track_cli
+from quatrack.recognition.video import Tracker
+
+def step(self, image, time_s):
+    raise KeyboardInterrupt  # (the first Ctrl-C, at the first frame)
+
+def then_again(args):
+    rc = run(args)
+    os.kill(os.getpid(), signal.SIGINT)  # (the second, once the outputs are complete)
+    time.sleep(0.05)
+    return rc
+
+Tracker.step, run, track_cli.run = step, track_cli.run, then_again
+sys.argv = ["quatrack", *sys.argv[1:]]
+runpy.run_module("quatrack", run_name="__main__", alter_sys=True)
+"""
+
+
+def test_a_second_ctrl_c_as_the_program_ends_does_not_kill_it(tmp_path):
+    # 30 ms-0.4 s after the first, a second Ctrl-C (after "outputs complete") killed the process by
+    # the signal instead of exit 0: the handler put back, then the interpreter's exit set the default
+    import subprocess
+    import sys
+
+    from quatrack.testing.scenes import EXAMPLE, example_store
+
+    out = tmp_path / "poses.csv"
+    r = subprocess.run([sys.executable, "-c", _AGAIN_AFTER_THE_RUN, "track", "--object", "cookie-box", "--camera",
+                        str(EXAMPLE / "camera.json"), "--store", str(example_store()), "--quiet", "--video",
+                        str(EXAMPLE / "box.mp4"), "--out", str(out)],
+                       capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert r.returncode == 0 and "stopped (Ctrl-C) after 0 frames" in r.stderr, (r.returncode, r.stderr)
+    assert out.read_text().splitlines() == [trackio.CSV_HEADER]
