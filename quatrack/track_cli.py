@@ -426,7 +426,8 @@ def _run(args: argparse.Namespace) -> int:
                 if not cv2.imwrite(tmp_png, plot_track(steps)):
                     raise UserError(f"--plot {args.plot}: cannot write the PNG")
     if interrupted:
-        print(f"quatrack track: stopped ({stop.cause}) after {len(steps)} frames; outputs complete", file=sys.stderr)
+        print(f"quatrack track: stopped ({stop.cause}) after {len(steps)} frames; {_written(args, video)}",
+              file=sys.stderr)
     for note in video.notes() if video is not None else ():  # (an odd size padded, a rate MP4 cannot store)
         print(f"quatrack track: note: {note}", file=sys.stderr)
     for k, _, why in s.source.skipped[:5]:
@@ -435,12 +436,20 @@ def _run(args: argparse.Namespace) -> int:
         print(f"quatrack track: ... {len(s.source.skipped)} frames in all cannot be read", file=sys.stderr)
     if s.source.ended and not interrupted:  # (a stream that stalled or dropped ended the run with exit 0, not a word)
         print(f"quatrack track: {s.source.label}: {s.source.ended}; stopped after {len(steps)} frames; "
-              f"outputs complete", file=sys.stderr)
+              f"{_written(args, video)}", file=sys.stderr)
     if s.tracker.params.learn:
         _store_learned(s, args.object)
     if not args.quiet:
         _summary(steps, args.out)
     return 0
+
+
+def _written(args: argparse.Namespace, video) -> str:
+    """"outputs complete", or which output was not written: an overlay without a frame (a stop
+    before the first) is no video, and the line said "outputs complete" all the same."""
+    if video is not None and video.size is None:
+        return f"--overlay {args.overlay} not written (no frame to show); the other outputs complete"
+    return "outputs complete"
 
 
 def _store_learned(s: _Setup, name: str) -> None:

@@ -198,3 +198,24 @@ def test_a_second_ctrl_c_as_the_program_ends_does_not_kill_it(tmp_path):
                        capture_output=True, text=True, timeout=120, cwd=tmp_path)
     assert r.returncode == 0 and "stopped (Ctrl-C) after 0 frames" in r.stderr, (r.returncode, r.stderr)
     assert out.read_text().splitlines() == [trackio.CSV_HEADER]
+
+
+def test_ctrl_c_before_the_first_frame_says_the_overlay_is_not_written(monkeypatch, tmp_path, capsys):
+    # the overlay of a run stopped before its first frame is no video (not written), and the line
+    # said "outputs complete"
+    from quatrack.recognition.video import Tracker
+    from quatrack.testing.scenes import EXAMPLE
+    from test_track_cli import _track
+
+    def interrupted(self, image, time_s):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(Tracker, "step", interrupted)
+    out, overlay = tmp_path / "poses.csv", tmp_path / "overlay.mp4"
+    assert _track(tmp_path, "--video", str(EXAMPLE / "box.mp4"), "--out", str(out),
+                  "--overlay", str(overlay)) == 0
+    err = capsys.readouterr().err
+    assert (f"stopped (Ctrl-C) after 0 frames; --overlay {overlay} not written (no frame to show); "
+            f"the other outputs complete") in err, err
+    assert not overlay.exists() and out.exists()
+
