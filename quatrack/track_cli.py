@@ -366,12 +366,14 @@ def _join_started(before: set, timeout_s: float = JOIN_TIMEOUT_S) -> None:
     import threading
     import time
 
+    from quatrack.recognition.trackio import CAPTURE_THREAD
+
     deadline = time.monotonic() + timeout_s
     try:
         for t in [t for t in threading.enumerate() if t not in before and t.daemon]:
             # (a live capture's thread blocked in a stalled stream's read may stay there 35 s: Ctrl-C
             # stops at once, so it gets a second to let go; the exit then ends it where it waits)
-            until = min(deadline, time.monotonic() + 1.0) if t.name.startswith("capture ") else deadline
+            until = min(deadline, time.monotonic() + 1.0) if t.name.startswith(CAPTURE_THREAD + " ") else deadline
             t.join(max(0.0, until - time.monotonic()))
             # (joined is not gone: the thread's native exit — OpenCV's per-thread data freed — still runs,
             # and the process exiting under it aborted as well; on Linux its task is seen going)

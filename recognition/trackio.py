@@ -137,6 +137,9 @@ def open_capture(target: int | str, timeout_s: float | None = None):
         log.setLogLevel(previous)
 
 
+CAPTURE_THREAD = "capture"  # the first word of a live capture's thread name (the CLI's exit waits less for it)
+
+
 class LiveCapture:
     """A live source's capture, every call of it (open, ``read``, ``get``, ``release``) run in one
     daemon thread of its own while the caller waits at most ``timeout_s`` for it.
@@ -165,7 +168,7 @@ class LiveCapture:
         self._calls: queue.SimpleQueue = queue.SimpleQueue()
         self._released = False
         self.grabbed_at: float | None = None
-        threading.Thread(target=self._serve, name=f"capture {target}", daemon=True).start()
+        threading.Thread(target=self._serve, name=f"{CAPTURE_THREAD} {target}", daemon=True).start()
         # FFmpeg's own timeout a little after ours: the thread left in a blocked read comes back
         self.cap = self._call(lambda: open_capture(target, timeout_s + 5.0), what="answer")
 
