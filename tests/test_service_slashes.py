@@ -12,14 +12,10 @@ import pytest
 from fastapi.testclient import TestClient
 
 from quatrack.service.app import create_app
-from quatrack.service.settings import Settings
 from quatrack.service.slashes import other_slash
 
+from test_docs_prefix import _settings
 from test_viewer_prefix import PREFIX, PathPrefixProxy
-
-
-def _settings(tmp_path) -> Settings:
-    return Settings(store=tmp_path, preload=False, workers=1, threads=1, model_poll_s=0)
 
 
 @pytest.fixture

@@ -12,15 +12,7 @@ import threading
 from quatrack.service.server import BackgroundServer
 from quatrack.service.settings import Settings
 from quatrack.testing.scenes import example_store
-
-
-class Records(logging.Handler):
-    def __init__(self):
-        super().__init__(logging.DEBUG)
-        self.records: list[logging.LogRecord] = []
-
-    def emit(self, record):
-        self.records.append(record)
+from test_service_models import Records
 
 
 def test_a_slow_upload_cut_by_the_stop_gets_a_json_503_and_no_traceback():
