@@ -310,8 +310,9 @@ class UnmatchedWebSocket:
         from starlette.routing import Match
 
         path = scope["path"]
-        if path.endswith("/") and not path.endswith("//"):
-            target = {**scope, "path": path[:-1]}
+        other = slashes.other_slash(path)
+        if other is not None and len(other[0]) < len(path):  # (the path with its final slash removed)
+            target = {**scope, "path": other[0]}
             for route in self.router.routes:
                 match, child = route.matches(target)
                 if match is Match.FULL:
