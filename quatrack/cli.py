@@ -565,6 +565,9 @@ def _add_models(parser: argparse.ArgumentParser) -> None:
         p = sub.add_parser(name, help=help_text, description=help_text)
         if name != "list":
             p.add_argument("name", metavar="NAME")
+        else:
+            p.add_argument("--check", action="store_true",
+                           help="exit 1 if any object is BROKEN (its model cannot be loaded, or its folder has no manifest)")
         p.add_argument("--store", metavar="DIR", help="model store (default: $QUATRACK_STORE or the user data directory)")
 
 
@@ -572,8 +575,9 @@ def _run_models(args: argparse.Namespace) -> int:
     import json
     import shlex
 
-    from quatrack.viewsets.store import (MANIFEST, delete_model, list_models, load_manifest, load_model, remove_stale,
-                                         resolve_store, store_note)
+    from quatrack.viewsets.names import NAME_RE
+    from quatrack.viewsets.store import (MANIFEST, broken_folders, delete_model, list_models, load_manifest, load_model,
+                                         remove_stale, resolve_store, store_note)
 
     store = resolve_store(args.store)
     if store.exists() and not store.is_dir():  # (else listed as an empty store, exit 0)
@@ -581,21 +585,35 @@ def _run_models(args: argparse.Namespace) -> int:
     if args.action == "list":
         remove_stale(store)
         names = list_models(store)
-        if not names:  # (said on stderr: stdout stays the rows, none, for scripts; it printed nothing at all)
+        # folders that are not objects: one with an object's name (a copy cut short) is a BROKEN
+        # row, `models delete` removes it; another (lost+found) is said on stderr, not fatal
+        others = broken_folders(store)
+        rows = {name: None for name in names} | {n: why for n, why in others.items() if NAME_RE.fullmatch(n)}
+        for n, why in others.items():
+            if n not in rows:
+                print(f"quatrack models: skipped {store / n} (not an object's folder): it {why}", file=sys.stderr)
+        broken = 0
+        if not rows:  # (said on stderr: stdout stays the rows, none, for scripts; it printed nothing at all)
             note = store_note(store)
             train = f"; train one with `quatrack train SPEC.json{'' if args.store is None else ' --store ' + shlex.quote(str(store))}`"
             print(f"quatrack models: no trained object in {store}{note}{'' if (store / MANIFEST).is_file() else train}",
                   file=sys.stderr)  # (a model's own folder: "train one" there was the wrong advice)
-        for name in names:
+        for name in sorted(rows):
             try:  # fully loaded, so that a model `locate`/`serve` cannot use is marked broken here
+                if rows[name] is not None:
+                    raise ValueError(f"object {name!r}: its folder {rows[name]}")
                 m = load_model(store, name).manifest
             except ValueError as exc:
                 print(f"{name}\tBROKEN\t{exc}")
+                broken += 1
                 continue
             s = m.get("training_summary", {})
             learned = f" (+{m['learned_viewsets']} learned)" if m.get("learned_viewsets") else ""  # (tracking's, not training's)
             print(f"{name}\t{s.get('viewsets', '?')} viewsets{learned}\t{s.get('points3d_total', '?')} points\t"
                   f"{m.get('created', '?')}")
+        if broken and args.check:  # (without --check: exit 0, as always)
+            print(f"quatrack models: {broken} of {len(rows)} object(s) BROKEN (--check)", file=sys.stderr)
+            return 1
         return 0
     if args.action == "show":
         print(json.dumps(load_manifest(store, args.name), indent=1))

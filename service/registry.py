@@ -35,7 +35,8 @@ from quatrack.recognition.match import ModelIndex, index_for
 from quatrack.viewsets.errors import StoreError
 from quatrack.viewsets.features import Features
 from quatrack.viewsets.names import NAME_RE, check_object_name
-from quatrack.viewsets.store import ObjectModel, list_models, load_manifest, load_model, model_stamp, remove_stale
+from quatrack.viewsets.store import (ObjectModel, broken_folders, list_models, load_manifest, load_model, model_stamp,
+                                     remove_stale)
 
 from .errors import ApiError
 
@@ -56,6 +57,7 @@ class ModelRegistry:
         self._models: dict[str, LoadedModel] = {}
         self._failed: dict[str, tuple[tuple, str]] = {}  # name -> (stamp that failed, why)
         self._missing: set[str] = set()  # loaded objects absent on the last poll
+        self._skipped: dict[str, str] = {}  # the store's folders that are not objects (logged once each)
         self._lock = threading.Lock()  # one loader at a time
         self._on_load = on_load or (lambda result: None)
         self._stop = threading.Event()
@@ -167,6 +169,7 @@ class ModelRegistry:
     def refresh(self) -> None:
         """Bring the registry in step with the store: load new and retrained models, drop deleted ones."""
         on_disk = set(self.names())
+        self._report_skipped()
         for name in list(self._models):
             if name in on_disk:
                 self._missing.discard(name)
@@ -188,6 +191,17 @@ class ModelRegistry:
                 self._load(name, stamp)
             except ApiError:
                 pass  # recorded in failed(), logged once
+
+    def _report_skipped(self) -> None:
+        """Log each folder of the store that is not an object (no manifest, unreadable: a
+        ``lost+found`` of another user's) once, as it appears or its reason changes. Such a
+        folder stopped ``serve``, every poll of the watcher (a traceback every 2 s, changes no
+        longer picked up) and ``GET /v1/objects`` (500) with a PermissionError."""
+        skipped = broken_folders(self.store)
+        for name, why in sorted(skipped.items()):
+            if self._skipped.get(name) != why:
+                log.warning("skipping %s in the model store %s: it %s", name, self.store, why)
+        self._skipped = skipped
 
     def reload(self, name: str) -> dict:
         """Check one object now (the admin call): ``loaded``, ``unchanged``, ``removed`` or ``failed``."""

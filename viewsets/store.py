@@ -23,6 +23,7 @@ import dataclasses
 import json
 import math
 import os
+import secrets
 import shutil
 import tempfile
 import time
@@ -44,7 +45,7 @@ from .viewset import Viewset, ViewsetParams
 
 __all__ = ["ObjectModel", "StoreError", "load_model", "save_model", "list_models", "delete_model",
            "model_lock", "default_store", "resolve_store", "model_path", "load_manifest", "model_stamp",
-           "trained_from", "learned_count", "learned_views_warning", "remove_stale", "unknown_object", "names_hint",
+           "trained_from", "broken_folders", "learn_lock_path", "learned_count", "learned_views_warning", "remove_stale", "unknown_object", "names_hint",
            "store_note"]
 
 SCHEMA_VERSION = 1
@@ -263,9 +264,9 @@ def save_model(store: str | Path, model: ObjectModel, overwrite: bool = True, lo
 def learned_count(store: str | Path, name: str) -> int:
     """How many views learned while tracking the stored model's manifest lists (``"learned":
     true``; 0: none, no model, an unreadable manifest)."""
-    if not (model_path(Path(store), name) / MANIFEST).is_file():
-        return 0  # (before load_manifest: its unknown-object message lists the store for a hint)
     try:
+        if not (model_path(Path(store), name) / MANIFEST).is_file():
+            return 0  # (before load_manifest: its unknown-object message lists the store for a hint)
         entries = load_manifest(store, name).get("viewsets")
     except StoreError:
         return 0
@@ -275,8 +276,16 @@ def learned_count(store: str | Path, name: str) -> int:
 def load_manifest(store: str | Path, name: str) -> dict:
     """The stored model's ``manifest.json`` (training parameters, views, versions) without loading
     its arrays; :class:`StoreError` when there is no such object or the manifest is unreadable."""
-    path = model_path(Path(store), name) / MANIFEST
-    if not path.is_file():
+    folder = model_path(Path(store), name)
+    path = folder / MANIFEST
+    try:
+        present = path.is_file()
+    except OSError as exc:  # (a folder of another user's, mode 700: a PermissionError traceback)
+        raise StoreError(f"object {name!r}: its folder {folder} cannot be read ({exc.strerror or exc})") from None
+    if not present:
+        if folder.is_dir():  # (a half-finished copy: it was "no object named", yet blocked train --no-overwrite)
+            raise StoreError(f"object {name!r}: its folder {folder} holds no {MANIFEST} (a copy or a move cut short?); "
+                             f"delete it (quatrack models delete {name}) or retrain it")
         raise unknown_object(store, name)
     try:
         manifest = json.loads(path.read_text(encoding="utf-8"))
@@ -366,8 +375,8 @@ def load_model(store: str | Path, name: str) -> ObjectModel:
     and the service reports that object as broken while serving the others.
     """
     manifest = load_manifest(store, name)
-    if manifest.get("schema_version") != SCHEMA_VERSION:
-        raise StoreError(f"object {name!r}: model schema {manifest.get('schema_version')!r} is not {SCHEMA_VERSION}; retrain it")
+    if (why := _schema_problem(manifest.get("schema_version"))) is not None:
+        raise StoreError(f"object {name!r}: {why}")
     path = model_path(Path(store), name) / ARRAYS
     try:
         with np.load(path, allow_pickle=False) as z:
@@ -379,6 +388,20 @@ def load_model(store: str | Path, name: str) -> ObjectModel:
     except (KeyError, IndexError, TypeError, ValueError, AttributeError) as exc:
         what = f"missing key {exc}" if isinstance(exc, KeyError) else f"{exc.__class__.__name__}: {exc}"
         raise StoreError(f"object {name!r}: corrupt model in {path.parent} ({what}); retrain it"[:500]) from None
+
+
+def _schema_problem(version) -> str | None:
+    """Why a manifest's ``schema_version`` is not one this version reads (None: it is). A newer
+    schema is a newer quatrack's model — upgrading reads it — and a missing one is said so: both
+    were "model schema 2 is not 1" / "model schema None is not 1; retrain it"."""
+    if version == SCHEMA_VERSION and not isinstance(version, bool):
+        return None
+    if isinstance(version, int) and not isinstance(version, bool) and version > SCHEMA_VERSION:
+        return (f"model schema {version} was written by a newer quatrack (this one reads schema {SCHEMA_VERSION}): "
+                f"upgrade quatrack, or retrain it")
+    if version is None:
+        return "its manifest has no schema_version (not a quatrack model, or a damaged one); retrain it"
+    return f"model schema {version!r} is not {SCHEMA_VERSION}; retrain it"
 
 
 def _check_sift_settings(manifest: dict) -> None:
@@ -438,16 +461,48 @@ def _build_model(name: str, manifest: dict, a: dict[str, np.ndarray]) -> ObjectM
     return ObjectModel(name, rfch, viewsets, mesh, manifest, _appearance(a))
 
 
+def _entries(store: Path) -> list[tuple[str, str | None]]:
+    """The store's visible folders: ``(name, None)`` for an object (a folder with a manifest),
+    ``(name, why)`` for a folder that is not one. Each entry is looked at on its own: one that
+    cannot be read (``lost+found``, another user's folder, mode 700, on a server not run as
+    root) was a PermissionError out of every listing — ``serve``, ``models list``, the service's
+    store watch and ``GET /v1/objects``."""
+    out: list[tuple[str, str | None]] = []
+    for p in store.iterdir():
+        if p.name.startswith("."):
+            continue
+        try:
+            if (p / MANIFEST).is_file():
+                out.append((p.name, None))
+                continue
+            if not p.is_dir():
+                continue  # (a file beside the models: not the store's)
+            why = f"holds no {MANIFEST} (a copy or a move cut short?); delete it or retrain it"
+        except OSError as exc:
+            why = f"cannot be read ({exc.strerror or exc})"
+        out.append((p.name, why))
+    return sorted(out)
+
+
 def list_models(store: str | Path) -> list[str]:
     """Names of the objects in the store (a folder with a manifest; temporary folders excluded),
-    sorted. A listed object may still be broken: :func:`load_model` says so."""
+    sorted. A listed object may still be broken: :func:`load_model` says so. Folders that are not
+    objects — no manifest, unreadable — are :func:`broken_folders`, never an error here."""
     store = Path(store)
     if not store.is_dir():
         return []
-    return sorted(
-        p.name for p in store.iterdir()
-        if not p.name.startswith(".") and (p / MANIFEST).is_file()
-    )
+    return [name for name, why in _entries(store) if why is None]
+
+
+def broken_folders(store: str | Path) -> dict[str, str]:
+    """The store's folders that are not objects, each with why: one without a manifest (a
+    half-finished copy, which blocked ``train --no-overwrite`` while no command listed it) or one
+    that cannot be read. Those with an object's name are listed BROKEN by ``models list`` and
+    removed by ``models delete`` (:func:`delete_model`); others (``lost+found``) are only reported."""
+    store = Path(store)
+    if not store.is_dir():
+        return {}
+    return {name: why for name, why in _entries(store) if why is not None}
 
 
 def unknown_object(store: str | Path, name: str) -> StoreError:
@@ -540,20 +595,56 @@ def remove_stale(store: str | Path, max_age_s: float = STALE_AFTER_S, now: float
     return done
 
 
+def learn_lock_path(store: str | Path, name: str) -> Path:
+    """``store/.learn-NAME.lock``: the lock file :func:`quatrack.viewsets.learn.store_lock` (a
+    merge of learned views) takes beside the store's own lock."""
+    return Path(store) / f".learn-{model_path(store, name).name}.lock"
+
+
 def delete_model(store: str | Path, name: str) -> None:
-    """Remove ``store/NAME`` (renamed away first, so a half-deleted folder is never visible)."""
+    """Remove ``store/NAME`` — a model, or a folder of that name without a manifest (a
+    half-finished copy, listed BROKEN: it blocked ``train --no-overwrite`` and nothing removed it).
+
+    The folder is renamed straight to ``.del-NAME-RANDOM`` (so a half-deleted folder is never
+    visible; :func:`remove_stale` finishes a removal killed midway), then removed: no folder is
+    made first — ``mkdtemp`` failed on a full disk ("No space left on device"), which is when a
+    model is deleted. Its learned views' lock file (:func:`learn_lock_path`) goes with it, unless
+    a merge holds it."""
     store = Path(store)
     final = model_path(store, name)
-    if not (final / MANIFEST).is_file():
+    if not final.is_dir():
         raise unknown_object(store, name)
+    with model_lock(store, name):  # (not between a merge's read and its write: the model came back)
+        if not final.is_dir():
+            raise unknown_object(store, name)
+        trash = store / f".del-{name}-{secrets.token_hex(6)}"
+        try:
+            os.rename(final, trash)
+        except OSError as exc:  # (a read-only store)
+            raise StoreError(f"cannot delete {name!r} from {store} ({exc.strerror or exc})") from None
+        if trash.is_symlink():  # (a link put in the store by hand: removed, its target kept)
+            trash.unlink()
+        else:
+            shutil.rmtree(trash, ignore_errors=True)
+        _remove_unheld_lock(learn_lock_path(store, name))
+
+
+def _remove_unheld_lock(path: Path) -> None:
+    """Remove the lock file ``path`` unless someone holds it (a non-blocking ``flock`` fails)."""
     try:
-        trash = Path(tempfile.mkdtemp(prefix=f".del-{name}-", dir=store))
-    except OSError as exc:  # (a read-only store: the message named the temporary folder)
-        raise StoreError(f"cannot delete {name!r} from {store} ({exc.strerror or exc})") from None
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return  # (none, or not ours to open)
     try:
-        with model_lock(store, name):  # (not between a merge's read and its write: the model came back)
-            if not (final / MANIFEST).is_file():
-                raise unknown_object(store, name)
-            os.replace(final, trash / "model")
+        try:
+            import fcntl
+
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except ImportError:
+            pass
+        except OSError:  # (held: a merge is running; it is an empty file, left to it)
+            return
+        with contextlib.suppress(OSError):
+            path.unlink()
     finally:
-        shutil.rmtree(trash, ignore_errors=True)
+        os.close(fd)
