@@ -367,7 +367,8 @@ def _add_train(parser: argparse.ArgumentParser) -> None:
                         help="forget the views a replaced model learned while tracking (default: kept when the mesh "
                              "and the kind of descriptors are unchanged; dropped, with a warning, otherwise)")
     parser.add_argument("--skip-existing", action="store_true",
-                        help="do nothing (exit 0) if the store already holds this object trained from this very spec")
+                        help="do nothing (exit 0) if the store already holds this object trained from this very spec, "
+                             "the files it names and these options, and the model loads")
     parser.add_argument("--novel-views", default="20,40", metavar="DEG,...",
                         help="rotations (degrees, both signs) about each object axis for synthetic views; 'none' to disable (default 20,40)")
     parser.add_argument("--novel-axes", default="xyz", metavar="AXES", help="object axes to rotate about (default xyz)")
@@ -424,9 +425,10 @@ def _run_train(args: argparse.Namespace) -> int:
 
     from tqdm import tqdm
 
+    from quatrack.viewsets.batch import exists_message, inputs_checksum, record_inputs, up_to_date
     from quatrack.viewsets.spec import load_spec
     from quatrack.viewsets.learn import save_trained
-    from quatrack.viewsets.store import model_path, resolve_store, trained_from
+    from quatrack.viewsets.store import model_path, resolve_store
     from quatrack.viewsets.train import train_object
 
     t0 = time.perf_counter()
@@ -436,20 +438,19 @@ def _run_train(args: argparse.Namespace) -> int:
         raise UserError(f"--store {store}: not a directory")
     # (its nearest existing folder must be one: else the model, trained first, could not be saved)
     above = _nearest_folder(store, "--store")
-    # (and writable: else the model, trained first, failed to save naming a temporary folder)
-    folder = store if store.exists() else above
-    if folder is not None and not os.access(folder, os.W_OK | os.X_OK):
-        ro = hasattr(os, "statvfs") and bool(os.statvfs(folder).f_flag & getattr(os, "ST_RDONLY", 1))
-        raise UserError(f"--store {store}: cannot write in {folder} ({'read-only file system' if ro else 'permission denied'})")
     if len(args.spec) > 1 or args.ray:
-        return _run_train_many(args, params, store)
+        return _run_train_many(args, params, store, lambda: _writable_store(store, above))
     spec_path = args.spec[0]
     spec = load_spec(spec_path, warn=_train_warning)
-    if args.no_overwrite and model_path(store, spec.name).exists():
-        raise UserError(f"object {spec.name!r} already exists in {store} (and --no-overwrite was given)")
-    if args.skip_existing and trained_from(store, spec.name, spec.checksum):
+    # (--skip-existing first: with nothing to do, --no-overwrite's "already exists" and a
+    # read-only store's "cannot write" failed the call)
+    checksum = inputs_checksum(spec, params)
+    if args.skip_existing and up_to_date(spec, store, checksum, _train_warning):
         print(f"{spec.name!r} is already trained from {spec_path} in {store}: nothing to do")
         return 0
+    if args.no_overwrite and model_path(store, spec.name).exists():
+        raise UserError(exists_message([spec.name], store))
+    _writable_store(store, above)
     bar = tqdm(total=0, desc=f"training {spec.name}", unit="view", file=sys.stderr, disable=None, leave=False)
 
     def set_total(n: int) -> None:
@@ -465,6 +466,7 @@ def _run_train(args: argparse.Namespace) -> int:
         bar.close()
     for msg in _registration_doubts(spec, model.mesh.run_time):
         warn(msg)
+    record_inputs(model, checksum)
     try:
         # (the views the replaced model learned while tracking are kept where they fit, read and
         # written under the store's lock; they were replaced, lost after a warning)
@@ -487,6 +489,15 @@ def _run_train(args: argparse.Namespace) -> int:
               + (" (--drop-learned)" if saved.dropped and args.drop_learned else ""))
     print(f"  time: {time.perf_counter() - t0:.1f} s")
     return 0
+
+
+def _writable_store(store, above) -> None:
+    """Refuse a store ``train`` cannot write (``above``: its nearest existing folder), checked
+    before any training: else the model, trained first, failed to save naming a temporary folder."""
+    folder = store if store.exists() else above
+    if folder is not None and not os.access(folder, os.W_OK | os.X_OK):
+        ro = hasattr(os, "statvfs") and bool(os.statvfs(folder).f_flag & getattr(os, "ST_RDONLY", 1))
+        raise UserError(f"--store {store}: cannot write in {folder} ({'read-only file system' if ro else 'permission denied'})")
 
 
 def _registration_doubts(spec, mesh) -> list[str]:
@@ -519,7 +530,7 @@ def _train_warning(msg: str) -> None:
     print(f"quatrack train: warning: {msg}", file=sys.stderr)
 
 
-def _run_train_many(args: argparse.Namespace, params, store) -> int:
+def _run_train_many(args: argparse.Namespace, params, store, before_training=None) -> int:
     """Several specs (or --ray): :func:`quatrack.viewsets.batch.train_many`, one line per object.
     Every spec is checked before any training; an object that fails is reported and the others
     are still trained; the exit status is 2 if any failed."""
@@ -549,7 +560,8 @@ def _run_train_many(args: argparse.Namespace, params, store) -> int:
     results = train_many(args.spec, store, params, jobs=args.jobs, overwrite=not args.no_overwrite,
                          skip_existing=args.skip_existing, ray_address=args.ray, on_done=done,
                          warn=_train_warning,
-                         check=_registration_doubts, keep_learned=not args.drop_learned)
+                         check=_registration_doubts, keep_learned=not args.drop_learned,
+                         before_training=before_training)
     failed = sum(r.error is not None for r in results)
     skipped = sum(r.skipped for r in results)  # (counted as trained: "3 of 3 objects trained" when none was)
     where = f"on Ray ({args.ray})" if args.ray else f"locally, --jobs {args.jobs}"

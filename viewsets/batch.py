@@ -20,6 +20,8 @@ same paths on every node (a shared filesystem), as they are for any shared model
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import json
 import os
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -30,7 +32,7 @@ from typing import Callable
 from .errors import SpecError, StoreError
 from .spec import load_spec
 from .learn import save_trained
-from .store import model_path, trained_from
+from .store import NOT_STORED, model_path, retrain_reason
 from .train import TrainParams, train_object
 
 
@@ -50,6 +52,53 @@ class Trained:
     learned_dropped: int = 0  # ... and not (another mesh or descriptors, ``keep_learned=False``)
 
 
+def spec_files(spec) -> list[tuple[str, Path]]:
+    """The files a spec names, each with what it is: the mesh, each view's photo and mask."""
+    return [("mesh", spec.mesh_path)] + [(f"view {v.index}: image", v.image_path) for v in spec.views] \
+        + [(f"view {v.index}: mask", v.mask_path) for v in spec.views if v.mask_path is not None]
+
+
+def inputs_checksum(spec, params: TrainParams) -> str:
+    """SHA-256 of everything a training reads: the spec file's bytes, the mesh, photos and masks
+    it names (their contents), each view's camera and pose as parsed (a camera given as a file
+    changes them) and the training options (``jobs`` aside: it changes the time, not the model).
+    ``train --skip-existing`` compares it with the stored model's (``spec.inputs_sha256``): it
+    compared the spec file's bytes only, so an edited photo, mesh or camera file, or other
+    options, were "nothing to do"."""
+    h = hashlib.sha256(spec.checksum.encode())
+    options = dataclasses.asdict(dataclasses.replace(params, jobs=1))
+    h.update(json.dumps(options, sort_keys=True, default=repr).encode())
+    for v in spec.views:
+        c = v.camera
+        h.update(repr((v.index, c.fx, c.fy, c.cx, c.cy, list(map(float, c.dist_coeffs.ravel())), c.width, c.height,
+                       v.pose.R.tolist(), v.pose.t.tolist())).encode())
+    for what, f in spec_files(spec):
+        h.update(f"{what}\0{f}\0".encode())
+        try:
+            with open(f, "rb") as fh:
+                for chunk in iter(lambda: fh.read(1 << 20), b""):
+                    h.update(chunk)
+        except OSError as exc:  # (a missing file: the training's own message names it)
+            h.update(f"unreadable: {exc.errno}".encode())
+    return h.hexdigest()
+
+
+def record_inputs(model, checksum: str) -> None:
+    """Write :func:`inputs_checksum` into ``model``'s manifest (``spec.inputs_sha256``), for the
+    next ``--skip-existing`` to compare."""
+    model.manifest["spec"] = {**(model.manifest.get("spec") or {}), "inputs_sha256": checksum}
+
+
+def up_to_date(spec, store: str | Path, checksum: str, warn: Callable[[str], None] | None = None) -> bool:
+    """Whether ``--skip-existing`` skips ``spec``: the store holds its object trained from these
+    very inputs (``checksum``: :func:`inputs_checksum`) and it loads. A stored model that is
+    trained again is said why to ``warn`` (broken, older, inputs changed)."""
+    why = retrain_reason(store, spec.name, checksum)
+    if why is not None and why != NOT_STORED and warn is not None:
+        warn(f"{spec.name!r} in {store}: {why}; training it again")
+    return why is None
+
+
 def train_one(spec_path: str, store: str, params: TrainParams, overwrite: bool = True,
               skip_existing: bool = False, check: Callable | None = None, keep_learned: bool = True) -> Trained:
     """Train one spec into ``store`` (atomically). Errors of the spec's content come back in
@@ -67,9 +116,11 @@ def train_one(spec_path: str, store: str, params: TrainParams, overwrite: bool =
     try:
         spec = load_spec(spec_path)
         name = spec.name
-        if skip_existing and trained_from(store, name, spec.checksum):
+        checksum = inputs_checksum(spec, params)
+        if skip_existing and up_to_date(spec, store, checksum, warnings.append):
             return Trained(spec_path, name, str(model_path(store, name)), skipped=True)
         model = train_object(spec, params, warn=warnings.append)
+        record_inputs(model, checksum)
         if check is not None:
             warnings.extend(check(spec, model.mesh.run_time))
         try:
@@ -86,33 +137,51 @@ def train_one(spec_path: str, store: str, params: TrainParams, overwrite: bool =
 
 def check_specs(spec_paths: list[str], store: Path, no_overwrite: bool, warn=None) -> list[str]:
     """Absolute paths of the specs, after loading each and finding the mesh, photos and masks it
-    names (raises SpecError naming the culprit); two specs of one object name, or an existing object with ``no_overwrite``, are refused.
+    names (raises SpecError naming the culprit); two specs of one object name, or existing objects with ``no_overwrite`` (all named), are refused.
     ``warn``: as :func:`~.spec.load_spec`'s (fields a spec does not know)."""
+    return [p for p, _, _ in _plan(spec_paths, store, no_overwrite, warn)]
+
+
+def _plan(spec_paths: list[str], store: Path, no_overwrite: bool, warn=None,
+          params: TrainParams | None = None) -> list[tuple[str, str, bool]]:
+    """:func:`check_specs`, each absolute path with its object's name and whether it is already trained (``params``
+    given: ``--skip-existing``, :func:`up_to_date`). An object up to date is not refused by
+    ``no_overwrite`` (nothing is written: "already exists" failed a call with nothing to do), and
+    the refusal names every existing object (it named the first)."""
     names: dict[str, str] = {}
-    out = []
+    out, existing = [], []
     for p in spec_paths:
         spec = load_spec(p, warn)
         # the files it names must be there too (a typo in a path is the commonest bad spec; only
         # looked up here, read when the object trains)
-        files = [("mesh", spec.mesh_path)] + [(f"view {v.index}: image", v.image_path) for v in spec.views] \
-            + [(f"view {v.index}: mask", v.mask_path) for v in spec.views if v.mask_path is not None]
-        for what, f in files:
+        for what, f in spec_files(spec):
             if not f.is_file():
                 raise SpecError(f"{p}: {what}: {f}: {'not a file' if f.exists() else 'file not found'}")
         if spec.name in names:
             raise SpecError(f"{p} and {names[spec.name]} both define object {spec.name!r}")
         names[spec.name] = p
-        if no_overwrite and model_path(store, spec.name).exists():
-            raise StoreError(f"object {spec.name!r} already exists in {store} (and --no-overwrite was given)")
-        out.append(str(Path(p).resolve()))
+        done = params is not None and up_to_date(spec, store, inputs_checksum(spec, params),
+                                                  warn and (lambda msg, p=p: warn(f"{p}: {msg}")))
+        if no_overwrite and not done and model_path(store, spec.name).exists():
+            existing.append(spec.name)
+        out.append((str(Path(p).resolve()), spec.name, done))
+    if existing:
+        raise StoreError(exists_message(existing, store))
     return out
+
+
+def exists_message(names: list[str], store) -> str:
+    """``--no-overwrite``'s refusal, naming every object that exists."""
+    if len(names) == 1:
+        return f"object {names[0]!r} already exists in {store} (and --no-overwrite was given)"
+    return f"objects {', '.join(map(repr, names))} already exist in {store} (and --no-overwrite was given)"
 
 
 def train_many(spec_paths: list[str], store: str | Path, params: TrainParams = TrainParams(), jobs: int = 2,
                overwrite: bool = True, skip_existing: bool = False, ray_address: str | None = None,
                on_done: Callable[[Trained], None] | None = None,
                warn: Callable[[str], None] | None = None, check: Callable | None = None,
-               keep_learned: bool = True) -> list[Trained]:
+               keep_learned: bool = True, before_training: Callable[[], None] | None = None) -> list[Trained]:
     """Train every spec into ``store``; results in the order of ``spec_paths``.
 
     ``jobs`` is the CPU budget (see the module docstring); ``ray_address`` sends each spec to a
@@ -120,12 +189,33 @@ def train_many(spec_paths: list[str], store: str | Path, params: TrainParams = T
     ``on_done`` is called as each spec finishes (for progress lines); ``warn`` is told of fields
     a spec does not know, as the specs are checked; ``check``: as :func:`train_one`'s (each
     result's ``warnings``); ``keep_learned``: as :func:`train_one`'s (False: ``--drop-learned``).
+    With ``skip_existing`` the objects already trained from their inputs are found before any
+    training (and told to ``on_done`` first); ``before_training`` is called once the specs are
+    checked, only if some object is to be trained (the CLI's refusal of a store it cannot write:
+    a call with nothing to do needs none).
     """
     if jobs < 1:
         raise ValueError("jobs must be at least 1")
     store = str(Path(store).expanduser().resolve())
-    specs = check_specs(spec_paths, Path(store), not overwrite, warn)
-    Path(store).mkdir(parents=True, exist_ok=True)
+    plan = _plan(spec_paths, Path(store), not overwrite, warn, params if skip_existing else None)
+    results: dict[str, Trained] = {}
+    for p, name, done in plan:
+        if done:
+            results[p] = Trained(p, name, str(model_path(store, name)), skipped=True)
+            if on_done:
+                on_done(results[p])
+    specs = [p for p, _, done in plan if not done]
+    if specs:
+        if before_training is not None:
+            before_training()
+        Path(store).mkdir(parents=True, exist_ok=True)
+        results.update(_train(specs, store, params, jobs, overwrite, ray_address, on_done, check, keep_learned))
+    return [results[p] for p, _, _ in plan]
+
+
+def _train(specs, store, params, jobs, overwrite, ray_address, on_done, check, keep_learned) -> dict[str, Trained]:
+    """Train ``specs`` (none skipped: :func:`train_many` decided) locally or on Ray."""
+    skip_existing = False
     if ray_address is not None:
         results = _on_ray(specs, store, dataclasses.replace(params, jobs=jobs), overwrite, skip_existing,
                           ray_address, on_done, check, keep_learned)
@@ -133,7 +223,7 @@ def train_many(spec_paths: list[str], store: str | Path, params: TrainParams = T
         processes = min(jobs, len(specs))
         per = dataclasses.replace(params, jobs=max(1, jobs // processes))
         results = _local(specs, store, per, overwrite, skip_existing, processes, on_done, check, keep_learned)
-    return [results[p] for p in specs]
+    return results
 
 
 def _local(specs, store, params, overwrite, skip_existing, processes, on_done, check=None,

@@ -45,7 +45,7 @@ from .viewset import Viewset, ViewsetParams
 
 __all__ = ["ObjectModel", "StoreError", "load_model", "save_model", "list_models", "delete_model",
            "model_lock", "default_store", "resolve_store", "model_path", "load_manifest", "model_stamp",
-           "trained_from", "broken_folders", "learn_lock_path", "learned_count", "learned_views_warning", "remove_stale", "unknown_object", "names_hint",
+           "trained_from", "retrain_reason", "NOT_STORED", "broken_folders", "learn_lock_path", "learned_count", "learned_views_warning", "remove_stale", "unknown_object", "names_hint",
            "store_note"]
 
 SCHEMA_VERSION = 1
@@ -296,16 +296,36 @@ def load_manifest(store: str | Path, name: str) -> dict:
     return manifest
 
 
-def trained_from(store: str | Path, name: str, checksum: str) -> bool:
-    """Whether the stored model ``name`` was trained from the spec whose SHA-256 is ``checksum``
-    (``train --skip-existing``); False when there is none or its manifest is unreadable (train it
-    again)."""
+NOT_STORED = "not in the store"
+
+
+def retrain_reason(store: str | Path, name: str, checksum: str) -> str | None:
+    """Why ``train --skip-existing`` must train ``name`` (again), or None when the stored model
+    was trained from these very inputs and loads. ``checksum`` is
+    :func:`quatrack.viewsets.batch.inputs_checksum`'s — the spec file, the mesh, photos and masks
+    it names, its cameras and poses, and the training options — recorded as ``spec.inputs_sha256``
+    in the manifest. Only the spec file's bytes were compared, so an edited photo or mesh, or
+    other options, were "nothing to do"; and a broken model (a truncated ``model.npz``) trained
+    from the same spec was skipped for ever. A model without the key (trained before it was
+    recorded) is trained again. :data:`NOT_STORED` when there is no such object."""
     if not model_path(Path(store), name).exists():
-        return False
+        return NOT_STORED
     try:
-        return load_manifest(store, name).get("spec", {}).get("sha256") == checksum
-    except ValueError:
-        return False
+        spec = load_manifest(store, name).get("spec")
+        if not isinstance(spec, dict) or not spec.get("inputs_sha256"):
+            return "its manifest records no checksum of its inputs (trained by an older quatrack)"
+        if spec["inputs_sha256"] != checksum:
+            return "the spec, the files it names or the training options changed"
+        load_model(store, name)
+    except ValueError as exc:  # (StoreError: no manifest, unreadable, schema, arrays)
+        return f"the stored model is broken ({exc})"
+    return None
+
+
+def trained_from(store: str | Path, name: str, checksum: str) -> bool:
+    """Whether the stored model ``name`` was trained from the inputs whose checksum is
+    ``checksum`` and loads (:func:`retrain_reason` is None): ``train --skip-existing``'s test."""
+    return retrain_reason(store, name, checksum) is None
 
 
 def learned_views_warning(store: str | Path, name: str) -> str | None:
