@@ -108,7 +108,7 @@ def test_nothing_to_do_is_not_refused_by_no_overwrite_or_a_read_only_store(spec,
     assert "cannot write in" in capsys.readouterr().err and not (store / "other").exists()
 
 
-def test_no_overwrite_names_every_existing_object(spec, tmp_path, capsys):
+def test_no_overwrite_names_every_existing_object(spec, tmp_path, capsys, monkeypatch):
     store = tmp_path / "store"
     second = spec.with_name("other.json")
     second.write_text(json.dumps({**json.loads(spec.read_text()), "name": "other"}))
@@ -116,6 +116,11 @@ def test_no_overwrite_names_every_existing_object(spec, tmp_path, capsys):
     assert "2 of 2 objects trained" in capsys.readouterr().out
     assert train([spec, second], store, "--jobs", "1", "--no-overwrite") == 0  # nothing to do
     assert "0 of 2 objects trained locally" in capsys.readouterr().out
+    with monkeypatch.context() as m:  # a read-only store with nothing to do: not refused either
+        real = os.access
+        m.setattr(os, "access", lambda p, mode, *a, **kw: False if Path(p) == store else real(p, mode, *a, **kw))
+        assert train([spec, second], store, "--jobs", "1") == 0
+        assert "0 of 2 objects trained locally" in capsys.readouterr().out
     args = ["train", str(spec), str(second), "--store", str(store), "--no-overwrite", "--jobs", "1", *FAST_TRAIN]
     assert main(args) == 2
     err = capsys.readouterr().err
