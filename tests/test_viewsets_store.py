@@ -133,12 +133,11 @@ def test_a_full_disk_is_one_line_naming_the_object_and_the_store(store, capsys, 
 def test_delete_from_a_read_only_store_is_one_line_naming_the_object(store, capsys, monkeypatch):
     """The message named the temporary folder: "[Errno 30] Read-only file system: 'S/.del-cookie-box-3b75fim5'"."""
     import errno
-    import tempfile
 
-    def read_only(*a, **kw):
-        raise OSError(errno.EROFS, "Read-only file system", str(store / ".del-cookie-box-x"))
+    def read_only(src, dst, *a, **kw):
+        raise OSError(errno.EROFS, "Read-only file system", str(src), None, str(dst))
 
-    monkeypatch.setattr(tempfile, "mkdtemp", read_only)
+    monkeypatch.setattr(os, "rename", read_only)  # (the folder is renamed to .del-NAME-… first)
     assert main(["models", "delete", "cookie-box", "--store", str(store)]) == 2
     err = capsys.readouterr().err
     assert f"cannot delete 'cookie-box' from {store} (Read-only file system)" in err and ".del-" not in err
