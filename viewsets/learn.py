@@ -54,7 +54,7 @@ from .features import RUN_TIME_STRETCH
 from .mesh import Mesh
 from .render import RenderBuffers, footprint, render_window
 from .rfch import RFCHModel, cooccurrence, descriptor_planes, label_planes
-from .store import ObjectModel, learned_count, load_model, model_lock, model_path, save_model
+from .store import ObjectModel, learn_lock_path, learned_count, load_model, model_lock, model_path, save_model
 from .viewset import Viewset, ViewsetParams, build_viewset
 
 MAX_LEARNED = 24  # learned viewsets per model at most
@@ -200,7 +200,7 @@ def store_lock(store: str | Path, name: str):
     deletions take too."""
     store = Path(store)
     store.mkdir(parents=True, exist_ok=True)
-    path = store / f".learn-{model_path(store, name).name}.lock"
+    path = learn_lock_path(store, name)
     try:  # (0o666 less the umask, as the models' folders: a store shared by a group stays usable by all)
         fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
     except PermissionError:  # another user's lock file, not writable to us: flock needs only an open file
