@@ -444,23 +444,37 @@ async def track(websocket: WebSocket, name: str) -> None:
         m.sessions.labels(outcome).inc()
 
 
+def close_reason(code: str, message: str) -> str:
+    """A close frame's reason: ``code: message``, cut to the 123 bytes of UTF-8 a close frame holds
+    (at a character's boundary)."""
+    return f"{code}: {message}".encode()[:123].decode("utf-8", "ignore")
+
+
 async def deny_websocket(ws: WebSocket, status: int, code: str, message: str, close_code: int, headers=None) -> None:
-    """Refuse a WebSocket with an HTTP error response where the server supports it, else accept,
-    send the error message and close (1008 policy / 1013 try again later). Logged at info level
-    with the reason: a refusal is the service working, not an error (see ``logs.mark_refused``),
-    and counted in ``quatrack_ws_refused_total{code}``.
+    """Refuse a WebSocket. A client that is no browser (no ``Origin`` header) gets an HTTP error
+    response where the server supports it. A browser's handshake (``Origin``), and any handshake
+    where the server cannot answer in HTTP, is accepted, gets the error message
+    ``{"type": "error", "error": {...}}`` and is closed with ``close_code`` (1008 policy, 1011
+    server error, 1013 try again later) and the reason ``code: message``: browsers hide a refused
+    handshake's HTTP answer, and the page saw a bare 1006 whatever the cause. Logged at info
+    level with the reason: a refusal is the service working, not an error (see
+    ``logs.mark_refused``), and counted in ``quatrack_ws_refused_total{code}``.
 
     Public because every refusal of a handshake goes through it, the routes' and the app's
     middleware's (``app.AllowedHosts``: a ``Host`` not allowed): one log line, one metric, one
     answer format, wherever the refusal is decided."""
     log.info("websocket refused", extra={"status": status, "code": code, "reason": message, "path": ws.url.path})
     get_ws_state(ws).metrics.ws_refused.labels(code).inc()
+    if "origin" not in ws.headers:
+        try:
+            await ws.send_denial_response(JSONResponse(error_body(code, message), status_code=status, headers=headers))
+            mark_refused()
+            return
+        except RuntimeError:
+            pass
     try:
-        await ws.send_denial_response(JSONResponse(error_body(code, message), status_code=status, headers=headers))
-        mark_refused()
-        return
-    except RuntimeError:
+        await ws.accept()
+        await ws.send_text(json.dumps({"type": "error", **error_body(code, message)}))
+        await ws.close(close_code, close_reason(code, message))
+    except OSError:  # (uvicorn's ClientDisconnected) the client left first: nobody to tell
         pass
-    await ws.accept()
-    await ws.send_text(json.dumps({"type": "error", **error_body(code, message)}))
-    await ws.close(close_code)

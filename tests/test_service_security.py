@@ -144,13 +144,26 @@ def test_pages_say_how_they_may_be_used(client):
 
 
 def _ws_status(url: str, **kw) -> int:
-    """101 when the handshake is accepted, else the refusal's HTTP status."""
-    from websockets.exceptions import InvalidStatus
+    """101 when the session is served, else the refusal's HTTP status. A browser's handshake (with
+    ``origin``) is refused after its opening (test_service_errors_ws_browser.py): an error message
+    then close 1008; its HTTP status is then read from the error's code."""
+    import json
+
+    from websockets.exceptions import ConnectionClosed, InvalidStatus
     from websockets.sync.client import connect
 
+    from test_service_ws import CAM_ACK
+
     try:
-        with connect(url, open_timeout=30, **kw):
-            return 101
+        with connect(url, open_timeout=30, **kw) as ws:
+            try:
+                ws.send(CAM_ACK)
+            except ConnectionClosed:  # (refused: the error message is already there to read)
+                pass
+            first = json.loads(ws.recv(timeout=60))
+            if first["type"] == "ready":
+                return 101
+            return {"forbidden_origin": 403, "unauthorized": 401}[first["error"]["code"]]
     except InvalidStatus as exc:
         return exc.response.status_code
 
