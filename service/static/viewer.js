@@ -27,22 +27,47 @@ function token() { return $("token").value.trim(); }
 function headers() { return token() ? { Authorization: "Bearer " + token() } : {}; }
 function message(text) { $("message").textContent = text || ""; }
 
+function apiError(error, status) {  // an Error carrying the service's error code (and the HTTP status)
+  const e = new Error(error ? error.code + ": " + error.message : "HTTP " + status);
+  e.code = error && error.code; e.status = status;
+  return e;
+}
+
 async function getJSON(path) {
   const r = await fetch(api(path), { headers: headers() });
   const body = await r.json().catch(() => ({}));
-  if (!r.ok) throw new Error((body.error && body.error.code + ": " + body.error.message) || "HTTP " + r.status);
+  if (!r.ok) throw apiError(body.error, r.status);
   return body;
 }
 
 let listing = 0;  // the latest object list asked for: an older answer coming later is dropped
 let listNote = "";  // what the list said in the message line (cleared only by the list)
+let listLoad = Promise.resolve();  // the latest list's loading: a run waits for it
+let listedToken = null;  // the token the latest list was asked with
+let listError = "";  // why the latest list failed ("" when it did not): a run says it, not "pick an object"
 
-function listMessage(text) {
-  if (text || $("message").textContent === listNote) message(text);
+function listMessage(text, say = true) {
+  if (say && (text || $("message").textContent === listNote)) message(text);
   listNote = text;
 }
 
-async function loadObjects() {
+function brokenReason(o) {  // the model's error without the object's name, which the list says already
+  const named = `object '${o.name}': `;
+  return o.error.startsWith(named) ? o.error.slice(named.length) : o.error;
+}
+
+function unauthorizedText() {  // a 401: what to do about it
+  return "unauthorized: " + (token() ? "the token was refused; type the server's token in the token field"
+                                     : "the server has a token; type the server's token in the token field");
+}
+
+function loadObjects(say = true) {  // say: false keeps the message line (a run's error stays said)
+  listedToken = token();
+  listLoad = listObjects(say);
+  return listLoad;
+}
+
+async function listObjects(say) {
   const mine = ++listing;
   const sel = $("object");
   try {
@@ -53,17 +78,20 @@ async function loadObjects() {
     const broken = [];
     for (const o of list.objects) {  // a model that cannot be loaded is listed, not chosen
       const opt = new Option(o.error ? `${o.name} (broken)` : o.name, o.name);
-      if (o.error) { opt.disabled = true; opt.title = o.error; broken.push(`${o.name}: ${o.error}`); }
+      if (o.error) { opt.disabled = true; opt.title = brokenReason(o); broken.push(`${o.name}: ${brokenReason(o)}`); }
       sel.add(opt);
     }
     const usable = [...sel.options].filter((o) => !o.disabled);
     sel.value = usable.some((o) => o.value === keep) ? keep : usable.length ? usable[0].value : "";
-    if (!list.objects.length) listMessage("no trained object on this server (quatrack train SPEC.json, then reload objects)");
-    else listMessage(broken.length ? `${broken.length} object(s) cannot be loaded: ${broken.join("; ")}` : "");
+    listError = "";
+    if (!list.objects.length) listMessage("no trained object on this server (quatrack train SPEC.json, then reload objects)", say);
+    else listMessage(broken.length ? `${broken.length} object(s) cannot be loaded: ${broken.join("; ")}` : "", say);
   } catch (e) {
     if (mine !== listing) return;
     sel.innerHTML = "";  // (what an earlier token listed is not offered)
-    listMessage("objects: " + (e instanceof TypeError ? "the server does not answer" : e.message));
+    listError = "objects: " + (e instanceof TypeError ? "the server does not answer"
+                               : e.status === 401 ? unauthorizedText() : e.message);
+    listMessage(listError, say);
   }
 }
 
@@ -251,6 +279,15 @@ const CLOSE_CODES = { 1001: "the server is going away", 1006: "connection lost: 
 
 function errorText(msg) { return msg.error ? msg.error.code + ": " + msg.error.message : "unexpected " + JSON.stringify(msg).slice(0, 80); }
 
+function answerError(msg) {  // an answer that is not the one awaited, as an Error (with the service's code)
+  if (msg.type !== "error" || !msg.error) return new Error(errorText(msg));
+  const e = apiError(msg.error);
+  if (msg.error.code === "unauthorized") e.message = "WebSocket " + unauthorizedText();
+  return e;
+}
+
+const GONE = new Set([1001, 1006, 1011, 1012]);  // closes after which the server may come back
+
 function channel(ws) {  // the socket's messages in order, and its end whenever it comes: handlers
   // set only while awaiting missed a close that came in between (a server restarting while the
   // frame was being encoded), and the page then waited for ever, still saying "tracking"
@@ -264,13 +301,15 @@ function channel(ws) {  // the socket's messages in order, and its end whenever 
     deliver(last);
   };
   ws.onclose = (e) => {
-    const why = e.reason || CLOSE_CODES[e.code] || "";
-    if (!opened) {
-      finish(new Error(`cannot open the WebSocket (${e.code}${why ? " " + why : ""}): the server refused it ` +
-                       "(wrong token, unknown object, too many sessions) or is not reachable"));
+    if (!opened) {  // (the service opens a browser's socket to say why it refuses it: this is not the service's word)
+      finish(new Error(`cannot open the WebSocket (${e.code}${e.reason ? " " + e.reason : ""}): the server is not ` +
+                       "reachable at this address, or a proxy in front of it refused the connection"));
     } else {  // (an error just before the close says why: idle_timeout, ...)
-      const said = last && last.type === "error" && !("frame" in last) ? "; " + errorText(last) : "";
-      finish(new Error(`connection closed (${e.code}${why ? " " + why : ""})${said}; start again when the server is back`));
+      const why = e.reason || CLOSE_CODES[e.code] || "";
+      const said = last && last.type === "error" && !("frame" in last) && !why.startsWith(last.error.code + ":")
+        ? "; " + errorText(last) : "";
+      finish(new Error(`connection closed (${e.code}${why ? " " + why : ""})${said}` +
+                       (GONE.has(e.code) ? "; start again when the server is back" : "")));
     }
   };
   return { next: () => (queue.length ? Promise.resolve(queue.shift()) : end ? Promise.reject(end)
@@ -279,9 +318,12 @@ function channel(ws) {  // the socket's messages in order, and its end whenever 
 
 async function start(id, source) {  // id: this run; a stop or a newer run makes it end quietly
   const current = () => state.running && state.run === id;
-  const name = $("object").value;
-  if (!name) throw new Error("pick an object");
+  if (token() !== listedToken) loadObjects();  // (a token typed, its list not asked for yet)
   const pasted = pastedCamera();
+  for (let p = null; p !== listLoad;) await (p = listLoad);  // (the list still loading: the token typed and webcam clicked at once)
+  if (!current()) return;
+  const name = $("object").value;
+  if (!name) throw new Error(listError || "pick an object");
   const v = $("video");
   await source();
   if (!current()) return;
@@ -311,7 +353,7 @@ async function start(id, source) {  // id: this run; a stop or a newer run makes
     ws.send(JSON.stringify({ ...sent, ack: true }));
     const ready = await answers.next();
     if (!current()) return;
-    if (ready.type !== "ready") throw new Error(errorText(ready));
+    if (ready.type !== "ready") throw answerError(ready);
     const grab = document.createElement("canvas");
     grab.width = w; grab.height = h;
     const max = parseInt($("max-frames").value, 10);
@@ -368,8 +410,22 @@ function videoError(v) {
   return `the browser cannot play this video (${what}); WebM (VP8, VP9) plays in every browser`;
 }
 
+function clearRun() {  // the previous run's count, answer, picture and plots, not shown as this one's
+  state.count = 0; state.history = [];
+  $("pose-count").textContent = "0";
+  $("latency").textContent = "–";
+  $("last-pose").textContent = "null";
+  const c = $("overlay");
+  c.getContext("2d").clearRect(0, 0, c.width, c.height);
+  plot($("plot-position"), "p", "sp");
+  plot($("plot-orientation"), "r", "sr");
+}
+
+const STALE_LIST = new Set(["unknown_object", "model_unavailable"]);  // the object list is out of date
+
 function run(source, label) {  // source(current): sets the video's source (awaited)
   stop();
+  clearRun();
   const id = ++state.run;
   state.running = true;
   const current = () => state.running && state.run === id;
@@ -377,7 +433,11 @@ function run(source, label) {  // source(current): sets the video's source (awai
   $("source").textContent = label;
   $("stop").disabled = false;
   start(id, () => source(current))
-    .catch((e) => { if (current()) stop(e.message); })
+    .catch((e) => {
+      if (!current()) return;
+      stop(e.message);
+      if (STALE_LIST.has(e.code)) loadObjects(false);  // (deleted or broken since listed; the message stays)
+    })
     .finally(() => { state.done = id; });  // (the id of the latest run that has ended)
 }
 
@@ -390,12 +450,22 @@ $("webcam").onclick = () => run(async (current) => {
   }
   let stream;
   try { stream = await media.getUserMedia({ video: { width: 640, height: 480 }, audio: false }); }
-  catch (e) { throw new Error("webcam: " + e.message); }
+  catch (e) { throw new Error(cameraError(e)); }
   if (!current()) { stream.getTracks().forEach((t) => t.stop()); return; }  // (a newer run took over: camera off)
   const v = $("video");
   v.removeAttribute("src");  // (v.src = "" queues an error event: "empty src")
   v.srcObject = stream;
 }, "webcam");
+
+function cameraError(e) {  // getUserMedia's refusal, with what to do next
+  const next = {
+    NotAllowedError: "the camera is not allowed for this page: allow it (the camera icon in the address bar) and click webcam again, or choose a video file",
+    NotFoundError: "no camera found: connect one and click webcam again, or choose a video file",
+    OverconstrainedError: "no camera found that gives 640×480: choose a video file",
+    NotReadableError: "the camera is in use by another program: close it and click webcam again, or choose a video file",
+  }[e && e.name];
+  return "webcam: " + (next || `${e && e.message ? e.message : e}; choose a video file instead`);
+}
 
 function playFile(file) {
   run(async () => {
@@ -416,6 +486,6 @@ const view = $("view");
 view.addEventListener("dragover", (e) => e.preventDefault());
 view.addEventListener("drop", (e) => { e.preventDefault(); if (e.dataTransfer.files[0]) playFile(e.dataTransfer.files[0]); });
 $("stop").onclick = () => stop("stopped by the user");
-$("refresh").onclick = loadObjects;
-$("token").addEventListener("change", loadObjects);
+$("refresh").onclick = () => loadObjects();
+$("token").addEventListener("change", () => loadObjects());
 loadObjects();
