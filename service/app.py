@@ -435,11 +435,12 @@ def create_app(settings: Settings | None = None, whole_process: bool = False) ->
     app.include_router(pose_all.router)  # POST /v1/pose: every trained object searched (service/pose_all.py)
     slashes.install(app)  # /v1/objects/ → ../objects: a relative Location, within a proxy's prefix
     app.router.default = UnmatchedWebSocket(app.router)  # .../track/ served, other handshakes a JSON 404
-    app.add_middleware(HeadAsGet)  # innermost: HEAD reaches the routes as GET (their body dropped)
+    app.add_middleware(errors.UnexpectedErrors)  # innermost: a 500 gets CORS, request id, nosniff as any answer
+    app.add_middleware(HeadAsGet)  # HEAD reaches the routes as GET (their body dropped)
     app.add_middleware(BodyLimit, limit=settings.max_body_bytes)
     if settings.cors_origins:
         app.add_middleware(CORSMiddleware, allow_origins=list(settings.cors_origins), allow_methods=["GET", "POST"],
-                           allow_headers=["Authorization", "Content-Type", "X-Request-ID"], expose_headers=["X-Request-ID"])
+                           allow_headers=["Authorization", "Content-Type", "X-Request-ID"], expose_headers=["X-Request-ID", "Retry-After"])
     if settings.allowed_hosts:
         app.add_middleware(AllowedHosts, hosts=settings.allowed_hosts)
     app.add_middleware(StopAnswer)  # (inside the request log: its status is logged and counted)

@@ -71,8 +71,39 @@ async def _on_unexpected(request: Request, exc: Exception) -> JSONResponse:
     return _json(500, "internal", "internal error (logged on the server)")
 
 
+class UnexpectedErrors:
+    """An exception nothing handled becomes the contract's JSON 500 *inside* the middleware stack
+    (``app.py`` adds it innermost), so the answer passes the CORS, security-header and request-id
+    middlewares as any other: Starlette runs an ``Exception`` handler in its outermost
+    ``ServerErrorMiddleware``, and the 500 went out without ``Access-Control-Allow-Origin`` (a
+    browser page saw a network error, not the answer), ``X-Request-ID`` or ``nosniff``. An
+    answer already begun is left to the server (re-raised: nothing can be said any more)."""
+
+    def __init__(self, app) -> None:
+        self.app = app
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] != "http":
+            return await self.app(scope, receive, send)
+        started = False
+
+        async def watched(msg):
+            nonlocal started
+            started = started or msg["type"] == "http.response.start"
+            await send(msg)
+
+        try:
+            await self.app(scope, receive, watched)
+        except Exception as exc:
+            if started:
+                raise
+            await (await _on_unexpected(Request(scope), exc))(scope, receive, send)
+
+
 def install(app: FastAPI) -> None:
-    """Register the handlers that turn every error into the contract's JSON body."""
+    """Register the handlers that turn every error into the contract's JSON body. (The
+    ``Exception`` handler stays for what fails outside :class:`UnexpectedErrors`: the outer
+    middlewares.)"""
     app.add_exception_handler(StarletteHTTPException, _on_http)
     app.add_exception_handler(RequestValidationError, _on_validation)
     app.add_exception_handler(Exception, _on_unexpected)
