@@ -450,9 +450,17 @@ def close_reason(code: str, message: str) -> str:
     return f"{code}: {message}".encode()[:123].decode("utf-8", "ignore")
 
 
+#: refusals a browser's handshake still gets as the documented HTTP answer: a page of a foreign
+#: origin, or one reaching the server under a host name it does not serve (DNS rebinding), is the
+#: attack these checks stop, and is told nothing more (the viewer, served by the server itself,
+#: never meets them)
+_REFUSED_IN_HTTP = frozenset({"forbidden_origin", "invalid_host"})
+
+
 async def deny_websocket(ws: WebSocket, status: int, code: str, message: str, close_code: int, headers=None) -> None:
-    """Refuse a WebSocket. A client that is no browser (no ``Origin`` header) gets an HTTP error
-    response where the server supports it. A browser's handshake (``Origin``), and any handshake
+    """Refuse a WebSocket. A client that is no browser (no ``Origin`` header), and any handshake
+    refused as a foreign origin or host (``_REFUSED_IN_HTTP``), gets an HTTP error response where
+    the server supports it. A browser's other handshakes (``Origin``), and any handshake
     where the server cannot answer in HTTP, is accepted, gets the error message
     ``{"type": "error", "error": {...}}`` and is closed with ``close_code`` (1008 policy, 1011
     server error, 1013 try again later) and the reason ``code: message``: browsers hide a refused
@@ -465,7 +473,7 @@ async def deny_websocket(ws: WebSocket, status: int, code: str, message: str, cl
     answer format, wherever the refusal is decided."""
     log.info("websocket refused", extra={"status": status, "code": code, "reason": message, "path": ws.url.path})
     get_ws_state(ws).metrics.ws_refused.labels(code).inc()
-    if "origin" not in ws.headers:
+    if "origin" not in ws.headers or code in _REFUSED_IN_HTTP:
         try:
             await ws.send_denial_response(JSONResponse(error_body(code, message), status_code=status, headers=headers))
             mark_refused()

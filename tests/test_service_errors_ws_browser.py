@@ -2,7 +2,9 @@
 answer (the page sees a bare 1006, whatever the cause), so a handshake with an ``Origin`` header
 (every browser sends one) is accepted, gets the contract's error message and is closed with 1008
 (policy), 1011 (server error) or 1013 (try again later) and the reason ``code: message``. A client
-that is no browser (no ``Origin``) still gets the HTTP refusal, as docs/contract.md says.
+that is no browser (no ``Origin``) still gets the HTTP refusal, as docs/contract.md says, and so
+does a handshake refused as a foreign origin or host (``forbidden_origin``, ``invalid_host``: the
+attack those checks stop is told nothing more; the contract's 403 / 400).
 """
 
 from __future__ import annotations
@@ -38,11 +40,9 @@ def _browser_refusal(c: TestClient, path: str, headers: dict) -> tuple[dict, int
 
 
 @pytest.mark.parametrize("case, settings, path, headers, status, code, close", [
-    ("forbidden_origin", {}, "/v1/objects/broken/track", {"origin": "https://evil.example"}, 403, "forbidden_origin", 1008),
     ("unauthorized", {"api_token": TOKEN}, "/v1/objects/broken/track", PAGE, 401, "unauthorized", 1008),
     ("unknown_object", {}, "/v1/objects/nothing/track", PAGE, 404, "unknown_object", 1008),
     ("no route", {}, "/v1/nothing", PAGE, 404, "not_found", 1008),
-    ("invalid_host", {"allowed_hosts": ("localhost",)}, "/v1/objects/broken/track", PAGE, 400, "invalid_host", 1008),
     ("model_unavailable", {}, "/v1/objects/broken/track", PAGE, 503, "model_unavailable", 1011),
 ])
 def test_a_browsers_refused_handshake_is_an_error_message_and_a_close_code(tmp_path, case, settings, path, headers,
@@ -52,11 +52,24 @@ def test_a_browsers_refused_handshake_is_an_error_message_and_a_close_code(tmp_p
         assert msg["type"] == "error" and msg["error"]["code"] == code, msg
         assert (got_close, reason) == (close, close_reason(code, msg["error"]["message"]))
         assert reason.startswith(code + ": ")
-        if code == "forbidden_origin":  # (without Origin there is no origin to refuse)
-            return
         # the same handshake without Origin (no browser): the HTTP refusal, as before
         with pytest.raises(WebSocketDenialResponse) as denied:
             with c.websocket_connect(path, headers={k: v for k, v in headers.items() if k != "origin"}):
+                pass
+        assert denied.value.status_code == status and denied.value.json()["error"]["code"] == code
+
+
+@pytest.mark.parametrize("settings, headers, status, code", [
+    ({}, {"origin": "https://evil.example"}, 403, "forbidden_origin"),
+    ({"allowed_hosts": ("localhost",)}, PAGE, 400, "invalid_host"),
+])
+def test_a_foreign_origin_or_host_is_refused_in_http_even_to_a_browser(tmp_path, settings, headers, status, code):
+    """The page of another site (cross-site WebSocket hijacking) or one reached under a host
+    name the server does not serve (DNS rebinding) gets the documented HTTP refusal: no socket is
+    opened for it, and it is told nothing."""
+    with _client(tmp_path, **settings) as c:
+        with pytest.raises(WebSocketDenialResponse) as denied:
+            with c.websocket_connect("/v1/objects/broken/track", headers=headers):
                 pass
         assert denied.value.status_code == status and denied.value.json()["error"]["code"] == code
 
