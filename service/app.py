@@ -322,6 +322,20 @@ class UnmatchedWebSocket:
                              f"no WebSocket endpoint at {path[:120]!r}: tracking is /v1/objects/NAME/track", 1008)
 
 
+def _warmed(state: ServiceState, done) -> None:
+    """After :func:`_warm`: a failure is logged at once with its traceback and said by
+    ``/readyz`` (``error``, 503 for good). Why: the future's exception was never read, so a
+    server whose loading failed (an OpenCV without a function the loops use) answered
+    ``/readyz`` 503 ``{"failed": {}}`` with nothing in the log until its shutdown printed "Future
+    exception was never retrieved"."""
+    if done.cancelled() or done.exception() is None:
+        return
+    exc = done.exception()
+    state.warm_error = f"{type(exc).__name__}: {exc}"[:300]
+    log.error("loading the models and warming the service failed; the server stays not ready: %s",
+              state.warm_error, exc_info=exc)
+
+
 def _warm(state: ServiceState, freeze: bool = False) -> None:
     """Load the store's models, compile the numba loops (:func:`~quatrack.recognition.runtime.compile_hot_loops`:
     up to ~5 s where no on-disk cache exists yet, as in a fresh container) and build each worker
@@ -403,6 +417,7 @@ def create_app(settings: Settings | None = None, whole_process: bool = False) ->
             sessions.on_change = placement.sessions_changed
         if settings.preload:
             warm = loop.run_in_executor(None, _warm, state, whole_process)  # readyz says 503 until done
+            warm.add_done_callback(lambda f: _warmed(state, f))
         else:
             state.registry.ready = True
             if board is not None:

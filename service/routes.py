@@ -51,6 +51,7 @@ class ServiceState:
     metrics: Metrics
     sessions: SessionLimiter
     pending: int = 0  # REST pose requests in flight
+    warm_error: str | None = None  # why start-up loading (app._warm) failed; /readyz says it
     # the sessions' clock (rate limit, arrival times of frames without a time_s): tests inject
     # a controlled one, so that what they check does not depend on the machine's speed
     clock: Callable[[], float] = time.monotonic
@@ -120,8 +121,8 @@ def serves_an_object(state: ServiceState, loaded: list[str]) -> bool:
 @health.get("/readyz", response_model=Ready, summary="models are loaded (at least one)", responses={503: {"model": Ready}})
 async def readyz(state: State):
     loaded = state.registry.loaded()
-    body = Ready(ready=state.registry.ready and serves_an_object(state, loaded), models=loaded, tracker=TRACKER_KIND,
-                 failed=state.registry.failed())
+    body = Ready(ready=state.warm_error is None and state.registry.ready and serves_an_object(state, loaded),
+                 models=loaded, tracker=TRACKER_KIND, failed=state.registry.failed(), error=state.warm_error)
     return JSONResponse(body.model_dump(), status_code=200 if body.ready else 503)
 
 

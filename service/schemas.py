@@ -207,6 +207,8 @@ class Ready(BaseModel):
     models: list[str]
     tracker: str = Field(description="which tracker drives WebSocket sessions")
     failed: dict[str, str] = Field({}, description="objects of the store that cannot be loaded, with the reason")
+    error: str | None = Field(None, description="why start-up loading failed (the server stays not ready; "
+                                                "the log has the traceback); absent while it runs or once it succeeded")
 
 
 class ReloadOut(BaseModel):
