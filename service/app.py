@@ -130,8 +130,8 @@ async def _send_json(send, status: int, body: dict, headers: list | None = None)
 
 
 class AllowedHosts:
-    """Requests whose ``Host`` is not in ``QUATRACK_ALLOWED_HOSTS`` are refused, 400 ``invalid_host``
-    (a WebSocket's handshake too). Why: DNS rebinding — a page of an attacker's site whose name
+    """Requests whose ``Host`` is not in ``QUATRACK_ALLOWED_HOSTS``, or that carry more than one
+    ``Host`` header, are refused, 400 ``invalid_host`` (a WebSocket's handshake too). Why: DNS rebinding — a page of an attacker's site whose name
     is made to resolve to 127.0.0.1 is same-origin with a local server, and its requests carry
     the attacker's name as ``Host``; without a token, that server is the page's. The probes
     (:data:`PROBES`) answer whatever the ``Host``: a container's health check, a kubelet or a
@@ -156,10 +156,13 @@ class AllowedHosts:
     async def __call__(self, scope, receive, send):
         if scope["type"] not in ("http", "websocket") or scope["path"] in self.PROBES:
             return await self.app(scope, receive, send)
-        host = dict(scope.get("headers") or []).get(b"host", b"").decode("latin-1")
-        if self.allowed(host):
+        hosts = [v for k, v in scope.get("headers") or [] if k == b"host"]
+        host = hosts[0].decode("latin-1") if hosts else ""
+        if len(hosts) <= 1 and self.allowed(host):
             return await self.app(scope, receive, send)
         message = f"this server does not answer to the host {host[:80]!r} (QUATRACK_ALLOWED_HOSTS)"
+        if len(hosts) > 1:  # (which one is meant? the routes read the first, a proxy may read the last)
+            message = f"a request names one host, not {len(hosts)} (several Host headers)"
         if scope["type"] == "http":
             return await _send_json(send, 400, error_body("invalid_host", message))
         # as the routes refuse a handshake: an HTTP answer where the server supports it, logged,

@@ -156,6 +156,19 @@ def test_allowed_hosts_refuse_another_host_with_the_contract_s_error(tmp_path, h
             assert c.get(probe, headers={"Host": host}).status_code == 200, (probe, host)
 
 
+@pytest.mark.parametrize("hosts", [["rebind.attacker.example", "localhost"], ["localhost", "rebind.attacker.example"],
+                                   ["localhost", "localhost"]])
+def test_allowed_hosts_refuse_a_request_with_two_host_headers(tmp_path, hosts):
+    """Two ``Host`` headers passed the check when the last one was allowed (it read the last,
+    Starlette and the origin check the first): which host is meant is the request's to say once."""
+    settings = _settings(tmp_path, allowed_hosts="localhost")
+    with TestClient(create_app(settings)) as c:
+        r = c.get("/v1/objects", headers=[("host", h) for h in hosts])
+        assert r.status_code == 400 and r.json()["error"]["code"] == "invalid_host", r.text
+        assert "several Host headers" in r.json()["error"]["message"]
+        assert c.get("/v1/objects", headers={"Host": "localhost"}).status_code == 200
+
+
 def test_allowed_hosts_refuse_a_websocket_handshake(tmp_path):
     from starlette.testclient import WebSocketDenialResponse
 
