@@ -28,6 +28,7 @@ from importlib.metadata import version
 import cv2
 from fastapi import FastAPI
 from fastapi.middleware.cors import CORSMiddleware
+from starlette.datastructures import Headers
 from starlette.websockets import WebSocket
 
 from quatrack.recognition.runtime import compile_hot_loops, limit_blas_threads, tune_allocator
@@ -38,7 +39,7 @@ from .logs import install_filters
 from .metrics import Metrics, worker_exit
 from .placement import placement_of_running_loop, read_board
 from .registry import ModelRegistry
-from .routes import ServiceState, api, deny_websocket, health, ops, sockets
+from .routes import ServiceState, api, deny_websocket, health, ops, origin_allowed, sockets
 from .settings import Settings
 from .workers import ReadyBoard, count_open, ready_board, session_limiter
 
@@ -168,6 +169,32 @@ class AllowedHosts:
         # as the routes refuse a handshake: an HTTP answer where the server supports it, logged,
         # counted in quatrack_ws_refused_total
         await deny_websocket(WebSocket(scope, receive, send), 400, "invalid_host", message, 1008)
+
+
+class ForeignPosts:
+    """On a server without a token, a ``POST`` carrying an ``Origin`` that is neither the server's
+    own nor one of ``QUATRACK_CORS_ORIGINS`` is refused, 403 ``forbidden_origin``, before its body
+    is read — the WebSocket's rule (:func:`~.routes.origin_allowed`) for the REST calls that do
+    work. Why: a multipart ``POST …/pose`` or a ``POST …/reload`` is a "simple" request that a
+    browser sends from any page without asking first; the page cannot read the answer, but every
+    page a user on the network opened could make the server search images or reload models.
+    Clients that are no browser send no ``Origin``; with a token the token decides."""
+
+    METHODS = frozenset({"POST", "PUT", "PATCH", "DELETE"})
+
+    def __init__(self, app, settings: Settings) -> None:
+        self.app, self.settings = app, settings
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] != "http" or scope["method"] not in self.METHODS:
+            return await self.app(scope, receive, send)
+        headers = Headers(scope=scope)
+        if origin_allowed(self.settings, headers):
+            return await self.app(scope, receive, send)
+        message = (f"a page of another site ({headers.get('origin', '')[:80]!r}) may not call this server "
+                   f"(its origin is not the server's own nor in QUATRACK_CORS_ORIGINS)")
+        log.info("request refused", extra={"code": "forbidden_origin", "path": scope["path"]})
+        await _send_json(send, 403, error_body("forbidden_origin", message))
 
 
 class HeadAsGet:
@@ -459,6 +486,8 @@ def create_app(settings: Settings | None = None, whole_process: bool = False) ->
     if settings.cors_origins:
         app.add_middleware(CORSMiddleware, allow_origins=list(settings.cors_origins), allow_methods=["GET", "POST"],
                            allow_headers=["Authorization", "Content-Type", "X-Request-ID"], expose_headers=["X-Request-ID", "Retry-After"])
+    if settings.api_token is None:
+        app.add_middleware(ForeignPosts, settings=settings)  # (before the body is read)
     if settings.allowed_hosts:
         app.add_middleware(AllowedHosts, hosts=settings.allowed_hosts)
     app.add_middleware(StopAnswer)  # (inside the request log: its status is logged and counted)

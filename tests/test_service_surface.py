@@ -240,3 +240,26 @@ def test_a_request_id_is_echoed_only_when_it_is_ascii(tmp_path):
         assert rid(b"abc-123") == b"abc-123"
         fresh = rid(b"\xb2\xb3")
         assert fresh.isascii() and fresh.isalnum() and len(fresh) == 16, fresh
+
+
+# --- a page of another site calling the REST API of a server without a token ----------------------
+
+@pytest.mark.parametrize("path", ["/v1/objects/cookie-box/pose", "/v1/objects/cookie-box/reload", "/v1/pose"])
+def test_a_foreign_pages_post_is_refused_without_a_token(tmp_path, path):
+    """A multipart POST is a "simple" request: a browser sends it from any page without a
+    preflight, and it returned 200 (the page cannot read it, but the server did the work). Like
+    the WebSocket's handshake, a foreign Origin is refused (403 forbidden_origin) on a server
+    without a token; the server's own pages, listed origins and clients without Origin are not."""
+    with TestClient(create_app(_settings(tmp_path))) as c:
+        r = c.post(path, headers={"Origin": "https://evil.example"}, files={"image": ("x.png", b"not an image")})
+        assert r.status_code == 403 and r.json()["error"]["code"] == "forbidden_origin", r.text
+        for headers in ({"Origin": "http://testserver"}, {}):  # its own page; no browser
+            r = c.post(path, headers=headers, files={"image": ("x.png", b"not an image")})
+            assert r.status_code != 403, (headers, r.text)
+    with TestClient(create_app(_settings(tmp_path, cors_origins="https://app.example"))) as c:
+        r = c.post(path, headers={"Origin": "https://app.example"}, files={"image": ("x.png", b"not an image")})
+        assert r.status_code != 403, r.text
+    with TestClient(create_app(_settings(tmp_path, api_token="t0ken-for-tests"))) as c:  # the token decides
+        r = c.post(path, headers={"Origin": "https://evil.example", "Authorization": "Bearer t0ken-for-tests"},
+                   files={"image": ("x.png", b"not an image")})
+        assert r.status_code != 403, r.text
