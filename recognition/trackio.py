@@ -17,8 +17,10 @@ hold everywhere:
   its gaps — when its first :data:`STAMP_CHECK_FRAMES` frames' timestamps increase (a file whose
   B-frames carry their decoding order's times does not: ``index / rate`` then), and up to the
   first that does not; a frame without one (not decoded, or after that) comes a period after the
-  frame before. A live
-  source (camera index or URL) without ``--fps`` is timed by the clock instead: ``time_s`` =
+  frame before. A URL of a recorded video (``http://host/box.mp4``, ``file:///...``: its capture
+  states a frame count and its frames carry container timestamps) is timed and ends as a file
+  (though read in a thread as a live source is). A live
+  source (camera index or other URL) without ``--fps`` is timed by the clock instead: ``time_s`` =
   monotonic seconds from the moment its first frame was grabbed (its read returned, in the
   capture thread) to the moment this one was, since a camera drops and delays frames — not when
   the tracker took it (the first frame is read as the source opens, before the tracker is built).
@@ -585,9 +587,13 @@ def open_frames(video: str | None = None, images: str | Sequence[str] | None = N
     turned = 0.0 if live else _as_recorded(cap)
     listed = cap.get(cv2.CAP_PROP_FRAME_COUNT)
     listed = int(listed) if math.isfinite(listed) and listed > 0 else 0  # (0: unknown; a stream's -1)
+    # a URL of a recorded video (http://host/box.mp4, file:///...): its container counts its frames,
+    # a camera's or a live stream's does not; it was timed by the clock (200 frames over 4.35 s, the
+    # pace they were read at, for 6.64 s of video) and its end reported as a dropped stream
+    recorded = live and isinstance(target, str) and listed > 0
     stamps: collections.deque = collections.deque()  # (a file's: each decoded frame's container time, s)
-    frames = decoded_frames(cap, f"--video {video}", live, listed)
-    if not live:
+    frames = decoded_frames(cap, f"--video {video}", live and not recorded, listed)
+    if not live or recorded:
         frames = _file_frames(frames, cap, listed, f"--video {video}", stamps)
     head: list[np.ndarray | SourceError] = []  # up to the first frame that decodes (a bad file fails here)
     for item in frames:
@@ -604,7 +610,11 @@ def open_frames(video: str | None = None, images: str | Sequence[str] | None = N
         warnings.warn(f"--video {video}: the video says rotate {turned:g}°; its frames are tracked as recorded, "
                       f"in the camera's own orientation (the camera file's width and height)", SourceWarning,
                       stacklevel=2)
-    timed = not live and fps is None and _increasing(stamps, frames, head)
+    increasing = (not live or recorded) and (fps is None or recorded) and _increasing(stamps, frames, head)
+    if recorded and not (increasing or _stamped(stamps)):  # (no container times at all: a live stream after all)
+        recorded = False
+    timed = increasing and fps is None
+    live = live and not recorded
     rate = frame_rate(fps, cap.get(cv2.CAP_PROP_FPS))
     return FrameSource(f"--video {video}", rate, live=live and fps is None, max_frames=max_frames,
                        _frames=itertools.chain(head, frames), _close=cap.release,
@@ -671,6 +681,13 @@ def _increasing(stamps: collections.deque, frames: Iterator, head: list) -> bool
         head.append(item)
     values = list(stamps)
     return all(math.isfinite(a) and a >= 0 for a in values) and all(b > a for a, b in zip(values, values[1:]))
+
+
+def _stamped(stamps: collections.deque) -> bool:
+    """Whether the decoded frames read so far carry container times (finite, from 0, not all 0),
+    in order or not (a file's B-frames may carry their decoding order's): a recorded video's do."""
+    values = list(stamps)
+    return bool(values) and all(math.isfinite(a) and a >= 0 for a in values) and max(values) > 0
 
 
 #: consecutive frames of a video file that may fail to decode beyond the count its container lists
