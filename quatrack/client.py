@@ -30,7 +30,7 @@ import re
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable, Iterator
+from typing import Any, Iterable, Iterator, Literal
 from urllib.parse import urlsplit, urlunsplit
 
 import numpy as np
@@ -49,6 +49,33 @@ class QuatrackError(Exception):
     def __init__(self, code: str, message: str, status: int | None = None) -> None:
         super().__init__(f"{code}: {message}" if status is None else f"{status} {code}: {message}")
         self.code, self.message, self.status = code, message, status
+
+
+class FrameError(TrackMessage):
+    """The answer to one frame the server could not track, yielded by :meth:`Client.track` and
+    :meth:`AsyncClient.track` in that frame's place: an error naming the frame (``bad_image``:
+    not decodable, another size than the camera's; ``bad_frame``, ``bad_pose``) or a refusal on
+    arrival (``unsupported_image``, ``too_large``, ``rate_limited``). Its ``status`` is ``lost``,
+    without pose; ``code`` and ``message`` are the server's, ``reason`` is ``"CODE: message"``;
+    ``frame`` is the server's number of the frame (None for a frame refused on arrival, which
+    gets none), ``time_s`` the time the frame was sent with (None: untimed).
+
+    Why: the session stays open after such an error, but ``track`` raised it and closed the
+    socket, so one damaged JPEG from a camera ended the whole stream. Errors about the session
+    (``unauthorized``, ``unknown_object``, ``closed``, ``idle_timeout``, ...) still raise
+    :class:`QuatrackError`."""
+
+    frame: int | None = None
+    time_s: float | None = None
+    status: Literal["lost"] = "lost"
+    pose: None = None
+    velocity: None = None
+    covariance: None = None
+    inliers: int = 0
+    latency_ms: float = 0.0
+    skipped: int = 0
+    code: str
+    message: str
 
 
 def api_token(token: str | None = None) -> str | None:
@@ -243,6 +270,24 @@ class _Endpoint:
             return json.dumps({"type": "frame", "time_s": float(item[0])}), image_bytes(item[1])
         return None, image_bytes(item)
 
+    @classmethod
+    def _answer_of(cls, msg: dict, time_s: float | None) -> TrackMessage:
+        """A lock-step frame's answer: its :class:`TrackMessage`, or a :class:`FrameError` for an
+        error about that frame alone (one naming its ``frame``, or a refusal on arrival: the only
+        frame in flight); any other error raised as :class:`QuatrackError`."""
+        error = msg.get("error") if isinstance(msg.get("error"), dict) else {}
+        if msg.get("type") == "error" and ("frame" in msg or error.get("code") in REFUSED_FRAME):
+            code, text = str(error.get("code", "error")), str(error.get("message", ""))
+            frame = msg.get("frame")
+            return FrameError(frame=frame if isinstance(frame, int) and not isinstance(frame, bool) else None,
+                              time_s=time_s, code=code, message=text, reason=f"{code}: {text}", id=msg.get("id"))
+        return TrackMessage.model_validate(cls._expect(msg, "pose"))
+
+    @staticmethod
+    def _sent_time(item: Any) -> float | None:
+        """The ``time_s`` a frame is sent with (None: untimed, the server's clock)."""
+        return float(item[0]) if isinstance(item, tuple) and len(item) == 2 else None
+
     @staticmethod
     def _expect(msg: dict, kind: str) -> dict:
         if msg.get("type") == "error":
@@ -296,7 +341,10 @@ class Client(_Endpoint):
         an image (numpy array, encoded bytes or a path), timed by the server's clock, or a pair
         ``(time_s, image)`` (seconds, increasing). ``ros_mesh_unit`` (mm, cm, m: the mesh's unit) asks for
         ``format=ros``: each message's ``ros`` is then a ``geometry_msgs/PoseWithCovarianceStamped``
-        (metres). A per-frame error ends the iteration with a QuatrackError."""
+        (metres). A frame the server cannot track (not decodable, another size than the camera's,
+        not an image) is answered by a :class:`FrameError` (status ``lost``, with the server's
+        ``code``) in its place, and the stream goes on; an error about the session (refused
+        token, unknown object, the connection lost) raises :class:`QuatrackError`."""
         from websockets.sync.client import connect
 
         url = self._track_url(object, ros_mesh_unit)
@@ -312,8 +360,7 @@ class Client(_Endpoint):
                 if header is not None:
                     ws.send(header)
                 ws.send(data)
-                msg = _message(ws.recv(self.timeout))
-                yield TrackMessage.model_validate(self._expect(msg, "pose"))
+                yield self._answer_of(_message(ws.recv(self.timeout)), self._sent_time(item))
 
     def close(self) -> None:
         self._http.close()
@@ -380,7 +427,7 @@ class AsyncClient(_Endpoint):
                         await ws.send(header)
                     await ws.send(data)
                     msg = _message(await asyncio.wait_for(ws.recv(), self.timeout))
-                    yield TrackMessage.model_validate(self._expect(msg, "pose"))
+                    yield self._answer_of(msg, self._sent_time(item))
 
     async def aclose(self) -> None:
         await self._http.aclose()
