@@ -90,7 +90,10 @@ def _check(args: argparse.Namespace) -> _Plan:
     camera_file = args.camera or str(example / "camera.json")
     text = video.strip()
     if text.isdigit() or "://" in text:  # (was "--video 0: no such file", as if a camera were a missing file)
-        raise ValueError(f"--video {video}: demo streams a video file (it reads it again for the overlay); for a "
+        from quatrack.recognition.trackio import masked
+
+        text = masked(text)  # (a camera URL's password)
+        raise ValueError(f"--video {text}: demo streams a video file (it reads it again for the overlay); for a "
                          f"camera or a stream URL use `quatrack track --video {text}`, or the browser viewer "
                          f"(`quatrack serve`, then /viewer) for a webcam")
     for opt, path in (("--video", video), ("--camera", camera_file)):

@@ -170,7 +170,7 @@ class LiveCapture:
         self._calls: queue.SimpleQueue = queue.SimpleQueue()
         self._released = False
         self.grabbed_at: float | None = None
-        threading.Thread(target=self._serve, name=f"{CAPTURE_THREAD} {target}", daemon=True).start()
+        threading.Thread(target=self._serve, name=f"{CAPTURE_THREAD} {masked(str(target))}", daemon=True).start()
         # FFmpeg's own timeout a little after ours: the thread left in a blocked read comes back
         self.cap = self._call(lambda: open_capture(target, timeout_s + 5.0), what="answer")
 
@@ -250,6 +250,24 @@ def frame_rate(given: float | None, reported: float | None = None) -> float:
     if reported is not None and math.isfinite(reported) and 0 < reported <= MAX_RATE:
         return float(reported)
     return DEFAULT_RATE
+
+
+_USER_INFO = re.compile(r"^(\s*[A-Za-z][A-Za-z0-9+.-]*://)([^/?#]*)@")
+
+
+def masked(video: str) -> str:
+    """``video`` as shown to the user: a URL's user-info (``rtsp://user:pass@host/...``) masked as
+    ``user:***@`` (a lone token as ``***@``), so no password is printed in a message, a progress
+    line or a row's ``reason``; anything else as given.
+
+    >>> masked("rtsp://admin:s3cret@10.0.0.2/live"), masked("http://tok@cam/x"), masked("0")
+    ('rtsp://admin:***@10.0.0.2/live', 'http://***@cam/x', '0')
+    """
+    def hide(m: re.Match) -> str:  # (group 2: up to the host's "@", the last one: a password may hold "@")
+        user, sep, _ = m.group(2).partition(":")
+        return f"{m.group(1)}{user + ':' if sep else ''}***@"
+
+    return _USER_INFO.sub(hide, video, count=1)
 
 
 def capture_target(video: str) -> int | str:
@@ -564,6 +582,7 @@ def open_frames(video: str | None = None, images: str | Sequence[str] | None = N
         return FrameSource(f"--images {label}", frame_rate(fps), names=paths, max_frames=max_frames,
                            _frames=frames())
     target = capture_target(video)
+    shown = masked(video)  # (a camera URL's password: in every message and row, it was printed as given)
     live = not isinstance(target, str) or "://" in target
     kind = "camera" if isinstance(target, int) else "stream" if live else "video"
     if stall_timeout_s is not None and (isinstance(stall_timeout_s, (str, bytes, bool))
@@ -576,11 +595,11 @@ def open_frames(video: str | None = None, images: str | Sequence[str] | None = N
         cap = LiveCapture(target, stall_timeout_s or STALL_TIMEOUT_S) if live else open_capture(target)
         opened = cap.isOpened()
     except SourceStalled as exc:
-        raise SourceError(f"--video {video}: cannot be opened as a {kind} ({exc})") from None
+        raise SourceError(f"--video {shown}: cannot be opened as a {kind} ({exc})") from None
     if not opened:
         cap.release()
         waited = time.monotonic() - started  # (an address that takes connections and never answers: 30 s)
-        raise SourceError(f"--video {video}: cannot be opened as a {kind}"
+        raise SourceError(f"--video {shown}: cannot be opened as a {kind}"
                           + (f" (no answer within {waited:.0f} s)" if live and waited >= 5 else ""))
     import cv2
 
@@ -592,22 +611,22 @@ def open_frames(video: str | None = None, images: str | Sequence[str] | None = N
     # pace they were read at, for 6.64 s of video) and its end reported as a dropped stream
     recorded = live and isinstance(target, str) and listed > 0
     stamps: collections.deque = collections.deque()  # (a file's: each decoded frame's container time, s)
-    frames = decoded_frames(cap, f"--video {video}", live and not recorded, listed)
+    frames = decoded_frames(cap, f"--video {shown}", live and not recorded, listed)
     if not live or recorded:
-        frames = _file_frames(frames, cap, listed, f"--video {video}", stamps)
+        frames = _file_frames(frames, cap, listed, f"--video {shown}", stamps)
     head: list[np.ndarray | SourceError] = []  # up to the first frame that decodes (a bad file fails here)
     for item in frames:
         if isinstance(item, SourceEnded):  # (a live source that gives no frame at all: say why)
             cap.release()
-            raise SourceError(f"--video {video}: {item}, before its first frame")
+            raise SourceError(f"--video {shown}: {item}, before its first frame")
         head.append(item)
         if not isinstance(item, Exception):
             break
     else:
         cap.release()
-        raise SourceError(f"--video {video}: no frame can be decoded")
+        raise SourceError(f"--video {shown}: no frame can be decoded")
     if turned:
-        warnings.warn(f"--video {video}: the video says rotate {turned:g}°; its frames are tracked as recorded, "
+        warnings.warn(f"--video {shown}: the video says rotate {turned:g}°; its frames are tracked as recorded, "
                       f"in the camera's own orientation (the camera file's width and height)", SourceWarning,
                       stacklevel=2)
     increasing = (not live or recorded) and (fps is None or recorded) and _increasing(stamps, frames, head)
@@ -616,7 +635,7 @@ def open_frames(video: str | None = None, images: str | Sequence[str] | None = N
     timed = increasing and fps is None
     live = live and not recorded
     rate = frame_rate(fps, cap.get(cv2.CAP_PROP_FPS))
-    return FrameSource(f"--video {video}", rate, live=live and fps is None, max_frames=max_frames,
+    return FrameSource(f"--video {shown}", rate, live=live and fps is None, max_frames=max_frames,
                        _frames=itertools.chain(head, frames), _close=cap.release,
                        _stamp=(lambda: cap.grabbed_at) if live else None,
                        _pos=stamps.popleft if timed else None)
