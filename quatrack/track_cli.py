@@ -36,8 +36,8 @@ from quatrack.recognition.trackio import FORMATS, UNIT_METRES
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     src = parser.add_mutually_exclusive_group(required=True)
     src.add_argument("--video", metavar="SOURCE",
-                     help="a video file (anything OpenCV/FFmpeg reads), a camera index such as 0, "
-                          "or a stream URL (rtsp://, http://, ...)")
+                     help="a video file (anything OpenCV/FFmpeg reads), a camera index such as 0 or device "
+                          "such as /dev/video0, a FIFO, or a stream URL (rtsp://, http://, ...)")
     src.add_argument("--images", metavar="GLOB", nargs="+",
                      help="an image sequence, e.g. 'frames/*.png' (sorted by name), or several globs or files "
                           "(an unquoted glob: each expanded and sorted, in the order given), or a list file "

@@ -270,17 +270,38 @@ def masked(video: str) -> str:
     return _USER_INFO.sub(hide, video, count=1)
 
 
-def capture_target(video: str) -> int | str:
-    """What ``--video`` names: a camera index (all digits) or a URL (has ``://``) as given; else a
-    file, which must exist.
+def _special(path: str) -> str | None:
+    """``"camera"`` for a character device (``/dev/video0``), ``"stream"`` for a FIFO (a pipe
+    another program writes a stream into), else None."""
+    import stat
 
-    >>> capture_target("0"), capture_target("rtsp://10.0.0.2/stream")
-    (0, 'rtsp://10.0.0.2/stream')
+    try:
+        mode = os.stat(path).st_mode
+    except (OSError, ValueError):
+        return None
+    return "camera" if stat.S_ISCHR(mode) else "stream" if stat.S_ISFIFO(mode) else None
+
+
+def live_kind(target: int | str) -> str | None:
+    """What live source ``target`` (:func:`capture_target`'s) is: ``"camera"`` (an index, a
+    character device such as ``/dev/video0``), ``"stream"`` (a URL, a FIFO), or None for a file."""
+    if not isinstance(target, str):
+        return "camera"
+    return "stream" if "://" in target else _special(target)
+
+
+def capture_target(video: str) -> int | str:
+    """What ``--video`` names: a camera index (all digits) or a URL (has ``://``) as given, a
+    character device (``/dev/video0``: a camera) or a FIFO (a stream) as given; else a file, which
+    must exist (a device or FIFO was refused as "no such file").
+
+    >>> capture_target("0"), capture_target("rtsp://10.0.0.2/stream"), capture_target("/dev/null")
+    (0, 'rtsp://10.0.0.2/stream', '/dev/null')
     """
     text = video.strip()
     if text.isdigit():
         return int(text)
-    if "://" in text:
+    if "://" in text or _special(text) is not None:
         return text
     if os.path.isdir(text):  # (was "no such file": a folder of frames is --images)
         raise SourceError(f"--video {video}: is a folder; for its images give --images "
@@ -583,8 +604,8 @@ def open_frames(video: str | None = None, images: str | Sequence[str] | None = N
                            _frames=frames())
     target = capture_target(video)
     shown = masked(video)  # (a camera URL's password: in every message and row, it was printed as given)
-    live = not isinstance(target, str) or "://" in target
-    kind = "camera" if isinstance(target, int) else "stream" if live else "video"
+    kind = live_kind(target) or "video"
+    live = kind != "video"
     if stall_timeout_s is not None and (isinstance(stall_timeout_s, (str, bytes, bool))
                                         or not isinstance(stall_timeout_s, numbers.Real)
                                         or not (math.isfinite(stall_timeout_s) and 0 < stall_timeout_s <= 86400)):
@@ -611,7 +632,7 @@ def open_frames(video: str | None = None, images: str | Sequence[str] | None = N
     # pace they were read at, for 6.64 s of video) and its end reported as a dropped stream
     recorded = live and isinstance(target, str) and listed > 0
     stamps: collections.deque = collections.deque()  # (a file's: each decoded frame's container time, s)
-    frames = decoded_frames(cap, f"--video {shown}", live and not recorded, listed)
+    frames = decoded_frames(cap, f"--video {shown}", live and not recorded, listed, kind)
     if not live or recorded:
         frames = _file_frames(frames, cap, listed, f"--video {shown}", stamps)
     head: list[np.ndarray | SourceError] = []  # up to the first frame that decodes (a bad file fails here)
@@ -716,7 +737,8 @@ BAD_RUN_PAST_COUNT = 2
 MAX_BAD_RUN = 1000
 
 
-def decoded_frames(cap, label: str, live: bool = False, listed: int = 0) -> Iterator[np.ndarray | SourceError]:
+def decoded_frames(cap, label: str, live: bool = False, listed: int = 0,
+                   kind: str | None = None) -> Iterator[np.ndarray | SourceError]:
     """The frames of an open capture, in order; a frame of a file that fails to decode is a
     :class:`SourceError` in its place (a ``lost`` row), not the end of the video.
 
@@ -739,7 +761,7 @@ def decoded_frames(cap, label: str, live: bool = False, listed: int = 0) -> Iter
     Such frames are tracked as given; the tracker's own checks usually lose a garbled one.
     """
     failed = n = 0
-    what = "camera" if label.split()[-1].isdigit() else "stream"
+    what = kind or ("camera" if label.split()[-1].isdigit() else "stream")  # (kind: live_kind's)
     timeout = getattr(cap, "timeout_s", STALL_TIMEOUT_S)
     last = time.monotonic()
     while True:
