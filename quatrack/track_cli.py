@@ -44,7 +44,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                           "(.txt, .lst: one image a line); an image that cannot be read is skipped: its row says lost")
     parser.add_argument("--object", required=True, metavar="NAME", help="a trained object (see `quatrack models list`)")
     parser.add_argument("--camera", required=True, metavar="CAMERA", help="camera file of the frames (JSON, or OpenCV YAML)")
-    parser.add_argument("--out", required=True, metavar="POSES", help="output file, one row per frame (see --format)")
+    parser.add_argument("--out", required=True, metavar="POSES",
+                        help="output file, one row per frame (see --format); - for stdout (the summary then goes "
+                             "to stderr, as for /dev/stdout or a FIFO)")
     parser.add_argument("--format", default="csv", choices=FORMATS,
                         help="csv: the contract's columns (default); jsonl: one JSON message per frame (pose, "
                              "velocity, covariance); bop: BOP results (scene_id,im_id,obj_id,score,R,t,time; t in mm)")
@@ -112,6 +114,9 @@ def _load_init_pose(path: str):
     return parse_pose(data, f"--init-pose {path}")
 
 
+#: ``--out -``: the rows on stdout (it wrote a file named "-")
+STDOUT = "-"
+
 JOIN_TIMEOUT_S = 10.0  # the longest wait at the end for the run's threads (_join_started)
 
 
@@ -136,7 +141,8 @@ def _check_outputs(args: argparse.Namespace) -> None:
     # (the files open_frames reads: a quoted '~/frames/*.png' matched nothing here, and --out overwrote a frame)
     inputs += [("--images", f) for f in image_paths(args.images or [])]
     inputs += [("--images", f) for f in args.images or []]  # (a list file: --out frames.txt replaced the list)
-    check_outputs(inputs, [("--out", args.out), ("--overlay", args.overlay), ("--plot", args.plot)])
+    out = None if args.out == STDOUT else args.out
+    check_outputs(inputs, [("--out", out), ("--overlay", args.overlay), ("--plot", args.plot)])
 
 
 def _setup(args: argparse.Namespace) -> _Setup:
@@ -406,12 +412,13 @@ def _run(args: argparse.Namespace) -> int:
     progress = Progress("tracking", enabled=False if args.quiet else None)
     with ExitStack() as stack:
         stack.callback(s.source.close)
-        tmp_out = stack.enter_context(atomic_path(args.out, "--out"))
+        tmp_out = None if args.out == STDOUT else stack.enter_context(atomic_path(args.out, "--out"))
         video = None
         if args.overlay:
             video = VideoOut(stack.enter_context(atomic_path(args.overlay, "--overlay")), s.source.rate,
                              timed=s.source.live)
-        with open(tmp_out, "w", newline="", encoding="utf-8") as f:
+        with (open(tmp_out, "w", newline="", encoding="utf-8") if tmp_out is not None
+              else contextlib.nullcontext(_Flushed(sys.stdout))) as f:
             rows = RowWriter(f, args.format, args.mesh_unit, args.obj_id)
             try:
                 with _terminate_as_interrupt() as stop:
@@ -442,8 +449,29 @@ def _run(args: argparse.Namespace) -> int:
     if s.tracker.params.learn:
         _store_learned(s, args.object)
     if not args.quiet:
-        _summary(steps, args.out)
+        _summary(steps, args.out, _summary_stream(args.out))
     return 0
+
+
+class _Flushed:
+    """``--out -``'s stdout, flushed after every row: a program reading a live run's poses from a
+    pipe gets each as it is tracked, not 8 KiB at a time."""
+
+    def __init__(self, stream) -> None:
+        self.stream = stream
+
+    def write(self, text: str) -> None:
+        self.stream.write(text)
+        self.stream.flush()
+
+
+def _summary_stream(out: str):
+    """Where the closing summary goes: stdout, unless the rows go there or to another device or
+    FIFO (``--out -``, ``--out /dev/stdout``): then stderr, so that the data stays data (the two
+    summary lines came after the last row, and a consumer of the CSV read them as rows)."""
+    from quatrack.recognition.trackio import written_where
+
+    return sys.stderr if out == STDOUT or written_where(out)[1] else sys.stdout
 
 
 def _written(args: argparse.Namespace, video) -> str:
@@ -479,14 +507,16 @@ def _store_learned(s: _Setup, name: str) -> None:
         print(f"quatrack track: learned no new views (none new to the stored model); {folder} unchanged", file=sys.stderr)
 
 
-def _summary(steps, out: str) -> None:
+def _summary(steps, out: str, stream=None) -> None:
+    stream = sys.stdout if stream is None else stream
+    out = "stdout" if out == STDOUT else out
     counts = {s: sum(1 for x in steps if x.status == s) for s in ("init", "tracking", "lost")}
     first = next((i for i, s in enumerate(steps) if s.status != "lost"), None)
     after = steps[first:] if first is not None else []
     share = 100.0 * sum(1 for s in after if s.status != "lost") / len(after) if after else 0.0
     track_ms = [s.timings_ms.get("total", 0.0) for s in steps if s.status == "tracking"]
     p50 = f"{np.percentile(track_ms, 50):.1f}" if track_ms else "-"
-    print(f"tracked {len(steps)} frames -> {out}")
+    print(f"tracked {len(steps)} frames -> {out}", file=stream)
     print(f"  init {counts['init']}, tracking {counts['tracking']}, lost {counts['lost']}; "
-          f"pose in {share:.1f} % of frames after the first init; step p50 {p50} ms")
-    sys.stdout.flush()
+          f"pose in {share:.1f} % of frames after the first init; step p50 {p50} ms", file=stream)
+    stream.flush()
