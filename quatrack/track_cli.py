@@ -319,7 +319,9 @@ def run(args: argparse.Namespace) -> int:
     main = threading.current_thread() is threading.main_thread()
     previous = signal.getsignal(signal.SIGINT) if main else None
     try:
-        return _run(args)
+        with ExitStack() as term:  # (from the start: SIGTERM while the model loads or a stream opens killed
+            stop = term.enter_context(_terminate_as_interrupt())  # the process silently, exit -15)
+            return _run(args, term, stop)
     finally:
         _join_started(before)
         if main and signal.getsignal(signal.SIGINT) is not previous:  # (_defer_interrupts' handler)
@@ -390,7 +392,9 @@ def _join_started(before: set, timeout_s: float = JOIN_TIMEOUT_S) -> None:
         pass
 
 
-def _run(args: argparse.Namespace) -> int:
+def _run(args: argparse.Namespace, term: ExitStack, stop: "_Stop") -> int:
+    """The run; SIGTERM is an interrupt (``stop``'s cause) until ``term`` is closed, as the
+    tracking ends: from there on the outputs are finished under the previous handler, as before."""
     import cv2
 
     from quatrack.recognition.overlay import plot_track
@@ -421,9 +425,9 @@ def _run(args: argparse.Namespace) -> int:
               else contextlib.nullcontext(_Flushed(sys.stdout))) as f:
             rows = RowWriter(f, args.format, args.mesh_unit, args.obj_id)
             try:
-                with _terminate_as_interrupt() as stop:
-                    steps, interrupted = _track_frames(s, rows, video, progress)
+                steps, interrupted = _track_frames(s, rows, video, progress)
             finally:
+                term.close()
                 progress.close()
                 if video is not None:
                     video.close()
