@@ -352,8 +352,9 @@ class FrameSource:
                     self.ended = str(image)
                     break
                 i = self.count
-                if self.live:
-                    now = self._stamp() if self._stamp is not None else None
+                if self.live:  # (a failed read: the time it returned, noted by decoded_frames)
+                    now = getattr(image, "grabbed_at", None) if isinstance(image, Exception) else None
+                    now = self._stamp() if now is None and self._stamp is not None else now
                     now = self._clock() if now is None else now
                     t0 = now if t0 is None else t0
                     t = now - t0 if i == 0 else max(now - t0, t + 1e-6)  # strictly increasing for the filter
@@ -761,6 +762,7 @@ def decoded_frames(cap, label: str, live: bool = False, listed: int = 0,
     Such frames are tracked as given; the tracker's own checks usually lose a garbled one.
     """
     failed = n = 0
+    failed_at: list[float | None] = []  # (a live capture's: when each failed read returned)
     what = kind or ("camera" if label.split()[-1].isdigit() else "stream")  # (kind: live_kind's)
     timeout = getattr(cap, "timeout_s", STALL_TIMEOUT_S)
     last = time.monotonic()
@@ -771,13 +773,17 @@ def decoded_frames(cap, label: str, live: bool = False, listed: int = 0,
             yield SourceEnded(f"the {what} stalled: no frame within {timeout:g} s")
             return
         if ok and frame is not None:
-            for _ in range(failed):
-                yield SourceError(f"{label}: its data cannot be decoded (a damaged "
-                                  + ("frame?)" if live else "file?)"))
+            for at in failed_at:
+                error = SourceError(f"{label}: its data cannot be decoded (a damaged "
+                                    + ("frame?)" if live else "file?)"))
+                error.grabbed_at = at  # (its own time: it was given the next frame's)
+                yield error
             n, failed, last = n + failed + 1, 0, time.monotonic()
+            failed_at.clear()
             yield frame
             continue
         failed += 1
+        failed_at.append(getattr(cap, "grabbed_at", None))
         if live and time.monotonic() - last >= timeout:  # (reads that fail slowly, one after another)
             yield SourceEnded(f"the {what} stalled: no frame within {timeout:g} s")
             return
