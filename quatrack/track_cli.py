@@ -414,6 +414,7 @@ def _run(args: argparse.Namespace, term: ExitStack, stop: "_Stop") -> int:
         print(f"quatrack track: warning: --obj-id is for --format bop only; the {args.format} output has no "
               f"object id", file=sys.stderr)
     progress = Progress("tracking", enabled=False if args.quiet else None)
+    s.source.on_wait(progress.tick)  # (a stalled stream: "waiting for frames N s", not a frozen rate)
     with ExitStack() as stack:
         stack.callback(s.source.close)
         tmp_out = None if args.out == STDOUT else stack.enter_context(atomic_path(args.out, "--out"))

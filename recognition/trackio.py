@@ -170,6 +170,8 @@ class LiveCapture:
         self._calls: queue.SimpleQueue = queue.SimpleQueue()
         self._released = False
         self.grabbed_at: float | None = None
+        #: called (in the caller's thread) about every 0.1 s while it waits: a progress line's tick
+        self.on_wait: Callable[[], None] | None = None
         threading.Thread(target=self._serve, name=f"{CAPTURE_THREAD} {masked(str(target))}", daemon=True).start()
         # FFmpeg's own timeout a little after ours: the thread left in a blocked read comes back
         self.cap = self._call(lambda: open_capture(target, timeout_s + 5.0), what="answer")
@@ -203,6 +205,8 @@ class LiveCapture:
             except queue.Empty:
                 if time.monotonic() >= deadline:
                     raise SourceStalled(f"no {what} within {self.timeout_s:g} s") from None
+                if self.on_wait is not None:
+                    self.on_wait()
         if not ok:
             raise value
         return value
@@ -332,6 +336,8 @@ class FrameSource:
     # a video file's: the container's time (s) of the frame just decoded (CAP_PROP_POS_MSEC), which
     # times its frames where it is usable (see :meth:`_file_time`); None: index / rate
     _pos: Callable[[], float | None] | None = None
+    # a live capture's: sets the function it calls while it waits for a frame (LiveCapture.on_wait)
+    _watch: Callable[[Callable[[], None] | None], None] | None = None
     _anchor: tuple[int, float] = field(default=(0, 0.0), init=False)
     _last_stamp: float | None = field(default=None, init=False)
     count: int = field(default=0, init=False)
@@ -390,6 +396,12 @@ class FrameSource:
         t = stamp if i == 0 or stamp > previous else previous + 1e-6  # (after a failed frame's guess)
         self._anchor = (i, t)
         return t
+
+    def on_wait(self, fn: Callable[[], None] | None) -> None:
+        """Have ``fn`` called about every 0.1 s while a live source waits for its next frame (a
+        progress line's :meth:`Progress.tick`: a stall shows as it lasts); nothing for files."""
+        if self._watch is not None:
+            self._watch(fn)
 
     def where(self, index: int) -> str:
         """Name frame ``index`` for an error message."""
@@ -660,6 +672,7 @@ def open_frames(video: str | None = None, images: str | Sequence[str] | None = N
     return FrameSource(f"--video {shown}", rate, live=live and fps is None, max_frames=max_frames,
                        _frames=itertools.chain(head, frames), _close=cap.release,
                        _stamp=(lambda: cap.grabbed_at) if live else None,
+                       _watch=(lambda fn: setattr(cap, "on_wait", fn)) if isinstance(cap, LiveCapture) else None,
                        _pos=stamps.popleft if timed else None)
 
 
@@ -1239,9 +1252,21 @@ class VideoOut:
 
 # --- progress --------------------------------------------------------------------------------------
 
+#: seconds of frames the progress line's rate is over
+RATE_WINDOW_S = 2.0
+#: seconds without a frame after which the progress line says it waits
+WAIT_SHOWN_S = 1.0
+
 class Progress:
     """One self-overwriting line on a terminal: frames, frames/s and status counts, at most
-    ``every_s`` apart. Silent when ``stream`` is not a terminal (logs, pipes, CI)."""
+    ``every_s`` apart. Silent when ``stream`` is not a terminal (logs, pipes, CI).
+
+    The rate is the recent one (the frames of the last :data:`RATE_WINDOW_S` s; it was the mean
+    since the start, so a slowdown showed late). While a live source has waited
+    :data:`WAIT_SHOWN_S` s for its next frame (counted from its first :meth:`tick`: the tracker's
+    own time on a frame is no wait) the line says ``waiting for frames N s`` instead, kept fresh by :meth:`tick` (a live source
+    calls it as it waits: :meth:`FrameSource.on_wait`); during a stall it showed the last rate,
+    frozen, until the stall timeout ended the run."""
 
     def __init__(self, label: str, stream=None, every_s: float = 0.25, enabled: bool | None = None,
                  clock: Callable[[], float] = time.monotonic) -> None:
@@ -1253,12 +1278,23 @@ class Progress:
         self.t0 = clock()
         self.last = -math.inf
         self.shown = False
+        self.recent: collections.deque = collections.deque()  # the times of the frames of the last RATE_WINDOW_S
+        # when the source began waiting for the next frame (its first tick; the tracker's own time
+        # on the frame before is no wait), None while frames come
+        self.waiting_since: float | None = None
 
-    def line(self) -> str:
-        dt = self.clock() - self.t0
-        fps = self.frames / dt if dt > 0 else 0.0
+    def line(self, now: float | None = None) -> str:
+        now = self.clock() if now is None else now
         c = self.counts
-        return (f"{self.label}: {self.frames} frames, {fps:.1f} fps "
+        since = now - self.waiting_since if self.waiting_since is not None else 0.0
+        if since >= WAIT_SHOWN_S:
+            pace = f"waiting for frames {since:.0f} s"
+        else:
+            dt = now - self.t0
+            r = self.recent
+            fps = (len(r) - 1) / (r[-1] - r[0]) if len(r) >= 2 and r[-1] > r[0] else self.frames / dt if dt > 0 else 0.0
+            pace = f"{fps:.1f} fps"
+        return (f"{self.label}: {self.frames} frames, {pace} "
                 f"(init {c['init']}, tracking {c['tracking']}, lost {c['lost']})")
 
     def update(self, status: str | None) -> None:
@@ -1266,9 +1302,23 @@ class Progress:
         if status in self.counts:
             self.counts[status] += 1
         now = self.clock()
+        self.waiting_since = None
+        self.recent.append(now)
+        while now - self.recent[0] > RATE_WINDOW_S:
+            self.recent.popleft()
+        self._show(now)
+
+    def tick(self) -> None:
+        """Redraw the line (if due) though no frame came: what shows a stall as it lasts."""
+        if self.enabled:
+            now = self.clock()
+            self.waiting_since = now if self.waiting_since is None else self.waiting_since
+            self._show(now)
+
+    def _show(self, now: float) -> None:
         if self.enabled and now - self.last >= self.every_s:
             self.last = now
-            self.stream.write("\r" + self.line() + "\x1b[K")
+            self.stream.write("\r" + self.line(now) + "\x1b[K")
             self.stream.flush()
             self.shown = True
 
