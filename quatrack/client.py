@@ -564,14 +564,17 @@ async def _realtime(s: _Session, frames, fps: float, timeout: float) -> None:
 
 
 async def stream(url: str, camera: Any, frames: Iterable[tuple[int, float, bytes]], fps: float | None = None,
-                 token: str | None = None, timeout: float = 60.0, on_answer=None) -> StreamResult:
+                 token: str | None = None, timeout: float = 60.0, on_answer=None,
+                 result: StreamResult | None = None) -> StreamResult:
     """Stream ``(index, time_s, JPEG bytes)`` through one tracking session at ``url`` (the full
     ``ws://.../v1/objects/NAME/track``) and collect the answers: lock-step when ``fps`` is None,
     else real time at ``fps`` frames/s (> 0); ``token`` as :class:`Client` takes it (default
     ``$QUATRACK_API_TOKEN``); ``on_answer(msg)`` is called on each pose message as
     it arrives. Each frame goes with an id (its place in the stream), so every answer is filed
     under its own index whatever the server refused or skipped meanwhile. ``camera``: as :class:`Client` takes it (a dict, a PinholeCamera or a camera
-    file's path). Raises :class:`QuatrackError` when the server refuses."""
+    file's path). Raises :class:`QuatrackError` when the server refuses. ``result``: the
+    :class:`StreamResult` to file the answers in (returned), so that a caller whose stream is
+    interrupted (Ctrl-C: ``asyncio.run`` raises ``KeyboardInterrupt``) keeps what was answered."""
     import websockets
 
     if fps is not None and not (isinstance(fps, (int, float)) and math.isfinite(fps) and fps > 0):
@@ -579,12 +582,22 @@ async def stream(url: str, camera: Any, frames: Iterable[tuple[int, float, bytes
     hello = json.loads(Client._hello(camera))
 
     headers = auth_headers(api_token(token)) or None
-    res = StreamResult()
+    res = StreamResult() if result is None else result
     t_start = time.perf_counter()
     try:
         ws = await websockets.connect(url, additional_headers=headers, max_size=None, open_timeout=timeout)
     except Exception as exc:
         raise _ws_error(exc) from None
+    try:
+        await _stream_on(ws, url, hello, frames, fps, timeout, res, on_answer)
+    finally:  # (an interrupted stream's too)
+        res.wall_s = time.perf_counter() - t_start
+    return res
+
+
+async def _stream_on(ws, url: str, hello: dict, frames, fps: float | None, timeout: float, res: StreamResult,
+                     on_answer) -> None:
+    """:func:`stream`'s session on the open socket ``ws``."""
     async with ws:
         try:
             res.local_port = int(ws.local_address[1])
@@ -598,9 +611,6 @@ async def stream(url: str, camera: Any, frames: Iterable[tuple[int, float, bytes
                 await _lockstep(s, frames, timeout)
             else:
                 await _realtime(s, frames, fps, timeout)
-
-    res.wall_s = time.perf_counter() - t_start
-    return res
 
 
 def video_frames(path: str, max_frames: int | None = None, quality: int = 90) -> Iterator[tuple[int, float, bytes]]:

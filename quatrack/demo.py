@@ -142,12 +142,14 @@ def _check(args: argparse.Namespace) -> _Plan:
 
 
 def _stream_video(plan: _Plan, args: argparse.Namespace):
-    """Run the session; returns (the stream result, time of every frame read, by index, and the
-    frames that could not be decoded: ``FrameSource.skipped``, not sent)."""
+    """Run the session; returns (the stream result, time of every frame read, by index, the
+    frames that could not be decoded: ``FrameSource.skipped``, not sent, and whether Ctrl-C or
+    SIGTERM stopped it). Stopped after a frame was sent, the answers so far are returned (they
+    were lost: an interrupted demo wrote nothing); before, the interrupt is raised."""
     import asyncio
     import contextlib
 
-    from quatrack.client import QuatrackError, stream
+    from quatrack.client import QuatrackError, StreamResult, stream
     from quatrack.recognition.trackio import Progress, jpeg_frames, open_frames
     from quatrack.viewsets.camera import camera_to_dict
 
@@ -169,16 +171,25 @@ def _stream_video(plan: _Plan, args: argparse.Namespace):
             print(f"demo: serving {plan.settings.store} on {srv.url}", file=sys.stderr)
         url = f"{ws_url}/v1/objects/{args.object}/track"
         progress = Progress("demo", enabled=False if args.quiet else None)
+        res, interrupted = StreamResult(), False
         try:
-            res = asyncio.run(stream(url, camera_to_dict(plan.camera), frames(), fps=args.fps, token=plan.token,
-                                     on_answer=lambda msg: progress.update(msg.get("status"))))
+            asyncio.run(stream(url, camera_to_dict(plan.camera), frames(), fps=args.fps, token=plan.token,
+                               on_answer=lambda msg: progress.update(msg.get("status")), result=res))
         except QuatrackError as exc:
             raise ValueError(_explain(exc, args, _server_names(plan) if exc.code == "unknown_object" else None)) from None
+        except KeyboardInterrupt:
+            if not times:  # (nothing sent: nothing to write)
+                raise
+            from quatrack.track_cli import _defer_interrupts
+
+            _defer_interrupts("demo")  # (a second Ctrl-C while the outputs are written is said, not taken)
+            interrupted = True
         finally:
             progress.close()
+            source.close()
         if plan.mesh is None and args.overlay.lower() != "none":
             plan.mesh = _server_edges(plan, args)
-    return res, times, list(source.skipped)
+    return res, times, list(source.skipped), interrupted
 
 
 def _server_names(plan: _Plan) -> list[str] | None:
@@ -301,12 +312,33 @@ def _write_outputs(plan: _Plan, args: argparse.Namespace, res, times: dict, skip
 
 def run(args: argparse.Namespace) -> int:
     """Stream a video through the WebSocket; write the poses (CSV), an overlay video and a plot."""
+    import signal
+    import threading
+
+    from quatrack.track_cli import _terminate_as_interrupt
+
     plan = _check(args)
-    res, times, skipped = _stream_video(plan, args)
+    main = threading.current_thread() is threading.main_thread()
+    previous = signal.getsignal(signal.SIGINT) if main else None
+    try:
+        with _terminate_as_interrupt() as stop:  # (SIGTERM, docker stop: as Ctrl-C)
+            res, times, skipped, interrupted = _stream_video(plan, args)
+        return _finish(plan, args, res, times, skipped, stop.cause if interrupted else None)
+    finally:
+        if main and signal.getsignal(signal.SIGINT) is not previous:  # (_defer_interrupts' handler)
+            signal.signal(signal.SIGINT, previous)
+
+
+def _finish(plan: _Plan, args: argparse.Namespace, res, times: dict, skipped: list, stopped: str | None) -> int:
+    """Write the outputs of what was answered and say so; ``stopped``: the cause of an interrupt
+    ("Ctrl-C", "SIGTERM"), whose frames sent but not answered are written ``lost``, "no answer"."""
+    if stopped is not None:
+        print(f"demo: stopped ({stopped}) after {len(times)} frames; writing the {len(res.poses)} answered "
+              f"(the others as lost)", file=sys.stderr)
     if res.errors:  # (a camera of another size than the video's frames: every frame refused, exit 0, no word why)
         first = res.errors[0].get("error") or {}
         why = f"{first.get('message') or first.get('code') or res.errors[0]}"
-        if not res.poses:
+        if not res.poses and stopped is None:
             raise ValueError(f"the server refused every frame of --video {plan.video}: {why}")
         print(f"demo: the server refused {len(res.errors)} frame(s), written as lost; the first: {why}", file=sys.stderr)
     steps = _write_outputs(plan, args, res, times, skipped)

@@ -340,7 +340,7 @@ def _is_the_program() -> bool:
     return getattr(spec, "name", None) == "quatrack.__main__" or os.path.basename(sys.argv[0]) == "quatrack"
 
 
-def _defer_interrupts() -> None:
+def _defer_interrupts(command: str = "track") -> None:
     """From the Ctrl-C (or SIGTERM) that stopped the tracking on, another Ctrl-C is said once and
     otherwise ignored, so the outputs are finished: a second Ctrl-C 10-20 ms after the first lost
     every output (exit 130, "interrupted"); a little later the process died by the signal. Ctrl-\\
@@ -356,8 +356,8 @@ def _defer_interrupts() -> None:
     def again(signum, frame) -> None:
         if not said:  # (os.write: a print here may land inside one of the main thread's, and raise)
             said.append(signum)
-            os.write(2, b"quatrack track: finishing the outputs; Ctrl-C again is ignored until they are complete "
-                        b"(Ctrl-\\ quits without them)\n")
+            os.write(2, f"quatrack {command}: finishing the outputs; Ctrl-C again is ignored until they are "
+                        f"complete (Ctrl-\\ quits without them)\n".encode())
 
     signal.signal(signal.SIGINT, again)
 

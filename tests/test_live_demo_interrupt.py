@@ -1,0 +1,38 @@
+"""``quatrack demo`` stopped by SIGTERM (or Ctrl-C) mid-stream writes what was answered, as
+``track`` does (it wrote nothing). The signal is sent as the 4th frame is read, so exactly 3 were
+answered (lock-step); a real local server."""
+
+from __future__ import annotations
+
+import csv
+import os
+import signal
+
+from quatrack.cli import main
+from quatrack.recognition import trackio
+from quatrack.testing.scenes import example_store
+
+
+def test_sigterm_mid_stream_writes_the_frames_answered(monkeypatch, tmp_path, capsys):
+    real = trackio.jpeg_frames
+
+    def frames(source, *args):
+        for k, item in enumerate(real(source, *args)):
+            if k == 3:
+                os.kill(os.getpid(), signal.SIGTERM)
+            yield item
+
+    monkeypatch.setattr(trackio, "jpeg_frames", frames)
+    taken = []  # (the handler before the run: without the fix it took the signal, and the stream went on)
+    previous = signal.signal(signal.SIGTERM, lambda signum, frame: taken.append(signum))
+    try:
+        rc = main(["demo", "--store", str(example_store()), "--out-dir", str(tmp_path), "--overlay", "none",
+                   "--max-frames", "8", "--quiet"])
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    err = capsys.readouterr().err
+    assert rc == 0 and not taken, err
+    assert "demo: stopped (SIGTERM) after 3 frames" in err
+    rows = list(csv.DictReader((tmp_path / "poses.csv").open()))
+    assert [r["frame"] for r in rows] == ["0", "1", "2"] and rows[0]["status"] == "init"
+    assert (tmp_path / "plot.png").is_file() and sorted(os.listdir(tmp_path)) == ["plot.png", "poses.csv"]
