@@ -319,9 +319,7 @@ def run(args: argparse.Namespace) -> int:
     main = threading.current_thread() is threading.main_thread()
     previous = signal.getsignal(signal.SIGINT) if main else None
     try:
-        with ExitStack() as term:  # (from the start: SIGTERM while the model loads or a stream opens killed
-            stop = term.enter_context(_terminate_as_interrupt())  # the process silently, exit -15)
-            return _run(args, term, stop)
+        return _run(args)
     finally:
         _join_started(before)
         if main and signal.getsignal(signal.SIGINT) is not previous:  # (_defer_interrupts' handler)
@@ -392,7 +390,15 @@ def _join_started(before: set, timeout_s: float = JOIN_TIMEOUT_S) -> None:
         pass
 
 
-def _run(args: argparse.Namespace, term: ExitStack, stop: "_Stop") -> int:
+def _run(args: argparse.Namespace) -> int:
+    """:func:`_run_from`, SIGTERM an interrupt from the start: while the model loaded or a stream
+    opened it killed the process silently (exit -15)."""
+    with ExitStack() as term:
+        stop = term.enter_context(_terminate_as_interrupt())
+        return _run_from(args, term, stop)
+
+
+def _run_from(args: argparse.Namespace, term: ExitStack, stop: "_Stop") -> int:
     """The run; SIGTERM is an interrupt (``stop``'s cause) until ``term`` is closed, as the
     tracking ends: from there on the outputs are finished under the previous handler, as before."""
     import cv2
