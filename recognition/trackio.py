@@ -5,8 +5,9 @@ benchmarks and the tests — reads frames and writes poses through this module, 
 hold everywhere:
 
 - **Frame sources** (:func:`open_frames`): a video file, a glob of images (sorted by name; or
-  several globs or files, as a shell expands an unquoted glob), a camera index (``"0"``) or any
-  URL ``cv2.VideoCapture`` opens (``rtsp://``, ``http://``, ...). An image of a sequence that
+  several globs or files, as a shell expands an unquoted glob), a camera index (``"0"``) or
+  device (``/dev/video0``), a FIFO, or any URL ``cv2.VideoCapture`` opens (``rtsp://``,
+  ``http://``, ...; its password masked in every message: :func:`masked`). An image of a sequence that
   cannot be read is skipped, listed with its index and time (:attr:`FrameSource.skipped`). A video
   file's frames are given as recorded: its rotation metadata is not applied (the camera file
   describes the sensor), and a :class:`SourceWarning` names it.
@@ -20,7 +21,7 @@ hold everywhere:
   frame before. A URL of a recorded video (``http://host/box.mp4``, ``file:///...``: its capture
   states a frame count and its frames carry container timestamps) is timed and ends as a file
   (though read in a thread as a live source is). A live
-  source (camera index or other URL) without ``--fps`` is timed by the clock instead: ``time_s`` =
+  source (camera index or device, FIFO, other URL) without ``--fps`` is timed by the clock instead: ``time_s`` =
   monotonic seconds from the moment its first frame was grabbed (its read returned, in the
   capture thread) to the moment this one was, since a camera drops and delays frames — not when
   the tracker took it (the first frame is read as the source opens, before the tracker is built).
