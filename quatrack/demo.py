@@ -317,11 +317,11 @@ def run(args: argparse.Namespace) -> int:
 
     from quatrack.track_cli import _terminate_as_interrupt
 
-    plan = _check(args)
     main = threading.current_thread() is threading.main_thread()
     previous = signal.getsignal(signal.SIGINT) if main else None
     try:
-        with _terminate_as_interrupt() as stop:  # (SIGTERM, docker stop: as Ctrl-C)
+        with _terminate_as_interrupt() as stop:  # (SIGTERM, docker stop: as Ctrl-C, from the start)
+            plan = _check(args)
             res, times, skipped, interrupted = _stream_video(plan, args)
         return _finish(plan, args, res, times, skipped, stop.cause if interrupted else None)
     finally:

@@ -36,3 +36,21 @@ def test_sigterm_mid_stream_writes_the_frames_answered(monkeypatch, tmp_path, ca
     rows = list(csv.DictReader((tmp_path / "poses.csv").open()))
     assert [r["frame"] for r in rows] == ["0", "1", "2"] and rows[0]["status"] == "init"
     assert (tmp_path / "plot.png").is_file() and sorted(os.listdir(tmp_path)) == ["plot.png", "poses.csv"]
+
+
+def test_sigterm_before_the_stream_is_an_interrupt(monkeypatch, tmp_path, capsys):
+    from quatrack.viewsets import camera
+
+    def loading(*args, **kwargs):  # (the options being checked, the model loading)
+        os.kill(os.getpid(), signal.SIGTERM)
+        raise AssertionError("SIGTERM was not taken for an interrupt")
+
+    monkeypatch.setattr(camera, "load_camera", loading)
+    taken = []
+    previous = signal.signal(signal.SIGTERM, lambda signum, frame: taken.append(signum))
+    try:
+        rc = main(["demo", "--store", str(example_store()), "--out-dir", str(tmp_path / "out"), "--quiet"])
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    assert rc == 130 and "interrupted" in capsys.readouterr().err and not taken
+    assert not (tmp_path / "out").exists()
