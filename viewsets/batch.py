@@ -64,8 +64,11 @@ def inputs_checksum(spec, params: TrainParams) -> str:
     changes them) and the training options (``jobs`` aside: it changes the time, not the model).
     ``train --skip-existing`` compares it with the stored model's (``spec.inputs_sha256``): it
     compared the spec file's bytes only, so an edited photo, mesh or camera file, or other
-    options, were "nothing to do"."""
+    options, were "nothing to do". Files are named relative to the spec's folder, not by their
+    absolute paths: the same inputs copied elsewhere (another checkout, a container's mount) were
+    "changed" and trained again."""
     h = hashlib.sha256(spec.checksum.encode())
+    base = Path(spec.path).resolve().parent
     options = dataclasses.asdict(dataclasses.replace(params, jobs=1))
     h.update(json.dumps(options, sort_keys=True, default=repr).encode())
     for v in spec.views:
@@ -73,7 +76,7 @@ def inputs_checksum(spec, params: TrainParams) -> str:
         h.update(repr((v.index, c.fx, c.fy, c.cx, c.cy, list(map(float, c.dist_coeffs.ravel())), c.width, c.height,
                        v.pose.R.tolist(), v.pose.t.tolist())).encode())
     for what, f in spec_files(spec):
-        h.update(f"{what}\0{f}\0".encode())
+        h.update(f"{what}\0{_relative_name(f, base)}\0".encode())
         try:
             with open(f, "rb") as fh:
                 for chunk in iter(lambda: fh.read(1 << 20), b""):
@@ -81,6 +84,14 @@ def inputs_checksum(spec, params: TrainParams) -> str:
         except OSError as exc:  # (a missing file: the training's own message names it)
             h.update(f"unreadable: {exc.errno}".encode())
     return h.hexdigest()
+
+
+def _relative_name(path: Path, base: Path) -> str:
+    """``path`` relative to ``base`` (``/``-separated), or its name alone on another drive."""
+    try:
+        return Path(os.path.relpath(path, base)).as_posix()
+    except ValueError:  # (Windows: another drive)
+        return Path(path).name
 
 
 def record_inputs(model, checksum: str) -> None:

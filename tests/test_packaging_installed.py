@@ -1,0 +1,39 @@
+"""The commands as someone who installed quatrack (a wheel, another folder) meets them.
+
+A trial user found: ``train --skip-existing`` training again the same inputs copied to another
+path (the checksum hashed absolute paths); ``quatrack train examples/cookie-box/object.json`` —
+the README's line — outside a checkout saying only "cannot read spec (No such file or
+directory)"; and ``quatrack register`` of the bundled example writing into site-packages.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+from quatrack.viewsets.batch import inputs_checksum
+from quatrack.viewsets.spec import load_spec
+from quatrack.viewsets.train import TrainParams
+
+from conftest import EXAMPLE
+
+
+def _copy_example(to: Path) -> Path:
+    """The example's spec with its mesh and photo, in ``to`` (as a user copies a folder)."""
+    to.mkdir(parents=True)
+    data = json.loads((EXAMPLE / "object.json").read_text())
+    for f in (data["mesh"], data["views"][0]["image"]):
+        shutil.copy(EXAMPLE / f, to / f)
+    (to / "object.json").write_text(json.dumps(data))
+    return to / "object.json"
+
+
+def test_the_inputs_checksum_does_not_depend_on_where_the_inputs_are(tmp_path):
+    a, b = _copy_example(tmp_path / "one"), _copy_example(tmp_path / "elsewhere" / "two")
+    params = TrainParams()
+    assert inputs_checksum(load_spec(a), params) == inputs_checksum(load_spec(b), params)
+    photo = b.parent / json.loads(b.read_text())["views"][0]["image"]
+    photo.write_bytes(photo.read_bytes()[:-1] + b"\0")  # (its contents still count)
+    assert inputs_checksum(load_spec(a), params) != inputs_checksum(load_spec(b), params)
+
