@@ -438,6 +438,8 @@ def _run_train(args: argparse.Namespace) -> int:
         raise UserError(f"--store {store}: not a directory")
     # (its nearest existing folder must be one: else the model, trained first, could not be saved)
     above = _nearest_folder(store, "--store")
+    for spec_path in args.spec:  # (a missing bundled example's spec: said where the installed one is)
+        _bundled_spec_hint(spec_path)
     if len(args.spec) > 1 or args.ray:
         return _run_train_many(args, params, store, lambda: _writable_store(store, above))
     spec_path = args.spec[0]
@@ -489,6 +491,34 @@ def _run_train(args: argparse.Namespace) -> int:
               + (" (--drop-learned)" if saved.dropped and args.drop_learned else ""))
     print(f"  time: {time.perf_counter() - t0:.1f} s")
     return 0
+
+
+def _bundled_spec_hint(spec_path: str) -> None:
+    """Raise load_spec's "cannot read spec" with where the installed copy is, when a missing
+    ``spec_path`` names a bundled example's file (``examples/cookie-box/object.json``, as the README
+    writes it, outside a checkout); else nothing. The bundled examples are found as demo finds
+    them (:func:`quatrack.examples.example_dir`), wherever quatrack is installed."""
+    import shlex
+    from pathlib import Path
+
+    from quatrack.examples import example_dir
+    from quatrack.viewsets.errors import SpecError
+    from quatrack.viewsets.spec import load_spec
+
+    path = Path(spec_path)
+    if path.exists() or path.parent.name in ("", ".", ".."):
+        return
+    try:
+        bundled = example_dir(path.parent.name) / path.name
+    except FileNotFoundError:  # (not a bundled example's folder)
+        return
+    if not bundled.is_file():
+        return
+    try:
+        load_spec(path)  # (its own message: the one a missing spec gives)
+    except SpecError as exc:
+        raise SpecError(f"{exc}; the bundled example is installed at {bundled}: "
+                        f"quatrack train {shlex.quote(str(bundled))}") from None
 
 
 def _writable_store(store, above) -> None:

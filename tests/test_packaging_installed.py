@@ -12,6 +12,8 @@ import json
 import shutil
 from pathlib import Path
 
+from quatrack.cli import main
+from quatrack.examples import example_dir
 from quatrack.viewsets.batch import inputs_checksum
 from quatrack.viewsets.spec import load_spec
 from quatrack.viewsets.train import TrainParams
@@ -36,4 +38,17 @@ def test_the_inputs_checksum_does_not_depend_on_where_the_inputs_are(tmp_path):
     photo = b.parent / json.loads(b.read_text())["views"][0]["image"]
     photo.write_bytes(photo.read_bytes()[:-1] + b"\0")  # (its contents still count)
     assert inputs_checksum(load_spec(a), params) != inputs_checksum(load_spec(b), params)
+
+
+def test_train_of_the_readme_s_example_path_outside_a_checkout_says_where_it_is(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    assert main(["train", "examples/cookie-box/object.json", "--store", str(tmp_path / "store")]) == 2
+    err = capsys.readouterr().err.strip()
+    installed = example_dir() / "object.json"
+    assert err.startswith("quatrack train: error: examples/cookie-box/object.json: cannot read spec (No such file")
+    assert f"the bundled example is installed at {installed}" in err and len(err.splitlines()) == 1
+    assert not (tmp_path / "store").exists()
+    # another missing spec: the message as before, no hint
+    assert main(["train", "mine/object.json", "--store", str(tmp_path / "store")]) == 2
+    assert "bundled" not in capsys.readouterr().err
 
