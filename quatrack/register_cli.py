@@ -5,7 +5,8 @@ give, instead of a view's ``pose``, the ``points`` clicked in it (``{"model": [x
 [u, v]}``, at least four: :mod:`quatrack.viewsets.register`). ``quatrack train`` solves such a
 view's pose by PnP from its points alone; ``register`` also pulls each view's pose (solved, or
 given) onto the mesh's edges in the photo (:mod:`quatrack.recognition.registration`), prints what it did, and writes a spec with the poses
-filled in — by default ``NAME.registered.json`` beside the spec — plus, with ``--overlay DIR``,
+filled in — by default ``NAME.registered.json`` beside the spec (in the current folder when the
+spec's folder cannot be written or lies inside the installed package) — plus, with ``--overlay DIR``,
 each photo with the mesh drawn at its pose to look at before training. The written spec keeps
 everything the input had (the points too), so it can be edited and registered again.
 
@@ -33,7 +34,8 @@ from quatrack.cli import UserError
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("spec", metavar="SPEC.json", help="object spec (docs/contract.md): views with 'pose' and/or 'points'")
     parser.add_argument("--out", metavar="OUT.json",
-                        help="where to write the spec with the poses filled in (default: SPEC.registered.json beside SPEC; "
+                        help="where to write the spec with the poses filled in (default: SPEC.registered.json beside SPEC, "
+                             "or in the current folder when SPEC's folder cannot be written or is inside the installed quatrack; "
                              "relative paths in it are rewritten for its folder)")
     parser.add_argument("--overlay", metavar="DIR",
                         help="also write each photo with the mesh's edges at its pose (green; hidden ones thin grey), the clicked pixels (yellow) "
@@ -190,12 +192,37 @@ def _locate_missing(spec, views: list, photos: dict, refused: int = 0) -> tuple[
                             f"(clicked corners)" for v in missing}, unsure
 
 
-def _outputs(args: argparse.Namespace) -> tuple[Path, Path, Path | None]:
-    """The spec, the registered spec's path and the overlay folder, checked before any work."""
+def _package_folder() -> Path:
+    """The installed ``quatrack`` package's folder (site-packages/quatrack from a wheel; a
+    checkout's quatrack/ otherwise, which holds no spec)."""
+    import quatrack
+
+    return Path(quatrack.__file__).resolve().parent
+
+
+def default_out(spec_path: Path) -> tuple[Path, str | None]:
+    """Where ``register`` writes without ``--out``: ``SPEC.registered.json`` beside the spec, or
+    in the current folder when the spec's folder cannot be written or lies inside the installed
+    package (``register`` of the bundled example from a wheel wrote into site-packages), with
+    why (None: beside the spec)."""
+    name = f"{spec_path.stem}.registered.json"
+    folder = spec_path.resolve().parent
+    if folder.is_relative_to(_package_folder()):
+        why = f"{folder} is inside the installed quatrack"
+    elif folder.is_dir() and not os.access(folder, os.W_OK | os.X_OK):
+        why = f"{folder} cannot be written"
+    else:
+        return spec_path.with_name(name), None
+    return Path(name), f"{why}: written to the current folder (--out chooses)"
+
+
+def _outputs(args: argparse.Namespace) -> tuple[Path, Path, Path | None, str | None]:
+    """The spec, the registered spec's path, the overlay folder and why the registered spec is not
+    beside the spec (None: it is, or ``--out``), checked before any work."""
     if not (np.isfinite(args.click_sigma) and args.click_sigma > 0):
         raise UserError(f"--click-sigma must be a positive number of pixels, got {args.click_sigma!r}")
     spec_path = Path(args.spec)
-    out_path = Path(args.out) if args.out else spec_path.with_name(f"{spec_path.stem}.registered.json")
+    out_path, moved = (Path(args.out), None) if args.out else default_out(spec_path)
     if out_path.resolve() == spec_path.resolve():
         raise UserError(f"--out {out_path}: that is the spec itself; write the registered spec to another file")
     if not out_path.name or (out_path.exists() and out_path.is_dir()):
@@ -211,7 +238,7 @@ def _outputs(args: argparse.Namespace) -> tuple[Path, Path, Path | None]:
             overlay.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise UserError(f"--overlay {overlay}: cannot make the folder ({exc.strerror or exc})") from None
-    return spec_path, out_path, overlay
+    return spec_path, out_path, overlay, moved
 
 
 def _check_mask(view, photo: np.ndarray) -> None:
@@ -328,7 +355,7 @@ def run(args: argparse.Namespace) -> int:
     from quatrack.viewsets.spec import load_spec, missing_pose
     from quatrack.viewsets.train import _read_image
 
-    spec_path, out_path, overlay = _outputs(args)
+    spec_path, out_path, overlay, moved = _outputs(args)
 
     def warn(msg: str) -> None:
         if "`quatrack register` also fits it" not in msg:  # (load_spec's hint for train: this is the command)
@@ -397,5 +424,5 @@ def run(args: argparse.Namespace) -> int:
     with atomic_path(out_path, "--out") as tmp:
         Path(tmp).write_text(json.dumps(data, indent=1) + "\n", encoding="utf-8")
     # (quoted: a path with a space, copied as printed, was two arguments to train)
-    print(f"wrote {out_path}{drawn}; train it with: quatrack train {shlex.quote(str(out_path))}")
+    print(f"wrote {out_path}{drawn}{f' ({moved})' if moved else ''}; train it with: quatrack train {shlex.quote(str(out_path))}")
     return 0

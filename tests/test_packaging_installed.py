@@ -12,6 +12,7 @@ import json
 import shutil
 from pathlib import Path
 
+import quatrack.register_cli as R
 from quatrack.cli import main
 from quatrack.examples import example_dir
 from quatrack.viewsets.batch import inputs_checksum
@@ -52,3 +53,26 @@ def test_train_of_the_readme_s_example_path_outside_a_checkout_says_where_it_is(
     assert main(["train", "mine/object.json", "--store", str(tmp_path / "store")]) == 2
     assert "bundled" not in capsys.readouterr().err
 
+
+def test_register_of_a_spec_inside_the_installed_package_writes_to_the_current_folder(tmp_path, monkeypatch, capsys):
+    installed = tmp_path / "site-packages" / "quatrack"
+    spec = _copy_example(installed / "examples" / "cookie-box")
+    here = tmp_path / "work"
+    here.mkdir()
+    monkeypatch.chdir(here)
+    monkeypatch.setattr(R, "_package_folder", lambda: installed.resolve())
+    assert main(["register", str(spec), "--no-edges"]) == 0
+    out = capsys.readouterr().out
+    assert not (spec.parent / "object.registered.json").exists()
+    written = here / "object.registered.json"
+    assert "is inside the installed quatrack: written to the current folder" in out and "wrote object.registered.json" in out
+    assert load_spec(written).mesh_path == (spec.parent / "box.ply").resolve()  # (its paths rewritten for here)
+
+
+def test_register_beside_the_spec_otherwise(tmp_path, monkeypatch, capsys):
+    spec = _copy_example(tmp_path / "mine")
+    monkeypatch.chdir(tmp_path)
+    assert R.default_out(spec) == (spec.parent / "object.registered.json", None)
+    monkeypatch.setattr(R.os, "access", lambda path, mode: Path(path) != spec.parent.resolve())  # (as root: chmod is no test)
+    target, why = R.default_out(spec)
+    assert target == Path("object.registered.json") and why.startswith(f"{spec.parent.resolve()} cannot be written")
