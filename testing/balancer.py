@@ -16,6 +16,8 @@ from pathlib import Path
 from .loopback import Loopback, free_port, wait_for_http
 
 ROOT = Path(__file__).resolve().parent.parent
+# deploy/ of a checkout; of an installed wheel, the package data quatrack/deploy/ (pyproject.toml:
+# it was not shipped, and `bench serve --replicas auto` with nginx installed failed on the read).
 NGINX_CONF = ROOT / "deploy" / "nginx.conf"
 
 
@@ -50,6 +52,8 @@ class Nginx(Loopback):
         binary = find_nginx()
         if binary is None:
             raise RuntimeError("nginx is not installed (Debian: apt-get install nginx)")
+        if not NGINX_CONF.is_file():  # (an install without its package data: an OSError, one line for the CLI)
+            raise FileNotFoundError(f"the deployment's nginx config is not installed here ({NGINX_CONF})")
         self.prefix, self.port = Path(prefix), port or free_port()
         (self.prefix / "logs").mkdir(parents=True, exist_ok=True)
         (self.prefix / "nginx.conf").write_text(nginx_config(ports, self.port))
