@@ -6,9 +6,12 @@ FROM python:3.11-slim
 ENV PYTHONDONTWRITEBYTECODE=1 PYTHONUNBUFFERED=1 \
     QUATRACK_STORE=/data/models QUATRACK_HOST=0.0.0.0 QUATRACK_PORT=8000
 RUN useradd --create-home --uid 10001 quatrack && mkdir -p /data/models && chown quatrack /data/models
+# The source is copied to /src and installed (not editable); the commands run in /app, which holds
+# only the examples (deploy/'s `train examples/cookie-box/object.json`): run in the source folder,
+# its quatrack/ shadowed the installed package (`python -m quatrack` failed).
+COPY . /src
+RUN pip install --no-cache-dir /src && mkdir -p /app/examples && cp -r /src/examples/cookie-box /app/examples/
 WORKDIR /app
-COPY . /app
-RUN pip install --no-cache-dir /app
 USER quatrack
 # The bundled example object, trained at build time into $QUATRACK_STORE (≈ 5 s).
 RUN quatrack train examples/cookie-box/object.json

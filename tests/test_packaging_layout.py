@@ -126,3 +126,27 @@ def test_the_sdist_holds_what_the_tests_read():
     assert not missing, f"MANIFEST.in leaves out {missing}"
     assert _manifest_covers(".ci") and _manifest_covers("LICENSE") and _manifest_covers("NOTICE")
 
+
+def _instructions() -> list[tuple[str, str]]:
+    text = re.sub(r"\\\n", " ", (ROOT / "Dockerfile").read_text(encoding="utf-8"))
+    return [(ln.split(None, 1)[0].upper(), ln.split(None, 1)[1]) for ln in text.splitlines()
+            if ln.strip() and not ln.lstrip().startswith("#")]
+
+
+def test_the_image_does_not_run_in_its_source_folder():
+    """A non-editable install run from the copied source: its quatrack/ folder came first on
+    sys.path (``python -m quatrack``), not the installed package."""
+    steps = _instructions()
+    (source,) = [args.split()[-1] for op, args in steps if op == "COPY" and args.split()[0] == "."]
+    installs = [args for op, args in steps if op == "RUN" and "pip install" in args]
+    assert installs and not any(re.search(r"\s(-e|--editable)\s", a) for a in installs)
+    workdirs = [args.strip() for op, args in steps if op == "WORKDIR"]
+    for w in workdirs:
+        assert Path(w) != Path(source) and Path(source) not in Path(w).parents, f"WORKDIR {w} is the source {source}"
+    # deploy/'s train commands name the example relative to the working folder: it is copied there
+    final = Path(workdirs[-1])
+    for manifest in (ROOT / "deploy").glob("*.yaml"):
+        for spec in re.findall(r"\"train\", \"([^\"]+\.json)\"", manifest.read_text(encoding="utf-8")):
+            folder = Path(spec).parent
+            copied = re.escape(f"{Path(source) / folder}") + r"/?\s+" + re.escape(f"{final / folder.parent}")
+            assert any(re.search(copied, a) for op, a in steps if op == "RUN"), f"{manifest.name}: {spec} not in {final}"
