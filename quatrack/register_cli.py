@@ -213,7 +213,7 @@ def default_out(spec_path: Path) -> tuple[Path, str | None]:
         why = f"{folder} cannot be written"
     else:
         return spec_path.with_name(name), None
-    return Path(name), f"{why}: written to the current folder (--out chooses)"
+    return Path(name), f"the spec's folder {why}, so in the current folder; --out chooses"
 
 
 def _outputs(args: argparse.Namespace) -> tuple[Path, Path, Path | None, str | None]:

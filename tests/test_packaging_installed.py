@@ -65,7 +65,7 @@ def test_register_of_a_spec_inside_the_installed_package_writes_to_the_current_f
     out = capsys.readouterr().out
     assert not (spec.parent / "object.registered.json").exists()
     written = here / "object.registered.json"
-    assert "is inside the installed quatrack: written to the current folder" in out and "wrote object.registered.json" in out
+    assert "is inside the installed quatrack, so in the current folder" in out and "wrote object.registered.json" in out
     assert load_spec(written).mesh_path == (spec.parent / "box.ply").resolve()  # (its paths rewritten for here)
 
 
@@ -75,4 +75,4 @@ def test_register_beside_the_spec_otherwise(tmp_path, monkeypatch, capsys):
     assert R.default_out(spec) == (spec.parent / "object.registered.json", None)
     monkeypatch.setattr(R.os, "access", lambda path, mode: Path(path) != spec.parent.resolve())  # (as root: chmod is no test)
     target, why = R.default_out(spec)
-    assert target == Path("object.registered.json") and why.startswith(f"{spec.parent.resolve()} cannot be written")
+    assert target == Path("object.registered.json") and why.startswith(f"the spec's folder {spec.parent.resolve()} cannot be written")
