@@ -266,7 +266,7 @@ def test_nginx_error_log_keeps_a_websocket_token_out(tmp_path):
 
 
 def test_the_image_gets_no_secrets_nor_history():
-    """The Dockerfile copies the whole folder (COPY . /app) and there was no .dockerignore: a
+    """The Dockerfile copies the whole folder (COPY . /src) and there was no .dockerignore: a
     checkout's .env (QUATRACK_API_TOKEN=…), .git and .venv went into an image layer. It runs as
     an unprivileged user."""
     from pathlib import Path
