@@ -9,6 +9,7 @@ listed. The request is the same as ``POST /v1/objects/{name}/pose`` (multipart `
 
 from __future__ import annotations
 
+import functools
 import time
 from typing import Annotated
 
@@ -22,7 +23,7 @@ from quatrack.recognition.locate import LocateParams, locate_all
 from .errors import ApiError
 from . import ros
 from .routes import (ERRORS, CameraQuery, FormatQuery, MeshUnitQuery, ServiceState, decode_with_camera, get_state,
-                     in_pool, read_pose_request, require_token)
+                     require_token, serve_pose)
 from .schemas import CameraIn, LocateOut
 
 
@@ -49,8 +50,7 @@ async def pose_all(
     """With ``format=ros`` each object found also carries ``"ros"``, as the per-object endpoint's
     answer does (``mesh_unit``: the unit of the meshes); it was ignored here."""
     unit = ros.ros_unit({"format": format, "mesh_unit": mesh_unit})
-    data, camera, image_name = await read_pose_request(request, query_camera)
-    out = await in_pool(state, _locate_all, state, data, camera)
+    image_name, out = await serve_pose(state, request, query_camera, functools.partial(_locate_all, state))
     out["objects"] = [ros.add_to_locate({"image": image_name, **o}, unit) for o in out["objects"]]
     return JSONResponse(out) if unit else out  # ("ros" is not in LocateOut: not filtered out)
 

@@ -8,6 +8,7 @@ event loop, so health checks and other sessions stay responsive under load.
 from __future__ import annotations
 
 import asyncio
+import functools
 import hmac
 import logging
 import time
@@ -95,7 +96,7 @@ def require_token(
 State = Annotated[ServiceState, Depends(get_state)]
 MAX_CAMERA_BYTES = 65_536  # a camera JSON is ~200 bytes
 MAX_FILES = 4  # multipart files parsed: 'image' and 'camera', and room to name one given twice
-ERRORS = {code: {"model": ErrorResponse} for code in (400, 401, 404, 413, 415, 422, 503)}
+ERRORS = {code: {"model": ErrorResponse} for code in (400, 401, 404, 408, 413, 415, 422, 503)}
 
 health = APIRouter(tags=["health"])
 api = APIRouter(prefix="/v1", tags=["objects"], dependencies=[Depends(require_token)], responses=ERRORS)
@@ -321,15 +322,29 @@ def decode_with_camera(state: ServiceState, data: bytes, camera: CameraIn):
     return image, cam
 
 
-async def in_pool(state: ServiceState, fn, *args):
-    """Run one pose request's work in the CPU pool, refusing it (503 + Retry-After) when
-    ``max_pending_requests`` are already in progress; both pose endpoints."""
+async def serve_pose(state: ServiceState, request: Request, camera: CameraIn | None, work) -> tuple[str | None, dict]:
+    """A pose request from its body to its answer (both pose endpoints): the image's file name
+    and ``work(data, camera)``'s result, run in the CPU pool.
+
+    The request's slot (one of ``max_pending_requests``) is taken *before* its body is read and
+    held until its work is done: the bodies were read whole first and the limit checked after,
+    so 60 clients holding 10 MB uploads open grew a worker's memory by 600 MB, the "8, then
+    503" applying only to bodies already in memory. Now a request beyond the limit is 503
+    ``busy`` (Retry-After) before any byte of its body is read (uvicorn drops the rest of it),
+    and a body must arrive within ``body_timeout_s`` (else 408 ``body_timeout``, the connection
+    closed): a client trickling its upload holds a slot for that long at most."""
     if state.pending >= state.settings.max_pending_requests:
         raise ApiError(503, "busy", "too many pose requests in progress; retry later",
                        {"Retry-After": str(state.settings.retry_after_s)})
     state.pending += 1
     try:
-        return await asyncio.get_running_loop().run_in_executor(state.executor, fn, *args)
+        try:
+            data, camera, name = await asyncio.wait_for(read_pose_request(request, camera),
+                                                        state.settings.body_timeout_s)
+        except asyncio.TimeoutError:
+            raise ApiError(408, "body_timeout", f"the request body did not arrive within "
+                                                f"{state.settings.body_timeout_s:g} s", {"Connection": "close"}) from None
+        return name, await asyncio.get_running_loop().run_in_executor(state.executor, work, data, camera)
     finally:
         state.pending -= 1
 
@@ -350,8 +365,8 @@ async def pose(
     registry.check_name(name)
     if not registry.is_known(name):
         raise ApiError(404, "unknown_object", f"no object named {name!r} in the store")
-    data, camera, image_name = await read_pose_request(request, query_camera)
-    result = {"image": image_name, **await in_pool(state, _locate, state, name, data, camera)}
+    image_name, out = await serve_pose(state, request, query_camera, functools.partial(_locate, state, name))
+    result = {"image": image_name, **out}
     return JSONResponse(ros.add_to_locate(result, unit)) if unit else result  # "ros" added: LocateOut + ros
 
 

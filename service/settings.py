@@ -80,7 +80,12 @@ class Settings(BaseSettings):
     max_body_bytes: int = Field(10 * 1024 * 1024, ge=1, description="largest REST body and WebSocket frame, bytes")
     max_image_pixels: int = Field(20_000_000, ge=1, description="larger images are refused before decoding (decompression bombs)")
     locate_max_pixels: int = Field(4_000_000, ge=1, description="larger images are downscaled for recognition")
-    max_pending_requests: int = Field(8, ge=1, description="REST pose requests queued or running **per worker process**; then 503")
+    max_pending_requests: int = Field(8, ge=1, description="REST pose requests being received, queued or running "
+                                      "**per worker process**; then 503 `busy` before the body is read")
+    body_timeout_s: float = Field(60.0, gt=0, le=threading.TIMEOUT_MAX, allow_inf_nan=False,
+                                  description="a REST pose request's whole body must arrive within this many seconds "
+                                              "of its headers; else 408 `body_timeout` (a slow upload holds a "
+                                              "pending slot that long at most)")
     max_sessions: int = Field(4, ge=1, le=MAX_SESSIONS, description="concurrent WebSocket sessions **for the whole server** (all workers); then 503 + Retry-After")
     max_fps: float = Field(60.0, gt=0, allow_inf_nan=False, description="frames a session may send per second (token bucket); above: refused while an earlier frame is unanswered, a lock-step frame waits for its turn")
     idle_timeout_s: float = Field(60.0, gt=0, allow_inf_nan=False, description="a session with no message for this long is closed")
