@@ -170,6 +170,7 @@ def run_serve(args: argparse.Namespace) -> int:
         uvicorn.run("quatrack.service.workers:app_from_env", factory=True, workers=settings.workers,
                     ws=GracefulWebSocketProtocol, loop=loop, ws_per_message_deflate=False,
                     http=BoundedHttpToolsProtocol,  # a request head of at most 64 KiB (service/httphead.py)
+                    limit_concurrency=settings.max_connections,  # per worker: uvicorn's plain-text 503 beyond
                     host=settings.host, port=settings.port, log_config=configure(args.log_level),
                     ws_max_size=2 * settings.max_body_bytes, timeout_graceful_shutdown=5, server_header=False)
     finally:

@@ -87,6 +87,11 @@ class Settings(BaseSettings):
                                               "of its headers; else 408 `body_timeout` (a slow upload holds a "
                                               "pending slot that long at most)")
     max_sessions: int = Field(4, ge=1, le=MAX_SESSIONS, description="concurrent WebSocket sessions **for the whole server** (all workers); then 503 + Retry-After")
+    max_connections: int | None = Field(
+        None, ge=1, description="open connections **per worker process** (WebSocket sessions, keep-alive, uploads, "
+                                "probes) beyond which a new HTTP request is answered uvicorn's plain-text 503 "
+                                "(uvicorn's `limit_concurrency`; default: `QUATRACK_MAX_SESSIONS` + "
+                                "`QUATRACK_MAX_PENDING_REQUESTS` + 64)")
     max_fps: float = Field(60.0, gt=0, allow_inf_nan=False, description="frames a session may send per second (token bucket); above: refused while an earlier frame is unanswered, a lock-step frame waits for its turn")
     idle_timeout_s: float = Field(60.0, gt=0, allow_inf_nan=False, description="a session with no message for this long is closed")
     retry_after_s: int = Field(5, ge=0, description="`Retry-After` seconds sent with 503 answers")
@@ -128,6 +133,17 @@ class Settings(BaseSettings):
         if v is not None:
             return v
         return max(1, _cores() // max(1, int(info.data.get("workers") or 1)))
+
+    @field_validator("max_connections", mode="after")
+    @classmethod
+    def _connections_for_the_limits(cls, v: int | None, info) -> int:
+        """Default: every session and pending request (a worker may hold all of the server's
+        sessions), and 64 more for probes, scrapes and a balancer's idle keep-alive connections.
+        Why a cap at all: uvicorn has none, and every connection a client opens and holds costs
+        the worker memory and a file descriptor until it runs out."""
+        if v is not None:
+            return v
+        return int(info.data.get("max_sessions") or 0) + int(info.data.get("max_pending_requests") or 0) + 64
 
     @field_validator("store", mode="after")
     @classmethod
