@@ -4,6 +4,10 @@ Two things every line passes through (a filter on the one handler, so uvicorn's 
 
 - Secrets are never written: a ``token`` query parameter (WebSocket clients that cannot set a
   header send ``?token=…``; uvicorn logs the path with its query) is replaced by ``[redacted]``.
+- Credentials in headers are never written either: the value of an ``Authorization``,
+  ``Proxy-Authorization``, ``Cookie`` or ``Set-Cookie`` header, as a header line
+  (``authorization: Bearer …``: the websockets library logs every handshake header at debug
+  level) or quoted in a repr (``'authorization': '…'``, ``(b'cookie', b'…')``).
 - A WebSocket the service refused on purpose (401, 404, 503: see ``routes.deny_websocket``) is logged by
   the service at info level with its reason; uvicorn's error "ASGI callable returned without
   completing handshake", which it writes after every denial response, is dropped for those
@@ -26,6 +30,11 @@ _STD = set(vars(logging.makeLogRecord({}))) | {"message", "asctime"}
 # encoded, while `'`, `(`, `)` may be left as they are by clients: part of the value)
 _PARAM = re.compile(r"([?&;])([^=&;#?\s\"']+)=([^&;#\s\"]*)")
 _SECRET_KEYS = {"token", "access_token"}
+_HEADER_NAMES = r"(?:proxy-)?authorization|(?:set-)?cookie"
+# quoted in a repr: 'authorization': 'Bearer …' (a dict) or b'authorization', b'Bearer …' (ASGI headers)
+_QUOTED_HEADER = re.compile(rf"(?i)(\b(?:{_HEADER_NAMES})(['\"])\s*[:,]\s*b?)(['\"])(?:\\.|(?!\3).)*\3")
+# a header line: authorization: Bearer … (to the line's end)
+_HEADER_LINE = re.compile(rf"(?im)(\b(?:{_HEADER_NAMES})[ \t]*:[ \t]*)\S[^\r\n]*")
 _REFUSED: contextvars.ContextVar[bool] = contextvars.ContextVar("quatrack_ws_refused", default=False)
 _UVICORN_AFTER_DENIAL = "ASGI callable returned without completing handshake"
 
@@ -40,10 +49,15 @@ def _secret_key(key: str) -> bool:
 def redact(text: str) -> str:
     """``text`` with the value of every ``token`` query parameter replaced, however its key is
     written: the service reads ``?%74oken=…`` as ``?token=…`` (the query's keys are
-    percent-decoded), so a client that encodes the key must not see its token in the log."""
-    if "=" not in text:
-        return text
-    return _PARAM.sub(lambda m: f"{m[1]}{m[2]}=[redacted]" if m[3] and _secret_key(m[2]) else m[0], text)
+    percent-decoded), so a client that encodes the key must not see its token in the log. And
+    the values of credential headers (``Authorization``, ``Cookie``; see the module's note)."""
+    if "=" in text:
+        text = _PARAM.sub(lambda m: f"{m[1]}{m[2]}=[redacted]" if m[3] and _secret_key(m[2]) else m[0], text)
+    low = text.lower()
+    if "authorization" in low or "cookie" in low:
+        text = _QUOTED_HEADER.sub(lambda m: f"{m[1]}{m[3]}[redacted]{m[3]}", text)
+        text = _HEADER_LINE.sub(lambda m: f"{m[1]}[redacted]", text)
+    return text
 
 
 def mark_refused() -> None:
@@ -63,7 +77,7 @@ class ServiceLogFilter(logging.Filter):
         if clean != message:
             record.msg, record.args = clean, ()
         for key, value in list(vars(record).items()):
-            if key not in _STD and isinstance(value, str) and "=" in value:
+            if key not in _STD and isinstance(value, str):
                 setattr(record, key, redact(value))
         return True
 
