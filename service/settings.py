@@ -226,6 +226,12 @@ class Settings(BaseSettings):
         if any(ord(c) < 32 or ord(c) == 127 for c in v):
             raise ValueError("the token has a control character (a line break?): "
                              "an Authorization header cannot carry it")
+        # A non-ASCII token (``tökén``, an emoji) was accepted, and no client could ever send it:
+        # HTTP header values travel as bytes, read by the server as latin-1, while clients encode
+        # them as UTF-8 (or refuse to send them), so the header never matched.
+        if not v.isascii():
+            raise ValueError("the token has a character that is not ASCII: an Authorization header cannot carry it "
+                             "as every client sends it (use letters, digits and ASCII punctuation)")
         return v
 
     @field_validator("run_dir", mode="after")
