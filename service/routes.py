@@ -10,6 +10,7 @@ from __future__ import annotations
 import asyncio
 import functools
 import hmac
+import inspect
 import logging
 import time
 import json
@@ -195,7 +196,41 @@ _POSE_BODY = {
 }
 
 
+POSE_OPTIONS = ("format", "mesh_unit")  # the pose endpoints' query parameters besides the camera's
+
+
+def unknown_query(request: Request) -> ApiError | None:
+    """The 422 for a query parameter the pose endpoints do not read, else None. Why: they were
+    ignored, so ``?dist_coeffs=…`` (the camera JSON's name; the query's is ``dist``) gave a pose
+    without the lens's distortion and no word of it. Another program's name for a camera field
+    is pointed to the query's (:data:`~quatrack.viewsets.camera.FIELD_ALIASES`, as camera JSON
+    refuses it), a misspelling to the nearest name."""
+    import difflib
+
+    from quatrack.viewsets.camera import FIELD_ALIASES
+
+    camera = [p for p in inspect.signature(camera_query).parameters if p != "request"]
+    known = camera + list(POSE_OPTIONS)
+    to_query = {"dist_coeffs": "dist"}  # the camera JSON's field names that the query spells otherwise
+    for key in request.query_params.keys():
+        if key in known:
+            continue
+        shown = repr(key if len(key) <= 40 else key[:37] + "...")
+        if key.strip().lower() in ("token", "access_token"):
+            return ApiError(422, "invalid_input", f"query parameter {shown}: the REST endpoints read the token from "
+                                                  f"the header Authorization: Bearer … only")
+        low = key.lower()
+        meant = ([to_query[low]] if low in to_query else [to_query.get(f, f) for f in FIELD_ALIASES.get(low, ())]) \
+            or difflib.get_close_matches(low, known, n=1, cutoff=0.75)
+        hint = f" (did you mean {', '.join(map(repr, meant))}?)" if meant else ""
+        code = "bad_camera" if not meant or meant[0] in camera else "invalid_input"
+        return ApiError(422, code, f"unknown query parameter {shown}{hint}: the pose endpoints take "
+                                   f"{', '.join(known)}")
+    return None
+
+
 def camera_query(
+    request: Request,
     fx: Annotated[float | None, Query(description="focal length x, px (when no `camera` form field)")] = None,
     fy: Annotated[float | None, Query(description="focal length y, px")] = None,
     cx: Annotated[float | None, Query(description="principal point x, px")] = None,
@@ -205,7 +240,10 @@ def camera_query(
     dist: Annotated[str | None, Query(description="distortion k1,k2,p1,p2[,k3], comma-separated")] = None,
 ) -> CameraIn | None:
     """The camera given in the query (a dependency of both pose endpoints), or None when the
-    request gives none there (it may come as the multipart field ``camera``)."""
+    request gives none there (it may come as the multipart field ``camera``). A query parameter
+    they do not read is refused first (:func:`unknown_query`)."""
+    if (refused := unknown_query(request)) is not None:
+        raise refused
     given = [v is not None for v in (fx, fy, cx, cy)]
     if not any(given):
         if width is not None or height is not None or dist is not None:  # (they were ignored)
