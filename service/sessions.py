@@ -63,6 +63,9 @@ MAX_ID_INT = 2**53 - 1
 # a lock-step frame over QUATRACK_MAX_FPS waits for its token this long at most (_borrow_token);
 # a longer wait (QUATRACK_MAX_FPS below 1) is refused as before, the client's timeouts being seconds
 MAX_HOLD_S = 1.0
+# RFC 6455 "message too big": the WebSocket layer (uvicorn's ws_max_size, twice
+# QUATRACK_MAX_BODY_BYTES) closes with it a frame too large to be read at all
+MESSAGE_TOO_BIG = 1009
 
 
 class SessionLimiter:
@@ -227,6 +230,10 @@ class TrackSession:
                     outcome = "idle"
                     break
                 if msg["type"] == "websocket.disconnect":
+                    if msg.get("code") == MESSAGE_TOO_BIG:  # (it was logged and counted "closed", as a client's close)
+                        outcome = "too_large"
+                        self._log(logging.INFO, "session %s: a frame over %d bytes; closed (1009)", self.sid,
+                                  2 * self.settings.max_body_bytes, code=TOO_LARGE)
                     break
                 try:
                     if msg.get("bytes") is not None:
