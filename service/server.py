@@ -33,7 +33,8 @@ class BackgroundServer(Loopback):
         self.app = create_app(self.settings)
         config = uvicorn.Config(self.app, host="127.0.0.1", port=port, log_config=configure(log_level), ws=GracefulWebSocketProtocol,
                                 ws_max_size=2 * self.settings.max_body_bytes, lifespan="on", timeout_graceful_shutdown=2,
-                                ws_per_message_deflate=False, http=BoundedHttpToolsProtocol)  # as quatrack serve (service/cli.py)
+                                ws_per_message_deflate=False, http=BoundedHttpToolsProtocol,
+                                limit_concurrency=self.settings.max_connections)  # as quatrack serve (service/cli.py)
         self.server = uvicorn.Server(config)
         self.thread = threading.Thread(target=self._run, name=f"quatrack-serve-{port}", daemon=True)
         self.wait_ready = wait_ready

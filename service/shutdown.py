@@ -9,7 +9,7 @@ sent — often the close frame itself: the client, or nginx in front of the repl
 connection drop (1006), about one stop in five under load.
 
 :class:`GracefulWebSocketProtocol` is uvicorn's own WebSocket protocol (websockets, sans-I/O)
-with one change: on shutdown it sends 1012 and keeps the connection open until the client's
+with two changes: on shutdown it sends 1012 and keeps the connection open until the client's
 close frame comes back (frames still in flight are read and dropped meanwhile), so the socket
 is closed with nothing unread (FIN, not RST). uvicorn's shutdown order is kept: the listening
 socket is closed first (a balancer's next connect fails and goes to another replica), and
@@ -43,4 +43,24 @@ class GracefulWebSocketProtocol(WebSocketsSansIOProtocol):
             self.read_paused = False
             self.transport.resume_reading()
         # the client's close frame ends the connection (handle_close); if none comes, cut it
+        self.close_timer = self.loop.call_later(CLOSE_WAIT_S, self.transport.close)
+
+    def handle_parser_exception(self) -> None:
+        """A frame the parser refuses — over ``ws_max_size`` (1009, twice
+        ``QUATRACK_MAX_BODY_BYTES``) or malformed (1002) — closed as :meth:`shutdown` closes: the
+        close frame is written and the connection stays open (what the client still sends is read
+        and discarded) until it ends or :data:`CLOSE_WAIT_S` passes. uvicorn closed the socket at
+        once, while the client was still sending the oversized frame: the kernel reset the
+        connection and the close frame was lost (the client saw 1006 for a 30 MB frame, 1009 for
+        25 MB)."""
+        if self.close_sent:  # (later data of a connection already closing: discarded)
+            return
+        assert self.conn.close_sent is not None
+        code, reason = self.conn.close_sent.code, self.conn.close_sent.reason
+        self.queue.put_nowait({"type": "websocket.disconnect", "code": code, "reason": reason})
+        self.transport.write(b"".join(self.conn.data_to_send()))
+        self.close_sent = True
+        if self.read_paused:
+            self.read_paused = False
+            self.transport.resume_reading()
         self.close_timer = self.loop.call_later(CLOSE_WAIT_S, self.transport.close)
