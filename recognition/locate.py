@@ -119,6 +119,11 @@ class Located:
     # (x, y, w, h): the RFCH window searched (the localisation's answer, found or not); None when
     # the whole image was searched without one
     window: tuple[float, float, float, float] | None = None
+    # locate_all only (None from locate): for a found object, the objects found at the same
+    # place with less confidence and so reported not found in its place, each
+    # ``{"object", "confidence", "pose"}``, the most confident first: a look-alike (the same
+    # print at another size) that one camera cannot tell apart from it (bench: a 0.003 margin)
+    rivals: list | None = None
 
     def __eq__(self, other: object) -> bool:
         if not isinstance(other, Located):
@@ -139,8 +144,9 @@ class Located:
 
     def to_json(self) -> dict:
         """The contract's JSON object (``image`` is added by the caller), plus the extensions
-        ``reason``, ``searched``, ``object`` and ``verification``."""
-        return {
+        ``reason``, ``searched``, ``object`` and ``verification`` (and ``rivals``, from
+        :func:`locate_all` only)."""
+        out = {
             "object": self.object,
             "found": self.found,
             "bbox": None if self.bbox is None else [round(float(v), 2) for v in self.bbox],
@@ -157,6 +163,9 @@ class Located:
             "searched": self.searched,
             "verification": self.verification,
         }
+        if self.rivals is not None:
+            out["rivals"] = self.rivals
+        return out
 
 
 def _crop_box(bbox, margin: float, w: int, h: int) -> tuple[int, int, int, int]:
@@ -516,7 +525,12 @@ def locate_all(
     """Search every model in the image (Kragic & Kyrki's recognition among several objects):
     one :class:`Located` per model, in the models' order. Each object is found or not on its own
     evidence; when two found objects claim the same place (projected boxes overlapping by more
-    than half), only the more confident one is reported found. The models share the whole-image
+    than half), only the more confident one is reported found: one answer per place. The other
+    is not dropped silently: it is listed in the found one's ``rivals`` (name, confidence, pose;
+    every found answer has the list, empty without rivals), and its own ``reason`` names the
+    winner. Why: the same print at another size (a box and its ×1.5 copy) looks the same to one
+    camera at another distance, and the confidences of the two can differ by a few thousandths;
+    the caller may know which size is there. The models share the whole-image
     SIFT passes of their fallbacks (:func:`shared_features`); a single model is searched exactly
     as :func:`locate` does."""
     if isinstance(models, ObjectModel):  # (was "object of type 'ObjectModel' has no len()")
@@ -527,17 +541,24 @@ def locate_all(
     shared: dict | None = {} if len(models) > 1 else None
     results = [locate(image, camera, m, params, index_for(m), shared) for m in models]
     found = sorted((r for r in results if r.found), key=lambda r: -r.confidence)
-    kept: list[tuple] = []
+    kept: list[tuple] = []  # (box, the found answer there)
     from .pose import iou, projected_bbox
 
-    prep_cam = camera
     for r in found:
+        r.rivals = []
         model = next(m for m in models if m.name == r.object)
-        box = projected_bbox(prep_cam, model.mesh.vertices, r.t, r.q_wxyz)
-        if box is not None and any(iou(box, b) > 0.5 for b in kept):
+        box = projected_bbox(camera, model.mesh.vertices, r.t, r.q_wxyz)
+        overlap = [] if box is None else [(iou(box, b), w) for b, w in kept]
+        best, winner = max(overlap, key=lambda o: o[0], default=(0.0, None))
+        if best > 0.5:
+            c = r.confidence  # (0 once not found)
             r.found = False
-            r.reason = "another object was found at the same place with more confidence"
+            r.reason = (f"{winner.object!r} was found at the same place with more confidence "
+                        f"({winner.confidence:.3f} against {c:.3f})")
+            winner.rivals.append({"object": r.object, "confidence": round(c, 4),
+                                  "pose": {"t": [float(v) for v in r.t], "q_wxyz": [float(v) for v in r.q_wxyz]}})
+            r.rivals = None
             continue
         if box is not None:
-            kept.append(box)
+            kept.append((box, r))
     return results
