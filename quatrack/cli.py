@@ -768,7 +768,9 @@ def _position_text(t, extent: float) -> str:
 
 def _locate_all(args: argparse.Namespace, camera, params) -> int:
     """``--object all``: every trained object searched in each image; one line per image,
-    ``{"image", "found", "objects": [the locate object of each one found], "time_ms": {"total"}}``."""
+    ``{"image", "found", "objects": [the locate object of each one found], "searched": [names],
+    "failed": {name: why}, "time_ms": {"total"}}`` (``searched``/``failed`` as ``POST /v1/pose``
+    answers: a broken model is skipped, and each line says so, not only stderr once)."""
     import json
     import time
 
@@ -782,11 +784,12 @@ def _locate_all(args: argparse.Namespace, camera, params) -> int:
         raise UserError(f"no trained object in {store}{store_note(store)}")
     from quatrack.viewsets.errors import StoreError
 
-    models = []
+    models, skipped = [], {}
     for n in names:
         try:
             models.append(load_model(store, n))
         except StoreError as exc:  # a broken model is skipped, said once; the others are searched
+            skipped[n] = str(exc)
             print(f"quatrack locate: warning: {exc}; skipped", file=sys.stderr)  # (exc names the object)
     if not models:
         raise UserError(f"no usable trained object in {store}")
@@ -809,14 +812,16 @@ def _locate_all(args: argparse.Namespace, camera, params) -> int:
         total = (time.perf_counter() - t0) * 1e3
         if args.json:
             print(json.dumps({"image": path, "found": bool(found), "objects": [r.to_json() for r in found],
+                              "searched": [m.name for m in models], "failed": skipped,
                               "time_ms": {"total": round(total, 3)}}), flush=True)
         elif not found:
             print(f"{path}: none of {len(models)} objects found  {total:.0f} ms")
         for r in found if not args.json else ():
             t = _position_text(r.t, extent[r.object])
             q = ", ".join(f"{v:.4f}" for v in r.q_wxyz)
+            rivals = "".join(f"  (rival: {v['object']} confidence {v['confidence']:.3f})" for v in r.rivals or ())
             print(f"{path}: found {r.object}  t = [{t}]  q_wxyz = [{q}]  inliers {r.inliers}/{r.matches}  "
-                  f"confidence {r.confidence:.2f}  {total:.0f} ms")
+                  f"confidence {r.confidence:.2f}  {total:.0f} ms{rivals}")
     return 1 if failed else 0
 
 
@@ -829,6 +834,12 @@ def _add_track(parser: argparse.ArgumentParser) -> None:
 def _run_track(args: argparse.Namespace) -> int:
     from quatrack.track_cli import run
 
+    if args.object == "all":  # (locate's word for every object: track said "no object named 'all'")
+        from quatrack.viewsets.store import list_models, resolve_store
+
+        if "all" not in list_models(resolve_store(args.store)):  # (a store from before the name was reserved)
+            raise UserError("--object all: track follows one object; run one track per object "
+                            "(`quatrack models list` names them; `quatrack locate --object all` searches every one)")
     return run(args)
 
 

@@ -218,7 +218,7 @@ def load_spec(path: str | Path, warn=None, pose_required: bool = True, misfits: 
         if key not in data:
             raise SpecError(f"{path}: missing field {key!r}")
     try:
-        name = check_object_name(data["name"])
+        name = check_object_name(data["name"], new=True)
     except StoreError as exc:
         raise SpecError(f"{path}: field 'name': {exc}") from None
     mesh_path = _path(base, data["mesh"], str(path), "mesh")
