@@ -13,46 +13,44 @@ import functools
 import time
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, Request
-from fastapi.responses import JSONResponse
-from pydantic import BaseModel, Field
+from fastapi import APIRouter, Depends, Query, Request
 
 from quatrack.recognition.images import ImageError
 from quatrack.recognition.locate import LocateParams, locate_all
 
 from .errors import ApiError
 from . import ros
-from .routes import (ERRORS, CameraQuery, FormatQuery, MeshUnitQuery, ServiceState, decode_with_camera, get_state,
-                     require_token, serve_pose)
-from .schemas import CameraIn, LocateOut
+from .routes import (ERRORS, CameraQuery, FormatQuery, ServiceState, decode_with_camera, get_state, require_token,
+                     serve_pose)
+from .schemas import CameraIn, LocateAllOut
 
+__all__ = ["LocateAllOut", "router"]  # (LocateAllOut was defined here; service.schemas holds it now)
 
-class LocateAllOut(BaseModel):
-    """The objects found in one image (each as ``POST /v1/objects/{name}/pose`` answers, with its
-    ``object`` name); ``searched``: the objects searched; ``failed``: models that cannot be loaded."""
-
-    found: bool
-    objects: list[LocateOut]
-    searched: list[str]
-    failed: dict[str, str] = Field(default_factory=dict)
-    time_ms: dict[str, float]
+MeshUnitsQuery = Annotated[str | None, Query(description=(
+    "with format=ros: the meshes' units, one for all (mm, cm or m) or per object: NAME:UNIT,NAME:UNIT "
+    "(a bare UNIT among them: every object not named); an object found without a unit gets `ros_note`, no `ros`"))]
 
 
 router = APIRouter(prefix="/v1", tags=["pose"], dependencies=[Depends(require_token)], responses=ERRORS)
 
 
-@router.post("/pose", response_model=LocateAllOut,
+@router.post("/pose", response_model=LocateAllOut, response_model_exclude_unset=True,
              summary="search every trained object in one image (as `quatrack locate --object all --json`)")
 async def pose_all(
     request: Request, state: Annotated[ServiceState, Depends(get_state)], query_camera: CameraQuery,
-    format: FormatQuery = "json", mesh_unit: MeshUnitQuery = None,
+    format: FormatQuery = "json", mesh_unit: MeshUnitsQuery = None,
 ) -> dict:
     """With ``format=ros`` each object found also carries ``"ros"``, as the per-object endpoint's
-    answer does (``mesh_unit``: the unit of the meshes); it was ignored here."""
-    unit = ros.ros_unit({"format": format, "mesh_unit": mesh_unit})
+    answer does, in its own mesh's unit (``mesh_unit``: one unit for all, or ``NAME:UNIT,...``);
+    an object found whose unit was not given carries ``"ros_note"`` instead (metres from a
+    guessed unit would be silently wrong). Naming an object the store does not hold is a 422."""
+    units = ros.ros_units({"format": format, "mesh_unit": mesh_unit})
+    if unknown := ros.unknown_unit_names(units, state.registry.names()):
+        raise ApiError(422, "bad_format", f"mesh_unit names {', '.join(map(repr, unknown[:5]))}: no such object in the "
+                                          f"store (GET /v1/objects lists them)")
     image_name, out = await serve_pose(state, request, query_camera, functools.partial(_locate_all, state))
-    out["objects"] = [ros.add_to_locate({"image": image_name, **o}, unit) for o in out["objects"]]
-    return JSONResponse(out) if unit else out  # ("ros" is not in LocateOut: not filtered out)
+    out["objects"] = [ros.add_to_found_object({"image": image_name, **o}, units) for o in out["objects"]]
+    return out
 
 
 def _locate_all(state: ServiceState, data: bytes, camera: CameraIn) -> dict:

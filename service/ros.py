@@ -13,6 +13,7 @@ import time
 from typing import Mapping
 
 from quatrack.recognition.trackio import UNIT_METRES, ros_pose_with_covariance
+from quatrack.viewsets.names import NAME_RE
 
 from .errors import ApiError
 
@@ -29,6 +30,51 @@ def ros_unit(query: Mapping[str, str]) -> str | None:
     if unit not in UNIT_METRES:
         raise ApiError(422, "bad_format", "format=ros needs mesh_unit=mm, cm or m (the unit of the object's mesh; ROS uses metres)")
     return unit
+
+
+def ros_units(query: Mapping[str, str]) -> dict[str | None, str] | None:
+    """``POST /v1/pose``'s mesh units: ``None`` for the plain JSON, else ``{name: unit}`` with the
+    unit of every object not named under the key ``None``. ``mesh_unit=cm`` is every object's
+    unit (as before); ``mesh_unit=cookie-box:cm,cube:m`` names each object's (a store mixes
+    meshes in mm, cm and m, and one unit made the others' metres silently wrong); a bare unit
+    among them is the others'. A bad list is a 422 ``bad_format`` saying the form."""
+    fmt = query.get("format", "json")
+    text = query.get("mesh_unit")
+    if fmt != "ros" or text is None or not (":" in text or "," in text):
+        unit = ros_unit(query)
+        return None if unit is None else {None: unit}
+    units: dict[str | None, str] = {}
+    form = "mesh_unit=NAME:UNIT,NAME:UNIT,... (UNIT mm, cm or m; a bare UNIT: every object not named)"
+    for item in text.split(","):
+        name, sep, unit = (part.strip() for part in item.rpartition(":"))
+        key = name if sep else None
+        if unit not in UNIT_METRES or (sep and not NAME_RE.fullmatch(name)):
+            raise ApiError(422, "bad_format", f"mesh_unit: {item.strip()[:80]!r} is not NAME:UNIT or UNIT; use {form}")
+        if key in units:
+            raise ApiError(422, "bad_format", f"mesh_unit: {'the bare unit' if key is None else repr(key)} is given twice; "
+                                              f"use {form}")
+        units[key] = unit
+    return units
+
+
+def unknown_unit_names(units: Mapping[str | None, str] | None, names) -> list[str]:
+    """The objects ``units`` names that are not among ``names`` (a typo would leave the object
+    meant without ``ros``, answered with a note only)."""
+    return sorted(n for n in (units or {}) if n is not None and n not in set(names))
+
+
+def add_to_found_object(result: dict, units: Mapping[str | None, str] | None) -> dict:
+    """One object of a ``POST /v1/pose`` answer with ``"ros"`` added in its own mesh's unit; an
+    object whose unit was not given gets no ``"ros"`` but a ``"ros_note"`` saying how to give it
+    (its metres cannot be guessed: an answer in the wrong unit is worse than none)."""
+    if units is None:
+        return result
+    unit = units.get(result.get("object"), units.get(None))
+    if unit is None:
+        name = result.get("object")
+        result["ros_note"] = f"no mesh_unit for {name!r}: add {name}:mm, {name}:cm or {name}:m to mesh_unit"
+        return result
+    return add_to_locate(result, unit)
 
 
 def add_to_track_message(msg: dict, unit: str | None) -> dict:

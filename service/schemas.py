@@ -174,6 +174,38 @@ class LocateOut(BaseModel):
         "reason": None, "searched": "window"}]})
 
 
+class RivalOut(BaseModel):
+    """An object found at the same place as a more confident one, and so reported not found."""
+
+    object: str
+    confidence: float = Field(description="its verification's confidence (the found object's is higher)")
+    pose: PoseOut = Field(description="its pose (object → camera, its mesh's units): the same print at another "
+                                      "size is seen alike at another distance")
+
+
+class FoundObjectOut(LocateOut):
+    """One object of ``POST /v1/pose``'s answer: the per-object answer plus its ``rivals``."""
+
+    rivals: list[RivalOut] = Field(default_factory=list, description=(
+        "objects found at the same place (projected boxes overlapping by more than half) with less confidence, "
+        "reported not found in its place: one answer per place"))
+    ros: dict | None = Field(None, description="with ?format=ros and this object's mesh_unit: "
+                                               "geometry_msgs/PoseWithCovarianceStamped (metres, x,y,z,w)")
+    ros_note: str | None = Field(None, description="with ?format=ros: why there is no `ros` (no mesh_unit for this object)")
+
+
+class LocateAllOut(BaseModel):
+    """``POST /v1/pose``: the objects found in one image (each as ``POST /v1/objects/{name}/pose``
+    answers, with its ``object`` name and ``rivals``); ``searched``: the objects searched;
+    ``failed``: models that cannot be loaded."""
+
+    found: bool
+    objects: list[FoundObjectOut]
+    searched: list[str]
+    failed: dict[str, str] = Field(default_factory=dict)
+    time_ms: dict[str, float]
+
+
 class ObjectSummary(BaseModel):
     name: str
     created: str | None = None
