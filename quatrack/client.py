@@ -8,7 +8,8 @@
             print(msg.frame, msg.status, msg.pose)
 
 Results are the service's own pydantic schemas (:mod:`service.schemas`): :class:`LocateOut` for
-a pose, :class:`TrackMessage` per tracked frame. Every error the server answers becomes a
+a pose, :class:`LocateAllOut` for every object searched in one image (``client.pose_all(image,
+camera)``), :class:`TrackMessage` per tracked frame. Every error the server answers becomes a
 :class:`QuatrackError` carrying its ``code`` (``unknown_object``, ``bad_camera``,
 ``unauthorized``, ...) and HTTP ``status``; an unreachable server is ``code="unreachable"``.
 
@@ -36,7 +37,7 @@ from urllib.parse import urlsplit, urlunsplit
 import numpy as np
 
 from quatrack.service.codes import REFUSED_FRAME
-from quatrack.service.schemas import LocateOut, ObjectList, TrackMessage
+from quatrack.service.schemas import LocateAllOut, LocateOut, ObjectList, TrackMessage
 
 
 class QuatrackError(Exception):
@@ -251,6 +252,19 @@ class _Endpoint:
         return {"image": ("image", image_bytes(image), "application/octet-stream"),
                 "camera": (None, json.dumps(camera_json(camera)))}
 
+    @staticmethod
+    def _pose_all_query(ros_mesh_unit: str | dict[str, str] | None) -> dict[str, str]:
+        """``POST /v1/pose``'s query: ``format=ros`` with the mesh units, one for all
+        (``"cm"``) or per object (``{"cookie-box": "cm", "cube": "m"}``, a ``None`` key: every
+        object not named); none without ``ros_mesh_unit``."""
+        if ros_mesh_unit is None:
+            return {}
+        if isinstance(ros_mesh_unit, dict):
+            text = ",".join(str(u) if n is None else f"{n}:{u}" for n, u in ros_mesh_unit.items())
+        else:
+            text = str(ros_mesh_unit)
+        return {"format": "ros", "mesh_unit": text}
+
     def _track_url(self, object: str | None, ros_mesh_unit: str | None) -> str:
         from urllib.parse import urlencode
 
@@ -328,6 +342,18 @@ class Client(_Endpoint):
         r = self._request("POST", f"/v1/objects/{self._name(object)}/pose", files=self._pose_files(image, camera))
         return LocateOut.model_validate(r.json())
 
+    def pose_all(self, image: Any, camera: Any, ros_mesh_unit: str | dict[str, str] | None = None) -> LocateAllOut:
+        """Search every trained object in one image (``POST /v1/pose``): the objects found, each
+        with its pose and its ``rivals`` (look-alikes found at the same place with less
+        confidence), the objects ``searched`` and the models that ``failed`` to load. The server
+        searches every object of its store (~30–40 ms each on a 640×480 image); :meth:`pose`
+        searches one. ``ros_mesh_unit``: ``format=ros``, each object found then carries ``ros``
+        in metres — one unit for all meshes (``"cm"``) or one per object (``{"cookie-box": "cm",
+        "cube": "m"}``; an object found without one carries ``ros_note`` instead)."""
+        r = self._request("POST", "/v1/pose", files=self._pose_files(image, camera),
+                          params=self._pose_all_query(ros_mesh_unit))
+        return LocateAllOut.model_validate(r.json())
+
     def mesh_edges(self, object: str | None = None) -> np.ndarray:
         """The object's wireframe, (k, 2, 3) segments in mesh units (``GET /v1/objects/{name}/mesh``):
         what an overlay draws."""
@@ -398,6 +424,11 @@ class AsyncClient(_Endpoint):
     async def pose(self, image: Any, camera: Any, object: str | None = None) -> LocateOut:
         r = await self._request("POST", f"/v1/objects/{self._name(object)}/pose", files=self._pose_files(image, camera))
         return LocateOut.model_validate(r.json())
+
+    async def pose_all(self, image: Any, camera: Any, ros_mesh_unit: str | dict[str, str] | None = None) -> LocateAllOut:
+        r = await self._request("POST", "/v1/pose", files=self._pose_files(image, camera),
+                                params=self._pose_all_query(ros_mesh_unit))
+        return LocateAllOut.model_validate(r.json())
 
     async def track(self, frames, camera: Any, object: str | None = None, ros_mesh_unit: str | None = None):
         import websockets
