@@ -820,8 +820,9 @@ def _locate_all(args: argparse.Namespace, camera, params) -> int:
             t = _position_text(r.t, extent[r.object])
             q = ", ".join(f"{v:.4f}" for v in r.q_wxyz)
             rivals = "".join(f"  (rival: {v['object']} confidence {v['confidence']:.3f})" for v in r.rivals or ())
+            conf = f"{r.confidence:.3f}" if rivals else f"{r.confidence:.2f}"  # (its rivals' margin: thousandths)
             print(f"{path}: found {r.object}  t = [{t}]  q_wxyz = [{q}]  inliers {r.inliers}/{r.matches}  "
-                  f"confidence {r.confidence:.2f}  {total:.0f} ms{rivals}")
+                  f"confidence {conf}  {total:.0f} ms{rivals}")
     return 1 if failed else 0
 
 

@@ -9,6 +9,7 @@ by 1.5 (the same pixels: a 1.5× larger cube 1.5× farther away), trained as ``c
 from __future__ import annotations
 
 import json
+import re
 import shutil
 
 import cv2
@@ -88,3 +89,5 @@ def test_locate_object_all_json_carries_the_rivals(twins, tmp_path, capsys):
     assert main(args) == 0
     text = capsys.readouterr().out
     assert "rival" in text and obj["rivals"][0]["object"] in text
+    shown = re.search(r"found \S+ .* confidence (\S+) .*\(rival: \S+ confidence (\S+)\)", text).groups()
+    assert [len(c.split(".")[1]) for c in shown] == [3, 3]  # (the margin is thousandths: both to 0.001)
