@@ -367,13 +367,42 @@ def same_description(a: ObjectModel, b: ObjectModel) -> bool:
         and np.array_equal(a.rfch.centres, b.rfch.centres)
 
 
-def same_mesh(a: Mesh, b: Mesh) -> bool:
-    """The same vertices and faces (learned 3-D points only make sense on their own mesh)."""
-    return a.vertices.shape == b.vertices.shape and a.faces.shape == b.faces.shape \
-        and np.allclose(a.vertices, b.vertices, rtol=0, atol=1e-9 * max(a.extent, 1e-12)) and np.array_equal(a.faces, b.faces)
+#: how close two meshes' corners must be to be the same (relative to the larger bounding-box diagonal):
+#: a text PLY/OBJ/STL export rounds coordinates to ~6 significant digits, far below what moves a
+#: learned point off the surface
+SAME_MESH_REL_TOL = 1e-5
+
+
+def same_mesh(a: Mesh, b: Mesh, rel_tol: float = SAME_MESH_REL_TOL) -> bool:
+    """The same surface: the same set of triangles, each a set of corner positions equal within
+    ``rel_tol`` of the meshes' size — whatever the order of the vertices, of the faces and of a
+    face's corners, and whether faces share their vertices or not (an STL file stores each
+    triangle's corners apart). Learned 3-D points only make sense on their own mesh; they are in
+    the object frame, not tied to vertex or face indices, so a re-export of the same geometry keeps
+    them valid. (Compared index by index, a re-export or the same box as STL dropped every learned
+    view: "the mesh changed".) Another triangulation of the same surface counts as another mesh."""
+    if a is b or (a.vertices.shape == b.vertices.shape and a.faces.shape == b.faces.shape
+                  and np.array_equal(a.vertices, b.vertices) and np.array_equal(a.faces, b.faces)):
+        return True
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    tol = rel_tol * max(a.extent, b.extent, 1e-300)
+    if abs(a.extent - b.extent) > 2 * tol:  # (cheap: another size is another mesh)
+        return False
+    # the corners of both meshes, one id per position (within tol, chained), then each face as its
+    # sorted ids: the meshes are the same when their sets of faces are
+    V = np.concatenate([a.vertices, b.vertices])
+    pairs = cKDTree(V).query_pairs(tol, output_type="ndarray")
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(V), len(V)))
+    _, ids = connected_components(graph, directed=False)
+    fa = np.unique(np.sort(ids[a.faces], axis=1), axis=0)
+    fb = np.unique(np.sort(ids[np.asarray(b.faces) + len(a.vertices)], axis=1), axis=0)
+    return fa.shape == fb.shape and np.array_equal(fa, fb)
 
 
 __all__ = ["MAX_LEARNED", "MIN_ANGLE_DEG", "MIN_COS", "view_angles_deg", "is_new_direction",
-           "learned_viewset", "with_learned", "why_none_learned", "check_can_store", "merge_learned", "save_learned", "store_lock", "same_mesh",
+           "learned_viewset", "with_learned", "why_none_learned", "check_can_store", "merge_learned", "save_learned", "store_lock", "same_mesh", "SAME_MESH_REL_TOL",
            "carry_learned", "save_trained", "Retrained",
            "same_description"]
