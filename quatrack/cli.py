@@ -427,7 +427,7 @@ def _run_train(args: argparse.Namespace) -> int:
 
     from quatrack.viewsets.batch import exists_message, inputs_checksum, record_inputs, up_to_date
     from quatrack.viewsets.spec import load_spec
-    from quatrack.viewsets.learn import save_trained
+    from quatrack.viewsets.learn import BACKUP_DIR, save_trained
     from quatrack.viewsets.store import model_path, resolve_store
     from quatrack.viewsets.train import train_object
 
@@ -478,6 +478,8 @@ def _run_train(args: argparse.Namespace) -> int:
     path = saved.path
     if (note := saved.note(spec.name, store)) is not None:  # (dropped unasked: the mesh or the descriptors changed)
         _train_warning(note)
+    if (note := saved.backup_note(spec.name)) is not None:  # (and kept in a copy: a walk-round is expensive to repeat)
+        _train_warning(note)
     s = model.manifest["training_summary"]
     counts = list(s["keypoints_per_viewset"].values())
     print(f"trained {spec.name!r} -> {path}")
@@ -489,6 +491,8 @@ def _run_train(args: argparse.Namespace) -> int:
     if saved.kept or saved.dropped:
         print(f"  views learned while tracking: {saved.kept} kept" + (f", {saved.dropped} dropped" if saved.dropped else "")
               + (" (--drop-learned)" if saved.dropped and args.drop_learned else ""))
+    if saved.restored:
+        print(f"  views learned while tracking: {saved.restored} carried back from {saved.path.parent / BACKUP_DIR}")
     print(f"  time: {time.perf_counter() - t0:.1f} s")
     return 0
 
@@ -567,6 +571,7 @@ def _run_train_many(args: argparse.Namespace, params, store, before_training=Non
     import time
 
     from quatrack.viewsets.batch import train_many
+    from quatrack.viewsets.learn import BACKUP_DIR
 
     t0 = time.perf_counter()
 
@@ -584,6 +589,8 @@ def _run_train_many(args: argparse.Namespace, params, store, before_training=Non
                 learned = f", views learned while tracking: {r.learned_kept} kept" + (
                     f", {r.learned_dropped} dropped" + (" (--drop-learned)" if args.drop_learned else "")
                     if r.learned_dropped else "")
+            if r.learned_restored:
+                learned += f", views learned while tracking: {r.learned_restored} carried back from {store / BACKUP_DIR}"
             print(f"trained {r.name!r} -> {r.path}  ({s['viewsets']} viewsets, {s['points3d_total']} 3-D points"
                   f"{learned}, {r.seconds:.1f} s)", flush=True)
 

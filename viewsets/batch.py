@@ -50,6 +50,7 @@ class Trained:
     warnings: tuple[str, ...] = ()  # training's own (weak texture, ...), ``check``'s, then the learned views' note
     learned_kept: int = 0  # views the replaced model learned while tracking, carried into the new one
     learned_dropped: int = 0  # ... and not (another mesh or descriptors, ``keep_learned=False``)
+    learned_restored: int = 0  # views carried back from the object's copy in ``STORE/.learned-backup`` (learn.BACKUP_DIR)
 
 
 def spec_files(spec) -> list[tuple[str, Path]]:
@@ -142,8 +143,11 @@ def train_one(spec_path: str, store: str, params: TrainParams, overwrite: bool =
         return Trained(spec_path, name, error=str(exc), seconds=time.perf_counter() - t0, warnings=tuple(warnings))
     if (note := saved.note(name, store)) is not None:  # (dropped unasked: the mesh or the descriptors changed)
         warnings.append(note)
+    if (note := saved.backup_note(name)) is not None:  # (and where they are kept: learn.BACKUP_DIR)
+        warnings.append(note)
     return Trained(spec_path, name, str(saved.path), model.manifest["training_summary"], time.perf_counter() - t0,
-                   warnings=tuple(warnings), learned_kept=saved.kept, learned_dropped=saved.dropped)
+                   warnings=tuple(warnings), learned_kept=saved.kept, learned_dropped=saved.dropped,
+                   learned_restored=saved.restored)
 
 
 def check_specs(spec_paths: list[str], store: Path, no_overwrite: bool, warn=None) -> list[str]:

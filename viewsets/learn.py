@@ -41,6 +41,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import os
+import shutil
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -54,7 +55,7 @@ from .features import RUN_TIME_STRETCH
 from .mesh import Mesh
 from .render import RenderBuffers, footprint, render_window
 from .rfch import RFCHModel, cooccurrence, descriptor_planes, label_planes
-from .store import ObjectModel, learn_lock_path, learned_count, load_model, model_lock, model_path, save_model
+from .store import MANIFEST, ObjectModel, learn_lock_path, learned_count, load_model, model_lock, model_path, save_model
 from .viewset import Viewset, ViewsetParams, build_viewset
 
 MAX_LEARNED = 24  # learned viewsets per model at most
@@ -280,12 +281,16 @@ def merge_learned(store: str | Path, name: str, viewsets, mesh: Mesh | None = No
 @dataclasses.dataclass(frozen=True)
 class Retrained:
     """What :func:`save_trained` did with the views the replaced model had learned while tracking:
-    ``kept`` carried into the new model, ``dropped`` not, and ``why`` (None when none was dropped)."""
+    ``kept`` carried into the new model, ``dropped`` not, and ``why`` (None when none was dropped);
+    ``backup``: where the replaced model was copied with the views it dropped unasked (None when
+    none was), and ``restored``: views carried back from such a copy (:data:`BACKUP_DIR`)."""
 
     path: Path
     kept: int = 0
     dropped: int = 0
     why: str | None = None
+    backup: Path | None = None
+    restored: int = 0
 
     def note(self, name: str, store: str | Path) -> str | None:
         """The warning a retraining owes its user when it dropped learned views it was not told
@@ -295,6 +300,29 @@ class Retrained:
         return (f"{name!r} in {store} held {self.kept + self.dropped} view(s) learned while tracking; "
                 f"{self.dropped} dropped: {self.why}" + (f"; {self.kept} kept" if self.kept else "")
                 + " (track --learn learns them again)")
+
+    def backup_note(self, name: str) -> str | None:
+        """Where the dropped views are kept and how to get them back (None when none was backed up)."""
+        if self.backup is None:
+            return None
+        import shlex
+
+        store = self.backup.parent.parent
+        return (f"the replaced model of {name!r}, with its {self.dropped} learned view(s), is kept in {self.backup}: "
+                f"train {name!r} again with its former mesh and settings (e.g. without --root-sift) and they are "
+                f"carried back; or put it back in place: quatrack models delete {name} --store {shlex.quote(str(store))}"
+                f" && mv {shlex.quote(str(self.backup))} {shlex.quote(str(store / name))}")
+
+
+#: the folder of the store (itself a store: ``quatrack models list --store STORE/.learned-backup``)
+#: where a retraining copies the model it replaces when it drops learned views unasked (another mesh,
+#: another kind of descriptors): a walk-round is expensive to repeat. One copy per object, the last.
+BACKUP_DIR = ".learned-backup"
+
+
+def backup_path(store: str | Path, name: str) -> Path:
+    """The folder of ``name``'s backup copy in ``store`` (it may not exist): ``STORE/.learned-backup/NAME``."""
+    return model_path(Path(store) / BACKUP_DIR, name)
 
 
 #: :attr:`Retrained.why` when the caller asked for the learned views to go (``train --drop-learned``)
@@ -333,7 +361,13 @@ def save_trained(store: str | Path, model: ObjectModel, overwrite: bool = True, 
     which merges of learned views hold from their read to their write (:func:`merge_learned`,
     :func:`~.store.model_lock`; no lock file is added to the store), so views a ``track --learn`` run stores meanwhile
     are kept or reported too, never lost between the read and the write. A stored model that
-    cannot be read (broken) is replaced, as before, with nothing to carry."""
+    cannot be read (broken) is replaced, as before, with nothing to carry.
+
+    Learned views dropped unasked (another mesh, another kind of descriptors) are not lost: the
+    replaced model is first copied to :func:`backup_path` (``STORE/.learned-backup/NAME``, the
+    object's last such copy), and a later retraining that keeps none from the stored model carries
+    them back from there when they fit it (trained again with the old mesh and settings: the copy
+    is then removed). ``keep_learned=False`` (``--drop-learned``) removes the copy too."""
     store = Path(store)
     with model_lock(store, model.name):
         n = learned_count(store, model.name)
@@ -348,8 +382,19 @@ def save_trained(store: str | Path, model: ObjectModel, overwrite: bool = True, 
             why = DROP_ASKED
         elif n and stored is None:
             why = "the stored model cannot be read"
+        backup, restored = backup_path(store, model.name), 0
+        if keep_learned and not kept and (backup / MANIFEST).is_file():
+            try:
+                model, restored, _ = carry_learned(load_model(backup.parent, model.name), model)
+            except StoreError:  # (a broken copy: nothing to carry back, left for the user to look at)
+                restored = 0
+        saved_backup = None
+        if stored is not None and n - kept and why != DROP_ASKED:  # (before the stored model is replaced)
+            saved_backup = save_model(backup.parent, stored, overwrite=True, locked=True)
+        elif (restored or not keep_learned) and backup.is_dir():
+            shutil.rmtree(backup, ignore_errors=True)
         path = save_model(store, model, overwrite=overwrite, locked=True)
-    return Retrained(path, kept, n - kept, why if n - kept else None)
+    return Retrained(path, kept, n - kept, why if n - kept else None, saved_backup, restored)
 
 
 def save_learned(store: str | Path, name: str, viewsets, mesh: Mesh | None = None) -> Path:
@@ -404,5 +449,5 @@ def same_mesh(a: Mesh, b: Mesh, rel_tol: float = SAME_MESH_REL_TOL) -> bool:
 
 __all__ = ["MAX_LEARNED", "MIN_ANGLE_DEG", "MIN_COS", "view_angles_deg", "is_new_direction",
            "learned_viewset", "with_learned", "why_none_learned", "check_can_store", "merge_learned", "save_learned", "store_lock", "same_mesh", "SAME_MESH_REL_TOL",
-           "carry_learned", "save_trained", "Retrained",
+           "carry_learned", "save_trained", "Retrained", "BACKUP_DIR", "backup_path",
            "same_description"]
