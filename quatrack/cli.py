@@ -625,8 +625,8 @@ def _run_models(args: argparse.Namespace) -> int:
     import shlex
 
     from quatrack.viewsets.names import NAME_RE
-    from quatrack.viewsets.store import (MANIFEST, broken_folders, delete_model, list_models, load_manifest, load_model,
-                                         remove_stale, resolve_store, store_note)
+    from quatrack.viewsets.store import (MANIFEST, broken_folders, delete_model, learned_points, list_models, load_manifest,
+                                         load_model, remove_stale, resolve_store, store_note)
 
     store = resolve_store(args.store)
     if store.exists() and not store.is_dir():  # (else listed as an empty store, exit 0)
@@ -658,7 +658,9 @@ def _run_models(args: argparse.Namespace) -> int:
                 continue
             s = m.get("training_summary", {})
             learned = f" (+{m['learned_viewsets']} learned)" if m.get("learned_viewsets") else ""  # (tracking's, not training's)
-            print(f"{name}\t{s.get('viewsets', '?')} viewsets{learned}\t{s.get('points3d_total', '?')} points\t"
+            # (training's points, then the learned views' own: they were left out, a walk-round's views adding none)
+            points = f" (+{n} learned)" if (n := learned_points(m)) else ""
+            print(f"{name}\t{s.get('viewsets', '?')} viewsets{learned}\t{s.get('points3d_total', '?')} points{points}\t"
                   f"{m.get('created', '?')}")
         if broken and args.check:  # (without --check: exit 0, as always)
             print(f"quatrack models: {broken} of {len(rows)} object(s) BROKEN (--check)", file=sys.stderr)

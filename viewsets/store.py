@@ -45,7 +45,7 @@ from .viewset import Viewset, ViewsetParams
 
 __all__ = ["ObjectModel", "StoreError", "load_model", "save_model", "list_models", "delete_model",
            "model_lock", "default_store", "resolve_store", "model_path", "load_manifest", "model_stamp",
-           "trained_from", "retrain_reason", "NOT_STORED", "broken_folders", "learn_lock_path", "learned_count", "learned_views_warning", "remove_stale", "unknown_object", "names_hint",
+           "trained_from", "retrain_reason", "NOT_STORED", "broken_folders", "learn_lock_path", "learned_count", "learned_points", "learned_views_warning", "remove_stale", "unknown_object", "names_hint",
            "store_note"]
 
 SCHEMA_VERSION = 1
@@ -271,6 +271,18 @@ def learned_count(store: str | Path, name: str) -> int:
     except StoreError:
         return 0
     return sum(isinstance(e, dict) and e.get("learned") is True for e in entries) if isinstance(entries, list) else 0
+
+
+def learned_points(manifest: dict) -> int:
+    """How many 3-D points the views learned while tracking hold, from a model's ``manifest`` (its
+    ``"learned": true`` entries' ``keypoints``: one lifted point each); 0 when none or unreadable.
+    The training summary's ``points3d_total`` counts the trained views' points only: learned views
+    come after it (``models list`` shows both: ``930 points (+1210 learned)``)."""
+    entries = manifest.get("viewsets") if isinstance(manifest, dict) else None
+    if not isinstance(entries, list):
+        return 0
+    return sum(int(e.get("keypoints") or 0) for e in entries
+               if isinstance(e, dict) and e.get("learned") is True and isinstance(e.get("keypoints"), int))
 
 
 def load_manifest(store: str | Path, name: str) -> dict:
