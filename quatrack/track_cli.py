@@ -271,9 +271,18 @@ def _refused_pose(path: str, frame: int, reason: str | None) -> None:
     why: only ``--format jsonl`` rows carried the reason; the CSV said ``lost`` and recognition
     took over, so a pose given camera → object went unnoticed."""
     why = (reason or "no reason given").removeprefix("given pose refused: ").removeprefix("given pose: ")
+    # (both causes named: a pose merely 10° off was asked whether it was given camera → object)
     print(f"quatrack track: warning: --init-pose {path}: the pose was refused at frame {frame} ({why}); "
-          f"the object is searched for by recognition instead (is the pose object → camera, in the mesh's "
-          f"units?)", file=sys.stderr)
+          f"the object is searched for by recognition instead (either the pose is too far from where the frame "
+          f"shows the object (it must be within about {INIT_POSE_DEG:g}° and a few % of the object's size, on a "
+          f"side no photo shows), or it is in another convention (camera → object instead of object → camera, "
+          f"or not in the mesh's units))", file=sys.stderr)
+
+
+#: how close an ``--init-pose`` must be to the object's pose in its first frame, as a trial measured it
+#: on a side no training photo shows (the tracker starts there on corners born on the mesh at the given
+#: pose, confirmed by its edges): about 5° and a few % of the object's size (README)
+INIT_POSE_DEG = 5.0
 
 
 @dataclass
