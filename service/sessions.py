@@ -261,9 +261,12 @@ class TrackSession:
                     await asyncio.wait_for(self.ws.close(*_close_of(outcome)), CLOSE_TIMEOUT_S)
                 except (RuntimeError, OSError, asyncio.TimeoutError):
                     pass
-            await store_session_views(self)  # QUATRACK_LEARN_VIEWS (service/learning.py)
+            stored = await store_session_views(self)  # QUATRACK_LEARN_VIEWS (service/learning.py)
+            # (a learning session's line says how many views it stored: the protocol has no closing
+            # message, and the count was only in the store's own line, found by the session's id)
+            learned = {"learned_views_stored": stored} if getattr(getattr(self.tracker, "params", None), "learn", False) else {}
             self._log(logging.INFO, "session ended", object=self.name, outcome=outcome, frames=self.next_frame,
-                      duration_s=round(time.perf_counter() - started, 3))
+                      duration_s=round(time.perf_counter() - started, 3), **learned)
         return outcome
 
     async def _step_finished(self) -> None:
