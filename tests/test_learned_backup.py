@@ -86,3 +86,14 @@ def test_several_specs_say_where_the_copy_is(store, tmp_path, capsys):
     line = next(x for x in out.splitlines() if x.startswith(f"trained {NAME!r}"))
     assert f", views learned while tracking: 2 carried back from {store / L.BACKUP_DIR}," in line, out
     assert _learned(store) == ["learned1", "learned2"]
+
+
+def test_an_object_deleted_and_trained_afresh_does_not_get_the_copys_views(store, capsys):
+    """``models delete`` then ``train``: a first training (maybe another object of that name and
+    mesh), not a retraining: the copy's views are not carried back into it."""
+    _with_learned(store)
+    assert main(["train", SPEC, "--store", str(store), *FAST_TRAIN, "--root-sift"]) == 0
+    assert main(["models", "delete", NAME, "--store", str(store)]) == 0
+    assert main(["train", SPEC, "--store", str(store), *FAST_TRAIN]) == 0
+    out = capsys.readouterr().out
+    assert "carried back" not in out and _learned(store) == [], out

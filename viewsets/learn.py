@@ -367,7 +367,8 @@ def save_trained(store: str | Path, model: ObjectModel, overwrite: bool = True, 
     replaced model is first copied to :func:`backup_path` (``STORE/.learned-backup/NAME``, the
     object's last such copy), and a later retraining that keeps none from the stored model carries
     them back from there when they fit it (trained again with the old mesh and settings: the copy
-    is then removed). ``keep_learned=False`` (``--drop-learned``) removes the copy too."""
+    is then removed) — a retraining, not a first training after ``models delete``.
+    ``keep_learned=False`` (``--drop-learned``) removes the copy too."""
     store = Path(store)
     with model_lock(store, model.name):
         n = learned_count(store, model.name)
@@ -383,7 +384,10 @@ def save_trained(store: str | Path, model: ObjectModel, overwrite: bool = True, 
         elif n and stored is None:
             why = "the stored model cannot be read"
         backup, restored = backup_path(store, model.name), 0
-        if keep_learned and not kept and (backup / MANIFEST).is_file():
+        # (only over a stored model: an object deleted and trained afresh — maybe another object
+        # of that name and mesh — does not get the old one's views back)
+        replacing = (model_path(store, model.name) / MANIFEST).is_file()
+        if keep_learned and not kept and replacing and (backup / MANIFEST).is_file():
             try:
                 model, restored, _ = carry_learned(load_model(backup.parent, model.name), model)
             except StoreError:  # (a broken copy: nothing to carry back, left for the user to look at)
