@@ -28,6 +28,7 @@ from starlette.requests import ClientDisconnect
 
 from quatrack.recognition.images import MIN_SIDE, ImageError
 from quatrack.recognition.locate import LocateParams, locate
+from quatrack.viewsets.store import learned_points
 
 from . import ros
 from .errors import ApiError, error_body
@@ -150,6 +151,7 @@ async def list_objects(state: State) -> ObjectList:
             s = s if isinstance(s, dict) else {}
             item = ObjectSummary(name=name, created=m.get("created"), viewsets=s.get("viewsets"),
                                  points3d=s.get("points3d_total"), learned_viewsets=int(m.get("learned_viewsets") or 0),
+                                 learned_points3d=learned_points(m),
                                  loaded=name in loaded, error=failed.get(name))
         except (ApiError, ValidationError) as exc:  # a manifest nobody can read: listed as broken
             item = ObjectSummary(name=name, loaded=name in loaded,

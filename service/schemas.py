@@ -210,8 +210,10 @@ class ObjectSummary(BaseModel):
     name: str
     created: str | None = None
     viewsets: int | None = Field(None, description="viewsets made by training")
-    points3d: int | None = None
+    points3d: int | None = Field(None, description="3-D points of the viewsets made by training (learned views' points: "
+                                                  "`learned_points3d`)")
     learned_viewsets: int = Field(0, description="viewsets learned while tracking since (track --learn, the service)")
+    learned_points3d: int = Field(0, description="3-D points of the viewsets learned while tracking")
     loaded: bool = Field(description="already in memory (first request needs no loading)")
     error: str | None = Field(None, description="why the model cannot be loaded (corrupt files): requests for it get 503")
 

@@ -39,3 +39,21 @@ def test_learned_points_of_a_manifest_without_learned_views_or_readable_entries(
     assert S.learned_points({"viewsets": "garbage"}) == 0
     assert S.learned_points({"viewsets": [{"keypoints": 5}, {"keypoints": 7, "learned": True}, 3,
                                           {"keypoints": "x", "learned": True}]}) == 7
+
+
+def test_the_objects_list_says_the_learned_points(store):
+    """``GET /v1/objects``: ``points3d`` stays the trained views' points, and the learned views'
+    own are ``learned_points3d`` (it listed the same points after ten views were learned)."""
+    from fastapi.testclient import TestClient
+
+    from quatrack.service.app import create_app
+    from quatrack.service.settings import Settings
+
+    model = S.load_model(store, NAME)
+    trained = model.manifest["training_summary"]["points3d_total"]
+    views = turned_views(model)
+    L.merge_learned(store, NAME, views, model.mesh)
+    with TestClient(create_app(Settings(store=store, preload=False, workers=1, threads=1, model_poll_s=0))) as c:
+        item = c.get("/v1/objects").json()["objects"][0]
+    assert item["points3d"] == trained and item["learned_viewsets"] == 2
+    assert item["learned_points3d"] == sum(len(vs) for vs in views) > 0
