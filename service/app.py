@@ -306,19 +306,13 @@ class StopAnswer:
     async def __call__(self, scope, receive, send):
         if scope["type"] != "http":
             return await self.app(scope, receive, send)
-        started = False
-
-        async def watched(msg):
-            nonlocal started
-            started = started or msg["type"] == "http.response.start"
-            await send(msg)
-
+        watched, started = errors.watch_start(send)
         try:
             await self.app(scope, receive, watched)
         except asyncio.CancelledError:
             log.warning("%s %s cut short by the server's stop: answered 503 shutting_down",
                         scope.get("method"), scope.get("path"))
-            if not started:
+            if not started():
                 await _send_json(send, 503, error_body("shutting_down", "the server is stopping; retry the request"),
                                  [(b"connection", b"close")])
 

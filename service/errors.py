@@ -71,6 +71,20 @@ async def _on_unexpected(request: Request, exc: Exception) -> JSONResponse:
     return _json(500, "internal", "internal error (logged on the server)")
 
 
+def watch_start(send):
+    """``send`` wrapped to note whether the answer began, and a function saying so: a middleware
+    that answers for a failed request may do so only before the app's own answer started
+    (:class:`UnexpectedErrors`, ``app.StopAnswer``)."""
+    started = False
+
+    async def watched(msg):
+        nonlocal started
+        started = started or msg["type"] == "http.response.start"
+        await send(msg)
+
+    return watched, lambda: started
+
+
 class UnexpectedErrors:
     """An exception nothing handled becomes the contract's JSON 500 *inside* the middleware stack
     (``app.py`` adds it innermost), so the answer passes the CORS, security-header and request-id
@@ -85,17 +99,11 @@ class UnexpectedErrors:
     async def __call__(self, scope, receive, send):
         if scope["type"] != "http":
             return await self.app(scope, receive, send)
-        started = False
-
-        async def watched(msg):
-            nonlocal started
-            started = started or msg["type"] == "http.response.start"
-            await send(msg)
-
+        watched, started = watch_start(send)
         try:
             await self.app(scope, receive, watched)
         except Exception as exc:
-            if started:
+            if started():
                 raise
             await (await _on_unexpected(Request(scope), exc))(scope, receive, send)
 

@@ -182,3 +182,23 @@ def store(base_store, tmp_path):
     s = tmp_path / "store"
     shutil.copytree(base_store, s)
     return s
+
+
+@pytest.fixture
+def not_started(monkeypatch):
+    """``quatrack serve`` run up to uvicorn, which is not started: (monkeypatch, the keyword
+    arguments uvicorn.run was called with); no ``QUATRACK_*`` variable of the caller's reaches
+    it, and the environment serve exports for its workers is put back afterwards."""
+    import os
+
+    import uvicorn
+
+    for key in list(os.environ):
+        if key.upper().startswith("QUATRACK_"):
+            monkeypatch.delenv(key)
+    started = []
+    monkeypatch.setattr(uvicorn, "run", lambda *a, **k: started.append(k))
+    before = dict(os.environ)
+    yield monkeypatch, started
+    os.environ.clear()  # (serve exports its settings for its workers)
+    os.environ.update(before)

@@ -24,23 +24,6 @@ def test_the_default_cap_follows_the_limits():
         Settings.from_env(max_connections=0)
 
 
-@pytest.fixture
-def not_started(monkeypatch):
-    import os
-
-    import uvicorn
-
-    for key in list(os.environ):
-        if key.upper().startswith("QUATRACK_"):
-            monkeypatch.delenv(key)
-    started = []
-    monkeypatch.setattr(uvicorn, "run", lambda *a, **k: started.append(k))
-    before = dict(os.environ)
-    yield monkeypatch, started
-    os.environ.clear()  # (serve exports its settings for its workers)
-    os.environ.update(before)
-
-
 @pytest.mark.parametrize("value, expected", [(None, 4 + 8 + 64), ("300", 300)])
 def test_serve_gives_uvicorn_the_cap(not_started, value, expected):
     env, started = not_started

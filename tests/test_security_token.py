@@ -13,26 +13,9 @@ from quatrack.testing.loopback import free_port
 from quatrack.testing.scenes import example_store
 
 
-@pytest.fixture
-def no_server(monkeypatch):
-    import os
-
-    import uvicorn
-
-    for key in list(os.environ):
-        if key.upper().startswith("QUATRACK_"):
-            monkeypatch.delenv(key)
-    started = []
-    monkeypatch.setattr(uvicorn, "run", lambda *a, **k: started.append(k))
-    before = dict(os.environ)
-    yield monkeypatch, started
-    os.environ.clear()
-    os.environ.update(before)
-
-
 @pytest.mark.parametrize("token", ["s3cr\u00e9t-tok", "tok\u00e9n", "\u2603snowman", "caf\u00e9 au lait", "abc\u00a0def"])
-def test_a_non_ascii_token_is_refused_at_start(no_server, capsys, token):
-    env, started = no_server
+def test_a_non_ascii_token_is_refused_at_start(not_started, capsys, token):
+    env, started = not_started
     env.setenv("QUATRACK_API_TOKEN", token)
     code = main(["serve", "--store", str(example_store()), "--port", str(free_port()), "--workers", "1"])
     lines = [x for x in capsys.readouterr().err.splitlines() if x.strip()]

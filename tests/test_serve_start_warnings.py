@@ -14,23 +14,6 @@ from quatrack.testing.loopback import free_port
 from quatrack.testing.scenes import example_store
 
 
-@pytest.fixture
-def not_started(monkeypatch):
-    import os
-
-    import uvicorn
-
-    for key in list(os.environ):
-        if key.upper().startswith("QUATRACK_"):
-            monkeypatch.delenv(key)
-    started = []
-    monkeypatch.setattr(uvicorn, "run", lambda *a, **k: started.append(k))
-    before = dict(os.environ)
-    yield monkeypatch, started
-    os.environ.clear()  # (serve exports its settings for its workers)
-    os.environ.update(before)
-
-
 @pytest.mark.parametrize("value, warned", [
     ("Cookie-Box", ["'Cookie-Box'", "did you mean 'cookie-box'?"]),
     ("cookie-box,cookie-bx", ["'cookie-bx'", "did you mean 'cookie-box'?"]),
