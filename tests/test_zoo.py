@@ -65,10 +65,6 @@ def test_backgrounds_are_frozen_files_installed_as_package_data(monkeypatch):
     """The scenes' room backgrounds are stored files (a change to recognition must not redraw
     the benchmark's scenes), loaded without running recognition, and listed as package data so
     a non-editable install has them."""
-    import fnmatch
-    import tomllib
-    from pathlib import Path
-
     from quatrack.recognition import locate as L
     from quatrack.testing import backgrounds as B
     from quatrack.testing import scenes as S
@@ -88,12 +84,10 @@ def test_backgrounds_are_frozen_files_installed_as_package_data(monkeypatch):
     files = B.background_paths()
     assert sum(p.stat().st_size for p in files) < 1_000_000
     assert (B.DATA / "README.md").is_file()  # source and licence
-    pyproject = tomllib.loads((Path(__file__).resolve().parents[1] / "pyproject.toml").read_text())
-    patterns = pyproject["tool"]["setuptools"]["package-data"]["quatrack.testing"]
-    root = B.DATA.parents[1]  # the quatrack.testing package folder
+    from test_packaging_layout import shipped  # (pyproject's packages and package-data, as setuptools reads them)
+
     for p in [*files, B.DATA / "README.md"]:
-        rel = p.relative_to(root).as_posix()
-        assert any(fnmatch.fnmatch(rel, pat) for pat in patterns), f"{rel} is not package data"
+        assert shipped(p.resolve()), f"{p} is not package data"
 
 
 def test_the_example_store_is_removed_when_the_process_ends(tmp_path):
