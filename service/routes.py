@@ -199,6 +199,7 @@ _POSE_BODY = {
 
 
 POSE_OPTIONS = ("format", "mesh_unit")  # the pose endpoints' query parameters besides the camera's
+ROUTE_OPTIONS = {"pose_all": ("objects",)}  # ... and those of one endpoint (by its function's name)
 
 
 def unknown_query(request: Request) -> ApiError | None:
@@ -212,7 +213,8 @@ def unknown_query(request: Request) -> ApiError | None:
     from quatrack.viewsets.camera import FIELD_ALIASES
 
     camera = [p for p in inspect.signature(camera_query).parameters if p != "request"]
-    known = camera + list(POSE_OPTIONS)
+    route = request.scope.get("route")
+    known = camera + list(POSE_OPTIONS) + list(ROUTE_OPTIONS.get(getattr(route, "name", ""), ()))
     to_query = {"dist_coeffs": "dist"}  # the camera JSON's field names that the query spells otherwise
     for key in request.query_params.keys():
         if key in known:

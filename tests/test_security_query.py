@@ -52,7 +52,8 @@ def test_an_unknown_query_parameter_is_refused(client, image, path, key, meant, 
     msg = body["error"]["message"]
     assert msg.startswith(f"unknown query parameter {key!r}"), msg
     assert (f"(did you mean {meant}?)" in msg) if meant else "did you mean" not in msg, msg
-    assert msg.endswith("the pose endpoints take fx, fy, cx, cy, width, height, dist, format, mesh_unit"), msg
+    known = "fx, fy, cx, cy, width, height, dist, format, mesh_unit" + (", objects" if path == "/v1/pose" else "")
+    assert msg.endswith(f"the pose endpoints take {known}"), msg
 
 
 def test_a_token_in_a_rest_query_is_said_to_be_unread(client, image):
