@@ -181,7 +181,7 @@ def test_ctrl_c_ends_the_worker_processes_and_trains_nothing_queued(tmp_path, mo
     store.mkdir()
     t0 = time.perf_counter()
     with pytest.raises(KeyboardInterrupt):
-        batch._local(specs, str(store), TrainParams(novel=None), True, False, 2, None)
+        batch._local(specs, str(store), TrainParams(novel=None), True, 2, None)
     assert time.perf_counter() - t0 < 5
     time.sleep(2)  # (a worker left running would store a model meanwhile)
     assert list_models(store) == []

@@ -229,24 +229,21 @@ def train_many(spec_paths: list[str], store: str | Path, params: TrainParams = T
 
 
 def _train(specs, store, params, jobs, overwrite, ray_address, on_done, check, keep_learned) -> dict[str, Trained]:
-    """Train ``specs`` (none skipped: :func:`train_many` decided) locally or on Ray."""
-    skip_existing = False
+    """Train ``specs`` (none skipped: :func:`train_many` decided which are up to date) locally or on Ray."""
     if ray_address is not None:
-        results = _on_ray(specs, store, dataclasses.replace(params, jobs=jobs), overwrite, skip_existing,
-                          ray_address, on_done, check, keep_learned)
-    else:
-        processes = min(jobs, len(specs))
-        per = dataclasses.replace(params, jobs=max(1, jobs // processes))
-        results = _local(specs, store, per, overwrite, skip_existing, processes, on_done, check, keep_learned)
-    return results
+        return _on_ray(specs, store, dataclasses.replace(params, jobs=jobs), overwrite, ray_address, on_done, check,
+                       keep_learned)
+    processes = min(jobs, len(specs))
+    per = dataclasses.replace(params, jobs=max(1, jobs // processes))
+    return _local(specs, store, per, overwrite, processes, on_done, check, keep_learned)
 
 
-def _local(specs, store, params, overwrite, skip_existing, processes, on_done, check=None,
+def _local(specs, store, params, overwrite, processes, on_done, check=None,
            keep_learned=True) -> dict[str, Trained]:
     if processes == 1:
         out = {}
         for p in specs:
-            out[p] = train_one(p, store, params, overwrite, skip_existing, check, keep_learned)
+            out[p] = train_one(p, store, params, overwrite, check=check, keep_learned=keep_learned)
             if on_done:
                 on_done(out[p])
         return out
@@ -256,7 +253,8 @@ def _local(specs, store, params, overwrite, skip_existing, processes, on_done, c
     # spawn, not fork: the parent may hold OpenCV/BLAS thread pools that fork would copy mid-use
     with ProcessPoolExecutor(processes, mp_context=multiprocessing.get_context("spawn"),
                              initializer=_ignore_ctrl_c) as pool:
-        futures = {pool.submit(train_one, p, store, params, overwrite, skip_existing, check, keep_learned): p for p in specs}
+        futures = {pool.submit(train_one, p, store, params, overwrite, check=check, keep_learned=keep_learned): p
+                   for p in specs}
         try:
             for f in as_completed(futures):
                 out[futures[f]] = f.result()
@@ -280,7 +278,7 @@ def _ignore_ctrl_c() -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
-def _on_ray(specs, store, params, overwrite, skip_existing, address, on_done, check=None,
+def _on_ray(specs, store, params, overwrite, address, on_done, check=None,
             keep_learned=True) -> dict[str, Trained]:
     try:
         import ray
@@ -299,7 +297,7 @@ def _on_ray(specs, store, params, overwrite, skip_existing, address, on_done, ch
             raise ValueError(f"--ray {address}: cannot connect to a Ray cluster ({exc})") from None
     try:
         remote = ray.remote(num_cpus=params.jobs, max_retries=1)(train_one)
-        refs = {remote.remote(p, store, params, overwrite, skip_existing, check, keep_learned): p for p in specs}
+        refs = {remote.remote(p, store, params, overwrite, check=check, keep_learned=keep_learned): p for p in specs}
         out = {}
         pending = list(refs)
         while pending:
