@@ -777,8 +777,9 @@ def decoded_frames(cap, label: str, live: bool = False, listed: int = 0,
     AVI chunk cut short swallows the next frame: the frames after it come one index early).
     Such frames are tracked as given; the tracker's own checks usually lose a garbled one.
     """
-    failed = n = 0
-    failed_at: list[float | None] = []  # (a live capture's: when each failed read returned)
+    n = 0
+    # the run of reads failed since the last frame: when each returned (a live capture's clock)
+    failed_at: list[float | None] = []
     what = kind or ("camera" if label.split()[-1].isdigit() else "stream")  # (kind: live_kind's)
     timeout = getattr(cap, "timeout_s", STALL_TIMEOUT_S)
     last = time.monotonic()
@@ -794,12 +795,12 @@ def decoded_frames(cap, label: str, live: bool = False, listed: int = 0,
                                     + ("frame?)" if live else "file?)"))
                 error.grabbed_at = at  # (its own time: it was given the next frame's)
                 yield error
-            n, failed, last = n + failed + 1, 0, time.monotonic()
+            n, last = n + len(failed_at) + 1, time.monotonic()
             failed_at.clear()
             yield frame
             continue
-        failed += 1
         failed_at.append(getattr(cap, "grabbed_at", None))
+        failed = len(failed_at)
         if live and time.monotonic() - last >= timeout:  # (reads that fail slowly, one after another)
             yield SourceEnded(f"the {what} stalled: no frame within {timeout:g} s")
             return
