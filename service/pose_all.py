@@ -77,12 +77,12 @@ def _chosen(objects: str | None, stored: list[str]) -> list[str]:
     return [n for n in stored if n in asked]
 
 
-def _locate_all(state: ServiceState, data: bytes, camera: CameraIn, names: list[str] | None = None) -> dict:
-    """Worker thread: decode, check the camera, search every loadable model of ``names`` (all)."""
+def _locate_all(state: ServiceState, data: bytes, camera: CameraIn, names: list[str]) -> dict:
+    """Worker thread: decode, check the camera, search every loadable model of ``names`` (:func:`_chosen`)."""
     t0 = time.perf_counter()
     image, cam = decode_with_camera(state, data, camera)
     models, failed = [], {}
-    for name in state.registry.names() if names is None else names:
+    for name in names:
         try:
             models.append(state.registry.get(name)[0])
         except ApiError as exc:  # a broken model: the others are still searched

@@ -60,7 +60,8 @@ def ros_units(query: Mapping[str, str]) -> dict[str | None, str] | None:
 def unknown_unit_names(units: Mapping[str | None, str] | None, names) -> list[str]:
     """The objects ``units`` names that are not among ``names`` (a typo would leave the object
     meant without ``ros``, answered with a note only)."""
-    return sorted(n for n in (units or {}) if n is not None and n not in set(names))
+    known = set(names)
+    return sorted(n for n in (units or {}) if n is not None and n not in known)
 
 
 def add_to_found_object(result: dict, units: Mapping[str | None, str] | None) -> dict:
