@@ -312,21 +312,13 @@ def _write_outputs(plan: _Plan, args: argparse.Namespace, res, times: dict, skip
 
 def run(args: argparse.Namespace) -> int:
     """Stream a video through the WebSocket; write the poses (CSV), an overlay video and a plot."""
-    import signal
-    import threading
+    from quatrack.track_cli import _interrupts_put_back, _terminate_as_interrupt
 
-    from quatrack.track_cli import _terminate_as_interrupt
-
-    main = threading.current_thread() is threading.main_thread()
-    previous = signal.getsignal(signal.SIGINT) if main else None
-    try:
+    with _interrupts_put_back():
         with _terminate_as_interrupt() as stop:  # (SIGTERM, docker stop: as Ctrl-C, from the start)
             plan = _check(args)
             res, times, skipped, interrupted = _stream_video(plan, args)
         return _finish(plan, args, res, times, skipped, stop.cause if interrupted else None)
-    finally:
-        if main and signal.getsignal(signal.SIGINT) is not previous:  # (_defer_interrupts' handler)
-            signal.signal(signal.SIGINT, previous)
 
 
 def _finish(plan: _Plan, args: argparse.Namespace, res, times: dict, skipped: list, stopped: str | None) -> int:

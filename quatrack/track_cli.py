@@ -319,22 +319,35 @@ def _terminate_as_interrupt():
         signal.signal(signal.SIGTERM, previous)
 
 
-def run(args: argparse.Namespace) -> int:
-    """:func:`_run`, then a wait for the threads it started (:func:`_join_started`), on every path."""
+@contextlib.contextmanager
+def _interrupts_put_back(ignored_in_the_program: bool = False):
+    """Around a run that may defer Ctrl-C (:func:`_defer_interrupts`): afterwards the previous
+    SIGINT handler comes back — or, with ``ignored_in_the_program`` in the ``quatrack`` process
+    itself (:func:`_is_the_program`), Ctrl-C stays ignored to the end (the interpreter's exit puts
+    a Python handler back to the default, killing; SIG_IGN it keeps). Only in the main thread."""
     import signal
     import threading
 
-    before = set(threading.enumerate())
     main = threading.current_thread() is threading.main_thread()
     previous = signal.getsignal(signal.SIGINT) if main else None
     try:
-        return _run(args)
+        yield
     finally:
-        _join_started(before)
         if main and signal.getsignal(signal.SIGINT) is not previous:  # (_defer_interrupts' handler)
-            # the program: ignored to the end (the interpreter's exit puts a Python handler back to
-            # the default, killing; SIG_IGN it keeps); main() called in-process: put back
-            signal.signal(signal.SIGINT, signal.SIG_IGN if _is_the_program() else previous)
+            keep = ignored_in_the_program and _is_the_program()
+            signal.signal(signal.SIGINT, signal.SIG_IGN if keep else previous)
+
+
+def run(args: argparse.Namespace) -> int:
+    """:func:`_run`, then a wait for the threads it started (:func:`_join_started`), on every path."""
+    import threading
+
+    before = set(threading.enumerate())
+    with _interrupts_put_back(ignored_in_the_program=True):
+        try:
+            return _run(args)
+        finally:
+            _join_started(before)
 
 
 def _is_the_program() -> bool:
