@@ -15,30 +15,13 @@ from concurrent.futures import ThreadPoolExecutor
 from types import SimpleNamespace
 
 import pytest
-from starlette.websockets import WebSocketState
 
 from quatrack.service import sessions
 from quatrack.service.logs import JsonFormatter
 from quatrack.service.metrics import Metrics
 from quatrack.service.settings import Settings
 from test_service_ws import CAMERA
-
-
-class _Leaving:
-    """The camera, then the client leaves."""
-
-    client_state = WebSocketState.DISCONNECTED
-
-    def __init__(self) -> None:
-        self.inbox = [json.dumps(CAMERA)]
-
-    async def receive(self) -> dict:
-        if self.inbox:
-            return {"type": "websocket.receive", "text": self.inbox.pop(0)}
-        return {"type": "websocket.disconnect"}
-
-    async def send_text(self, text: str) -> None:
-        pass
+from test_service_ws_sessions import ScriptedSocket  # (the camera, then the client leaves)
 
 
 def _ended(tmp_path, monkeypatch, tracker) -> dict:
@@ -58,7 +41,7 @@ def _ended(tmp_path, monkeypatch, tracker) -> dict:
     logger.disabled = False
     try:
         with ThreadPoolExecutor(1) as pool:
-            session = sessions.TrackSession(_Leaving(), "sid7", "cookie-box", None, Settings(store=tmp_path), pool, Metrics())
+            session = sessions.TrackSession(ScriptedSocket(json.dumps(CAMERA)), "sid7", "cookie-box", None, Settings(store=tmp_path), pool, Metrics())
             session.tracker = tracker
             asyncio.run(asyncio.wait_for(session.run(), 30))
     finally:

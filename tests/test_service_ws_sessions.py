@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 
 import pytest
+from starlette.websockets import WebSocketState
 from websockets.sync.client import connect
 
 from quatrack.testing.scenes import example_store
@@ -13,6 +14,24 @@ from quatrack.service.server import BackgroundServer
 from quatrack.service.settings import Settings
 from test_service_http import jpeg, video_frames
 from test_service_ws import CAM_ACK, CAMERA, recv
+
+
+class ScriptedSocket:
+    """A session's WebSocket, in process: it receives ``messages`` (text), then the client leaves;
+    what the session sends is dropped."""
+
+    client_state = WebSocketState.DISCONNECTED
+
+    def __init__(self, *messages: str) -> None:
+        self.inbox = list(messages)
+
+    async def receive(self) -> dict:
+        if self.inbox:
+            return {"type": "websocket.receive", "text": self.inbox.pop(0)}
+        return {"type": "websocket.disconnect"}
+
+    async def send_text(self, text: str) -> None:
+        pass
 
 
 @pytest.fixture(scope="module")
@@ -154,25 +173,9 @@ def test_a_session_logs_its_start_end_and_errors_with_its_id_as_a_field(tmp_path
     import logging
     from concurrent.futures import ThreadPoolExecutor
 
-    from starlette.websockets import WebSocketState
-
     from quatrack.service import sessions
     from quatrack.service.logs import JsonFormatter
     from quatrack.service.metrics import Metrics
-
-    class Scripted:  # the camera, a message of no known type, then the client leaves
-        client_state = WebSocketState.DISCONNECTED
-
-        def __init__(self) -> None:
-            self.inbox = [json.dumps(CAMERA), '{"type": "dance"}']
-
-        async def receive(self) -> dict:
-            if self.inbox:
-                return {"type": "websocket.receive", "text": self.inbox.pop(0)}
-            return {"type": "websocket.disconnect"}
-
-        async def send_text(self, text: str) -> None:
-            pass
 
     seen: list[logging.LogRecord] = []
     tap = logging.Handler(logging.DEBUG)
@@ -184,7 +187,8 @@ def test_a_session_logs_its_start_end_and_errors_with_its_id_as_a_field(tmp_path
     logger.disabled = False
     try:
         with ThreadPoolExecutor(1) as pool:
-            session = sessions.TrackSession(Scripted(), "abc123", "cookie-box", None, Settings(store=tmp_path), pool,
+            # the camera, a message of no known type, then the client leaves
+            session = sessions.TrackSession(ScriptedSocket(json.dumps(CAMERA), '{"type": "dance"}'), "abc123", "cookie-box", None, Settings(store=tmp_path), pool,
                                             Metrics())
             outcome = asyncio.run(asyncio.wait_for(session.run(), 30))
     finally:
