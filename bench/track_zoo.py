@@ -6,7 +6,8 @@ rendered photo of one side (``write_spec`` with 1 view, the default training), t
 walks round it for ``seconds`` at 30 fps, 640×480, over a real background
 (:mod:`quatrack.testing.orbit`: a 360° orbit that brings every side into view, elevation ±25°,
 apparent size ×3, a slide half out of the frame, a lighting change, motion blur, a passing
-occluder). Four passes over the same frames:
+occluder; ``--calm``: the same walk without those phases, :func:`~quatrack.testing.orbit.calm_orbit`).
+Four passes over the same frames:
 
 1. **truth-initialised** (``init_pose`` at frame 0, as ``quatrack bench track``): the tracking
    figures, free of recognition, and — when the tracker learns views (``TrackerParams.learn``) —
@@ -50,7 +51,7 @@ from pathlib import Path
 import numpy as np
 
 from quatrack.testing import zoo as Z
-from quatrack.testing.orbit import OrbitParams, OrbitSequence, render_orbit
+from quatrack.testing.orbit import OrbitParams, OrbitSequence, calm_orbit, render_orbit
 from quatrack.tracking import quaternion as quat
 
 SEQUENCES = ("cube-m", "flat-box-mm", "tall-box-cm", "cylinder-mm", "hex-prism-m", "wide-box-cm")
@@ -373,7 +374,8 @@ def study(names=SEQUENCES, seconds: float = 10.0, passes=PASSES, orbit: OrbitPar
     out = {"machine": f"{os.cpu_count()} cores", "load_before": os.getloadavg(), "seconds": seconds,
            "learned_viewsets_api": learn_ok, "renderings": renderings, "size": [int(width), int(height)],
            "dist_coeffs": None if dist_coeffs is None else [float(x) for x in dist_coeffs], "grey": bool(grey),
-           "passes": [k for k in PASSES if k in passes], "sequences": {}}
+           "passes": [k for k in PASSES if k in passes], "calm": orbit is not None and orbit == calm_orbit(orbit.seconds),
+           "sequences": {}}
 
     def save():
         out["load_after"] = os.getloadavg()
@@ -439,6 +441,7 @@ def report(res: dict) -> str:
              + (f"; lens distortion {res['dist_coeffs']}" if res.get("dist_coeffs") else "")
              + (f"; images {res['size'][0]}x{res['size'][1]}" if res.get("size", [640, 480]) != [640, 480] else "")
              + ("; grey images" if res.get("grey") else "")
+             + ("; calm walks (no slide, blur, light change or occluder)" if res.get("calm") else "")
              + (f"; passes: {', '.join(res['passes'])}" if res.get("passes", list(PASSES)) != list(PASSES) else ""),
              "sequence (unit)      frames <30%vis  lost lost>=30% | t mean/max %diam | depth/lateral mean %diam | r mean/max deg | >5%/5deg | "
              "step p50/p95 ms | NEES mean/median | in 95 % ellipsoid | NEES centre/rotation median (3 dof: 2.37)"]
@@ -503,9 +506,12 @@ def report(res: dict) -> str:
 
 
 def main(as_json: bool = False, seconds: float = 10.0, names: list[str] | None = None, renderings: int = 1,
-         dist_coeffs=None, size: tuple[int, int] = (640, 480), grey: bool = False, passes=PASSES) -> int:
+         dist_coeffs=None, size: tuple[int, int] = (640, 480), grey: bool = False, passes=PASSES,
+         calm: bool = False) -> int:
+    """``calm``: the walks of :func:`quatrack.testing.orbit.calm_orbit` (``--calm``)."""
     res = study(tuple(names) if names else SEQUENCES, seconds, passes=tuple(passes), width=int(size[0]),
-                height=int(size[1]), progress=not as_json, renderings=renderings, dist_coeffs=dist_coeffs, grey=grey)
+                height=int(size[1]), progress=not as_json, renderings=renderings, dist_coeffs=dist_coeffs, grey=grey,
+                orbit=calm_orbit(seconds) if calm else None)
     print(json.dumps(res) if as_json else report(res))
     return 0
 

@@ -145,6 +145,9 @@ def _add_bench(parser: argparse.ArgumentParser) -> None:
                     help="the camera's image size, its field of view kept at 56° (default 640x480)")
     tz.add_argument("--grey", action="store_true",
                     help="a monochrome camera: train from a grey photo and track grey frames (default: colour)")
+    tz.add_argument("--calm", action="store_true",
+                    help="the walks without their hard phases (no slide out of the frame, blur, change of light "
+                         "or occluder; elevation ±25° once, size ×1.5): drift round unseen sides alone")
     tz.add_argument("--passes", metavar="A,B",
                     help="which passes to run, of truth, live, recognition, learned (default: all four; "
                          "learned needs truth, whose views it uses); e.g. --passes live for the service's "
@@ -271,7 +274,7 @@ def _run_bench(args: argparse.Namespace) -> int:
         from quatrack.bench import track_zoo
 
         return track_zoo.main(args.json, args.seconds, _zoo_walks(args), args.renderings, _lens(args.lens),
-                              _size(args.size), args.grey, _passes(args.passes, track_zoo.PASSES))
+                              _size(args.size), args.grey, _passes(args.passes, track_zoo.PASSES), args.calm)
     if args.benchmark == "edge-judge":
         from quatrack.bench import edge_judge
 

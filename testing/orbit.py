@@ -238,3 +238,15 @@ def short_orbit(seconds: float = 2.5, fps: float = 30.0, turn_deg: float = 150.0
     return replace(OrbitParams(), seconds=seconds, fps=fps, turns=turn_deg / 360.0, elevation_swings=0.5,
                    elevation_deg=20.0, size_ratio=1.5, size_cycles=0.5, out_phase=(2.0, 2.0), light_phase=(2.0, 2.1),
                    blur_phase=(2.0, 2.0), occluder_phase=(2.0, 2.0))
+
+
+def calm_orbit(seconds: float = 10.0) -> OrbitParams:
+    """The zoo's walk without its hard phases (``quatrack bench track-zoo --calm``): one turn
+    round the object with the elevation swinging once through ±25° and the apparent size
+    breathing ×1.5, and no slide out of the frame, blur, change of light or occluder. Why: it
+    isolates what the harsh walks mix with their phases — a track carried round sides no photo
+    shows by its own points and views (a zoo cylinder's calm orbit once reported poses 5–11°
+    off, drifted about its axis, which no outline shows; bench/RESULTS.md, session 65)."""
+    return replace(OrbitParams(), seconds=seconds, turns=1.0, elevation_swings=1.0, elevation_deg=25.0,
+                   size_ratio=1.5, size_cycles=0.5, out_phase=(2.0, 2.0), light_phase=(2.0, 2.1),
+                   blur_phase=(2.0, 2.0), occluder_phase=(2.0, 2.0))

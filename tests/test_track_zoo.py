@@ -19,7 +19,7 @@ import pytest
 
 from quatrack.bench import track_zoo as B
 from quatrack.testing import zoo as Z
-from quatrack.testing.orbit import OrbitParams, orbit_pose_at, render_orbit, short_orbit
+from quatrack.testing.orbit import OrbitParams, calm_orbit, orbit_pose_at, render_orbit, short_orbit
 from quatrack.recognition.klt import make_frame
 from quatrack.recognition.match import index_for
 from quatrack.recognition.tracker.mesh_points import MeshPoints, inherited_spread
@@ -234,7 +234,7 @@ def _record_study(monkeypatch) -> dict:
         seen.update(kw)
         return {"machine": "test", "load_before": (0.0,), "load_after": (0.0,), "seconds": seconds, "renderings": 1,
                 "learned_viewsets_api": True, "size": [kw["width"], kw["height"]], "grey": kw["grey"],
-                "passes": list(kw["passes"]), "sequences": {}, "total_s": 0.0}
+                "passes": list(kw["passes"]), "calm": kw.get("orbit") is not None, "sequences": {}, "total_s": 0.0}
 
     monkeypatch.setattr(B, "study", study)
     return seen
@@ -284,6 +284,30 @@ def test_a_grey_walk_is_the_colour_walk_in_one_channel(monkeypatch, capsys, tmp_
     assert seen["grey"] is True and "grey images" in capsys.readouterr().out
     assert main(["bench", "track-zoo", "--sequences", "small-cube-cm"]) == 0
     assert seen["grey"] is False and "grey" not in capsys.readouterr().out
+
+
+def test_a_calm_walk_turns_round_the_object_without_the_hard_phases(monkeypatch, capsys):
+    """--calm: the walk of ``calm_orbit`` — a whole turn round the object with nothing of the
+    harsh walk's phases (no frame half out of the image, blurred, dimmed or occluded: the object
+    fully in view throughout), the apparent size within ×1.5; the CLI passes it on and the
+    report names it; without the flag the harsh walk is used."""
+    from quatrack.cli import main
+
+    obj, cam = Z.textured("small-cube-cm"), Z.zoo_camera()
+    seq = render_orbit(obj, cam, _backgrounds(), calm_orbit(1.0), seed=0)
+    assert len(seq) == 30 and all(ph == () for ph in seq.phases), seq.phases
+    assert seq.visible.min() > 0.99 and seq.occluded.max() == 0.0
+    views = np.array([p.viewing_direction(obj.mesh.centre) for p in seq.poses])
+    assert np.degrees(np.arccos(np.clip(views[0] @ views[len(seq) // 2], -1, 1))) > 90  # (round the object)
+    depth = np.array([p.apply(obj.mesh.centre[None])[0, 2] for p in seq.poses])
+    assert 1.1 < depth.max() / depth.min() < 1.5 + 1e-6
+    harsh = render_orbit(obj, cam, _backgrounds(), replace(OrbitParams(), seconds=1.0), seed=0)
+    assert any(ph != () for ph in harsh.phases)  # (the phases the calm walk leaves out are there)
+    seen = _record_study(monkeypatch)
+    assert main(["bench", "track-zoo", "--calm", "--sequences", "small-cube-cm"]) == 0
+    assert seen["orbit"] == calm_orbit(10.0) and "calm walks" in capsys.readouterr().out
+    assert main(["bench", "track-zoo", "--sequences", "small-cube-cm"]) == 0
+    assert seen["orbit"] is None and "calm" not in capsys.readouterr().out
 
 
 def test_passes_pick_what_runs(monkeypatch, capsys):
