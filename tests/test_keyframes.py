@@ -500,3 +500,40 @@ def test_re_anchoring_falls_back_on_the_keyframes_seen_from_near_the_current_dir
     off = Tracker(walk.model, walk.cam, TrackerParams(anchor_keyframes=False))
     off.keyframes = tracker.keyframes
     assert off._keyframe_matches(feats, truth) is None
+
+
+def test_views_learned_where_the_photo_no_longer_anchors_are_relayed(walk):
+    """``TrackerParams.relayed_views_anchor`` (False): a view learned at a frame that fewer than
+    ``min_inliers`` points of the model's own views anchored inherits the track's drift. Its
+    points are measured but anchor no frame, and a re-finding on it is second-hand ("re-found on
+    this run's learnedN", as on a keyframe). The views learned while the photo's points still
+    anchored stay anchors. With the option on, every learned view anchors and a re-finding on
+    any of them is "recognition". Keyframes are off: only learned views are in play."""
+    from dataclasses import replace
+
+    from quatrack.recognition.tracker.points import PointBlock, Tracks
+
+    def block(vs):
+        return PointBlock.isotropic("trained", Tracks(vs.points3d, np.zeros((len(vs), 2))), 1.0)
+
+    def refound(tracker, vs):  # (a frame at the view's own pose, searched afresh)
+        tracker.reset()
+        img = Z.degrade(Z.compose(*walk.obj.render(walk.cam, vs.pose), walk.bg), np.random.default_rng(3))
+        step = tracker.step(img, 100.0)
+        return step.reason if step.status == "init" else None
+
+    params = TrackerParams(learn=True, keyframes_max=0)
+    tracker, _, _ = _track(walk, params)
+    relayed = [vs for vs in tracker.learned if vs.label in tracker._relayed_views]
+    first_hand = [vs for vs in tracker.learned if vs.label not in tracker._relayed_views]
+    assert relayed and first_hand, [vs.label for vs in tracker.learned]  # (the walk turns past the photo)
+    assert all(tracker._anchoring(block(vs)) == 0 for vs in relayed)
+    assert all(tracker._anchoring(block(vs)) == len(vs) for vs in first_hand)
+    assert all(tracker._anchoring(block(vs), own=True) == 0 for vs in tracker.learned)  # (not the model's own)
+    last = relayed[-1]
+    assert refound(tracker, last) == f"re-found on this run's {last.label}" and tracker._second_hand
+
+    tracker, _, _ = _track(walk, replace(params, relayed_views_anchor=True))
+    assert not tracker._relayed_views and len(tracker.learned) >= len(relayed) + len(first_hand)
+    assert all(tracker._anchoring(block(vs)) == len(vs) for vs in tracker.learned)
+    assert refound(tracker, tracker.learned[-1]) == "recognition" and not tracker._second_hand

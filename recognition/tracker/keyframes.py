@@ -94,6 +94,7 @@ class Capture:
     crop: np.ndarray | None = None
     crop_camera: PinholeCamera | None = None
     future: Future | None = None
+    relayed: bool = False  # no point of the model's own views anchored its frame (Tracker._keep_view)
 
 
 def object_crop(image: np.ndarray, camera: PinholeCamera, mesh: Mesh, pose: Pose,

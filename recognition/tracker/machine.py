@@ -148,6 +148,13 @@ class Tracker:
         # while tracking, the measurements judge: the object may lie mostly outside the image
         self._plausibility = replace(PoseParams(), min_visible_fraction=params.min_inside)
         self.learned: list[Viewset] = []  # learned in this run (also in self.model once learned)
+        # the object points of the model's own views (as given: trained, or learned in earlier
+        # runs), and of this tracker's learned views learned at a frame that too few of them
+        # anchored (TrackerParams.relayed_views_anchor): such a view inherits the track's drift
+        self._own_points = {tuple(x) for vs in model.viewsets for x in vs.points3d.tolist()}
+        self._relayed: set[tuple] = set()
+        self._relayed_views: set[str] = set()  # (their labels: a re-finding on one is second-hand)
+        self._first_hand = False  # the latest frame's points of the model's own views anchored it
         self._learn_wait = 0
         # what the object looked like earlier in this run, to find it again after a loss; kept
         # across losses and resets (same object, same camera; reset(new_run=True) starts them afresh)
@@ -585,7 +592,8 @@ class Tracker:
                     timings["synthesise"] = _ms(t0)
                 model, index, prefer = self.keyframes.refind_model(self.model)
             loc = locate(img, self.camera, model, self.params.locate, index=index, prefer=prefer)
-            how = f"re-found on this run's {loc.viewset}" if loc.found and loc.viewset.startswith("keyframe") else "recognition"
+            own = loc.found and (loc.viewset.startswith("keyframe") or loc.viewset in self._relayed_views)
+            how = f"re-found on this run's {loc.viewset}" if own else "recognition"
             self._second_hand = how != "recognition"
             timings["locate"] = _ms(t0)
             if not loc.found:
@@ -807,6 +815,7 @@ class Tracker:
             measured[s] = s.measure(ctx, timings)
             if s is self.trained:
                 ctx.anchored = self._anchored = self._anchoring(measured[s]) >= p.min_inliers
+                self._first_hand = ctx.anchored and self._anchoring(measured[s], own=True) >= p.min_inliers
         shape_ctx = self._recentred(ctx, list(measured.values()), timings)
         for s in self.sources:
             if s in self._shape_sources:
@@ -985,7 +994,7 @@ class Tracker:
         mask = birth_mask(mesh, self.camera, pose, p)
         args = (f"learned{len(self.learned) + 1}", ctx.image, mask, self.camera, pose, mesh,
                 params_from_manifest(self.model.manifest), p.learn_min_cos, self.model.rfch if learn else None)
-        cap = Capture(slot, learn, time_s, pose)
+        cap = Capture(slot, learn, time_s, pose, relayed=not self._first_hand)
         if slot is not None and p.keyframe_synthetic_deg:  # (the crop: its synthetic views, after a loss)
             cap.crop, cap.crop_camera = object_crop(ctx.image, self.camera, mesh, pose)
         if p.pipelined_refresh and self.executor is not None:
@@ -1014,6 +1023,9 @@ class Tracker:
             return
         self.model = model
         self.learned.append(replace(model.viewsets[-1], cooccurrence=vs.cooccurrence))  # (as labelled in the model)
+        if cap.relayed and not p.relayed_views_anchor:
+            self._relayed |= {tuple(x) for x in vs.points3d.tolist()}
+            self._relayed_views.add(self.learned[-1].label)
         self.index, self._anchor = None, None  # rebuilt with the learned view when next needed
 
     def _edges_confirm(self, gray: np.ndarray, pose: Pose, strict: bool = False, limit: float | None = None) -> bool:
@@ -1225,12 +1237,17 @@ class Tracker:
             self._failed_refreshes = 0
         return ok
 
-    def _anchoring(self, block: PointBlock) -> int:
+    def _anchoring(self, block: PointBlock, own: bool = False) -> int:
         """The trained source's measured points that anchor a frame: all but the anchors taken
-        from the keyframes' texture (``_keyframe_anchors``, ``TrackerParams.texture_anchors``)."""
-        if not self._keyframe_anchors:
+        from the keyframes' texture (``_keyframe_anchors``, ``TrackerParams.texture_anchors``) and
+        the points of views this tracker learned at frames the model's own views did not anchor
+        (``_relayed``, ``TrackerParams.relayed_views_anchor``). ``own``: only the points of the
+        model's own views count (those it was given; not this run's keyframes or learned views)."""
+        if own:
+            return sum(x in self._own_points for x in map(tuple, block.X.tolist()))
+        if not (self._keyframe_anchors or self._relayed):
             return len(block)
-        return len(block) - sum(tuple(x) in self._keyframe_anchors for x in block.X.tolist())
+        return sum(x not in self._keyframe_anchors and x not in self._relayed for x in map(tuple, block.X.tolist()))
 
     def _inliers_of(self, blocks, inl, only=None, exclude: tuple = ()) -> int:
         """Inliers among the blocks of one source (``only``) or of all but some (``exclude``)."""
