@@ -502,13 +502,14 @@ def test_re_anchoring_falls_back_on_the_keyframes_seen_from_near_the_current_dir
     assert off._keyframe_matches(feats, truth) is None
 
 
-def test_views_learned_where_the_photo_no_longer_anchors_are_relayed(walk):
+def test_views_learned_where_the_photo_no_longer_anchors_are_relayed(walk, tmp_path):
     """``TrackerParams.relayed_views_anchor`` (False): a view learned at a frame that fewer than
     ``min_inliers`` points of the model's own views anchored inherits the track's drift. Its
     points are measured but anchor no frame, and a re-finding on it is second-hand ("re-found on
     this run's learnedN", as on a keyframe). The views learned while the photo's points still
-    anchored stay anchors. With the option on, every learned view anchors and a re-finding on
-    any of them is "recognition". Keyframes are off: only learned views are in play."""
+    anchored stay anchors. Stored, the model keeps which views are relayed, and a later run
+    treats them so. With the option on, every learned view anchors and a re-finding on any of
+    them is "recognition". Keyframes are off: only learned views are in play."""
     from dataclasses import replace
 
     from quatrack.recognition.tracker.points import PointBlock, Tracks
@@ -532,6 +533,21 @@ def test_views_learned_where_the_photo_no_longer_anchors_are_relayed(walk):
     assert all(tracker._anchoring(block(vs), own=True) == 0 for vs in tracker.learned)  # (not the model's own)
     last = relayed[-1]
     assert refound(tracker, last) == f"re-found on this run's {last.label}" and tracker._second_hand
+
+    # stored with the model (manifest "relayed": true), they stay relayed in the next run; the
+    # first-hand ones become the model's own
+    from quatrack.viewsets.learn import with_learned
+    from quatrack.viewsets.store import load_manifest, load_model, save_model
+
+    save_model(tmp_path, with_learned(walk.model, tracker.learned))
+    entries = {e["label"]: e for e in load_manifest(tmp_path, walk.model.name)["viewsets"]}
+    assert all(entries[vs.label].get("relayed") is True for vs in relayed)
+    assert all("relayed" not in entries[vs.label] for vs in first_hand)
+    later = Tracker(load_model(tmp_path, walk.model.name), walk.cam, params)
+    assert later._relayed_views == {vs.label for vs in relayed}
+    assert all(later._anchoring(block(vs)) == 0 for vs in relayed)
+    assert all(later._anchoring(block(vs), own=True) == len(vs) for vs in first_hand)
+    assert refound(later, last) == f"re-found on this run's {last.label}" and later._second_hand
 
     tracker, _, _ = _track(walk, replace(params, relayed_views_anchor=True))
     assert not tracker._relayed_views and len(tracker.learned) >= len(relayed) + len(first_hand)

@@ -225,7 +225,8 @@ def save_model(store: str | Path, model: ObjectModel, overwrite: bool = True, lo
         manifest["name"] = model.name
         manifest["viewsets"] = [
             {"label": v.label, "source_view": v.source_view, "synthetic": v.synthetic, "keypoints": len(v),
-             **({"learned": True} if v.learned else {})}  # (older readers ignore the key: a learned view reads as trained)
+             **({"learned": True} if v.learned else {}),  # (older readers ignore the key: a learned view reads as trained)
+             **({"relayed": True} if v.relayed else {})}
             for v in model.viewsets
         ]
         with open(tmp / ARRAYS, "wb") as f:
@@ -484,6 +485,7 @@ def _build_model(name: str, manifest: dict, a: dict[str, np.ndarray]) -> ObjectM
             str(meta["label"]), int(a["vs_source"][i]), bool(a["vs_synthetic"][i]), cam,
             Pose.from_matrix(a["vs_R"][i], a["vs_t"][i]), a["vs_keypoints"][s], a["vs_descriptors"][s],
             a["vs_points3d"][s], tuple(int(x) for x in a["vs_bbox"][i]), learned=meta.get("learned") is True,
+            relayed=meta.get("relayed") is True,
         ))
     mesh = Mesh(a["mesh_vertices"], a["mesh_faces"])
     if manifest.get("name", name) != name:

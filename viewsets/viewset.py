@@ -36,7 +36,11 @@ class Viewset:
     ``learned``: the view was learned while tracking a video (:mod:`quatrack.viewsets.learn`),
     not trained from a registered photo; its 3-D points were lifted at the tracked pose.
     ``cooccurrence``: a learned view's RFCH label co-occurrence counts (normalised), folded into
-    the model's RFCH histogram when the view joins the model; never stored (None once it has)."""
+    the model's RFCH histogram when the view joins the model; never stored (None once it has).
+    ``relayed``: a learned view lifted at a frame that too few points of the model's own views
+    anchored (the track carried itself there): it inherits the track's drift, so a tracker
+    measures its points but lets them anchor no frame, and a re-finding on it is second-hand
+    (``TrackerParams.relayed_views_anchor``)."""
 
     label: str
     source_view: int
@@ -49,6 +53,7 @@ class Viewset:
     bbox: tuple[int, int, int, int]
     learned: bool = False
     cooccurrence: np.ndarray | None = None
+    relayed: bool = False
 
     def __len__(self) -> int:
         return len(self.keypoints)

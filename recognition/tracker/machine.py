@@ -148,12 +148,13 @@ class Tracker:
         # while tracking, the measurements judge: the object may lie mostly outside the image
         self._plausibility = replace(PoseParams(), min_visible_fraction=params.min_inside)
         self.learned: list[Viewset] = []  # learned in this run (also in self.model once learned)
-        # the object points of the model's own views (as given: trained, or learned in earlier
-        # runs), and of this tracker's learned views learned at a frame that too few of them
-        # anchored (TrackerParams.relayed_views_anchor): such a view inherits the track's drift
-        self._own_points = {tuple(x) for vs in model.viewsets for x in vs.points3d.tolist()}
-        self._relayed: set[tuple] = set()
-        self._relayed_views: set[str] = set()  # (their labels: a re-finding on one is second-hand)
+        # the object points of the model's own views (as given: trained, or learned first-hand in
+        # earlier runs), and of the relayed views (Viewset.relayed: learned at a frame too few
+        # own points anchored; TrackerParams.relayed_views_anchor), which inherit a track's drift
+        self._own_points = {tuple(x) for vs in model.viewsets if not vs.relayed for x in vs.points3d.tolist()}
+        relayed = [] if params.relayed_views_anchor else [vs for vs in model.viewsets if vs.relayed]
+        self._relayed: set[tuple] = {tuple(x) for vs in relayed for x in vs.points3d.tolist()}
+        self._relayed_views: set[str] = {vs.label for vs in relayed}  # (a re-finding on one is second-hand)
         self._first_hand = False  # the latest frame's points of the model's own views anchored it
         self._learn_wait = 0
         # what the object looked like earlier in this run, to find it again after a loss; kept
@@ -1018,12 +1019,12 @@ class Tracker:
                                         cap.crop, cap.crop_camera), cap.slot)
         if not cap.learn:
             return
-        model = with_learned(self.model, [vs], p.learn_max_views, p.learn_min_angle_deg)
+        model = with_learned(self.model, [replace(vs, relayed=cap.relayed)], p.learn_max_views, p.learn_min_angle_deg)
         if model is self.model:
             return
         self.model = model
         self.learned.append(replace(model.viewsets[-1], cooccurrence=vs.cooccurrence))  # (as labelled in the model)
-        if cap.relayed and not p.relayed_views_anchor:
+        if cap.relayed and not p.relayed_views_anchor:  # (Viewset.relayed: see __init__)
             self._relayed |= {tuple(x) for x in vs.points3d.tolist()}
             self._relayed_views.add(self.learned[-1].label)
         self.index, self._anchor = None, None  # rebuilt with the learned view when next needed
