@@ -488,7 +488,7 @@ def report(res: dict) -> str:
             lines.append(f"  {name:<16} learned model  - ({s.get('learned_viewsets', 0)} learned viewsets)")
     rs = [(name, s["truth"]["restarts"]) for name, s in res["sequences"].items() if "restarts" in s.get("truth", {})]
     if rs:
-        lines.append("restarts after a loss (truth pass): re-acquired near the last pose / re-found on a keyframe / "
+        lines.append("restarts after a loss (truth pass): re-acquired near the last pose / re-found on a keyframe or relayed view / "
                      "recognition: " + "; ".join(f"{n} {r['re-acquired']}/{r['keyframe']}/{r['recognition']}" for n, r in rs))
     stages: dict[str, list[float]] = {}
     for s in res["sequences"].values():

@@ -506,7 +506,7 @@ def test_views_learned_where_the_photo_no_longer_anchors_are_relayed(walk, tmp_p
     """``TrackerParams.relayed_views_anchor`` (False): a view learned at a frame that fewer than
     ``min_inliers`` points of the model's own views anchored inherits the track's drift. Its
     points are measured but anchor no frame, and a re-finding on it is second-hand ("re-found on
-    this run's learnedN", as on a keyframe). The views learned while the photo's points still
+    the relayed view learnedN", judged as one on a keyframe). The views learned while the photo's points still
     anchored stay anchors. Stored, the model keeps which views are relayed, and a later run
     treats them so. With the option on, every learned view anchors and a re-finding on any of
     them is "recognition". Keyframes are off: only learned views are in play."""
@@ -532,7 +532,7 @@ def test_views_learned_where_the_photo_no_longer_anchors_are_relayed(walk, tmp_p
     assert all(tracker._anchoring(block(vs)) == len(vs) for vs in first_hand)
     assert all(tracker._anchoring(block(vs), own=True) == 0 for vs in tracker.learned)  # (not the model's own)
     last = relayed[-1]
-    assert refound(tracker, last) == f"re-found on this run's {last.label}" and tracker._second_hand
+    assert refound(tracker, last) == f"re-found on the relayed view {last.label}" and tracker._second_hand
 
     # stored with the model (manifest "relayed": true), they stay relayed in the next run; the
     # first-hand ones become the model's own
@@ -547,7 +547,7 @@ def test_views_learned_where_the_photo_no_longer_anchors_are_relayed(walk, tmp_p
     assert later._relayed_views == {vs.label for vs in relayed}
     assert all(later._anchoring(block(vs)) == 0 for vs in relayed)
     assert all(later._anchoring(block(vs), own=True) == len(vs) for vs in first_hand)
-    assert refound(later, last) == f"re-found on this run's {last.label}" and later._second_hand
+    assert refound(later, last) == f"re-found on the relayed view {last.label}" and later._second_hand
 
     tracker, _, _ = _track(walk, replace(params, relayed_views_anchor=True))
     assert not tracker._relayed_views and len(tracker.learned) >= len(relayed) + len(first_hand)

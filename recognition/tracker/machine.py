@@ -593,8 +593,12 @@ class Tracker:
                     timings["synthesise"] = _ms(t0)
                 model, index, prefer = self.keyframes.refind_model(self.model)
             loc = locate(img, self.camera, model, self.params.locate, index=index, prefer=prefer)
-            own = loc.found and (loc.viewset.startswith("keyframe") or loc.viewset in self._relayed_views)
-            how = f"re-found on this run's {loc.viewset}" if own else "recognition"
+            if loc.found and loc.viewset.startswith("keyframe"):
+                how = f"re-found on this run's {loc.viewset}"
+            elif loc.found and loc.viewset in self._relayed_views:  # (as second-hand: Viewset.relayed)
+                how = f"re-found on the relayed view {loc.viewset}"
+            else:
+                how = "recognition"
             self._second_hand = how != "recognition"
             timings["locate"] = _ms(t0)
             if not loc.found:
