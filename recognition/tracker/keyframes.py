@@ -94,7 +94,7 @@ class Capture:
     crop: np.ndarray | None = None
     crop_camera: PinholeCamera | None = None
     future: Future | None = None
-    relayed: bool = False  # no point of the model's own views anchored its frame (Tracker._keep_view)
+    relayed: bool = False  # too few points of the model's own views anchored its frame (Viewset.relayed)
 
 
 def object_crop(image: np.ndarray, camera: PinholeCamera, mesh: Mesh, pose: Pose,

@@ -246,13 +246,14 @@ class TrackerParams:
     # poses beyond 5 %/5°); nor is it re-acquired near its last pose after a loss (the same drift,
     # picked up again and again: 10 % in depth on the zoo's prism)
     capture_second_hand: bool = False
-    # a view learned in this run at a frame that no point of the model's own views anchored (its
-    # anchors were this run's learned views, or none) is relayed: it inherits the track's drift,
-    # so its points are measured but never count as anchoring a frame (Tracker._anchoring), and
-    # views learned from frames they carry are relayed in turn. Why: on a calm orbit of the zoo's
-    # cylinder each learned view anchored the next one's frame; the chain drifted about the
-    # axis, which no outline shows, and 7 poses 5-11° off were reported (bench/RESULTS.md,
-    # session 66). True: every learned view anchors (before session 66)
+    # a view learned at a frame that fewer than min_inliers points of the model's own views (the
+    # views the tracker was given, not this run's keyframes or learned views) anchored is relayed
+    # (Viewset.relayed, stored with the model): it inherits the track's drift, so its points are
+    # measured but never count as anchoring a frame (Tracker._anchoring), views learned at frames
+    # they carry are relayed in turn, and a re-finding on it is second-hand. Why: on a calm orbit
+    # of the zoo's cylinder each learned view anchored the next one's frame; the chain drifted
+    # about the axis, which no outline shows, and 7 poses 5-11° off were reported
+    # (bench/RESULTS.md, session 66). True: every learned view anchors (before session 66)
     relayed_views_anchor: bool = False
     # after a loss, for reacquire_s the tracker first tries to pick the track up again near the
     # last good pose (Tracker._reacquire: KLT from that frame, the edges confirming) before recognition
