@@ -535,7 +535,12 @@ def _store_learned(s: _Setup, name: str) -> None:
         raise UserError(f"--learn: the {len(learned)} learned view(s) were not saved to {folder}: "
                         f"{exc.strerror or exc}") from None
     if added:
-        print(f"quatrack track: learned {added} new view(s) -> {folder} ({total} learned in all)", file=sys.stderr)
+        from quatrack.viewsets.store import load_manifest
+
+        entries = load_manifest(s.store, name).get("viewsets") or []
+        relayed = sum(isinstance(e, dict) and e.get("relayed") is True for e in entries)
+        of_them = f", {relayed} relayed: they find the object but anchor no frame" if relayed else ""
+        print(f"quatrack track: learned {added} new view(s) -> {folder} ({total} learned in all{of_them})", file=sys.stderr)
     else:
         print(f"quatrack track: learned no new views (none new to the stored model); {folder} unchanged", file=sys.stderr)
 

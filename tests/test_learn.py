@@ -362,6 +362,8 @@ def test_cli_learn_stores_what_was_learned_when_ctrl_c_stops_tracking(cube, run,
     err = capsys.readouterr().err
     assert "stopped (Ctrl-C) after 2 frames" in err and f"learned {len(run.learned)} new view(s)" in err
     assert sum(vs.learned for vs in S.load_model(store, NAME).viewsets) == len(run.learned)
+    relayed = sum(vs.relayed for vs in run.learned)  # (views learned where the photo no longer anchored)
+    assert relayed > 0 and f"learned in all, {relayed} relayed: they find the object but anchor no frame)" in err, err
 
 
 def test_ctrl_c_while_storing_leaves_the_model_whole(cube, run, tmp_path, monkeypatch, capsys):
