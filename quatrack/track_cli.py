@@ -535,10 +535,9 @@ def _store_learned(s: _Setup, name: str) -> None:
         raise UserError(f"--learn: the {len(learned)} learned view(s) were not saved to {folder}: "
                         f"{exc.strerror or exc}") from None
     if added:
-        from quatrack.viewsets.store import load_manifest
+        from quatrack.viewsets.store import learned_count
 
-        entries = load_manifest(s.store, name).get("viewsets") or []
-        relayed = sum(isinstance(e, dict) and e.get("relayed") is True for e in entries)
+        relayed = learned_count(s.store, name, relayed=True)
         of_them = f", {relayed} relayed: they find the object but anchor no frame" if relayed else ""
         print(f"quatrack track: learned {added} new view(s) -> {folder} ({total} learned in all{of_them})", file=sys.stderr)
     else:

@@ -262,16 +262,20 @@ def save_model(store: str | Path, model: ObjectModel, overwrite: bool = True, lo
     return final
 
 
-def learned_count(store: str | Path, name: str) -> int:
+def learned_count(store: str | Path, name: str, relayed: bool = False) -> int:
     """How many views learned while tracking the stored model's manifest lists (``"learned":
-    true``; 0: none, no model, an unreadable manifest)."""
+    true``; 0: none, no model, an unreadable manifest); ``relayed``: only those also marked
+    ``"relayed": true`` (:attr:`Viewset.relayed <quatrack.viewsets.viewset.Viewset.relayed>`)."""
     try:
         if not (model_path(Path(store), name) / MANIFEST).is_file():
             return 0  # (before load_manifest: its unknown-object message lists the store for a hint)
         entries = load_manifest(store, name).get("viewsets")
     except StoreError:
         return 0
-    return sum(isinstance(e, dict) and e.get("learned") is True for e in entries) if isinstance(entries, list) else 0
+    if not isinstance(entries, list):
+        return 0
+    return sum(isinstance(e, dict) and e.get("learned") is True and (not relayed or e.get("relayed") is True)
+               for e in entries)
 
 
 def learned_points(manifest: dict) -> int:
