@@ -820,7 +820,8 @@ class Tracker:
             measured[s] = s.measure(ctx, timings)
             if s is self.trained:
                 ctx.anchored = self._anchored = self._anchoring(measured[s]) >= p.min_inliers
-                self._first_hand = ctx.anchored and self._anchoring(measured[s], own=True) >= p.min_inliers
+                # (whether a view learned now would be first-hand: only asked while learning)
+                self._first_hand = p.learn and ctx.anchored and self._anchoring(measured[s], own=True) >= p.min_inliers
         shape_ctx = self._recentred(ctx, list(measured.values()), timings)
         for s in self.sources:
             if s in self._shape_sources:
