@@ -628,6 +628,7 @@ def _run_models(args: argparse.Namespace) -> int:
     import shlex
 
     from quatrack.viewsets.names import NAME_RE
+    from quatrack.viewsets.learn import backup_left
     from quatrack.viewsets.store import (MANIFEST, broken_folders, delete_model, learned_points, list_models, load_manifest,
                                          load_model, remove_stale, resolve_store, store_note)
 
@@ -675,6 +676,8 @@ def _run_models(args: argparse.Namespace) -> int:
     if args.action == "delete":
         delete_model(store, args.name)
         print(f"deleted {args.name!r} from {store}")
+        if (note := backup_left(store, args.name)) is not None:
+            print(f"quatrack models: note: {note}", file=sys.stderr)
         return 0
     raise UserError(f"unknown action {args.action!r}")
 

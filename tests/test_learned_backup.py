@@ -97,3 +97,28 @@ def test_an_object_deleted_and_trained_afresh_does_not_get_the_copys_views(store
     assert main(["train", SPEC, "--store", str(store), *FAST_TRAIN]) == 0
     out = capsys.readouterr().out
     assert "carried back" not in out and _learned(store) == [], out
+
+
+def test_deleting_the_object_says_where_its_copy_stays(store, capsys):
+    """``models delete`` removes the model, not the copy a retraining kept (it is what restoring
+    the copy by hand starts from): the deletion says where it stays and how to use or remove it."""
+    _with_learned(store)
+    assert main(["train", SPEC, "--store", str(store), *FAST_TRAIN, "--root-sift"]) == 0
+    capsys.readouterr()
+    assert main(["models", "delete", NAME, "--store", str(store)]) == 0
+    out, err = capsys.readouterr()
+    backup = store / L.BACKUP_DIR / NAME
+    assert out == f"deleted {NAME!r} from {store}\n", out
+    assert (f"quatrack models: note: the copy of {NAME!r}'s replaced model with 2 learned view(s) stays in {backup} "
+            f"(a new training of {NAME!r} does not use it): put it back with mv {backup} {store / NAME}, "
+            f"or remove it with rm -r {backup}\n") == err, err
+    assert backup.is_dir() and not (store / NAME).exists()
+    # done as it says: the model is back, with its learned views
+    backup.rename(store / NAME)
+    assert _learned(store) == ["learned1", "learned2"]
+
+
+def test_deleting_an_object_without_a_copy_says_nothing_more(store, capsys):
+    assert main(["models", "delete", NAME, "--store", str(store)]) == 0
+    out, err = capsys.readouterr()
+    assert out == f"deleted {NAME!r} from {store}\n" and err == "", (out, err)

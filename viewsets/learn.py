@@ -41,6 +41,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import os
+import shlex
 import shutil
 from datetime import datetime, timezone
 from pathlib import Path
@@ -305,8 +306,6 @@ class Retrained:
         """Where the dropped views are kept and how to get them back (None when none was backed up)."""
         if self.backup is None:
             return None
-        import shlex
-
         store = self.backup.parent.parent
         return (f"the replaced model of {name!r}, with its {self.dropped} learned view(s), is kept in {self.backup}: "
                 f"train {name!r} again with its former mesh and settings (e.g. without --root-sift) and they are "
@@ -323,6 +322,22 @@ BACKUP_DIR = ".learned-backup"
 def backup_path(store: str | Path, name: str) -> Path:
     """The folder of ``name``'s backup copy in ``store`` (it may not exist): ``STORE/.learned-backup/NAME``."""
     return model_path(Path(store) / BACKUP_DIR, name)
+
+
+def backup_left(store: str | Path, name: str) -> str | None:
+    """What ``models delete NAME`` leaves behind: the copy of a replaced model with its learned
+    views (:func:`backup_path`), which a first training after the deletion does not carry back
+    (:func:`save_trained`) — where it is, how many views it holds and how to use or remove it;
+    None when there is no copy. Why: deleting the object said nothing of it, and the copy stayed
+    in the store unseen (a folder starting with ``.``)."""
+    backup = backup_path(store, name)
+    if not (backup / MANIFEST).is_file():
+        return None
+    n = learned_count(backup.parent, name)
+    store = Path(store)
+    return (f"the copy of {name!r}'s replaced model with {n} learned view(s) stays in {backup} "
+            f"(a new training of {name!r} does not use it): put it back with "
+            f"mv {shlex.quote(str(backup))} {shlex.quote(str(store / name))}, or remove it with rm -r {shlex.quote(str(backup))}")
 
 
 #: :attr:`Retrained.why` when the caller asked for the learned views to go (``train --drop-learned``)
