@@ -149,9 +149,11 @@ class Tracker:
         self._plausibility = replace(PoseParams(), min_visible_fraction=params.min_inside)
         self.learned: list[Viewset] = []  # learned in this run (also in self.model once learned)
         # the object points of the model's own views (as given: trained, or learned first-hand in
-        # earlier runs), and of the relayed views (Viewset.relayed: learned at a frame too few
+        # earlier runs: built when first asked, _anchoring, which only learning asks; ~4 ms for a
+        # model of 20 views), and of the relayed views (Viewset.relayed: learned at a frame too few
         # own points anchored; TrackerParams.relayed_views_anchor), which inherit a track's drift
-        self._own_points = {tuple(x) for vs in model.viewsets if not vs.relayed for x in vs.points3d.tolist()}
+        self._own_points: set[tuple] | None = None
+        self._given_views = tuple(model.viewsets)  # (self.model gains this run's learned views)
         relayed = [] if params.relayed_views_anchor else [vs for vs in model.viewsets if vs.relayed]
         self._relayed: set[tuple] = {tuple(x) for vs in relayed for x in vs.points3d.tolist()}
         self._relayed_views: set[str] = {vs.label for vs in relayed}  # (a re-finding on one is second-hand)
@@ -1250,6 +1252,8 @@ class Tracker:
         (``_relayed``, ``TrackerParams.relayed_views_anchor``). ``own``: only the points of the
         model's own views count (those it was given; not this run's keyframes or learned views)."""
         if own:
+            if self._own_points is None:
+                self._own_points = {tuple(x) for vs in self._given_views if not vs.relayed for x in vs.points3d.tolist()}
             return sum(x in self._own_points for x in map(tuple, block.X.tolist()))
         if not (self._keyframe_anchors or self._relayed):
             return len(block)
