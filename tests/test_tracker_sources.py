@@ -370,16 +370,16 @@ def test_one_klt_call_for_every_point_source_measures_what_one_call_each_does(bo
         np.testing.assert_array_equal(a.C, b.C)
 
 
-def _points_and_edges_disagree(box, points: str, second_hand: bool = False):
+def _points_and_edges_disagree(box, points: str, second_hand: bool = False, drag_px: float = 3.0, params=None):
     """A tracker one frame after the truth; 60 points (source ``points``) where the object is,
-    and three times as many edge samples that all say it is 3 px to the right (a search locked
-    onto the print beside each outline), adjusted jointly. Returns the tracker, the blocks, the
+    and three times as many edge samples that all say it is ``drag_px`` to the right (a search
+    locked onto the print beside each outline), adjusted jointly. Returns the tracker, the blocks, the
     stacked block, the joint inlier mask and ``px``: a state's centre's x offset from the truth."""
     from quatrack.recognition.tracker.points import PointBlock
     from quatrack.tracking.pose import Pose
 
     model, camera, poses, frames = box
-    tracker = Tracker(model, camera, TrackerParams(), index=index_for(model))
+    tracker = Tracker(model, camera, params or TrackerParams(), index=index_for(model))
     tracker.init_pose(poses[0].t, poses[0].q_wxyz)
     tracker.step(frames[0], 0.0)
     tracker._second_hand = second_hand
@@ -389,7 +389,7 @@ def _points_and_edges_disagree(box, points: str, second_hand: bool = False):
     V = model.mesh.vertices
     X = V[rng.integers(len(V), size=(300, 3))].mean(axis=1)  # points on and in the box
     z = truth.apply(model.mesh.centre[None])[0, 2]
-    off = Pose(truth.q_wxyz, truth.t + np.array([3.0 * z / camera.fx, 0.0, 0.0]))  # 3 px right
+    off = Pose(truth.q_wxyz, truth.t + np.array([drag_px * z / camera.fx, 0.0, 0.0]))  # drag_px right
     uv_t = camera.project(truth.apply(X[:60])) + rng.normal(0.0, 0.3, (60, 2))
     uv_e = camera.project(off.apply(X[60:])) + rng.normal(0.0, 0.3, (240, 2))
     C_t = np.broadcast_to(np.eye(2), (60, 2, 2)).copy()
@@ -403,7 +403,7 @@ def _points_and_edges_disagree(box, points: str, second_hand: bool = False):
     centre = model.mesh.centre[None]
     px = lambda s: (camera.project(s.pose.apply(centre)) - camera.project(truth.apply(centre)))[0, 0]
     assert ok and inl[:60].sum() >= 50  # the points still count as inliers…
-    assert px(tracker.filter.state) > 1.5  # …of a pose the edges dragged more than half-way
+    assert px(tracker.filter.state) > drag_px / 2  # …of a pose the edges dragged more than half-way
     return tracker, blocks, block, inl, px
 
 
@@ -417,6 +417,36 @@ def test_edges_cannot_outvote_the_trained_points(box):
     assert score_statistic(camera, blocks[0].keep(inl[:60]), tracker.filter.state) > TrackerParams().texture_chi2
     kept = tracker._unless_outvoted(blocks, block, inl)
     assert abs(px(tracker.filter.state)) < 0.3 and not kept[60:].any() and kept[:60].sum() >= 55
+
+
+def test_points_that_outvote_the_edges_far_withhold_the_pose(box):
+    """Where the textured points outvote the edges (Tracker._outvoted) and their own pose lies
+    more than ``outvote_max_shift`` of the 5 %/5° criterion from the joint one, the conflict is
+    reported — its size, the two poses' pose_shift — and the frame's pose is withheld in doubt."""
+    from dataclasses import replace
+
+    from quatrack.recognition.evidence import pose_shift
+
+    for limit, conflict in ((TrackerParams().outvote_max_shift, False), (0.05, True)):
+        tracker, blocks, block, inl, px = _points_and_edges_disagree(box, "trained",
+                                                                     params=TrackerParams(outvote_max_shift=limit))
+        joint = tracker.filter.state
+        kept, shift = tracker._outvoted(blocks, block, inl)
+        assert abs(px(tracker.filter.state)) < 0.3 and not kept[60:].any()  # (outvoted, as ever)
+        moved = pose_shift(tracker.filter.state.pose, joint.pose, box[0].mesh)
+        assert 0.05 < moved < TrackerParams().outvote_max_shift  # (3 px on the cookie box: ~0.12)
+        assert shift == (moved if conflict else None)
+
+    # in a step: withheld, the track goes on (in doubt) and says why
+    model, camera, poses, frames = box
+    tracker = Tracker(model, camera, replace(TrackerParams(), outvote_max_shift=0.05), index=index_for(model))
+    tracker.init_pose(poses[0].t, poses[0].q_wxyz)
+    tracker.step(frames[0], 0.0)
+    tracker._outvoted = lambda blocks, block, inl: (inl, 0.8)
+    step = tracker.step(frames[1], 1.0 / FPS)
+    assert step.status == "lost" and tracker.tracking and tracker._doubted == 1, step
+    assert step.reason.startswith("the textured points and the model's edges put the object 0.80 of the 5 %/5° "
+                                  "criterion apart: the pose is withheld while the track goes on"), step.reason
 
 
 def test_mesh_points_judge_the_edges_only_in_a_second_hand_track(box):

@@ -297,6 +297,12 @@ class TrackerParams:
     # the textured points' score statistic at the joint pose beyond which a frame is adjusted
     # again without the edges (Tracker._unless_outvoted): χ²₆ at 0.999; 0 turns the test off
     texture_chi2: float = 22.46
+    # ... and where the points' own pose lies more than outvote_max_shift of the 5 %/5° criterion
+    # from the joint one (recognition.evidence.pose_shift), that frame's pose is withheld in doubt
+    # (Tracker._outvoted). 0.7: the harsh walks as before, frame for frame (0.5 and 0.6 put 5 and 3
+    # poses beyond 5 %/5° there, tracks that went another way); the calm walks' poses beyond
+    # 5 %/5° 27 → 23 (bench/RESULTS.md, session 67). 0: off
+    outvote_max_shift: float = 0.7
     # tracked frames between audits (0: none); each costs an edge refit. 3 until session 39: a
     # track that no trained point anchors, re-found 2–3 % off, drifted 1.5 → 5.1 % between two
     # audits (zoo flat box, live; bench/RESULTS.md); such a track is now audited every frame
