@@ -416,12 +416,12 @@ def test_edges_cannot_outvote_the_trained_points(box):
     tracker, blocks, block, inl, px = _points_and_edges_disagree(box, "trained")
     camera = box[1]
     assert score_statistic(camera, blocks[0].keep(inl[:60]), tracker.filter.state) > TrackerParams().texture_chi2
-    kept = tracker._unless_outvoted(blocks, block, inl)
+    kept, _ = tracker._unless_outvoted(blocks, block, inl)
     assert abs(px(tracker.filter.state)) < 0.3 and not kept[60:].any() and kept[:60].sum() >= 55
 
 
 def test_points_that_outvote_the_edges_far_withhold_the_pose(box):
-    """Where the textured points outvote the edges (Tracker._outvoted) and their own pose lies
+    """Where the textured points outvote the edges (Tracker._unless_outvoted) and their own pose lies
     more than ``outvote_max_shift`` of the 5 %/5° criterion from the joint one, the conflict is
     reported — its size, the two poses' pose_shift — and the frame's pose is withheld in doubt."""
     from dataclasses import replace
@@ -432,7 +432,7 @@ def test_points_that_outvote_the_edges_far_withhold_the_pose(box):
         tracker, blocks, block, inl, px = _points_and_edges_disagree(box, "trained",
                                                                      params=TrackerParams(outvote_max_shift=limit))
         joint = tracker.filter.state
-        kept, shift = tracker._outvoted(blocks, block, inl)
+        kept, shift = tracker._unless_outvoted(blocks, block, inl)
         assert abs(px(tracker.filter.state)) < 0.3 and not kept[60:].any()  # (outvoted, as ever)
         moved = pose_shift(tracker.filter.state.pose, joint.pose, box[0].mesh)
         assert 0.05 < moved < TrackerParams().outvote_max_shift  # (3 px on the cookie box: ~0.12)
@@ -443,7 +443,7 @@ def test_points_that_outvote_the_edges_far_withhold_the_pose(box):
     tracker = Tracker(model, camera, replace(TrackerParams(), outvote_max_shift=0.05), index=index_for(model))
     tracker.init_pose(poses[0].t, poses[0].q_wxyz)
     tracker.step(frames[0], 0.0)
-    tracker._outvoted = lambda blocks, block, inl: (inl, 0.8)
+    tracker._unless_outvoted = lambda blocks, block, inl: (inl, 0.8)
     step = tracker.step(frames[1], 1.0 / FPS)
     assert step.status == "lost" and tracker.tracking and tracker._doubted == 1, step
     assert step.reason.startswith("the textured points and the model's edges put the object 0.80 of the 5 %/5° "
@@ -455,12 +455,12 @@ def test_mesh_points_judge_the_edges_only_in_a_second_hand_track(box):
     re-found on keyframes (their texture is all there is); in a first-hand track they do not
     (lifted at the tracker's own poses, they may be the ones that are off) and the joint pose stays."""
     tracker, blocks, block, inl, px = _points_and_edges_disagree(box, "mesh", second_hand=True)
-    kept = tracker._unless_outvoted(blocks, block, inl)
+    kept, _ = tracker._unless_outvoted(blocks, block, inl)
     assert abs(px(tracker.filter.state)) < 0.3 and not kept[60:].any() and kept[:60].sum() >= 55
 
     tracker, blocks, block, inl, px = _points_and_edges_disagree(box, "mesh", second_hand=False)
     joint = px(tracker.filter.state)
-    kept = tracker._unless_outvoted(blocks, block, inl)
+    kept, _ = tracker._unless_outvoted(blocks, block, inl)
     assert px(tracker.filter.state) == joint and np.array_equal(kept, inl)
 
 def _contour_at(box, frame_k: int, grey: bool = False):

@@ -848,7 +848,7 @@ class Tracker:
             return self._lost(time_s, f"only {n_points} textured points agree", n_inl)
         conflict = None
         if p.texture_chi2 and self._shape_sources and len(blocks) > 1:
-            inl, conflict = self._outvoted(blocks, block, inl)
+            inl, conflict = self._unless_outvoted(blocks, block, inl)
             n_inl = int(inl.sum())
         why = self._implausible(self.filter.state.pose)
         if why:
@@ -1151,28 +1151,8 @@ class Tracker:
             return False, "the pose covariance is not finite", inl
         return True, None, inl
 
-    def _outvoted(self, blocks: list[PointBlock], block: PointBlock, inl: np.ndarray) -> tuple[np.ndarray, float | None]:
-        """:meth:`_unless_outvoted`, and how far apart the textured points and the edges put the
-        object when the points outvoted the edges by more than ``outvote_max_shift`` of the
-        5 %/5° criterion (:func:`~..evidence.pose_shift` of the joint pose and the points' own),
-        else None. Such a frame's pose is withheld in doubt (:meth:`_doubt`; the track goes on
-        from the points' pose, as before, and the edges must confirm it strictly). Why: that far
-        apart, neither is a pose to report. Over the 48 zoo walks' frames where the rule fired
-        and the two lay more than 0.7 apart (100 harsh, 77 calm), the points' pose was the
-        nearer to the truth in 13 % and 36 % of them, with mean errors (the larger of % and °) of
-        8.0 and 6.9 against the joint pose's 4.1 and 6.0. Reported, the points' pose drifted on:
-        the calm flat box #1, anchored by 44 trained points on its frontal face, turned
-        2.7 → 6.0° in four frames (66–70) until the audit caught it. Going on from the joint pose
-        instead put 14 poses beyond 5 %/5° on the harsh cylinder #3 (bench/RESULTS.md, session 67)."""
-        joint = self.filter.state
-        kept = self._unless_outvoted(blocks, block, inl)
-        limit = self.params.outvote_max_shift
-        if not limit or self.filter.state is joint:
-            return kept, None
-        shift = pose_shift(self.filter.state.pose, joint.pose, self.model.mesh)
-        return kept, (shift if shift > limit else None)
-
-    def _unless_outvoted(self, blocks: list[PointBlock], block: PointBlock, inl: np.ndarray) -> np.ndarray:
+    def _unless_outvoted(self, blocks: list[PointBlock], block: PointBlock,
+                         inl: np.ndarray) -> tuple[np.ndarray, float | None]:
         """The edges must not outvote the textured points. Edge samples outnumber the points
         several times, and a model edge whose search locked onto the wrong gradient (a
         cylinder's rim onto the print beside it) pulls the pose along it frame after frame
@@ -1191,7 +1171,21 @@ class Tracker:
         they judge: there the edges, under a lighting change, locked onto the print next to the
         outline and turned the zoo cube 1.6 → 4.2 % in one frame while the points alone kept
         1.1 % (four renderings of the six walks: poses beyond 5 %/5° 7 → 4, bench/RESULTS.md,
-        session 27). Returns the inlier mask of the adjustment kept."""
+        session 27).
+
+        Returns the inlier mask of the adjustment kept, and how far apart the points and the
+        edges put the object when the points outvoted the edges by more than
+        ``outvote_max_shift`` of the 5 %/5° criterion (:func:`~..evidence.pose_shift` of the
+        joint pose and the points' own), else None. Such a frame's pose is withheld in doubt
+        (:meth:`_doubt`; the track goes on from the points' pose, and the edges must confirm it
+        strictly). Why: that far apart, neither is a pose to report. Over the 48 zoo walks'
+        frames where the rule fired and the two lay more than 0.7 apart (100 harsh, 77 calm),
+        the points' pose was the nearer to the truth in 13 % and 36 % of them, with mean errors
+        (the larger of % and °) of 8.0 and 6.9 against the joint pose's 4.1 and 6.0. Reported,
+        the points' pose drifted on: the calm flat box #1, anchored by 44 trained points on its
+        frontal face, turned 2.7 → 6.0° in four frames (66–70) until the audit caught it. Going
+        on from the joint pose instead put 14 poses beyond 5 %/5° on the harsh cylinder #3
+        (bench/RESULTS.md, session 67)."""
         judges = np.zeros(len(block), bool)
         mesh = np.zeros(len(block), bool)
         textured = np.zeros(len(block), bool)
@@ -1204,21 +1198,23 @@ class Tracker:
         min_inl = self.params.min_inliers
         if int((judges & inl).sum()) >= min_inl:
             if self._failed_refreshes:
-                return inl
+                return inl, None
         elif self._second_hand:
             judges = mesh
         if int((judges & inl).sum()) < min_inl:
-            return inl
+            return inl, None
         if score_statistic(self.camera, block.keep(judges & inl), self.filter.state) <= self.params.texture_chi2:
-            return inl
+            return inl, None
         joint = self.filter.state
         good, _, inl_tex = self._adjust(block.keep(textured))
         if not good:
             self.filter.state = joint
-            return inl
+            return inl, None
         out = np.zeros(len(block), bool)
         out[textured] = inl_tex
-        return out
+        limit = self.params.outvote_max_shift
+        shift = pose_shift(self.filter.state.pose, joint.pose, self.model.mesh) if limit else 0.0
+        return out, (shift if shift > limit else None)
 
     def _determined(self, pose: Pose) -> bool:
         """At least ``reacquire_min_inside`` of the silhouette inside the image (no render when every

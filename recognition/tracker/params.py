@@ -299,7 +299,7 @@ class TrackerParams:
     texture_chi2: float = 22.46
     # ... and where the points' own pose lies more than outvote_max_shift of the 5 %/5° criterion
     # from the joint one (recognition.evidence.pose_shift), that frame's pose is withheld in doubt
-    # (Tracker._outvoted). 0.7: the harsh walks as before, frame for frame (0.5 and 0.6 put 5 and 3
+    # (Tracker._unless_outvoted). 0.7: the harsh walks as before, frame for frame (0.5 and 0.6 put 5 and 3
     # poses beyond 5 %/5° there, tracks that went another way); the calm walks' poses beyond
     # 5 %/5° 27 → 23 (bench/RESULTS.md, session 67). 0: off
     outvote_max_shift: float = 0.7
