@@ -177,7 +177,7 @@ def texture_agreement(image: np.ndarray, camera: PinholeCamera, pose: Pose, mesh
     kernel = np.ones((2 * erode_px + 1, 2 * erode_px + 1), np.uint8) if erode_px > 0 else None
     facing = _facing(mesh, pose) >= min_source_cos
     seen_well = np.append(facing, False)  # (index −1: background)
-    per, all_rho, total, buf, views = [], [], 0, None, {}
+    per, all_rho, total, buf, views, seen_px = [], [], 0, None, {}, None
     for ref in references:
         if not np.any(facing & (_facing(mesh, ref.pose) >= min_source_cos)):
             per.append((float("nan"), 0))  # no face both see well: nothing to compare, nothing rendered
@@ -186,7 +186,9 @@ def texture_agreement(image: np.ndarray, camera: PinholeCamera, pose: Pose, mesh
         b_img, textured, buf = render_textured_view(mesh, groups, _grey(ref.image), ref.camera, ref.pose, ref.buffers,
                                                     win, pose, min_source_cos, ref.mask, buf)
         views[id(given)] = (given, b_img, textured)  # (the reference kept: its id stays its own)
-        mask = ((textured > 0) & seen_well[buf.face]).astype(np.uint8)
+        if seen_px is None:  # (every reference is rendered over the same buffers: read once)
+            seen_px = seen_well[buf.face]
+        mask = ((textured > 0) & seen_px).astype(np.uint8)
         if kernel is not None:
             mask = cv2.erode(mask, kernel)
         b = _grey(b_img).astype(np.float32)
@@ -317,10 +319,11 @@ def texture_refit(image: np.ndarray, camera: PinholeCamera, pose: Pose, mesh: Me
         if np.count_nonzero(on) < 64:
             continue
         b = _grey(b_img).astype(np.float32)
-        sa, sb = float(a_img[on].std()), float(b[on].std())
+        a_on, b_on = a_img[on], b[on]  # (gathered once: their spreads and means)
+        sa, sb = float(a_on.std()), float(b_on.std())
         if sa < 2.0 or sb < 2.0:
             continue
-        b = np.clip((b - b[on].mean()) * (sa / sb) + float(a_img[on].mean()), 0, 255).astype(np.uint8)
+        b = np.clip((b - b_on.mean()) * (sa / sb) + float(a_on.mean()), 0, 255).astype(np.uint8)
         corners = cv2.goodFeaturesToTrack(b, per_ref, 0.01, 5, mask=mask)
         b = np.where(textured > 0, b, a_img)  # (round the object, the frame itself: see the docstring)
         if corners is None or len(corners) < min_points:

@@ -144,6 +144,19 @@ def test_render_equals_the_plain_z_buffer_on_a_concave_occluding_scene(camera, s
         np.testing.assert_allclose(buf.depth[face >= 0], depth[face >= 0], rtol=1e-12)
 
 
+def test_the_buffers_drawn_faces_are_the_ids_their_pixels_hold():
+    """``RenderBuffers.drawn`` (read once per buffers by every texture reference rendered over
+    them) holds exactly the triangle ids some pixel shows, ascending, on a scene where parts
+    hide each other: none hidden counted, none drawn left out."""
+    mesh = _occluding_scene()
+    for rvec, dist in (([0.3, -0.5, 0.2], 70.0), ([2.4, 0.6, -0.3], 55.0)):
+        buf = render(mesh, CAM, pose_looking_at(mesh.centre, rvec, dist))
+        shown = np.unique(buf.face[buf.face >= 0])
+        assert 6 < len(shown) < len(mesh.faces)  # several parts in view, some faces hidden
+        np.testing.assert_array_equal(buf.drawn, shown)
+        assert buf.drawn is buf.drawn  # (computed once)
+
+
 @pytest.mark.parametrize("camera", [CAM, CAM_DIST], ids=["pinhole", "distorted"])
 @pytest.mark.parametrize("scale", [0.25, 0.5])
 def test_the_compiled_render_equals_the_triangle_loop(camera, scale):

@@ -153,9 +153,8 @@ def render_textured_view(
     n_groups = int(groups.max()) + 1 if len(groups) else 0
     use = np.zeros(n_groups, bool)
     Hs = np.zeros((n_groups, 3, 3))
-    drawn = np.bincount(buf.face.ravel() + 1, minlength=len(groups) + 1)[1:] > 0  # (faces in view: a count, not a sort)
     first = _first_faces(groups)
-    gs = np.unique(groups[drawn])
+    gs = np.unique(groups[buf.drawn])  # (the groups in view)
     if len(gs) <= _FEW_GROUPS:  # (a planar model: plane by plane, as ever, the same bits)
         for g in gs:
             members = groups == g
