@@ -310,7 +310,7 @@ class Retrained:
         return (f"the replaced model of {name!r}, with its {self.dropped} learned view(s), is kept in {self.backup}: "
                 f"train {name!r} again with its former mesh and settings (e.g. without --root-sift) and they are "
                 f"carried back; or put it back in place: quatrack models delete {name} --store {shlex.quote(str(store))}"
-                f" && mv {shlex.quote(str(self.backup))} {shlex.quote(str(store / name))}")
+                f" && {restore_command(store, name)}")
 
 
 #: the folder of the store (itself a store: ``quatrack models list --store STORE/.learned-backup``)
@@ -334,10 +334,19 @@ def backup_left(store: str | Path, name: str) -> str | None:
     if not (backup / MANIFEST).is_file():
         return None
     n = learned_count(backup.parent, name)
-    store = Path(store)
     return (f"the copy of {name!r}'s replaced model with {n} learned view(s) stays in {backup} "
             f"(a new training of {name!r} does not use it): put it back with "
-            f"mv {shlex.quote(str(backup))} {shlex.quote(str(store / name))}, or remove it with rm -r {shlex.quote(str(backup))}")
+            f"{restore_command(store, name)}, or remove it with rm -r {shlex.quote(str(backup))}")
+
+
+def restore_command(store: str | Path, name: str) -> str:
+    """The shell command that puts ``name``'s backup copy (:func:`backup_path`) back in its place
+    in ``store`` (once the model there is deleted): one spelling for every message that gives it.
+
+    >>> restore_command("/data/my store", "mug")
+    "mv '/data/my store/.learned-backup/mug' '/data/my store/mug'"
+    """
+    return f"mv {shlex.quote(str(backup_path(store, name)))} {shlex.quote(str(model_path(store, name)))}"
 
 
 #: :attr:`Retrained.why` when the caller asked for the learned views to go (``train --drop-learned``)
