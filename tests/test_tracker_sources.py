@@ -424,8 +424,6 @@ def test_points_that_outvote_the_edges_far_withhold_the_pose(box):
     """Where the textured points outvote the edges (Tracker._unless_outvoted) and their own pose lies
     more than ``outvote_max_shift`` of the 5 %/5° criterion from the joint one, the conflict is
     reported — its size, the two poses' pose_shift — and the frame's pose is withheld in doubt."""
-    from dataclasses import replace
-
     from quatrack.recognition.evidence import pose_shift
 
     for limit, conflict in ((TrackerParams().outvote_max_shift, False), (0.05, True)):
@@ -440,7 +438,7 @@ def test_points_that_outvote_the_edges_far_withhold_the_pose(box):
 
     # in a step: withheld, the track goes on (in doubt) and says why
     model, camera, poses, frames = box
-    tracker = Tracker(model, camera, replace(TrackerParams(), outvote_max_shift=0.05), index=index_for(model))
+    tracker = Tracker(model, camera, TrackerParams(outvote_max_shift=0.05), index=index_for(model))
     tracker.init_pose(poses[0].t, poses[0].q_wxyz)
     tracker.step(frames[0], 0.0)
     tracker._unless_outvoted = lambda blocks, block, inl: (inl, 0.8)
