@@ -441,3 +441,30 @@ def test_the_image_floor_only_widens_the_reported_covariance(cube):
         assert np.array_equal(a.t, b.t) and np.array_equal(a.q_wxyz, b.q_wxyz)
         F = image_floor(seq.camera, quat.to_matrix(a.q_wxyz), a.t, model.mesh.vertices, 0.3)
         assert np.any(F) and np.allclose(np.asarray(a.covariance) - np.asarray(b.covariance), F, rtol=1e-6, atol=1e-15)
+
+
+def test_the_sources_disagreement_only_widens_the_reported_covariance(cube):
+    """The disagreement factor (TrackerParams.disagreement_scale) enters nothing the tracker
+    decides: with and without it the same frames give the same statuses, poses and filter states,
+    and the reported covariances differ by a non-negative multiple of the filter's pose
+    covariance — positive in some frame of the zoo cube's walk, where the outline and the edges
+    disagree with the points by more than their covariances say."""
+    from quatrack.recognition.video import Tracker
+
+    model, seq = cube
+    index = index_for(model)
+    on, off = (Tracker(model, seq.camera, TrackerParams(disagreement_scale=d), index=index) for d in (True, False))
+    for tr in (on, off):
+        tr.init_pose(seq.poses[0].t, seq.poses[0].q_wxyz)
+    grown = 0
+    for k in range(8):
+        a, b = on.step(seq.image(k), k / seq.fps), off.step(seq.image(k), k / seq.fps)
+        assert a.status == b.status and a.has_pose
+        assert np.array_equal(a.t, b.t) and np.array_equal(a.q_wxyz, b.q_wxyz)
+        P = on.filter.state.pose_covariance
+        assert np.array_equal(P, off.filter.state.pose_covariance)
+        D = np.asarray(a.covariance) - np.asarray(b.covariance)
+        c = float(np.trace(np.linalg.solve(P, D))) / 6.0  # D = c·P, c = the factor − 1
+        assert c >= -1e-9 and np.allclose(D, c * P, rtol=1e-6, atol=1e-18)
+        grown += c > 1e-6
+    assert grown >= 1

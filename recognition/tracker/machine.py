@@ -75,7 +75,7 @@ from ..pose import PoseParams, plausible
 from ..visibility import merge_points
 from .anchor import Anchor, AnchorJob
 from .params import INITIAL_VELOCITY_SIGMA, TrackerParams, TrackStep
-from .points import PointBlock, Tracks, mahalanobis2, score_statistic
+from .points import PointBlock, Tracks, disagreement_factor, mahalanobis2, score_statistic
 from .contour import Contour
 from .edge_tests import edge_refit, edges_agree_at, settle_on_edges
 from .edges import ModelEdges
@@ -420,9 +420,22 @@ class Tracker:
         return TrackStep(self._frame, time_s, "lost", inliers=inliers,
                          reason=f"{why}: the pose is withheld while the track goes on")
 
-    def _pose_step(self, time_s: float, status: str, inliers: int, reason: str | None = None) -> TrackStep:
-        """The step that reports the filter's pose, with the filter's covariance plus the
-        systematic floors (:mod:`quatrack.tracking.systematic`: the pose-level one,
+    def _disagreement(self, blocks: list[PointBlock], inl: np.ndarray) -> float:
+        """This frame's :func:`~.points.disagreement_factor` over every source's inliers at the
+        filter's pose (1 with ``disagreement_scale`` off)."""
+        if not self.params.disagreement_scale:
+            return 1.0
+        kept, start = [], 0
+        for b in blocks:
+            kept.append(b.keep(inl[start : start + len(b)]))
+            start += len(b)
+        return disagreement_factor(self.camera, kept, self.filter.state)
+
+    def _pose_step(self, time_s: float, status: str, inliers: int, reason: str | None = None,
+                   scale: float = 1.0) -> TrackStep:
+        """The step that reports the filter's pose, with the filter's covariance (× ``scale``, the
+        sources' disagreement: :meth:`_disagreement`) plus the systematic floors
+        (:mod:`quatrack.tracking.systematic`: the pose-level one,
         ``params.systematic_pct`` / ``_depth_ratio`` / ``_deg``, and the image one of
         ``params.systematic_px`` shared by the object's points), plus,
         in a second-hand track's frame without trained points in view, the error it carries from
@@ -433,9 +446,9 @@ class Tracker:
         in those frames, 2–5 in the other frames of the same walks; bench/RESULTS.md, session 27).
         The track is the same."""
         s, p = self.filter.state, self.params
-        cov = s.pose_covariance + systematic_floor(s.R, s.p, self.model.mesh.centre, self.diameter,
-                                                   p.systematic_pct / 100.0, p.systematic_depth_ratio,
-                                                   np.radians(p.systematic_deg))
+        cov = scale * s.pose_covariance + systematic_floor(s.R, s.p, self.model.mesh.centre, self.diameter,
+                                                           p.systematic_pct / 100.0, p.systematic_depth_ratio,
+                                                           np.radians(p.systematic_deg))
         if p.systematic_px:
             cov = cov + image_floor(self.camera, s.R, s.p, self._floor_points, p.systematic_px)
         if self._birth is not None and not self._anchored:
@@ -888,7 +901,7 @@ class Tracker:
             self._probation = max(self._probation, p.doubt_frames)  # the next frames through unjudged
         if self.trained not in self.sources:  # (a source alone: nothing to re-anchor)
             self._capture(ctx, n_points, n_textured, time_s, timings)
-            return self._pose_step(time_s, "tracking", n_inl)
+            return self._pose_step(time_s, "tracking", n_inl, scale=self._disagreement(blocks, inl))
         self._since_refresh += 1
         due = p.refresh_every and self._since_refresh >= p.refresh_every
         # thin: replenish now; but after a refresh that found no texture (a side no view shows),
@@ -931,7 +944,7 @@ class Tracker:
             if self._failed_refreshes >= p.max_failed_refreshes and not self._carried(ctx, blocks, inl):
                 return self._lost(time_s, "the object's texture is no longer found where it is tracked", n_inl)
         self._capture(ctx, n_points, n_textured, time_s, timings)
-        return self._pose_step(time_s, "tracking", n_inl)
+        return self._pose_step(time_s, "tracking", n_inl, scale=self._disagreement(blocks, inl))
 
     def _audit_interval(self, ctx: FrameContext) -> int:
         """Tracked frames between audits: ``audit_every_anchored`` while this frame's trained

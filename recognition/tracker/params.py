@@ -339,6 +339,14 @@ class TrackerParams:
     systematic_depth_ratio: float = 4.0
     systematic_deg: float = 0.10
     systematic_px: float | None = 0.3
+    # The filter's part of the reported covariance is multiplied by the sources' disagreement
+    # (quatrack.recognition.tracker.points.disagreement_factor: the Birge ratio², ≥ 1) — how much
+    # more the trained points, the points born on the mesh, the edges and the outline disagree
+    # about the pose than their covariances allow. An outline locked on the print, points lifted
+    # at a pose that was off: an error no source's covariance holds, which the filter, combining
+    # those covariances, cannot know; the sources' spread shows it. Only the reported covariance
+    # changes (poses, statuses, reasons, the filter's state: the same). False: the filter's own.
+    disagreement_scale: bool = True
     initial_sigma_p: float = 0.01  # × diameter, for init_pose without a covariance
     initial_sigma_deg: float = 2.0
     klt: KLTParams = field(default_factory=KLTParams)
