@@ -246,10 +246,13 @@ def disagreement_factor(camera: PinholeCamera, blocks, state: FilterState) -> fl
         start += len(block)
         g, H = _score_parts(J[rows], WJ[rows], r[rows])
         d = np.sqrt(np.diagonal(H))
-        if not np.all(np.isfinite(d)) or not np.all(d > 0):
-            continue  # (a block that leaves a direction wholly unmeasured)
+        if not np.all(np.isfinite(d)):
+            continue
+        d = np.where(d > 0, d, 1.0)  # (a parameter the block does not touch at all: left unscaled)
         w, V = np.linalg.eigh(H / np.outer(d, d))
-        measured = w > 1e-10 * w[-1]
+        measured = w > 1e-10 * max(w[-1], 0.0)
+        if not measured.any():
+            continue
         proj = V[:, measured].T @ (g / d)
         total += float(np.sum(proj * proj / w[measured]))
         dof += int(measured.sum())
