@@ -425,10 +425,7 @@ class Tracker:
         filter's pose (1 with ``disagreement_scale`` off)."""
         if not self.params.disagreement_scale:
             return 1.0
-        kept, start = [], 0
-        for b in blocks:
-            kept.append(b.keep(inl[start : start + len(b)]))
-            start += len(b)
+        kept = [b.keep(m) for b, m in zip(blocks, PointBlock.split(blocks, inl))]
         return disagreement_factor(self.camera, kept, self.filter.state)
 
     def _pose_step(self, time_s: float, status: str, inliers: int, reason: str | None = None,
@@ -866,12 +863,10 @@ class Tracker:
         why = self._implausible(self.filter.state.pose)
         if why:
             return self._lost(time_s, f"pose: {why}", n_inl)
-        start = 0
         ctx.vouched = not self._doubted  # (a track in doubt learns nothing: Tracker._doubt)
         shape_ctx.vouched = ctx.vouched
-        for s, b in zip(self.sources, blocks):
-            s.settle(shape_ctx if s in self._shape_sources else ctx, b, inl[start : start + len(b)], self.filter.state)
-            start += len(b)
+        for s, b, m in zip(self.sources, blocks, PointBlock.split(blocks, inl)):
+            s.settle(shape_ctx if s in self._shape_sources else ctx, b, m, self.filter.state)
         self._tracked += 1
         if conflict is not None:
             return self._doubt(time_s, f"the textured points and the model's edges put the object {conflict:.2f} of "
@@ -1199,15 +1194,11 @@ class Tracker:
         frontal face, turned 2.7 → 6.0° in four frames (66–70) until the audit caught it. Going
         on from the joint pose instead put 14 poses beyond 5 %/5° on the harsh cylinder #3
         (bench/RESULTS.md, session 67)."""
-        judges = np.zeros(len(block), bool)
-        mesh = np.zeros(len(block), bool)
-        textured = np.zeros(len(block), bool)
-        start = 0
-        for s, b in zip(self.sources, blocks):
-            judges[start : start + len(b)] = s is self.trained
-            mesh[start : start + len(b)] = s is self.mesh_points
-            textured[start : start + len(b)] = s not in self._shape_sources
-            start += len(b)
+        owners = list(zip(self.sources, blocks))
+        sizes = [len(b) for _, b in owners]
+        judges = np.repeat([s is self.trained for s, _ in owners], sizes).astype(bool)
+        mesh = np.repeat([s is self.mesh_points for s, _ in owners], sizes).astype(bool)
+        textured = np.repeat([s not in self._shape_sources for s, _ in owners], sizes).astype(bool)
         min_inl = self.params.min_inliers
         if int((judges & inl).sum()) >= min_inl:
             if self._failed_refreshes:
@@ -1295,12 +1286,8 @@ class Tracker:
 
     def _inliers_of(self, blocks, inl, only=None, exclude: tuple = ()) -> int:
         """Inliers among the blocks of one source (``only``) or of all but some (``exclude``)."""
-        start, n = 0, 0
-        for s, b in zip(self.sources, blocks):
-            if (only is None or s is only) and s not in exclude:
-                n += int(inl[start : start + len(b)].sum())
-            start += len(b)
-        return n
+        return sum(int(m.sum()) for s, m in zip(self.sources, PointBlock.split(blocks, inl))
+                   if (only is None or s is only) and s not in exclude)
 
     def _count_refresh(self, n_matches: int) -> None:
         ok = n_matches >= self.params.min_anchor_matches

@@ -68,6 +68,18 @@ class PointBlock:
         return PointBlock("+".join(b.source for b in blocks), np.concatenate([b.X for b in blocks]),
                           np.concatenate([b.uv for b in blocks]), np.concatenate([b.C for b in blocks]))
 
+    @staticmethod
+    def split(blocks: list["PointBlock"], rows: np.ndarray) -> list[np.ndarray]:
+        """``rows`` — one per measurement of :meth:`stack` (``blocks``) — cut into each block's
+        part (the inverse of the stacking, for per-source masks and counts).
+
+        >>> a = PointBlock("a", np.zeros((2, 3)), np.zeros((2, 2)), np.zeros((2, 2, 2)))
+        >>> b = PointBlock("b", np.zeros((3, 3)), np.zeros((3, 2)), np.zeros((3, 2, 2)))
+        >>> [m.tolist() for m in PointBlock.split([a, b], np.array([1, 0, 0, 1, 1], bool))]
+        [[True, False], [False, True, True]]
+        """
+        return np.split(np.asarray(rows), np.cumsum([len(b) for b in blocks])[:-1])
+
     def measurements(self, camera: PinholeCamera) -> PointMeasurements:
         """The residual block of eq. 24 for :meth:`PoseFilter.update`."""
         return PointMeasurements.create(camera, self.X, self.uv, self.C)
