@@ -234,6 +234,13 @@ def _reprojection_errors(camera: PinholeCamera, X: np.ndarray, uv: np.ndarray, t
     return err
 
 
+def reprojection_rms(camera: PinholeCamera, X: np.ndarray, uv: np.ndarray, pose: Pose) -> float:
+    """The RMS distance (px) between ``uv`` and the points ``X`` projected at ``pose`` (inf when
+    one lies behind the camera)."""
+    err = _reprojection_errors(camera, np.asarray(X, float), np.asarray(uv, float), pose.t, pose.q_wxyz)
+    return float(np.sqrt(np.mean(err**2))) if len(err) else 0.0
+
+
 def refine(camera: PinholeCamera, X: np.ndarray, uv: np.ndarray, t0: np.ndarray, q0: np.ndarray, inflation: float = 1.0):
     """LM refinement on inliers; the covariance is ``(DᵀD)⁻¹`` at unit pixel noise times the
     residual variance ``s² = Σ r² / (2n − 6)``, times ``inflation``."""
@@ -918,6 +925,9 @@ class Verification:
     # — the refit moved the pose off the points' fit, and its own covariance (inflated) is too
     # confident for one pose in ten (bench/RESULTS.md, session 41); None unless fixed_by_edges
     fixed_covariance: np.ndarray | None = field(default=None, compare=False)
+    # the photos' texture refit that polished the pose (recognition/locate.py: _texture_polished):
+    # {"inliers", "shift" (criterion units), "kept"}; None: not tried
+    texture_polish: dict | None = None
 
     def to_json(self) -> dict:
         return {
@@ -943,6 +953,7 @@ class Verification:
             "texture_ncc": None if self.texture_ncc is None else round(self.texture_ncc, 4),
             "texture_pixels": int(self.texture_pixels),
             "fixed_by_edges": bool(self.fixed_by_edges),
+            "texture_polish": None if self.texture_polish is None else dict(self.texture_polish),
             "reason": self.reason,
         }
 
