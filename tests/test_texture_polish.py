@@ -66,6 +66,14 @@ def _polish(trained, scene, start: Pose, **params):
                              LocateParams(**params))
 
 
+def ver_before_ncc(trained, scene, pose: Pose) -> float:
+    """The photos' correlation with the scene at ``pose``."""
+    model, _, _ = trained
+    index = index_for(model)
+    grey = cv2.cvtColor(scene.image, cv2.COLOR_BGR2GRAY) if scene.image.ndim == 3 else scene.image
+    return texture_agreement(grey, CAM, pose, model.mesh, index.planes, index.appearance).ncc
+
+
 def _errors(pose: Pose, truth: Pose, mesh) -> tuple[float, float]:
     dt, dr = S.pose_errors(pose.t, pose.q_wxyz, truth, mesh)
     return 100 * dt / mesh.extent, dr
@@ -79,10 +87,13 @@ def test_a_pose_off_in_depth_and_tilt_is_moved_to_the_truth(trained, seed):
     before = _errors(start, scene.pose, model.mesh)
     assert before[0] > 3.0 and before[1] > 3.5  # (the crafted error is there)
     est, ver = _polish(trained, scene, start)
+    read_before = ver_before_ncc(trained, scene, start)
     after = _errors(est.pose, scene.pose, model.mesh)
     assert ver.texture_polish["kept"] and ver.texture_polish["inliers"] >= 20
     assert after[0] < 1.0 and after[1] < 1.0, (before, after)
     assert ver.texture_polish["shift"] > 0.5  # (it moved the pose by more than half the criterion)
+    # moved that far, the texture was read again at the polished pose, and reads better there
+    assert ver.texture_ncc != read_before and ver.texture_ncc > read_before
     # the reported inliers' RMS is the polished pose's: the four points were placed at the truth
     assert est.rms_px < 1.0
     assert np.array_equal(est.covariance, np.eye(6) * 1e-4)  # (the verified pose's covariance)
@@ -94,7 +105,11 @@ def test_a_right_pose_stays_where_it_is(trained):
     est, ver = _polish(trained, scene, scene.pose)
     dt, dr = _errors(est.pose, scene.pose, model.mesh)
     assert dt < 0.5 and dr < 0.5
-    assert ver.texture_polish["shift"] < 0.1
+    assert ver.texture_polish["shift"] < 0.1 and ver.texture_polish["kept"]
+    # moved by less than texture_polish_check_shift: the verified pose's reading stays
+    assert ver.texture_ncc == ver_before_ncc(trained, scene, scene.pose)
+    _, again = _polish(trained, scene, scene.pose, texture_polish_check_shift=0.0)
+    assert again.texture_ncc != ver.texture_ncc  # (read again at the polished pose)
 
 
 def test_a_refit_on_too_few_points_or_read_worse_is_not_kept(trained):
