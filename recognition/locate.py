@@ -27,8 +27,9 @@ from .fields import check_field_kinds
 from .images import DEFAULT_MAX_PIXELS, prepare_image
 from .window_search import Window, WindowSearchParams, search_window
 from .match import ModelIndex, index_for, rank_viewsets
-from .pose import (RANSAC_SAMPLE, PnPSolution, PoseParams, Verification, polish, reprojection_rms, rival_inliers, solve_pnp, value_key,
-                   verification, verify)
+from .evidence import pose_shift
+from .pose import (RANSAC_SAMPLE, PnPSolution, PoseParams, Verification, polish, reprojection_rms, rival_inliers,
+                   solve_pnp, value_key, verification, verify)
 
 
 @dataclass(frozen=True)
@@ -82,13 +83,13 @@ class LocateParams:
     # the photos rendered at the pose are followed into the image (:func:`.appearance.texture_refit`)
     # and the pose solved there is reported where it rests on at least
     # ``texture_polish_min_inliers`` points and the photos correlate with the image there no worse
-    # than ``texture_polish_tolerance`` below the verified pose's. On 1997 found poses of `bench
-    # locate --zoo` seeds 0–7 the median error fell 0.31 → 0.11 % of the diameter and 0.25 →
-    # 0.09°, and 5 of the 8 poses beyond 5 %/5° came within it (bench/RESULTS.md, session 70).
-    # Few points (12–17) moved right poses off by up to 6°, as did a refit the texture read worse.
+    # than ``texture_polish_tolerance`` below the verified pose's. `bench locate --zoo` seeds
+    # 0–15 (6144 scenes): poses beyond 5 %/5° 23 → 9, right ones 4003 → 4017, the median error
+    # 0.31 → 0.11 % of the diameter and 0.26 → 0.09° (bench/RESULTS.md, session 70). Refits on
+    # few points (12–17) had moved right poses off by up to 6°, as had one the texture read worse.
     # The texture is read again only where the refit moved the pose by at least
-    # ``texture_polish_check_shift`` of the 5 %/5° criterion (~2.5 ms; 83 % of the refits move it
-    # less, and none the texture refused moved it by more than 0.2 from a right pose to a wrong one)
+    # ``texture_polish_check_shift`` of the 5 %/5° criterion (~2.5 ms saved; 83 % of the refits
+    # move it less, and so small a move cannot take a right pose far past the criterion)
     texture_polish: bool = True
     texture_polish_min_inliers: int = 20
     texture_polish_tolerance: float = 0.01
@@ -270,7 +271,8 @@ def _pose_from(
             if ver.passed:
                 ver, agreement = _with_texture(ver, model, index, grey, camera, est.pose, params.min_texture_ncc)
                 if ver.passed and params.texture_polish and agreement is not None and agreement.pixels:
-                    est, ver = _texture_polished(est, ver, agreement, model, index, grey, camera, m.points3d, uv, params)
+                    est, ver = _texture_polished(est, ver, agreement, model, index, grey, camera, m.points3d, uv,
+                                                 params)
                 out.verification = ver
             if ver.passed:
                 out.est, out.matches, out.reason, out.viewset = est, len(keep), None, label
@@ -312,12 +314,12 @@ def _texture_polished(est: PnPSolution, ver: Verification, agreement: TextureAgr
     (inliers, edges, confidence) stays; the inliers' reprojection RMS is the polished pose's, and
     so is the texture's correlation where the refit moved the pose by at least
     ``params.texture_polish_check_shift`` of the criterion (read again there, and the refit kept
-    only if it holds; a smaller move keeps the verified pose's reading). The covariance stays the verified pose's: the texture pose
-    is the more precise, so the points' spread is, if anything, wide for it.
+    only if it holds; a smaller move keeps the verified pose's reading). The covariance stays
+    the verified pose's: wide for the polished pose (NEES median 0.10 on 977 right zoo poses,
+    χ²₆'s is 5.35), where the refit's own (its consensus's least-squares covariance) was too
+    tight by ~5× (NEES median 24.6; bench/RESULTS.md, session 70).
     ``verification.texture_polish`` reports the refit's points and how far it moved the pose
     (in units of the 5 %/5° criterion, :func:`~.evidence.pose_shift`)."""
-    from .evidence import pose_shift
-
     fit = texture_refit(grey, camera, est.pose, model.mesh, index.planes, index.appearance,
                         rendered=agreement.rendered)
     if fit.pose is None or fit.inliers < params.texture_polish_min_inliers:
