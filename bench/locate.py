@@ -305,21 +305,21 @@ def located_row(r, pose, mesh) -> dict:
             "verification": r.verification, "reason": r.reason, "searched": r.searched}
 
 
-def zoo(models: dict, scenes_per_model: int, seed: int, progress: bool, params: LocateParams | None = None) -> dict:
-    """Per group: found and correct, found but wrong, not found, time p50/p95; plus scenes with no
-    object (every model searched) and scenes with two objects (``locate_all``)."""
-    from quatrack.recognition.locate import locate_all
+def group_table(rows: list[dict]) -> dict:
+    """Per group of zoo scenes (all; unit; colour or grey; 1 or 4 photos; share outside the
+    frame; angle from the nearest training view; object): the shares found and correct, found
+    but wrong and not found, the found poses' median and 90th-percentile errors (% of the
+    diameter, degrees; None when none was found) and the times (p50/p95, wall clock and CPU).
 
-    from quatrack.testing import zoo as Z
-
-    params = params or LocateParams()
-    cam = Z.zoo_camera()
-    bgs = Z.real_backgrounds()
-    rng = np.random.default_rng(seed)
-    rows = []
-    for key, model, sc, row in zoo_scenes(models, scenes_per_model, seed, progress, bgs, rng):
-        r, cpu = _located(sc.image, cam, model, params, index_for(model))
-        rows.append({**row, **located_row(r, sc.pose, model.mesh), "cpu_ms": cpu})
+    >>> rows = [{"unit": "cm", "grey": False, "views": 1, "outside": 0.0, "angle": 10.0, "object": "a",
+    ...          "result": res, "dt_pct": dt, "dr_deg": dr, "ms": 50.0, "pnp_ms": 10.0, "cpu_ms": 60.0}
+    ...         for res, dt, dr in (("correct", 0.1, 0.2), ("correct", 0.3, 0.4), ("missed", None, None))]
+    >>> t = group_table(rows)["all"]
+    >>> t["scenes"], round(t["correct"], 3), round(t["err_p50_pct"], 3), round(t["err_p50_deg"], 3)
+    (3, 0.667, 0.2, 0.3)
+    >>> group_table(rows[2:])["all"]["err_p50_pct"] is None  # (nothing found)
+    True
+    """
     groups = {
         "all": lambda row: True,
         **{f"unit {u}": (lambda u: lambda row: row["unit"] == u)(u) for u in ("mm", "cm", "m")},
@@ -345,7 +345,34 @@ def zoo(models: dict, scenes_per_model: int, seed: int, progress: bool, params: 
             "p50_ms": _pct([r["ms"] for r in rs], 50), "p95_ms": _pct([r["ms"] for r in rs], 95),
             "pnp_p50_ms": _pct([r["pnp_ms"] for r in rs], 50), "pnp_p95_ms": _pct([r["pnp_ms"] for r in rs], 95),
             "cpu_p50_ms": _pct([r["cpu_ms"] for r in rs], 50), "cpu_p95_ms": _pct([r["cpu_ms"] for r in rs], 95),
+            **_found_errors([r for r in rs if r["result"] != "missed"]),
         }
+    return table
+
+
+def _found_errors(found: list[dict]) -> dict:
+    """The found poses' errors: median and 90th percentile, % of the diameter and degrees."""
+    dt, dr = [r["dt_pct"] for r in found], [r["dr_deg"] for r in found]
+    return {"err_p50_pct": _pct(dt, 50), "err_p90_pct": _pct(dt, 90),
+            "err_p50_deg": _pct(dr, 50), "err_p90_deg": _pct(dr, 90)}
+
+
+def zoo(models: dict, scenes_per_model: int, seed: int, progress: bool, params: LocateParams | None = None) -> dict:
+    """Per group: found and correct, found but wrong, not found, time p50/p95; plus scenes with no
+    object (every model searched) and scenes with two objects (``locate_all``)."""
+    from quatrack.recognition.locate import locate_all
+
+    from quatrack.testing import zoo as Z
+
+    params = params or LocateParams()
+    cam = Z.zoo_camera()
+    bgs = Z.real_backgrounds()
+    rng = np.random.default_rng(seed)
+    rows = []
+    for key, model, sc, row in zoo_scenes(models, scenes_per_model, seed, progress, bgs, rng):
+        r, cpu = _located(sc.image, cam, model, params, index_for(model))
+        rows.append({**row, **located_row(r, sc.pose, model.mesh), "cpu_ms": cpu})
+    table = group_table(rows)
     # calibration of the confidence on the reported poses
     found = [r for r in rows if r["result"] != "missed"]
     calib = []
@@ -400,10 +427,11 @@ def r_model(models, name):
 
 
 def format_zoo(z: dict) -> str:
-    lines = ["Zoo (found and correct / found but wrong / not found, time p50/p95):"]
+    lines = ["Zoo (found and correct / found but wrong / not found, the found poses' median error, time p50/p95):"]
     for g, t in z["groups"].items():
         lines.append(f"  {g:<24} {t['scenes']:>4} scenes  correct {100 * t['correct']:5.1f} %  wrong {100 * t['wrong']:4.1f} %  "
-                     f"not found {100 * t['missed']:5.1f} %  {t['p50_ms']:.0f}/{t['p95_ms']:.0f} ms "
+                     f"not found {100 * t['missed']:5.1f} %  error {_num(t.get('err_p50_pct'), '.2f')} % / "
+                     f"{_num(t.get('err_p50_deg'), '.2f')}°  {t['p50_ms']:.0f}/{t['p95_ms']:.0f} ms "
                      f"(CPU {t['cpu_p50_ms']:.0f}/{t['cpu_p95_ms']:.0f})")
     lines.append(f"  pnp stage (PnP + verification): p50 {z['groups']['all']['pnp_p50_ms']:.1f} / "
                  f"p95 {z['groups']['all']['pnp_p95_ms']:.1f} ms")

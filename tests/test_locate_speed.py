@@ -144,3 +144,24 @@ def test_ransac_pose_fits_a_consensus_on_one_plane():
         assert np.sum(_reprojection_errors(cam, X[:40], uv[:40], pose.t, pose.q_wxyz) < 4.0) >= 36, seed
         est = solve_pnp(cam, X, uv, PoseParams())
         assert np.linalg.norm(est.t - truth.t) < 0.005 and np.degrees(quat.angle_between(est.q, truth.q_wxyz)) < 2.0, seed
+
+
+def test_bench_locate_zoo_reports_the_found_poses_errors():
+    """``bench locate --zoo``'s groups carry the found poses' median and 90th-percentile errors
+    (the wrong ones included: they are reported too), and the text says the median, "-" where
+    nothing was found."""
+    import quatrack.bench.locate as B
+
+    def row(result, dt, dr, obj="a"):
+        return {"unit": "mm", "grey": True, "views": 4, "outside": 0.2, "angle": 40.0, "object": obj,
+                "result": result, "dt_pct": dt, "dr_deg": dr, "ms": 40.0, "pnp_ms": 8.0, "cpu_ms": 45.0}
+
+    rows = [row("correct", 0.1, 0.3), row("correct", 0.2, 0.1), row("wrong", 9.0, 20.0), row("missed", None, None, "b")]
+    table = B.group_table(rows)
+    assert table["all"]["err_p50_pct"] == 0.2 and table["all"]["err_p50_deg"] == 0.3
+    assert table["all"]["err_p90_pct"] > 5.0  # (the wrong pose counts)
+    assert table["object b"]["err_p50_pct"] is None and table["object a"]["scenes"] == 3
+    z = {"groups": table, "calibration": [], "no_object": {"images": 0, "models_searched": 0, "false_reports": 0,
+         "p50_ms": 1.0, "p95_ms": 1.0, "cpu_p50_ms": 1.0, "cpu_p95_ms": 1.0}, "two_objects": {"scenes": 0}}
+    text = B.format_zoo(z)
+    assert "error 0.20 % / 0.30°" in text and "error - % / -°" in text, text
