@@ -331,7 +331,7 @@ def _texture_polished(est: PnPSolution, ver: Verification, agreement: TextureAgr
         if not there.pixels or not there.ncc >= agreement.ncc - params.texture_polish_tolerance:
             return est, replace(ver, texture_polish=note)
         ver = replace(ver, texture_ncc=there.ncc, texture_pixels=there.pixels)
-    rms = reprojection_rms(camera, points3d[est.inliers], uv[est.inliers], fit.pose)
+    rms = reprojection_rms(camera, points3d[est.inliers], uv[est.inliers], fit.pose.t, fit.pose.q_wxyz)
     return (PnPSolution(fit.pose, est.covariance, est.inliers, rms, est.ties),
             replace(ver, texture_polish={**note, "kept": True}))
 

@@ -234,10 +234,10 @@ def _reprojection_errors(camera: PinholeCamera, X: np.ndarray, uv: np.ndarray, t
     return err
 
 
-def reprojection_rms(camera: PinholeCamera, X: np.ndarray, uv: np.ndarray, pose: Pose) -> float:
-    """The RMS distance (px) between ``uv`` and the points ``X`` projected at ``pose`` (inf when
-    one lies behind the camera)."""
-    err = _reprojection_errors(camera, np.asarray(X, float), np.asarray(uv, float), pose.t, pose.q_wxyz)
+def reprojection_rms(camera: PinholeCamera, X: np.ndarray, uv: np.ndarray, t: np.ndarray, q: np.ndarray) -> float:
+    """The RMS distance (px) between ``uv`` and the points ``X`` projected at ``(t, q)`` (inf
+    when one lies behind the camera; 0 without points)."""
+    err = _reprojection_errors(camera, np.asarray(X, float), np.asarray(uv, float), t, q)
     return float(np.sqrt(np.mean(err**2))) if len(err) else 0.0
 
 
@@ -566,10 +566,10 @@ def polish(est: PnPSolution, camera: PinholeCamera, points3d: np.ndarray, uv: np
         t, q = _refine_fast(camera, X[keep], u[keep], t, q)
     if params.robust_scale is not None:
         t, q = robust_refit(camera, X[keep], u[keep], t, q, params.robust_scale)
-    err = _reprojection_errors(camera, X, u, t, q)
-    if not np.all(np.isfinite(err)):
+    rms = reprojection_rms(camera, X, u, t, q)
+    if not np.isfinite(rms):
         return est
-    return PnPSolution(Pose(q, t), est.covariance, idx, float(np.sqrt(np.mean(err**2))), est.ties)
+    return PnPSolution(Pose(q, t), est.covariance, idx, rms, est.ties)
 
 
 def match_log_likelihood(errors: np.ndarray, inlier_px: float, area_px: float) -> float:
@@ -702,10 +702,9 @@ def solve_pnp(
         t, q, cov = refine(camera, X[idx], uv[idx], t, q, params.covariance_inflation)
     except SingularProblemError:
         return None
-    err = _reprojection_errors(camera, X[idx], uv[idx], t, q)
     if not (np.all(np.isfinite(t)) and np.all(np.isfinite(q))):
         return None
-    return PnPSolution(Pose(q, t), cov, idx, float(np.sqrt(np.mean(err**2))), ties)
+    return PnPSolution(Pose(q, t), cov, idx, reprojection_rms(camera, X[idx], uv[idx], t, q), ties)
 
 
 def projected_bbox(camera: PinholeCamera, vertices: np.ndarray, t: np.ndarray, q: np.ndarray):
