@@ -297,10 +297,15 @@ def zoo_scenes(models: dict, scenes_per_model: int, seed: int, progress: bool = 
 
 def located_row(r, pose, mesh) -> dict:
     """One locate answer judged against the truth: result, errors (% of the diameter, degrees),
-    time, confidence, the verification's evidence, why not found."""
+    the found pose's NEES (``eᵀ C⁻¹ e`` of its error under its reported covariance over
+    ``[p, δθ]``: :func:`~quatrack.bench.track_zoo.nees`), time, confidence, the verification's
+    evidence, why not found."""
+    from quatrack.bench.track_zoo import nees
+
     dt, dr = S.pose_errors(r.t, r.q_wxyz, pose, mesh) if r.found else (None, None)
     return {"result": _judge(r, pose, mesh), "dt_pct": None if dt is None else float(100 * dt / mesh.extent),
-            "dr_deg": None if dr is None else float(dr), "ms": r.time_ms["total"],
+            "dr_deg": None if dr is None else float(dr), "nees": nees(r, pose) if r.found else None,
+            "ms": r.time_ms["total"],
             "pnp_ms": r.time_ms.get("pnp", 0.0), "confidence": r.confidence,
             "verification": r.verification, "reason": r.reason, "searched": r.searched}
 
@@ -309,14 +314,20 @@ def group_table(rows: list[dict]) -> dict:
     """Per group of zoo scenes (all; unit; colour or grey; 1 or 4 photos; share outside the
     frame; angle from the nearest training view; object): the shares found and correct, found
     but wrong and not found, the found poses' median and 90th-percentile errors (% of the
-    diameter, degrees; None when none was found) and the times (p50/p95, wall clock and CPU).
+    diameter, degrees; None when none was found), how honest their covariances are (the NEES's
+    median, χ²₆'s is 5.35, and the share of poses whose truth lies within the reported 95 %
+    ellipsoid, ``nees_in95``; rows without ``nees`` count as not measured) and the times
+    (p50/p95, wall clock and CPU).
 
     >>> rows = [{"unit": "cm", "grey": False, "views": 1, "outside": 0.0, "angle": 10.0, "object": "a",
-    ...          "result": res, "dt_pct": dt, "dr_deg": dr, "ms": 50.0, "pnp_ms": 10.0, "cpu_ms": 60.0}
-    ...         for res, dt, dr in (("correct", 0.1, 0.2), ("correct", 0.3, 0.4), ("missed", None, None))]
+    ...          "result": res, "dt_pct": dt, "dr_deg": dr, "nees": e, "ms": 50.0, "pnp_ms": 10.0, "cpu_ms": 60.0}
+    ...         for res, dt, dr, e in (("correct", 0.1, 0.2, 2.0), ("correct", 0.3, 0.4, 20.0),
+    ...                                ("missed", None, None, None))]
     >>> t = group_table(rows)["all"]
     >>> t["scenes"], round(t["correct"], 3), round(t["err_p50_pct"], 3), round(t["err_p50_deg"], 3)
     (3, 0.667, 0.2, 0.3)
+    >>> t["nees_p50"], t["nees_in95"]  # (one of the two found poses' truths beyond its 95 % ellipsoid)
+    (11.0, 0.5)
     >>> group_table(rows[2:])["all"]["err_p50_pct"] is None  # (nothing found)
     True
     """
@@ -351,10 +362,15 @@ def group_table(rows: list[dict]) -> dict:
 
 
 def _found_errors(found: list[dict]) -> dict:
-    """The found poses' errors: median and 90th percentile, % of the diameter and degrees."""
+    """The found poses' errors: median and 90th percentile, % of the diameter and degrees; their
+    NEES's median and the share within the reported 95 % ellipsoid (None: none measured)."""
+    from quatrack.bench.track_zoo import NEES_95
+
     dt, dr = [r["dt_pct"] for r in found], [r["dr_deg"] for r in found]
+    e = [r["nees"] for r in found if r.get("nees") is not None]
     return {"err_p50_pct": _pct(dt, 50), "err_p90_pct": _pct(dt, 90),
-            "err_p50_deg": _pct(dr, 50), "err_p90_deg": _pct(dr, 90)}
+            "err_p50_deg": _pct(dr, 50), "err_p90_deg": _pct(dr, 90),
+            "nees_p50": _pct(e, 50), "nees_in95": (sum(v < NEES_95 for v in e) / len(e)) if e else None}
 
 
 def zoo(models: dict, scenes_per_model: int, seed: int, progress: bool, params: LocateParams | None = None) -> dict:
@@ -435,6 +451,10 @@ def format_zoo(z: dict) -> str:
                      f"(CPU {t['cpu_p50_ms']:.0f}/{t['cpu_p95_ms']:.0f})")
     lines.append(f"  pnp stage (PnP + verification): p50 {z['groups']['all']['pnp_p50_ms']:.1f} / "
                  f"p95 {z['groups']['all']['pnp_p95_ms']:.1f} ms")
+    a = z["groups"]["all"]
+    if a.get("nees_in95") is not None:
+        lines.append(f"  the found poses' covariance: NEES median {a['nees_p50']:.2f} (χ²₆'s 5.35), "
+                     f"{100 * a['nees_in95']:.1f} % of the truths within the reported 95 % ellipsoid")
     for w in z.get("wrong", []):
         v = w["verification"] or {}
         lines.append(f"  wrong: {w['object']} {w['views']} photo{'s' if w['views'] > 1 else ''} "

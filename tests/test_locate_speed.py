@@ -165,3 +165,38 @@ def test_bench_locate_zoo_reports_the_found_poses_errors():
          "p50_ms": 1.0, "p95_ms": 1.0, "cpu_p50_ms": 1.0, "cpu_p95_ms": 1.0}, "two_objects": {"scenes": 0}}
     text = B.format_zoo(z)
     assert "error 0.20 % / 0.30°" in text and "error - % / -°" in text, text
+
+
+def test_bench_locate_zoo_says_how_honest_the_found_poses_covariances_are():
+    """Each found zoo pose carries its NEES (its error under its own reported covariance: a pose
+    0.01 off along x with a variance of 1e-4 there scores 1), and the groups say the NEES's
+    median and the share of truths within the reported 95 % ellipsoid (χ²₆ < 12.59): a wrong
+    pose that claims to be sure counts against it; a pose not found is not measured."""
+    from types import SimpleNamespace
+
+    import quatrack.bench.locate as B
+    from quatrack.recognition.locate import Located
+    from quatrack.tracking.pose import Pose
+
+    truth = Pose(np.array([1.0, 0.0, 0.0, 0.0]), np.array([0.0, 0.0, 1.0]))
+    mesh = SimpleNamespace(centre=np.zeros(3), extent=1.0)
+    cov = np.diag([1e-4, 1e-4, 1e-4, 1e-6, 1e-6, 1e-6])
+    r = Located(True, t=np.array([0.01, 0.0, 1.0]), q_wxyz=np.array([1.0, 0.0, 0.0, 0.0]), covariance=cov,
+                time_ms={"total": 1.0})
+    row = B.located_row(r, truth, mesh)
+    assert row["result"] == "correct" and abs(row["nees"] - 1.0) < 1e-9
+    far = B.located_row(Located(True, t=np.array([0.2, 0.0, 1.0]), q_wxyz=r.q_wxyz, covariance=cov,
+                                time_ms={"total": 1.0}), truth, mesh)
+    assert far["result"] == "wrong" and far["nees"] > 100.0
+    assert B.located_row(Located(False, time_ms={"total": 1.0}), truth, mesh)["nees"] is None
+
+    def scene(res):
+        return {"unit": "m", "grey": False, "views": 1, "outside": 0.0, "angle": 0.0, "object": "a",
+                "ms": 40.0, "pnp_ms": 8.0, "cpu_ms": 45.0, **res}
+
+    rows = [scene(row), scene(row), scene(far), scene(B.located_row(Located(False, time_ms={"total": 1.0}), truth, mesh))]
+    t = B.group_table(rows)["all"]
+    assert t["nees_p50"] == 1.0 and abs(t["nees_in95"] - 2 / 3) < 1e-12
+    z = {"groups": {"all": t}, "calibration": [], "no_object": {"images": 0, "models_searched": 0, "false_reports": 0,
+         "p50_ms": 1.0, "p95_ms": 1.0, "cpu_p50_ms": 1.0, "cpu_p95_ms": 1.0}, "two_objects": {"scenes": 0}}
+    assert "NEES median 1.00 (χ²₆'s 5.35), 66.7 % of the truths within the reported 95 % ellipsoid" in B.format_zoo(z)
