@@ -56,6 +56,8 @@ def rendered(n: int, seed: int, model, camera, progress: bool) -> dict:
     rng = np.random.default_rng(seed)
     index = index_for(model)
     diameter = float(model.mesh.extent)
+    from quatrack.bench.track_zoo import nees
+
     rows = []
     for _ in tqdm(range(n), desc="rendered scenes", disable=not progress, unit="scene"):
         sc = S.random_scene(rng, renderer, camera, backgrounds)
@@ -63,6 +65,7 @@ def rendered(n: int, seed: int, model, camera, progress: bool) -> dict:
         dt, dr = (np.inf, np.inf) if not r.found else S.pose_errors(r.t, r.q_wxyz, sc.pose, model.mesh)
         rows.append({
             "angle": sc.view_angle_deg, "found": r.found, "dt": dt, "dr": dr,
+            "nees": nees(r, sc.pose) if r.found else None,
             "iou": iou(r.window, sc.bbox) if r.window else 0.0, "occluded": sc.occluded,  # (the localisation's)
             "searched": r.searched, "cpu": cpu, **{k: r.time_ms.get(k, 0.0) for k in STAGES},
         })
@@ -87,6 +90,7 @@ def rendered(n: int, seed: int, model, camera, progress: bool) -> dict:
         "median_translation_error": float(np.median(dts)) if len(dts) else None,
         "median_translation_error_pct_diameter": float(100 * np.median(dts) / diameter) if len(dts) else None,
         "median_rotation_error_deg": float(np.median(drs)) if len(drs) else None,
+        **nees_summary([row["nees"] for row in rows]),
         "window_iou_ge_0.5": float(np.mean(ious >= 0.5)),
         "window_iou_median": float(np.median(ious)),
         "fallback_to_whole_image": float(np.mean([row["searched"] == "image" for row in rows])),
@@ -193,6 +197,8 @@ def format_report(s: dict) -> str:
              f"  median error {_num(r['median_translation_error_pct_diameter'], '.2f')} % of diameter, "
              f"{_num(r['median_rotation_error_deg'], '.2f')}°; window IoU ≥ 0.5 in {100 * r['window_iou_ge_0.5']:.0f} % "
              f"(median {r['window_iou_median']:.2f}); whole-image fallback in {100 * r['fallback_to_whole_image']:.0f} %",
+             f"  the found poses' covariance: NEES median {_num(r.get('nees_p50'), '.2f')} (χ²₆'s 5.35), "
+             f"{_share(r.get('nees_in95'), 1)} of the truths within the reported 95 % ellipsoid",
              "  success by angle: " + ", ".join(f"{c['from_deg']}–{c['to_deg']}°: {_share(c['success'])} ({c['scenes']})"
                                                  for c in r["curve"])]
     for name, block in (("rendered", r), ("box.mp4", v)):
@@ -363,14 +369,28 @@ def group_table(rows: list[dict]) -> dict:
 
 def _found_errors(found: list[dict]) -> dict:
     """The found poses' errors: median and 90th percentile, % of the diameter and degrees; their
-    NEES's median and the share within the reported 95 % ellipsoid (None: none measured)."""
-    from quatrack.bench.track_zoo import NEES_95
-
+    NEES's median and the share within the reported 95 % ellipsoid (:func:`nees_summary`)."""
     dt, dr = [r["dt_pct"] for r in found], [r["dr_deg"] for r in found]
-    e = [r["nees"] for r in found if r.get("nees") is not None]
     return {"err_p50_pct": _pct(dt, 50), "err_p90_pct": _pct(dt, 90),
             "err_p50_deg": _pct(dr, 50), "err_p90_deg": _pct(dr, 90),
-            "nees_p50": _pct(e, 50), "nees_in95": (sum(v < NEES_95 for v in e) / len(e)) if e else None}
+            **nees_summary([r.get("nees") for r in found])}
+
+
+def nees_summary(values) -> dict:
+    """How honest reported covariances are, from the NEES of each pose (None: not measured):
+    ``nees_p50``, the median (χ²₆'s is 5.35), and ``nees_in95``, the share of poses whose truth
+    lies within the reported 95 % ellipsoid (NEES < χ²₆'s 95 % quantile, 12.59); None when none
+    was measured.
+
+    >>> nees_summary([1.0, 3.0, 20.0, None])
+    {'nees_p50': 3.0, 'nees_in95': 0.6666666666666666}
+    >>> nees_summary([None])
+    {'nees_p50': None, 'nees_in95': None}
+    """
+    from quatrack.bench.track_zoo import NEES_95
+
+    e = [v for v in values if v is not None]
+    return {"nees_p50": _pct(e, 50), "nees_in95": (sum(v < NEES_95 for v in e) / len(e)) if e else None}
 
 
 def zoo(models: dict, scenes_per_model: int, seed: int, progress: bool, params: LocateParams | None = None) -> dict:
@@ -453,8 +473,8 @@ def format_zoo(z: dict) -> str:
                  f"p95 {z['groups']['all']['pnp_p95_ms']:.1f} ms")
     a = z["groups"]["all"]
     if a.get("nees_in95") is not None:
-        lines.append(f"  the found poses' covariance: NEES median {a['nees_p50']:.2f} (χ²₆'s 5.35), "
-                     f"{100 * a['nees_in95']:.1f} % of the truths within the reported 95 % ellipsoid")
+        lines.append(f"  the found poses' covariance: NEES median {_num(a['nees_p50'], '.2f')} (χ²₆'s 5.35), "
+                     f"{_share(a['nees_in95'], 1)} of the truths within the reported 95 % ellipsoid")
     for w in z.get("wrong", []):
         v = w["verification"] or {}
         lines.append(f"  wrong: {w['object']} {w['views']} photo{'s' if w['views'] > 1 else ''} "

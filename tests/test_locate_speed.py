@@ -121,6 +121,9 @@ def test_bench_locate_report_with_nothing_to_report_for_some_figures():
     }
     text = B.format_report(summary)
     assert "(within 30°: -)" in text and "median error - % of diameter, -°" in text and "on the box in -" in text
+    assert "NEES median - (χ²₆'s 5.35), - of the truths" in text  # (no pose found: no covariance to judge)
+    summary["rendered"].update(B.nees_summary([0.5, 2.0, 30.0]))
+    assert "NEES median 2.00 (χ²₆'s 5.35), 66.7 % of the truths within" in B.format_report(summary)
 
 
 def test_ransac_pose_fits_a_consensus_on_one_plane():
