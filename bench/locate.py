@@ -20,6 +20,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from quatrack.bench.track_zoo import NEES_95, nees
 from quatrack.recognition.locate import LocateParams, locate
 from quatrack.recognition.match import index_for
 from quatrack.recognition.overlay import draw_label, draw_wireframe
@@ -56,8 +57,6 @@ def rendered(n: int, seed: int, model, camera, progress: bool) -> dict:
     rng = np.random.default_rng(seed)
     index = index_for(model)
     diameter = float(model.mesh.extent)
-    from quatrack.bench.track_zoo import nees
-
     rows = []
     for _ in tqdm(range(n), desc="rendered scenes", disable=not progress, unit="scene"):
         sc = S.random_scene(rng, renderer, camera, backgrounds)
@@ -306,8 +305,6 @@ def located_row(r, pose, mesh) -> dict:
     the found pose's NEES (``eᵀ C⁻¹ e`` of its error under its reported covariance over
     ``[p, δθ]``: :func:`~quatrack.bench.track_zoo.nees`), time, confidence, the verification's
     evidence, why not found."""
-    from quatrack.bench.track_zoo import nees
-
     dt, dr = S.pose_errors(r.t, r.q_wxyz, pose, mesh) if r.found else (None, None)
     return {"result": _judge(r, pose, mesh), "dt_pct": None if dt is None else float(100 * dt / mesh.extent),
             "dr_deg": None if dr is None else float(dr), "nees": nees(r, pose) if r.found else None,
@@ -387,8 +384,6 @@ def nees_summary(values) -> dict:
     >>> nees_summary([None])
     {'nees_p50': None, 'nees_in95': None}
     """
-    from quatrack.bench.track_zoo import NEES_95
-
     e = [v for v in values if v is not None]
     return {"nees_p50": _pct(e, 50), "nees_in95": (sum(v < NEES_95 for v in e) / len(e)) if e else None}
 
