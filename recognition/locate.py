@@ -380,8 +380,7 @@ def typical_object_px(model: ObjectModel, image_width: int) -> float:
     side of the geometric mean of the smallest and largest training silhouettes (registered and
     synthetic views, ``model.rfch.size_min``/``size_max``), carried over by the image widths
     (as the window search carries them; :func:`~.window_search.window_shapes`)."""
-    widths = [vs.camera.width for vs in model.viewsets if not vs.learned]
-    train_w = float(np.median(widths)) if widths else float(image_width)
+    train_w = model.training_width or float(image_width)
     (w0, h0), (w1, h1) = model.rfch.size_min, model.rfch.size_max
     return float(max(np.sqrt(w0 * w1), np.sqrt(h0 * h1)) * image_width / train_w)
 

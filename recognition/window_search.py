@@ -42,7 +42,7 @@ import numpy as np
 
 from quatrack.tracking.camera import PinholeCamera
 from quatrack.tracking.jit import lazily_compiled
-from quatrack.viewsets.rfch import RFCHModel, descriptor_planes, nearest_centres, neighbour_planes
+from quatrack.viewsets.rfch import RFCHModel, descriptor_planes, nearest_centres, neighbour_planes, texture_zoom
 from quatrack.viewsets.store import ObjectModel
 
 from .fields import check_field_kinds
@@ -101,16 +101,18 @@ class LabelMap:
     scale: float
 
 
-def label_map(image: np.ndarray, rfch: RFCHModel, params: WindowSearchParams = WindowSearchParams()) -> LabelMap:
+def label_map(image: np.ndarray, rfch: RFCHModel, params: WindowSearchParams = WindowSearchParams(),
+              zoom: float = 1.0) -> LabelMap:
     """RFCH labels of a reduced-resolution copy of ``image``, unlabelled beyond the cut-off.
 
-    The model's Gaussian scales are in image pixels; in the reduced map they shrink with it, so
+    The model's Gaussian scales are in training pixels, ``zoom`` image pixels each
+    (:func:`~quatrack.viewsets.rfch.texture_zoom`); in the reduced map they shrink with it, so
     scale-normalised derivatives describe the same structures.
     """
     h, w = image.shape[:2]
     s = min(1.0, params.label_side / max(h, w))
     small = image if s == 1.0 else cv2.resize(image, (max(1, round(w * s)), max(1, round(h * s))), interpolation=cv2.INTER_AREA)
-    planes = descriptor_planes(small, tuple(float(sig) * s for sig in rfch.scales))
+    planes = descriptor_planes(small, tuple(float(sig) * zoom * s for sig in rfch.scales))
     lab, d2 = nearest_centres(planes, rfch.centres, rfch.desc_mean, rfch.desc_std)
     lab[d2 > params.max_label_distance**2 * planes.shape[0]] = -1
     return LabelMap(lab.reshape(small.shape[:2]), small.shape[1] / w)
@@ -286,8 +288,7 @@ def window_shapes(model: ObjectModel, image_size: tuple[int, int], scale: float,
     their image, are carried to the query image and widened by ``size_factors``: the training
     views (registered and synthetic, at several distances) bound the search; views learned
     while tracking have their boxes in those units already (quatrack.viewsets.learn)."""
-    widths = [vs.camera.width for vs in model.viewsets if not vs.learned]
-    train_w = float(np.median(widths)) if widths else float(image_size[0])
+    train_w = model.training_width or float(image_size[0])
     rf = model.rfch
     return _window_shapes(train_w, tuple(rf.size_min), tuple(rf.size_max), image_size[0], float(scale), tuple(grid), params)
 
@@ -395,10 +396,11 @@ def search_window(
     or None if nothing in the image carries an object label. ``image``: 8-bit BGR for ``camera``."""
     rf = model.rfch
     n = rf.n_clusters
-    lm = label_map(image, rf, params)
+    zoom = texture_zoom(model.training_width, image.shape[1])
+    lm = label_map(image, rf, params, zoom)
     if not (lm.labels >= 0).any():
         return None
-    d = max(1, int(round(rf.distance * lm.scale)))
+    d = max(1, int(round(rf.distance * zoom * lm.scale)))
     kept = _kept_bins(rf.histogram, params.bins)
     m = compress(rf.histogram.reshape(1, -1).astype(np.float32), kept)[0]
     C = cell_histograms(lm.labels, n, d, params.cell, kept, params.stride)  # (rows, cols, k + 1)

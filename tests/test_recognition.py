@@ -533,3 +533,24 @@ def test_a_pose_found_in_the_whole_image_after_the_window_failed_has_the_objects
     blank = np.full_like(sc.image, 127)
     miss = locate(blank, CAMERA, model)
     assert not miss.found and miss.searched == "image" and miss.bbox == corner == miss.window
+
+
+def test_a_sharper_cameras_frames_are_searched_at_the_textures_training_scale(model, scenes):
+    # a camera with 4× the pixels over the same field (2560 × 1920) sees the texture 4× larger:
+    # RFCH's scales and pair distance kept in its pixels described finer structure than training
+    # did, and the window missed the cookie box in 4 of 5 such frames of its video ("no
+    # object-like window", no whole-image search). They are carried by the widths' ratio.
+    from quatrack.viewsets.rfch import texture_zoom
+
+    assert texture_zoom(model.training_width, 2560) > 3.0
+    k = 4
+    cam = type(CAMERA)(CAMERA.fx * k, CAMERA.fy * k, k * (CAMERA.cx + 0.5) - 0.5, k * (CAMERA.cy + 0.5) - 0.5,
+                       width=640 * k, height=480 * k)
+    on = 0
+    for sc in scenes[0]:
+        big = cv2.resize(sc.image, (640 * k, 480 * k), interpolation=cv2.INTER_CUBIC)
+        w = search_window(big, cam, model)
+        bbox = tuple(v / k for v in w.bbox)
+        on += bool(w.found and iou(bbox, sc.bbox) >= 0.4)
+    assert on >= 7  # as at 640 × 480 (test_window_lands_on_the_object); 4 of 8 before
+

@@ -81,12 +81,14 @@ def is_new_direction(pose: Pose, centre: np.ndarray, viewsets: list[Viewset], mi
 
 def learned_viewset(label: str, image: np.ndarray, feature_mask: np.ndarray, camera: PinholeCamera, pose: Pose,
                     mesh: Mesh, params: ViewsetParams, min_cos: float = MIN_COS,
-                    rfch: RFCHModel | None = None) -> Viewset:
+                    rfch: RFCHModel | None = None, zoom: float = 1.0) -> Viewset:
     """The viewset of one video frame at a tracked ``pose``: SIFT inside ``feature_mask`` (the
     visible faces, away from the silhouette), described with the model's ``params``, each
     keypoint's ray cast onto the mesh (:func:`~quatrack.viewsets.viewset.build_viewset`), only
     where it meets the face with ``|cos| ≥ min_cos``. With ``rfch``, the frame's object pixels'
-    label co-occurrence (:attr:`Viewset.cooccurrence`) comes along for the window search.
+    label co-occurrence (:attr:`Viewset.cooccurrence`) comes along for the window search, its
+    scales and pair distance ``zoom`` frame pixels per training pixel, as the window search
+    describes this camera's frames (:func:`~.rfch.texture_zoom`).
 
     The work is done on the object's box (plus a margin for SIFT's and the RFCH's
     neighbourhoods) seen by the same camera with its principal point shifted — the same rays,
@@ -95,7 +97,8 @@ def learned_viewset(label: str, image: np.ndarray, feature_mask: np.ndarray, cam
     :func:`~.render.footprint`): the same buffers there as the whole frame's render."""
     empty = Viewset(label, -1, False, camera, pose, np.zeros((0, 2), np.float32), np.zeros((0, 128), np.float32),
                     np.zeros((0, 3)), (0, 0, 0, 0), learned=True)
-    m = 16 + (int(np.ceil(3 * max(rfch.scales))) + rfch.distance if rfch is not None else 0)
+    pair_d = max(1, int(round(rfch.distance * zoom))) if rfch is not None else 0
+    m = 16 + (int(np.ceil(3 * max(rfch.scales) * zoom)) + pair_d if rfch is not None else 0)
     win = footprint(mesh, camera, pose, m)
     if win is None:
         return empty
@@ -121,18 +124,12 @@ def learned_viewset(label: str, image: np.ndarray, feature_mask: np.ndarray, cam
     if rfch is not None:
         # the descriptors of the whole frame (their intensity is normalised over the image, as
         # in training and in the window search), labelled only on the object: only its pixels pair up
-        planes = descriptor_planes(image, tuple(rfch.scales))[:, y0:y1, x0:x1]
+        planes = descriptor_planes(image, tuple(float(sig) * zoom for sig in rfch.scales))[:, y0:y1, x0:x1]
         inside = buf.face >= 0
         labels = np.full(inside.shape, -1, np.int32)
         labels[inside] = label_planes(planes[:, inside][:, :, None], rfch.centres, rfch.desc_mean, rfch.desc_std).ravel()
-        co = cooccurrence(labels, buf.mask, len(rfch.centres), rfch.distance)
+        co = cooccurrence(labels, buf.mask, len(rfch.centres), pair_d)
     return dataclasses.replace(vs.uncropped(camera, x0, y0), learned=True, cooccurrence=co)
-
-
-def _train_width(model: ObjectModel) -> float:
-    """The median width of the trained views' images: the unit of the RFCH window sizes."""
-    widths = [vs.camera.width for vs in model.viewsets if not vs.learned and vs.camera.width]
-    return float(np.median(widths)) if widths else 0.0
 
 
 def _rfch_with(model: ObjectModel, added: list[Viewset]) -> RFCHModel:
@@ -145,8 +142,8 @@ def _rfch_with(model: ObjectModel, added: list[Viewset]) -> RFCHModel:
         n = int(model.manifest.get("rfch_views", model.manifest.get("training_summary", {}).get("views", 1)) or 1)
         H = (n * rfch.histogram + sum(h / h.sum() for h in hists)) / (n + len(hists))
         rfch = dataclasses.replace(rfch, histogram=H / max(H.sum(), 1e-12))
-    tw = _train_width(model)
-    if tw > 0:
+    tw = model.training_width
+    if tw:
         lo, hi = np.array(rfch.size_min, float), np.array(rfch.size_max, float)
         for vs in added:
             if vs.camera.width and vs.bbox[2] > 0 and vs.bbox[3] > 0:

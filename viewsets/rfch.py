@@ -47,6 +47,24 @@ class RFCHModel:
 CHROMA_STD_FLOOR = 0.03
 
 
+def texture_zoom(training_width: float | None, image_width: float) -> float:
+    """How many pixels of an image ``image_width`` wide one pixel of the training photos
+    (``training_width`` wide: :attr:`~quatrack.viewsets.store.ObjectModel.training_width`) spans
+    for the RFCH's Gaussian scales and pair distance: the widths' ratio where the image is the
+    wider, else 1. A camera with 4× the pixels over the same field sees the texture 4× larger, and
+    scales kept in its pixels would describe finer structure than training did (the window search
+    then misses the object: a 2560 px frame of the cookie box 4 in 5 times); an image narrower than
+    the photos cannot show structure finer than its own pixels, so the scales never shrink below
+    the training's.
+
+    >>> texture_zoom(640, 2560), texture_zoom(718, 640), texture_zoom(None, 640)
+    (4.0, 1.0, 1.0)
+    """
+    if not training_width or training_width <= 0:
+        return 1.0
+    return max(1.0, float(image_width) / float(training_width))
+
+
 def _bgr(image: np.ndarray) -> np.ndarray:
     """float32 (H, W, 3) from a grey, BGR or BGRA image of any depth (values kept)."""
     img = np.asarray(image, np.float32)

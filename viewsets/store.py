@@ -66,6 +66,14 @@ class ObjectModel:
     # pose cannot fake (recognition/appearance.py). Models stored before session 36 have none.
     appearance: list[TextureReference] = field(default_factory=list)
 
+    @property
+    def training_width(self) -> float | None:
+        """The median width (px) of the images trained from (registered and synthetic views, not
+        views learned while tracking): the pixel unit of the RFCH's window sizes and texture
+        scales (:func:`~quatrack.viewsets.rfch.texture_zoom`); None when no view states it."""
+        widths = [vs.camera.width for vs in self.viewsets if not vs.learned and vs.camera.width]
+        return float(np.median(widths)) if widths else None
+
     def at_run_time(self) -> "ObjectModel":
         """This model with the mesh recognition and tracking work with (``Mesh.run_time``: a
         scan's decimation; most meshes are their own, and then this is the model itself)."""

@@ -63,6 +63,7 @@ from quatrack.tracking.systematic import carried_covariance, image_floor, system
 from quatrack.viewsets.camera import check_lens
 from quatrack.viewsets.errors import SpecError
 from quatrack.viewsets.learn import is_new_direction, learned_viewset, with_learned
+from quatrack.viewsets.rfch import texture_zoom
 from quatrack.viewsets.store import ObjectModel
 from quatrack.viewsets.viewset import Viewset, params_from_manifest
 
@@ -1013,7 +1014,8 @@ class Tracker:
             return
         mask = birth_mask(mesh, self.camera, pose, p)
         args = (f"learned{len(self.learned) + 1}", ctx.image, mask, self.camera, pose, mesh,
-                params_from_manifest(self.model.manifest), p.learn_min_cos, self.model.rfch if learn else None)
+                params_from_manifest(self.model.manifest), p.learn_min_cos, self.model.rfch if learn else None,
+                texture_zoom(self.model.training_width, self.camera.width))
         cap = Capture(slot, learn, time_s, pose, relayed=not self._first_hand)
         if slot is not None and p.keyframe_synthetic_deg:  # (the crop: its synthetic views, after a loss)
             cap.crop, cap.crop_camera = object_crop(ctx.image, self.camera, mesh, pose)
