@@ -25,7 +25,7 @@ from quatrack.viewsets.store import ObjectModel
 from .appearance import TextureAgreement, texture_agreement, texture_refit
 from .fields import check_field_kinds
 from .images import DEFAULT_MAX_PIXELS, prepare_image
-from .window_search import Window, WindowSearchParams, search_window
+from .window_search import Window, WindowSearchParams, colour_blind, search_window
 from .match import ModelIndex, index_for, rank_viewsets
 from .evidence import pose_shift
 from .pose import (RANSAC_SAMPLE, PnPSolution, PoseParams, Verification, polish, reprojection_rms, rival_inliers,
@@ -502,9 +502,15 @@ def locate(
 
     An image without the object is an answer too, with the reason:
 
-    >>> empty = locate(np.full((480, 640, 3), 128, np.uint8), camera, model)
+    >>> empty = locate(np.full((480, 640, 3), (60, 120, 180), np.uint8), camera, model)
     >>> empty.found, empty.reason
     (False, 'no object-like window')
+
+    A grey one is searched whole as well (the colours the model knows the box by cannot show):
+
+    >>> grey = locate(np.full((480, 640), 128, np.uint8), camera, model)
+    >>> grey.found, grey.searched, grey.reason
+    (False, 'image', 'no viewset has enough matches')
     >>> shutil.rmtree(store)
     """
     t_start = time.perf_counter()
@@ -538,13 +544,16 @@ def locate(
                 res.verification = first.verification
     # the whole image is searched when there is no window search, or when the window looked
     # like the object but gave no verified pose; a window that is nothing like the object
-    # (χ² beyond the gate) ends the search: "not found" stays fast. It is described at the
-    # window's scale: the window's size is the best guess of the object's, even when its place
-    # was wrong; with no window search, at full resolution
+    # (χ² beyond the gate) ends the search: "not found" stays fast — unless the image is grey
+    # and the model knows the object by its colours, when the window cannot judge absence
+    # (:func:`~.window_search.colour_blind`). It is described at the window's scale: the
+    # window's size is the best guess of the object's, even when its place was wrong; with no
+    # window search, at full resolution
     window_failed = win is not None and win.found and res.est is None
-    if res.est is None and (not params.use_window or (params.whole_image_fallback and window_failed)):
+    blind = params.use_window and res.est is None and not window_failed and colour_blind(img, model.rfch)
+    if res.est is None and (not params.use_window or (params.whole_image_fallback and (window_failed or blind))):
         searched = "image"
-        if window_failed and params.fallback_object_px is not None:
+        if (window_failed or blind) and params.fallback_object_px is not None:
             scale = min(scale, sift_scale((0, 0, typical_object_px(model, w), 0), params.fallback_object_px))
         first = res
         whole = params

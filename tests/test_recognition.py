@@ -554,3 +554,39 @@ def test_a_sharper_cameras_frames_are_searched_at_the_textures_training_scale(mo
         on += bool(w.found and iou(bbox, sc.bbox) >= 0.4)
     assert on >= 7  # as at 640 × 480 (test_window_lands_on_the_object); 4 of 8 before
 
+
+def _video_frames(indices):
+    cap = cv2.VideoCapture(str(S.EXAMPLE / "box.mp4"))
+    frames, i = {}, 0
+    while len(frames) < len(indices):
+        ok, f = cap.read()
+        assert ok
+        if i in indices:
+            frames[i] = f
+        i += 1
+    cap.release()
+    return [frames[i] for i in indices]
+
+
+def test_a_grey_frame_of_a_colour_trained_object_is_searched_whole_when_the_window_sees_nothing(model, scenes, monkeypatch):
+    # a grey camera cannot show the colours the model knows the cookie box by: the window search
+    # said "no object-like window" on 10 of 31 grey frames of its video, which were then never
+    # searched (all 31 are found in the whole image). A grey image's window verdict ends no search.
+    import quatrack.recognition.locate as L
+    from quatrack.recognition.window_search import Window, colour_blind
+
+    grey = [cv2.cvtColor(f, cv2.COLOR_BGR2GRAY) for f in _video_frames([75, 90, 105])]
+    assert colour_blind(cv2.cvtColor(grey[0], cv2.COLOR_GRAY2BGR), model.rfch)
+    for g in grey:
+        r = locate(g, CAMERA, model)
+        assert r.found, r.reason
+    # the rule is the grey image's, not a slower "not found" for colour images: with a window
+    # unlike the object, a colour image still ends its search there and a grey one does not
+    sc = scenes[0][0]
+    monkeypatch.setattr(L, "search_window", lambda *a, **k: Window((0.0, 0.0, 80.0, 80.0), 1.9, 1.9, False))
+    colour = locate(sc.image, CAMERA, model)
+    assert not colour.found and colour.searched == "window" and colour.reason == "no object-like window"
+    r = locate(cv2.cvtColor(sc.image, cv2.COLOR_BGR2GRAY), CAMERA, model)
+    assert r.found and r.searched == "image"
+    dt, dr = S.pose_errors(r.t, r.q_wxyz, sc.pose, model.mesh)
+    assert dt <= 0.05 * model.mesh.extent and dr <= 5.0
