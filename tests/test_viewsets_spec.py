@@ -254,3 +254,29 @@ def test_an_opencv_yaml_without_its_image_size_is_accepted_and_sized_by_its_imag
     q_yml = load_camera(_yaml_camera(tmp_path / "q.yml", camera_to_dict(query), None))
     r1, r2 = locate(frame, query, models[0]), locate(frame, q_yml, models[0])
     assert r1.found and r2.found and np.allclose(r1.t, r2.t) and np.allclose(r1.q_wxyz, r2.q_wxyz)
+
+
+@pytest.mark.parametrize(
+    "pose, words",
+    [
+        ({"rvec": [0, 0, 0], "tvec": [0, 0, 1], "q_wxyz": [1, 0, 0, 0], "t": [0, 0, 2]},
+         ["twice", "{rvec, tvec}", "{q_wxyz, t}"]),
+        ({"q_wxyz": [1, 0, 0, 0], "t": [0, 0, 2], "rvec": [0, 0, 0]}, ["'rvec'", "{rvec, tvec}", "keep one form"]),
+        ({"R": np.eye(3).tolist(), "t": [0, 0, 2], "tvec": [0, 0, 1]}, ["'tvec'", "keep one form"]),
+    ],
+)
+def test_a_pose_with_fields_of_two_forms_is_refused(pose, words):
+    """One set of fields was used and the other ignored without a word (user report F3)."""
+    with pytest.raises(SpecError) as info:
+        parse_pose(pose, "spec.json: view 2: pose")
+    for w in ["view 2", *words]:
+        assert w in str(info.value)
+
+
+def test_an_unknown_field_in_a_pose_is_warned_of(tmp_path):
+    """``"tvec_mm"`` beside ``rvec``/``tvec`` was ignored silently, while unknown fields of the
+    spec and of a view are told (user report F3)."""
+    said = []
+    pose = parse_pose({"rvec": [0, 0, 0], "tvec": [0, 0, 1], "tvec_mm": [0, 0, 1000]}, "view 0: pose", said.append)
+    np.testing.assert_allclose(pose.t, [0, 0, 1])
+    assert len(said) == 1 and "view 0: pose" in said[0] and "'tvec_mm'" in said[0] and "ignored" in said[0]

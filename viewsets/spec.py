@@ -63,11 +63,39 @@ def _vector(value: Any, n: int, where: str, field: str) -> np.ndarray:
     return np.asarray(value, dtype=float)
 
 
-def parse_pose(data: Any, where: str = "pose") -> Pose:
-    """A pose from ``{"rvec","tvec"}``, ``{"R","t"}`` (3×3 rows) or ``{"q_wxyz","t"}``."""
+#: the contract's pose forms, each the fields it needs
+POSE_FORMS = (("rvec", "tvec"), ("R", "t"), ("q_wxyz", "t"))
+POSE_FIELDS = ("rvec", "tvec", "R", "t", "q_wxyz")
+
+
+def _form_text(form: tuple[str, ...]) -> str:
+    return "{" + ", ".join(form) + "}"
+
+
+def _one_form(keys: set, where: str) -> None:
+    """Refuse a pose giving fields of two forms (``{rvec, tvec}`` and ``{q_wxyz, t}``, or
+    ``{q_wxyz, t}`` and a stray ``rvec``): one set was used and the other ignored without a word,
+    and which one the user meant cannot be told."""
+    whole = [f for f in POSE_FORMS if set(f) <= keys]
+    if len(whole) > 1:
+        raise SpecError(f"{where}: gives the pose twice, as {' and as '.join(map(_form_text, whole))}: keep one form")
+    if whole:
+        stray = [k for k in POSE_FIELDS if k in keys and k not in whole[0]]
+        if stray:
+            others = " or ".join(_form_text(f) for f in POSE_FORMS if set(stray) & set(f) and f != whole[0])
+            raise SpecError(f"{where}: field(s) {', '.join(map(repr, stray))} of the {others} form beside "
+                            f"{_form_text(whole[0])}: keep one form")
+
+
+def parse_pose(data: Any, where: str = "pose", warn=None) -> Pose:
+    """A pose from ``{"rvec","tvec"}``, ``{"R","t"}`` (3×3 rows) or ``{"q_wxyz","t"}``; fields of
+    two forms are refused, other fields told to ``warn`` (optional) and ignored, as elsewhere in a spec."""
     if not isinstance(data, dict):
         raise SpecError(f"{where}: a pose must be a JSON object")
     keys = set(data)
+    _one_form(keys, where)
+    if any(set(f) <= keys for f in POSE_FORMS):
+        _unknown(data, POSE_FIELDS, where, warn)
     if {"rvec", "tvec"} <= keys:
         rvec = _vector(data["rvec"], 3, where, "rvec")
         R = cv2.Rodrigues(rvec.reshape(3, 1))[0]
@@ -244,7 +272,7 @@ def load_spec(path: str | Path, warn=None, pose_required: bool = True, misfits: 
             camera = camera_from_dict(cam, f"{where}: camera")
         points = parse_points(v["points"], where) if "points" in v else None
         if "pose" in v:
-            pose = parse_pose(v["pose"], f"{where}: pose")
+            pose = parse_pose(v["pose"], f"{where}: pose", warn)
             if points is not None and warn:
                 if (msg := _points_disagree(points, camera, pose)) is not None:
                     warn(f"view {i}: {msg}")
