@@ -317,6 +317,37 @@ class StopAnswer:
                                  [(b"connection", b"close")])
 
 
+class EncodedSlashInName:
+    """An object name holding an encoded ``/`` (``/v1/objects/a%2fb``, ``..%2f..%2fetc/pose``) is
+    refused 400 ``invalid_object_name``, as every other name that could leave the store is, on
+    REST and on the WebSocket. Why here, before routing: the path is matched decoded, so the
+    ``/`` split the name — no route matched (404 ``not_found``, where the contract says 400), or
+    another one did (``POST /v1/objects/cookie-box%2fpose`` reached the pose of ``cookie-box``).
+    The raw path (``raw_path``, as the client wrote it) tells an encoded ``/`` from a real one."""
+
+    PREFIX = b"/v1/objects/"
+
+    def __init__(self, app) -> None:
+        self.app = app
+
+    async def __call__(self, scope, receive, send):
+        raw = scope.get("raw_path") if scope["type"] in ("http", "websocket") else None
+        if not raw or not raw.startswith(self.PREFIX) or b"%2f" not in raw.lower():
+            return await self.app(scope, receive, send)
+        segment = raw[len(self.PREFIX):].split(b"?")[0].split(b"/")[0]
+        if b"%2f" not in segment.lower():
+            return await self.app(scope, receive, send)
+        from urllib.parse import unquote
+
+        try:
+            ModelRegistry.check_name(unquote(segment.decode("latin-1")))
+        except ApiError as exc:
+            if scope["type"] == "http":
+                return await _send_json(send, exc.status_code, error_body(exc.code, exc.message))
+            return await deny_websocket(WebSocket(scope, receive, send), exc.status_code, exc.code, exc.message, 1008)
+        return await self.app(scope, receive, send)  # (unreachable: a name with '/' is never valid)
+
+
 class UnmatchedWebSocket:
     """The router's ``default`` for a WebSocket handshake no route matched: the tracking path with
     a final slash (``/v1/objects/NAME/track/``, which ``deploy/nginx.conf``'s ``track/?$`` passes
@@ -478,6 +509,7 @@ def create_app(settings: Settings | None = None, whole_process: bool = False) ->
     slashes.install(app)  # /v1/objects/ → ../objects: a relative Location, within a proxy's prefix
     app.router.default = UnmatchedWebSocket(app.router)  # .../track/ served, other handshakes a JSON 404
     app.add_middleware(errors.UnexpectedErrors)  # innermost: a 500 gets CORS, request id, nosniff as any answer
+    app.add_middleware(EncodedSlashInName)  # a%2fb: 400 invalid_object_name, not the router's 404
     app.add_middleware(HeadAsGet)  # HEAD reaches the routes as GET (their body dropped)
     app.add_middleware(BodyLimit, limit=settings.max_body_bytes)
     if settings.cors_origins:

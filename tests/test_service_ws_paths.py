@@ -25,7 +25,7 @@ def server():
         yield srv
 
 
-@pytest.mark.parametrize("path", ["/v1/objects/..%2f/track", "/v1/objects/cookie-box/trak", "/v1/nothing",
+@pytest.mark.parametrize("path", ["/v1/objects/cookie-box/trak", "/v1/nothing",
                                   "/v1/objects/cookie-box/track//"])
 def test_an_unmatched_websocket_path_is_a_json_404(server, path):
     with pytest.raises(InvalidStatus) as err:
