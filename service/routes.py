@@ -116,9 +116,15 @@ def serves_an_object(state: ServiceState, loaded: list[str]) -> bool:
     model is broken, is not ready: ``/readyz`` said 200 ``"models": []`` and a balancer or
     Kubernetes sent requests that could only be 404 or 503 (the deployment did not wait for the
     training Job); the store is polled, so the server becomes ready when a model is trained into
-    it. With ``QUATRACK_PRELOAD=0`` models load at their first request and ``/readyz`` waits for
-    none of it, as before."""
-    return bool(loaded) or not state.settings.preload
+    it. With ``QUATRACK_PRELOAD=0`` models load at their first request, so none need be loaded:
+    the store must hold an object whose model is not known to be broken (it had answered 200
+    whatever the store held, an empty one included)."""
+    if loaded:
+        return True
+    if state.settings.preload:
+        return False
+    failed = state.registry.failed()
+    return any(name not in failed for name in state.registry.names())
 
 
 @health.get("/readyz", response_model=Ready, summary="models are loaded (at least one)", responses={503: {"model": Ready}})

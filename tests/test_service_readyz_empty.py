@@ -26,8 +26,25 @@ def test_an_empty_store_is_not_ready_until_a_model_is_trained_into_it(tmp_path):
         assert httpx.get(f"{srv.url}/readyz", timeout=60).json()["models"] == ["cookie-box"]
 
 
-def test_without_preloading_readyz_waits_for_no_model(tmp_path):
-    """``QUATRACK_PRELOAD=0``: models load at their first request, so /readyz waits for none (as before)."""
-    with BackgroundServer(Settings(store=tmp_path, preload=False, model_poll_s=0)) as srv:
+def test_without_preloading_an_empty_store_is_not_ready(tmp_path):
+    """``QUATRACK_PRELOAD=0``: models load at their first request, so /readyz waits for none to
+    load, but a store with no object is still not ready (it answered 200 ``models: []``)."""
+    store = tmp_path / "store"
+    store.mkdir()
+    with BackgroundServer(Settings(store=store, preload=False, model_poll_s=0)) as srv:
         r = httpx.get(f"{srv.url}/readyz", timeout=60)
-        assert r.status_code == 200 and r.json()["ready"], r.text
+        assert r.status_code == 503 and r.json()["ready"] is False, r.text
+        shutil.copytree(example_store() / "cookie-box", store / "cookie-box")
+        r = httpx.get(f"{srv.url}/readyz", timeout=60)
+        assert r.status_code == 200 and r.json()["ready"] and r.json()["models"] == [], r.text  # (none loaded yet)
+
+
+def test_without_preloading_a_store_of_broken_models_is_not_ready(tmp_path):
+    store = tmp_path / "store"
+    shutil.copytree(example_store() / "cookie-box", store / "cookie-box")
+    (store / "cookie-box" / "model.npz").write_bytes(b"truncated")
+    with BackgroundServer(Settings(store=store, preload=False, model_poll_s=0)) as srv:
+        assert httpx.get(f"{srv.url}/readyz", timeout=60).status_code == 200  # (not known broken yet)
+        httpx.post(f"{srv.url}/v1/objects/cookie-box/reload", timeout=60)  # (the first request finds it broken)
+        r = httpx.get(f"{srv.url}/readyz", timeout=60)
+        assert r.status_code == 503 and "cookie-box" in r.json()["failed"], r.text
