@@ -465,12 +465,11 @@ def _run_train(args: argparse.Namespace) -> int:
     def warn(msg: str) -> None:
         bar.write(f"quatrack train: warning: {msg}", file=sys.stderr)
 
-    try:
-        model = train_object(spec, params, progress=bar.update, warn=warn, on_total=set_total)
+    try:  # (the registered poses' doubts first: a wrong pose also reads as few keypoints and weak texture)
+        model = train_object(spec, params, progress=bar.update, warn=warn, on_total=set_total,
+                             check=lambda s, mesh: _registration_doubts(s, mesh.run_time))
     finally:
         bar.close()
-    for msg in _registration_doubts(spec, model.mesh.run_time):
-        warn(msg)
     record_inputs(model, checksum)
     try:
         # (the views the replaced model learned while tracking are kept where they fit, read and
@@ -548,18 +547,29 @@ def _registration_doubts(spec, mesh) -> list[str]:
 
     from quatrack.recognition.evidence import edge_agreement
     from quatrack.recognition.pose import PoseParams
+    from quatrack.viewsets.train import XYZW_HINT
 
     p = PoseParams()
+
+    def bad(e) -> bool:
+        return e.samples >= p.min_edge_samples and (e.agreement < p.min_edge_agreement or e.lead < p.min_edge_lead)
+
     out = []
     for v in spec.views:
         grey = cv2.imread(str(v.image_path), cv2.IMREAD_GRAYSCALE)  # (read and checked by the training already)
         if grey is None or (grey.shape[1], grey.shape[0]) != (v.camera.width, v.camera.height):
             continue
         e = edge_agreement(grey, mesh, v.camera, v.pose)
-        if e.samples >= p.min_edge_samples and (e.agreement < p.min_edge_agreement or e.lead < p.min_edge_lead):
-            out.append(f"view {v.index}: the mesh's edges at its pose lie on the photo's edges for {e.agreement:.0%} of "
-                       f"their length ({e.chance:.0%} by chance; a pose locate finds needs {p.min_edge_agreement:.0%}, "
-                       f"{p.min_edge_lead:.0%} above chance): is the pose object → camera, in the mesh's units?")
+        if not bad(e):
+            continue
+        hint = "is the pose object → camera, in the mesh's units?"
+        if v.xyzw_pose is not None and np.all(v.xyzw_pose.apply(mesh.vertices)[:, 2] > 0):
+            x = edge_agreement(grey, mesh, v.camera, v.xyzw_pose)
+            if x.samples >= p.min_edge_samples and not bad(x):  # (the q_wxyz given in scipy's and ROS's order)
+                hint = f"{XYZW_HINT} (read so, {x.agreement:.0%} of its edges agree)"
+        out.append(f"view {v.index}: the mesh's edges at its pose lie on the photo's edges for {e.agreement:.0%} of "
+                   f"their length ({e.chance:.0%} by chance; a pose locate finds needs {p.min_edge_agreement:.0%}, "
+                   f"{p.min_edge_lead:.0%} above chance): {hint}")
     return out
 
 

@@ -42,6 +42,8 @@ class ViewSpec:
     mask_path: Path | None = None
     points: PointPairs | None = field(default=None, compare=False)
     pose_from_points: bool = False
+    # the pose were the spec's q_wxyz written [x, y, z, w] (:func:`xyzw_reading`), to hint at it
+    xyzw_pose: Pose | None = field(default=None, compare=False)
 
 
 @dataclass(frozen=True)
@@ -117,6 +119,9 @@ def parse_pose(data: Any, where: str = "pose", warn=None) -> Pose:
         n = float(np.linalg.norm(q))
         if n < 1e-9:
             raise SpecError(f"{where}: field 'q_wxyz' must not be zero")
+        if abs(n * n - 1.0) > ROTATION_TOLERANCE and warn:  # (as far from a rotation as an R refused is)
+            warn(f"{where}: field 'q_wxyz' is {n:.4g} long, not 1: read as the unit quaternion "
+                 f"{_shown_q(q / n)} (a unit quaternion [w, x, y, z] is expected)")
         R = quat.to_matrix(q / n)
         t = _vector(data["t"], 3, where, "t")
     else:
@@ -126,6 +131,25 @@ def parse_pose(data: Any, where: str = "pose", warn=None) -> Pose:
             f"{where}: unknown pose format with keys {sorted(keys)}; use {{rvec, tvec}}, {{R, t}} or {{q_wxyz, t}}{hint}"
         )
     return Pose.from_matrix(R, t)
+
+
+def _shown_q(q: np.ndarray) -> str:
+    return "[" + ", ".join(f"{v:.4g}" for v in q) + "]"
+
+
+def xyzw_reading(data: Any) -> Pose | None:
+    """The pose ``{"q_wxyz", "t"}`` would give were its quaternion written ``[x, y, z, w]`` (scipy's
+    and ROS's order), to tell the user when that reading fits the photo and the given one does
+    not; None for another pose form, or a quaternion whose two readings are one rotation."""
+    if not isinstance(data, dict) or not {"q_wxyz", "t"} <= set(data) or "rvec" in data or "R" in data:
+        return None
+    try:
+        x, y, z, w = (float(v) for v in data["q_wxyz"])
+        swapped = Pose(np.array([w, x, y, z]), np.asarray(data["t"], float))
+        given = Pose(np.array([x, y, z, w]), swapped.t)
+    except (TypeError, ValueError):
+        return None
+    return None if swapped.allclose(given, atol=1e-6) else swapped
 
 
 # how far R·Rᵀ may be from the identity: a rotation written with three decimals is up to 1.5e-3
@@ -292,7 +316,8 @@ def load_spec(path: str | Path, warn=None, pose_required: bool = True, misfits: 
                      f"`quatrack register` also fits it to the mesh's edges (3–6× nearer the truth on rendered "
                      f"photos) and draws it to check")
         mask = _path(base, v["mask"], where, "mask") if v.get("mask") is not None else None
-        views.append(ViewSpec(i, image, camera, pose, mask, points, "pose" not in v and points is not None))
+        views.append(ViewSpec(i, image, camera, pose, mask, points, "pose" not in v and points is not None,
+                              xyzw_reading(v.get("pose"))))
     if warn:
         for msg in _repeated_photos(views, path):
             warn(msg)

@@ -131,19 +131,36 @@ def check_pose(mesh: Mesh, view: ViewSpec, buffers: RenderBuffers | None = None,
     pixels is refused, with the numbers (how much is inside, of how much)."""
     X = view.pose.apply(mesh.vertices)
     if np.any(X[:, 2] <= 0):
+        hint = _xyzw_hint(mesh, view, min_pixels) or "is the pose object → camera, and its t in the mesh's units?"
         raise SpecError(f"view {view.index}: pose puts the object (partly) behind the camera (min z = {X[:, 2].min():.3g}): "
-                        f"is the pose object → camera, and its t in the mesh's units?")
+                        f"{hint}")
     buffers = buffers or render(mesh, view.camera, view.pose)
     seen = int(np.count_nonzero(buffers.face >= 0))
     if seen < min_pixels:
         uv = view.camera.project(X).astype(np.float32)
         hull_area = cv2.contourArea(cv2.convexHull(uv))
+        hint = _xyzw_hint(mesh, view, min_pixels) or "is the pose right (object → camera, its t in the mesh's units)?"
         raise SpecError(
             f"view {view.index}: the object shows only {seen} pixels inside the image (of ~{hull_area:.0f} "
-            f"for its whole silhouette; at least {min_pixels} are needed to learn from): is the pose right "
-            f"(object → camera, its t in the mesh's units)?"
+            f"for its whole silhouette; at least {min_pixels} are needed to learn from): {hint}"
         )
     return buffers
+
+
+XYZW_HINT = "is the quaternion in [x, y, z, w] order? the spec wants [w, x, y, z]"
+
+
+def _xyzw_hint(mesh: Mesh, view: ViewSpec, min_pixels: int) -> str:
+    """:data:`XYZW_HINT` with what the other reading gives, when the view's ``q_wxyz`` read as
+    ``[x, y, z, w]`` puts the object in front of the camera and shows it (``min_pixels``), else ""
+    (a spec in scipy's order was told of units and of the pose's direction only)."""
+    alt = view.xyzw_pose
+    if alt is None or np.any(alt.apply(mesh.vertices)[:, 2] <= 0):
+        return ""
+    seen = int(np.count_nonzero(render(mesh, view.camera, alt).face >= 0))
+    if seen < min_pixels:
+        return ""
+    return f"{XYZW_HINT} (read so, {seen} pixels of the object are inside the image)"
 
 
 # A photo larger than this is trained downscaled, its camera with it, as `locate` reads a query
@@ -268,11 +285,13 @@ def train_object(
     progress: Callable[[int], None] | None = None,
     warn: Callable[[str], None] | None = None,
     on_total: Callable[[int], None] | None = None,
+    check: Callable[[ObjectSpec, Mesh], list[str]] | None = None,
 ) -> ObjectModel:
     """Train the object of ``spec``; raises :class:`SpecError` (naming the culprit) on bad input.
 
     ``on_total(n)`` is told the number of viewsets to build and ``progress(1)`` is called after
-    each one (for a progress bar); ``warn`` receives non-fatal problems (a view with few keypoints).
+    each one (for a progress bar); ``warn`` receives non-fatal problems (a view with few keypoints),
+    first those ``check(spec, mesh)`` (optional) returns once the views are read.
     Three steps: the views are read and checked against the mesh, the viewsets (registered and
     synthetic) are built — again, with SIFT's contrast threshold halved, while the registered
     views show too little texture (:func:`keypoint_density` under ``params.min_keypoint_density``,
@@ -287,6 +306,9 @@ def train_object(
     t0 = time.perf_counter()
     mesh = load_mesh(spec.mesh_path, warn=warn)
     views = [_prepare_view(mesh, v, warn) for v in spec.views]
+    if check is not None and warn:  # (the poses' doubts before the texture's: a wrong pose makes weak texture too)
+        for msg in check(spec, mesh):
+            warn(msg)
     asked = params.viewsets.contrast_threshold
     viewsets, params, weak = _viewsets_for_texture(mesh, _tasks(mesh, views, params.novel), params, progress, on_total)
     viewsets = _checked(viewsets, params, warn)  # (raises: nothing to learn even at the lowest threshold)
