@@ -748,7 +748,7 @@ def _run_locate(args: argparse.Namespace) -> int:
     for path in args.images:
         try:
             image = read_image(path)
-            result = locate(image, _resized(camera, image, said), model, params, index=index)
+            result = locate(image, _resized(camera, image, said, args.camera), model, params, index=index)
         except ImageError as exc:
             failed = True
             if args.json:
@@ -768,14 +768,20 @@ def _run_locate(args: argparse.Namespace) -> int:
     return 1 if failed else 0
 
 
-def _resized(camera, image, said: set):
+def _resized(camera, image, said: set, where: str = "--camera"):
     """``camera``, scaled when ``image`` is its images resized (:func:`~quatrack.viewsets.camera.
     resized_for`: the same aspect ratio), said once per size on stderr; otherwise as it is (an
-    image of another aspect ratio is refused by ``locate``, as before)."""
-    from quatrack.viewsets.camera import resized_for
+    image of another aspect ratio is refused by ``locate``, as before). A camera whose numbers
+    show its stated size is wrong (:func:`~quatrack.viewsets.camera.stated_size_doubt`: its
+    principal point the centre of the image as it is) is refused for this image (``where``: the
+    camera file): scaled, its focal length was halved and the object "not found"."""
+    from quatrack.recognition.images import ImageError
+    from quatrack.viewsets.camera import resized_for, stated_size_doubt
 
     h, w = image.shape[:2]
-    fitted, note = resized_for(camera, w, h)
+    fitted, note = resized_for(camera, w, h, "resized images")
+    if note is not None and (doubt := stated_size_doubt(camera, w, h)) is not None:
+        raise ImageError(f"{where}: {doubt} (it was not scaled to the image)")
     if note is not None and (w, h) not in said:
         said.add((w, h))
         print(f"quatrack locate: warning: {note}", file=sys.stderr)
@@ -825,7 +831,7 @@ def _locate_all(args: argparse.Namespace, camera, params) -> int:
         t0 = time.perf_counter()
         try:
             image = read_image(path)
-            results = locate_all(image, _resized(camera, image, said), models, params)
+            results = locate_all(image, _resized(camera, image, said, args.camera), models, params)
         except ImageError as exc:
             failed = True
             if args.json:

@@ -21,7 +21,7 @@ from quatrack.tracking.camera import PinholeCamera
 from .errors import SpecError
 
 __all__ = ["load_camera", "camera_from_dict", "camera_to_dict", "check_lens", "check_plausible", "lens_reach_px",
-           "misspelt_field", "resized_for", "within_pixels"]
+           "misspelt_field", "resized_for", "stated_size_doubt", "within_pixels"]
 
 _KEYS = ("fx", "fy", "cx", "cy")
 CAMERA_FIELDS = ("width", "height", "fx", "fy", "cx", "cy", "dist_coeffs")
@@ -318,7 +318,8 @@ def camera_to_dict(camera: PinholeCamera) -> dict:
 RESIZE_ASPECT_TOLERANCE = 0.01  # relative difference of the two scale factors still read as one resize
 
 
-def resized_for(camera: PinholeCamera, width: int, height: int) -> tuple[PinholeCamera, str | None]:
+def resized_for(camera: PinholeCamera, width: int, height: int,
+                what: str = "a resized video") -> tuple[PinholeCamera, str | None]:
     """The camera for ``width`` × ``height`` images when they are its own images resized (the
     same aspect ratio, the two scale factors within 1 %): its intrinsics scaled
     (:meth:`~quatrack.tracking.camera.PinholeCamera.scaled`, pixel centres kept), with a note
@@ -342,4 +343,33 @@ def resized_for(camera: PinholeCamera, width: int, height: int) -> tuple[Pinhole
     s = 0.5 * (sx + sy)
     return (replace(camera.scaled(sx, width, height), fy=camera.fy * sy, cy=sy * (camera.cy + 0.5) - 0.5),
             f"the camera is for {camera.width}×{camera.height} px images and these are {width}×{height} px: "
-            f"its intrinsics scaled by {s:.3g} (a resized video)")
+            f"its intrinsics scaled by {s:.3g} ({what})")
+
+
+# A principal point within this share of the image's size from its centre is "at the centre";
+# one this far from the stated size's centre is "not" (a calibration's lies within a few %).
+CENTRE_NEAR, CENTRE_FAR = 0.05, 0.15
+
+
+def stated_size_doubt(camera: PinholeCamera, width: int, height: int) -> str | None:
+    """Why the camera's stated size, not the image, is wrong, or None: its principal point is the
+    centre of the ``width`` × ``height`` image as it is and far from the centre of the size the
+    camera states — the intrinsics of this image under another image's width and height (a
+    camera file copied from another resolution), which scaling would halve or double (``locate``
+    found nothing, a warning about a resized video its one clue).
+
+    >>> cam = PinholeCamera(600.0, 600.0, 319.5, 239.5, width=1280, height=960)
+    >>> stated_size_doubt(cam, 640, 480)
+    'the camera states 1280×960 px images but its principal point (319.5, 239.5) is the centre of this 640×480 px image: are its width and height wrong?'
+    >>> stated_size_doubt(PinholeCamera(1200.0, 1200.0, 639.5, 479.5, width=1280, height=960), 640, 480) is None
+    True
+    """
+    if camera.width is None or camera.height is None or (camera.width, camera.height) == (width, height):
+        return None
+    here = max(abs((camera.cx + 0.5) / width - 0.5), abs((camera.cy + 0.5) / height - 0.5))
+    stated = max(abs((camera.cx + 0.5) / camera.width - 0.5), abs((camera.cy + 0.5) / camera.height - 0.5))
+    if here > CENTRE_NEAR or stated < CENTRE_FAR:
+        return None
+    return (f"the camera states {camera.width}×{camera.height} px images but its principal point "
+            f"({camera.cx:g}, {camera.cy:g}) is the centre of this {width}×{height} px image: are its width and "
+            f"height wrong?")
