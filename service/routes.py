@@ -239,6 +239,35 @@ def unknown_query(request: Request) -> ApiError | None:
     return None
 
 
+TRACK_QUERY = ("token", "format", "mesh_unit")  # the track WebSocket's query parameters
+
+
+def unknown_track_query(params) -> ApiError | None:
+    """The 422 for a query parameter the track WebSocket does not read, else None: as the pose
+    endpoints refuse theirs (:func:`unknown_query`). Why: the handshake ignored them, so a client
+    giving the camera in the URL, as the pose endpoints take it (``?fx=…``, ``?dist_coeffs=…``),
+    opened a session and heard nothing of it. A camera field is pointed to the first message,
+    where a session's camera goes; another name to the nearest one the endpoint reads."""
+    import difflib
+
+    from quatrack.viewsets.camera import CAMERA_FIELDS, FIELD_ALIASES
+
+    takes = f"the track endpoint takes {', '.join(TRACK_QUERY)}"
+    for key in params.keys():
+        if key in TRACK_QUERY:
+            continue
+        shown = repr(key if len(key) <= 40 else key[:37] + "...")
+        low = key.strip().lower()
+        if low in CAMERA_FIELDS or low in FIELD_ALIASES:
+            return ApiError(422, "bad_camera", f"unknown query parameter {shown}: a session's camera is its first "
+                                               f"message (the camera JSON), not the URL's query; {takes}")
+        meant = ["token"] if low in ("token", "access_token") else difflib.get_close_matches(low, TRACK_QUERY, n=1,
+                                                                                           cutoff=0.75)
+        hint = f" (did you mean {meant[0]!r}?)" if meant else ""
+        return ApiError(422, "invalid_input", f"unknown query parameter {shown}{hint}: {takes}")
+    return None
+
+
 def camera_query(
     request: Request,
     fx: Annotated[float | None, Query(description="focal length x, px (when no `camera` form field)")] = None,
@@ -473,6 +502,8 @@ async def track(websocket: WebSocket, name: str) -> None:
         return await deny_websocket(websocket, 403, "forbidden_origin",
                            "a page of another site may not open this server's WebSocket (its origin is not "
                            "this server's; allow it with QUATRACK_CORS_ORIGINS, or set QUATRACK_API_TOKEN)", 1008)
+    if (refused := unknown_track_query(websocket.query_params)) is not None:
+        return await deny_websocket(websocket, refused.status_code, refused.code, refused.message, 1008)
     try:
         state.registry.check_name(name)
     except ApiError as exc:
