@@ -265,12 +265,15 @@ def simplified(mesh: Mesh, faces: int) -> Mesh:
 def _trimesh():
     """The trimesh module, imported with Ctrl-C held until the import ends. trimesh wraps its
     optional imports (scipy, seconds on a cold disk) in ``except BaseException``: a Ctrl-C
-    there was swallowed, and training went on to replace the model the user meant to keep."""
+    there was swallowed, and training went on to replace the model the user meant to keep. A
+    process that ignores Ctrl-C (a script's ``quatrack train … &``, a training worker) keeps
+    ignoring it: the held one ended such a run with exit 130 when it came during the import."""
     import signal
     import sys
     import threading
 
-    if "trimesh" in sys.modules or threading.current_thread() is not threading.main_thread():
+    if ("trimesh" in sys.modules or threading.current_thread() is not threading.main_thread()
+            or signal.getsignal(signal.SIGINT) is signal.SIG_IGN):
         import trimesh
 
         return trimesh
