@@ -431,7 +431,7 @@ def _run_train(args: argparse.Namespace) -> int:
     from quatrack.viewsets.batch import exists_message, inputs_checksum, record_inputs, up_to_date
     from quatrack.viewsets.spec import load_spec
     from quatrack.viewsets.learn import BACKUP_DIR, save_trained
-    from quatrack.viewsets.store import model_path, resolve_store
+    from quatrack.viewsets.store import model_path, resolve_store, retrain_reason
     from quatrack.viewsets.train import train_object
 
     t0 = time.perf_counter()
@@ -450,11 +450,15 @@ def _run_train(args: argparse.Namespace) -> int:
     # (--skip-existing first: with nothing to do, --no-overwrite's "already exists" and a
     # read-only store's "cannot write" failed the call)
     checksum = inputs_checksum(spec, params)
-    if args.skip_existing and up_to_date(spec, store, checksum, _train_warning):
+    said: list[str] = []  # (--skip-existing's "…; training it again", said once --no-overwrite lets it)
+    if args.skip_existing and up_to_date(spec, store, checksum, said.append):
         print(f"{spec.name!r} is already trained from {spec_path} in {store}: nothing to do")
         return 0
     if args.no_overwrite and model_path(store, spec.name).exists():
-        raise UserError(exists_message([spec.name], store))
+        stale = [(spec.name, retrain_reason(store, spec.name, checksum))] if args.skip_existing else []
+        raise UserError(exists_message([spec.name], store, stale))
+    for msg in said:
+        _train_warning(msg)
     _writable_store(store, above)
     bar = tqdm(total=0, desc=f"training {spec.name}", unit="view", file=sys.stderr, disable=None, leave=False)
 

@@ -125,3 +125,21 @@ def test_no_overwrite_names_every_existing_object(spec, tmp_path, capsys, monkey
     assert main(args) == 2
     err = capsys.readouterr().err
     assert err == f"quatrack train: error: objects {NAME!r}, 'other' already exist in {store} (and --no-overwrite was given)\n"
+
+
+def test_skip_existing_with_no_overwrite_says_one_thing(spec, tmp_path, capsys):
+    """Inputs changed: ``--skip-existing --no-overwrite`` warned "…; training it again" and then
+    failed with "already exists" (user report F8); now one error line says both."""
+    store = tmp_path / "store"
+    assert train(spec, store) == 0 and trained_again(capsys)
+    photo = spec.parent / "photo.jpg"
+    img = cv2.imread(str(photo))
+    img[0, 0] = 255 - img[0, 0]
+    cv2.imwrite(str(photo), img)
+    second = spec.with_name("other.json")
+    second.write_text(json.dumps({**json.loads(spec.read_text()), "name": "other"}))
+    for specs in (spec, [spec, second]):
+        assert train(specs, store, "--no-overwrite", "--jobs", "1") == 2
+        out, err = capsys.readouterr()
+        assert "training it again" not in err and "warning" not in err and len(err.splitlines()) == 1, err
+        assert "already exist" in err and "--no-overwrite" in err and f"would train {NAME!r} again (" in err, err

@@ -164,7 +164,7 @@ def _plan(spec_paths: list[str], store: Path, no_overwrite: bool, warn=None,
     ``no_overwrite`` (nothing is written: "already exists" failed a call with nothing to do), and
     the refusal names every existing object (it named the first)."""
     names: dict[str, str] = {}
-    out, existing = [], []
+    out, existing, stale = [], [], []
     for p in spec_paths:
         spec = load_spec(p, warn)
         # the files it names must be there too (a typo in a path is the commonest bad spec; only
@@ -175,21 +175,34 @@ def _plan(spec_paths: list[str], store: Path, no_overwrite: bool, warn=None,
         if spec.name in names:
             raise SpecError(f"{p} and {names[spec.name]} both define object {spec.name!r}")
         names[spec.name] = p
-        done = params is not None and up_to_date(spec, store, inputs_checksum(spec, params),
-                                                  warn and (lambda msg, p=p: warn(f"{p}: {msg}")))
-        if no_overwrite and not done and model_path(store, spec.name).exists():
+        kept = no_overwrite and model_path(store, spec.name).exists()  # (not "training it again", then refused)
+        said: list[str] = []
+        done = params is not None and up_to_date(spec, store, inputs_checksum(spec, params), said.append)
+        if kept and not done:
             existing.append(spec.name)
+            if params is not None:
+                stale.append((spec.name, retrain_reason(store, spec.name, inputs_checksum(spec, params))))
+        elif warn:
+            for msg in said:
+                warn(f"{p}: {msg}")
         out.append((str(Path(p).resolve()), spec.name, done))
     if existing:
-        raise StoreError(exists_message(existing, store))
+        raise StoreError(exists_message(existing, store, stale))
     return out
 
 
-def exists_message(names: list[str], store) -> str:
-    """``--no-overwrite``'s refusal, naming every object that exists."""
+def exists_message(names: list[str], store, stale: list[tuple[str, str | None]] = ()) -> str:
+    """``--no-overwrite``'s refusal, naming every object that exists; ``stale``: ``(name, why)``
+    of those ``--skip-existing`` found out of date (:func:`retrain_reason`), said in the same
+    line (a warning "…; training it again" came first, then this refusal)."""
     if len(names) == 1:
-        return f"object {names[0]!r} already exists in {store} (and --no-overwrite was given)"
-    return f"objects {', '.join(map(repr, names))} already exist in {store} (and --no-overwrite was given)"
+        msg = f"object {names[0]!r} already exists in {store} (and --no-overwrite was given)"
+    else:
+        msg = f"objects {', '.join(map(repr, names))} already exist in {store} (and --no-overwrite was given)"
+    stale = [(n, why) for n, why in stale if why]
+    if stale:
+        msg += "; --skip-existing would train " + ", ".join(f"{n!r} again ({why})" for n, why in stale)
+    return msg
 
 
 def train_many(spec_paths: list[str], store: str | Path, params: TrainParams = TrainParams(), jobs: int = 2,
