@@ -27,7 +27,7 @@ from quatrack.cli import main
 from quatrack.viewsets.errors import StoreError
 
 NAME = "cookie-box"  # the conftest's store holds it (base_store, store: a test's own copy)
-UNREADABLE = ("lost+found", "private")
+UNREADABLE = ("old copy", "private")  # (another user's, mode 700: "old copy" is no object's name)
 
 
 @pytest.fixture
@@ -53,14 +53,14 @@ def test_an_unreadable_folder_is_reported_not_fatal(unreadable):
     assert all(why == "cannot be read (Permission denied)" for why in broken.values())
 
 
-def test_models_list_marks_an_unreadable_object_folder_and_skips_lost_found(unreadable, capsys):
+def test_models_list_marks_an_unreadable_object_folder_and_skips_another(unreadable, capsys):
     assert main(["models", "list", "--store", str(unreadable)]) == 0
     out, err = capsys.readouterr()
     rows = out.splitlines()
     assert rows[0].startswith(f"{NAME}\t") and "BROKEN" not in rows[0]
     assert rows[1] == "private\tBROKEN\tobject 'private': its folder cannot be read (Permission denied)"
-    assert len(rows) == 2  # lost+found is no object's name: said on stderr, one line
-    assert err == f"quatrack models: skipped {unreadable / 'lost+found'} (not an object's folder): it cannot be read (Permission denied)\n"
+    assert len(rows) == 2  # "old copy" is no object's name: said on stderr, one line
+    assert err == f"quatrack models: skipped {unreadable / 'old copy'} (not an object's folder): it cannot be read (Permission denied)\n"
     assert "Traceback" not in err
 
 
@@ -167,3 +167,14 @@ def test_models_list_check_exits_1_on_a_broken_object(store, capsys):
     assert main(["models", "list", "--check", "--store", str(store)]) == 1
     out, err = capsys.readouterr()
     assert "\tBROKEN\t" in out and err == "quatrack models: 1 of 1 object(s) BROKEN (--check)\n"
+
+
+def test_lost_found_and_dot_folders_are_not_listed(store, capsys):
+    """A store on a volume of its own has a ``lost+found``, which ``models list`` told to "delete
+    it or retrain it" (user report F8); dot-folders were skipped already."""
+    for n in ("lost+found", ".cache"):
+        (store / n).mkdir()
+    assert S.broken_folders(store) == {} and S.list_models(store) == [NAME]
+    assert main(["models", "list", "--store", str(store)]) == 0
+    out, err = capsys.readouterr()
+    assert len(out.splitlines()) == 1 and err == ""

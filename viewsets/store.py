@@ -507,15 +507,21 @@ def _build_model(name: str, manifest: dict, a: dict[str, np.ndarray]) -> ObjectM
     return ObjectModel(name, rfch, viewsets, mesh, manifest, _appearance(a))
 
 
+# a file system's own folders at its root (ext*, XFS): a store on its own volume has one, which
+# `models list` told to "delete it or retrain it" (never an object's: `+` is no name's)
+FILESYSTEM_FOLDERS = frozenset({"lost+found"})
+
+
 def _entries(store: Path) -> list[tuple[str, str | None]]:
-    """The store's visible folders: ``(name, None)`` for an object (a folder with a manifest),
+    """The store's visible folders (not dot-folders nor ``lost+found``): ``(name, None)`` for an
+    object (a folder with a manifest),
     ``(name, why)`` for a folder that is not one. Each entry is looked at on its own: one that
     cannot be read (``lost+found``, another user's folder, mode 700, on a server not run as
     root) was a PermissionError out of every listing — ``serve``, ``models list``, the service's
     store watch and ``GET /v1/objects``."""
     out: list[tuple[str, str | None]] = []
     for p in store.iterdir():
-        if p.name.startswith("."):
+        if p.name.startswith(".") or p.name in FILESYSTEM_FOLDERS:
             continue
         try:
             if (p / MANIFEST).is_file():
