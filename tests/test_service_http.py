@@ -205,7 +205,7 @@ def test_missing_pieces(client, frame_jpeg):
 def test_unknown_and_invalid_objects(client, frame_jpeg):
     assert_error(client.get("/v1/objects/mug"), 404, "unknown_object")
     assert_error(client.get("/v1/objects/.hidden"), 400, "invalid_object_name")
-    assert_error(client.get("/v1/objects/..%2F..%2Fetc"), 404)  # never reaches the store
+    assert_error(client.get("/v1/objects/..%2F..%2Fetc"), 400, "invalid_object_name")  # never reaches the store
     r = client.post("/v1/objects/mug/pose", content=frame_jpeg, headers={"content-type": "image/jpeg"},
                     params={k: CAMERA[k] for k in ("fx", "fy", "cx", "cy")})
     assert_error(r, 404, "unknown_object")
