@@ -341,8 +341,10 @@ def _sheet(path: str) -> None:
 
 
 def _floats(text: str, option: str) -> tuple[float, ...]:
-    """A comma-separated list of numbers; "none" (or empty) is the empty list."""
-    if text.strip().lower() in ("", "none", "0"):
+    """A comma-separated list of numbers; "none" (or empty) is the empty list. ("0" is the number:
+    it was "none" too, so ``--novel-scales 0`` trained without a word and ``bench register --noise 0``
+    was refused.)"""
+    if text.strip().lower() in ("", "none"):
         return ()
     try:
         values = tuple(float(x) for x in text.split(","))
@@ -399,9 +401,9 @@ def _train_params(args: argparse.Namespace):
     angles = _floats(args.novel_views, "--novel-views")
     scales = _floats(args.novel_scales, "--novel-scales")
     if any(s <= 0 for s in scales):
-        raise UserError("--novel-scales: factors must be positive")
+        raise UserError("--novel-scales: factors must be positive ('none' for no synthetic scales)")
     if any(not 0 < abs(a) < 90 for a in angles):
-        raise UserError("--novel-views: angles must be between 0 and 90 degrees")
+        raise UserError("--novel-views: angles must be between 0 and 90 degrees ('none' for no synthetic views)")
     if not args.novel_axes or set(args.novel_axes) - set("xyz"):
         raise UserError("--novel-axes: use letters among x, y, z")
     novel = NovelViewParams(angles, args.novel_axes, scales) if (angles or scales) else None
@@ -649,6 +651,9 @@ def _run_models(args: argparse.Namespace) -> int:
     store = resolve_store(args.store)
     if store.exists() and not store.is_dir():  # (else listed as an empty store, exit 0)
         raise UserError(f"--store {store}: not a directory")
+    name = getattr(args, "name", None)
+    if isinstance(name, str) and name.endswith("/") and NAME_RE.fullmatch(name.rstrip("/")):
+        args.name = name.rstrip("/")  # (the object's folder, as the shell completes it in the store: `delete box/`)
     if args.action == "list":
         remove_stale(store)
         names = list_models(store)
@@ -766,7 +771,8 @@ def _run_locate(args: argparse.Namespace) -> int:
             t = _position_text(result.t, model.mesh.extent)
             q = ", ".join(f"{v:.4f}" for v in result.q_wxyz)
             print(f"{path}: found  t = [{t}]  q_wxyz = [{q}]  inliers {result.inliers}/{result.matches}  "
-                  f"rms {result.reprojection_rms_px:.2f} px  viewset {result.viewset}  {result.time_ms['total']:.0f} ms")
+                  f"rms {result.reprojection_rms_px:.2f} px  confidence {result.confidence:.2f}  "
+                  f"viewset {result.viewset}  {result.time_ms['total']:.0f} ms")  # (confidence: as --object all's lines)
         else:
             print(f"{path}: not found ({result.reason})  {result.time_ms['total']:.0f} ms")
     return 1 if failed else 0

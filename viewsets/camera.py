@@ -293,7 +293,9 @@ def load_camera(path: str | Path) -> PinholeCamera:
     path = Path(path)
     try:
         text = path.read_text(encoding="utf-8-sig")  # (a BOM, as Windows tools write, is not part of the JSON)
-    except (OSError, UnicodeDecodeError) as exc:
+    except UnicodeDecodeError:  # (a mesh or an image given as --camera: Python's codec error was shown)
+        raise SpecError(f"{path}: not a camera file (JSON or OpenCV YAML): it is not text") from None
+    except OSError as exc:
         raise SpecError(f"{path}: cannot read camera file ({exc.__class__.__name__}: {exc})") from None
     if path.suffix.lower() in (".yml", ".yaml", ".xml") or text.lstrip().startswith("%YAML"):
         return _camera_from_yaml(path)

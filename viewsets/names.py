@@ -17,6 +17,9 @@ def check_object_name(name: object, new: bool = False) -> str:
     """Return ``name`` if it is a safe object name (letters, digits, ``._-``, ≤ 64, no leading dot);
     ``new`` (a name to train under): not a :data:`RESERVED` one either."""
     if not isinstance(name, str) or not NAME_RE.match(name):
+        if isinstance(name, str) and name.endswith("/") and NAME_RE.match(name.rstrip("/")):
+            raise StoreError(f"invalid object name {name!r}: drop the trailing '/' (the shell's completion of its "
+                             f"folder): {name.rstrip('/')!r}")
         raise StoreError(
             f"invalid object name {name!r}: use 1-64 letters, digits, '.', '_' or '-', starting with a letter or digit"
         )
