@@ -181,14 +181,15 @@ def _setup(args: argparse.Namespace) -> _Setup:
     return _Setup(model, camera, tracker, source, store, args.init_pose if init is not None else None)
 
 
-def _track_frames(s: _Setup, rows, video, progress) -> tuple[list, bool]:
-    """Step the tracker over every frame; returns the steps and whether Ctrl-C stopped it."""
+def _track_frames(s: _Setup, rows, video, progress, steps: list | None = None) -> tuple[list, bool]:
+    """Step the tracker over every frame; returns the steps (``steps``, filled as they come:
+    the caller counts them when a write fails) and whether Ctrl-C stopped it."""
     from quatrack.recognition.images import to_bgr8
     from quatrack.recognition.overlay import draw_overlay
     from quatrack.recognition.visibility import mesh_edges
 
     edges = mesh_edges(s.model.mesh)
-    steps = []
+    steps = [] if steps is None else steps
     last = None  # the overlay's latest frame read: an unreadable one's shows it again, marked lost
     if video is not None and s.camera.width and s.camera.height:  # (before any: a black frame, so that
         last = np.zeros((s.camera.height, s.camera.width, 3), np.uint8)  # overlay frame k stays row k)
@@ -429,8 +430,6 @@ def _run(args: argparse.Namespace) -> int:
 def _run_from(args: argparse.Namespace, term: ExitStack, stop: "_Stop") -> int:
     """The run; SIGTERM is an interrupt (``stop``'s cause) until ``term`` is closed, as the
     tracking ends: from there on the outputs are finished under the previous handler, as before."""
-    import cv2
-
     from quatrack.recognition.overlay import plot_track
     from quatrack.recognition.trackio import Progress, RowWriter, VideoOut, atomic_path, misordered, misordered_given
 
@@ -449,30 +448,35 @@ def _run_from(args: argparse.Namespace, term: ExitStack, stop: "_Stop") -> int:
               f"object id", file=sys.stderr)
     progress = Progress("tracking", enabled=False if args.quiet else None)
     s.source.on_wait(progress.tick)  # (a stalled stream: "waiting for frames N s", not a frozen rate)
-    with ExitStack() as stack:
-        stack.callback(s.source.close)
-        tmp_out = None if args.out == STDOUT else stack.enter_context(atomic_path(args.out, "--out"))
-        video = None
-        if args.overlay:
-            video = VideoOut(stack.enter_context(atomic_path(args.overlay, "--overlay")), s.source.rate,
-                             timed=s.source.live)
-        with (open(tmp_out, "w", newline="", encoding="utf-8") if tmp_out is not None
-              else contextlib.nullcontext(_Flushed(sys.stdout))) as f:
-            rows = RowWriter(f, args.format, args.mesh_unit, args.obj_id)
-            try:
-                steps, interrupted = _track_frames(s, rows, video, progress)
-            finally:
-                term.close()
-                progress.close()
+    steps: list = []
+    tmp_out = None
+    kept = args.out != STDOUT and os.path.isfile(args.out)  # (what a failed write leaves: _write_failed)
+    try:
+        with ExitStack() as stack:
+            stack.callback(s.source.close)
+            tmp_out = None if args.out == STDOUT else stack.enter_context(atomic_path(args.out, "--out"))
+            video = None
+            if args.overlay:
+                video = VideoOut(stack.enter_context(atomic_path(args.overlay, "--overlay")), s.source.rate,
+                                 timed=s.source.live, target=args.overlay)
+            with _rows_file(tmp_out) as f:
+                rows = RowWriter(f, args.format, args.mesh_unit, args.obj_id)
+                try:
+                    steps, interrupted = _track_frames(s, rows, video, progress, steps)
+                finally:
+                    term.close()
+                    progress.close()
+                    if video is not None:
+                        video.close()
                 if video is not None:
-                    video.close()
-            bad = s.source.skipped
-            if bad and len(bad) == len(steps):  # (nothing written: the outputs are discarded)
-                raise UserError(f"{s.source.label}: no frame can be read ({bad[0][2]})")
-        if args.plot:
-            with atomic_path(args.plot, "--plot") as tmp_png:
-                if not cv2.imwrite(tmp_png, plot_track(steps)):
-                    raise UserError(f"--plot {args.plot}: cannot write the PNG")
+                    video.check()  # (a full disk: OpenCV's writer failed in silence)
+                bad = s.source.skipped
+                if bad and len(bad) == len(steps):  # (nothing written: the outputs are discarded)
+                    raise UserError(f"{s.source.label}: no frame can be read ({bad[0][2]})")
+            if args.plot:
+                _write_plot(args.plot, plot_track(steps))
+    except _WriteFailed as exc:  # (the temporary files are gone by now: atomic_path)
+        raise UserError(_write_failed(args, exc, len(steps), kept, in_place=tmp_out in (None, args.out))) from None
     if interrupted:
         print(f"quatrack track: stopped ({stop.cause}) after {len(steps)} frames; {_written(args, video)}",
               file=sys.stderr)
@@ -490,6 +494,109 @@ def _run_from(args: argparse.Namespace, term: ExitStack, stop: "_Stop") -> int:
     if not args.quiet:
         _summary(steps, args.out, _summary_stream(args.out))
     return 0
+
+
+def _write_plot(path: str, image) -> None:
+    """``--plot``'s PNG, encoded here and written by Python, so that a failure names its cause (a
+    full disk: OpenCV's ``imwrite`` printed "libpng error: Write Error" and answered False)."""
+    import cv2
+
+    from quatrack.recognition.trackio import atomic_path
+
+    ok, png = cv2.imencode(".png", image)
+    if not ok:
+        raise UserError(f"--plot {path}: cannot encode the PNG")
+    with atomic_path(path, "--plot") as tmp_png:
+        try:
+            with open(tmp_png, "wb") as f:
+                f.write(png.tobytes())
+        except OSError as exc:  # (every output goes, as for any error: each file is as it was before the run)
+            raise UserError(f"--plot {path}: cannot write ({exc.strerror or exc}); no output of the run was "
+                            f"written (files of the same names are as they were)") from None
+
+
+class _WriteFailed(Exception):
+    """An OSError opening, writing or closing ``--out`` (a full disk, ``/dev/full``, a file of
+    /proc): :func:`_run_from` says it naming the output (:func:`_write_failed`). ``at_close``:
+    at the end of the run (the last rows flushed), not at a frame's row."""
+
+    def __init__(self, error: OSError, at_close: bool = False) -> None:
+        super().__init__(str(error))
+        self.error, self.at_close = error, at_close
+
+
+class _Checked:
+    """A text file whose OSErrors are :class:`_WriteFailed` (a broken pipe stays itself: ``--out -
+    | head`` ends quietly, as before)."""
+
+    def __init__(self, f) -> None:
+        self.f = f
+
+    def write(self, text: str) -> None:
+        try:
+            self.f.write(text)
+        except BrokenPipeError:
+            raise
+        except OSError as exc:
+            raise _WriteFailed(exc) from None
+
+    def close(self) -> None:
+        try:
+            self.f.close()
+        except BrokenPipeError:
+            raise
+        except OSError as exc:
+            raise _WriteFailed(exc, at_close=True) from None
+
+
+@contextlib.contextmanager
+def _rows_file(path: str | None):
+    """``--out``'s file at ``path`` (None: stdout, :class:`_Flushed`) opened for the rows, its
+    OSErrors :class:`_WriteFailed`. Why: a full disk (or ``--out /dev/full``) said "error: [Errno
+    28] No space left on device", ``--out /proc/version`` "[Errno 5] Input/output error", naming
+    no output. Closed at the end (a short run on a full disk fails there, at the last flush);
+    after another error it is closed quietly, that error kept."""
+    try:
+        f = _Flushed(sys.stdout) if path is None else open(path, "w", newline="", encoding="utf-8")
+    except OSError as exc:
+        raise _WriteFailed(exc) from None
+    out = _Checked(f)
+    try:
+        yield out
+    except BaseException:
+        if path is not None:
+            with contextlib.suppress(OSError):
+                f.close()
+        raise
+    if path is not None:
+        out.close()
+
+
+def _write_failed(args: argparse.Namespace, failed: _WriteFailed, frames: int, kept: bool, in_place: bool) -> str:
+    """The one line saying that ``--out`` could not be written: the output, the system's reason,
+    where the run was (the frame whose row failed: the run stops there, not tracking on for
+    nothing; or its end), and what is left: the file as it was before the run (``kept``) or
+    none. The partial output is removed, and the other outputs are not written (a run ending in
+    an error writes nothing, :func:`~quatrack.recognition.trackio.atomic_path`): an old file is
+    never replaced by one cut off mid-row. ``in_place``: stdout, a device, a FIFO or a file of
+    /proc, written directly (what was written stays written)."""
+    import errno
+
+    error = failed.error
+    line = f"{'--out - (stdout)' if args.out == STDOUT else f'--out {args.out}'}: cannot write ({error.strerror or error})"
+    if failed.at_close:
+        line += f" at the end of the run ({frames} frame{'s' if frames != 1 else ''} tracked)"
+    elif frames:
+        line += f" at frame {frames}; the run stopped there"
+    if not in_place:
+        line += (f"; {args.out} is as it was before the run" if kept else f"; no {args.out} was made")
+        others = [o for o, v in (("--overlay", args.overlay), ("--plot", args.plot)) if v]
+        line += f" (the partial file was removed{'; ' + ' and '.join(others) + ' not written either' if others else ''})"
+    elif frames and args.out != STDOUT:
+        line += "; the poses are not all written"
+    if error.errno in (errno.ENOSPC, getattr(errno, "EDQUOT", -1)):
+        line += "; free some space or write the poses elsewhere"
+    return line
 
 
 class _Flushed:

@@ -1152,7 +1152,11 @@ def atomic_path(target: str | os.PathLike, option: str = "") -> Iterator[str]:
     try:
         yield tmp
         if os.path.exists(tmp):  # (its writer removed it: nothing to write, the target is left as it was)
-            os.replace(tmp, final)
+            try:
+                os.replace(tmp, final)
+            except OSError as exc:  # (the message named the temporary file and the target, not the option)
+                raise SourceError(f"{name}: cannot put the finished file in place ({exc.strerror or exc}); "
+                                  f"{final} is as it was") from None
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
@@ -1177,8 +1181,10 @@ class VideoOut:
     repeated while the source gave none, left out when two fall within one video frame (the
     later is shown); the video lasts as long as the run."""
 
-    def __init__(self, path: str, rate: float, option: str = "--overlay", timed: bool = False) -> None:
+    def __init__(self, path: str, rate: float, option: str = "--overlay", timed: bool = False,
+                 target: str | None = None) -> None:
         self.path, self.rate, self.option, self.writer = path, rate, option, None
+        self.target = path if target is None else target  # (the file named, when ``path`` is its temporary)
         self.size: tuple[int, int] | None = None  # (width, height) written
         self.padded: tuple[tuple[int, int], tuple[int, int]] | None = None
         self.written_rate: float | None = None
@@ -1200,7 +1206,9 @@ class VideoOut:
                 writer.release()
         finally:
             log.setLogLevel(previous)
-        raise SourceError(f"{self.option}: cannot write a {size[0]}×{size[1]} MP4 video here")
+        # (it said "cannot write ... here", naming neither the file nor where)
+        raise SourceError(f"{self.option} {self.target}: cannot write a {size[0]}×{size[1]} MP4 video there "
+                          f"(OpenCV's MP4 writer cannot open it)")
 
     def write(self, image: np.ndarray, time_s: float | None = None) -> None:
         """Add ``image``: the next video frame, or (``timed``) the one shown from ``time_s`` (seconds
@@ -1239,6 +1247,28 @@ class VideoOut:
             out.append(f"{self.option} plays at {self.written_rate:g} frames/s: MP4 cannot store {self.rate:g} "
                        f"(the poses' time_s is unchanged)")
         return out
+
+    def check(self) -> None:
+        """After :meth:`close`: raise :class:`SourceError` naming the output if the finished video
+        cannot be read back whole. Why: OpenCV's writer fails in silence — on a full disk an
+        ``--overlay`` cut off at 64 KiB, with no index (no player opens it), was put in place and
+        the run said nothing (exit 0). A device or FIFO written in place is not read back."""
+        import cv2
+
+        if not self.frames or written_where(self.path)[1]:
+            return
+        quiet_ffmpeg()  # (FFmpeg's "moov atom not found" on stderr)
+        cap = cv2.VideoCapture(self.path)
+        whole = cap.isOpened() and cap.get(cv2.CAP_PROP_FRAME_COUNT) >= self.frames
+        cap.release()
+        if whole:
+            return
+        try:
+            full = os.statvfs(os.path.dirname(os.path.abspath(self.path))).f_bavail == 0
+        except (OSError, AttributeError):
+            full = False
+        raise SourceError(f"{self.option} {self.target}: the video could not be written whole "
+                          f"({'the disk is full' if full else 'the written file cannot be read back'})")
 
     def close(self) -> None:
         """Finish the video; without a frame written (Ctrl-C before the first) there is no video:
