@@ -60,7 +60,9 @@ async def _on_validation(request: Request, exc: RequestValidationError) -> JSONR
         loc = tuple(e.get("loc", ()))
         camera &= len(loc) == 2 and loc[0] == "query" and loc[1] in _camera_query()
         if len(parts) < 5:
-            where = ".".join(str(x) for x in loc if x != "body") or "request"
+            # (a camera parameter by its name alone, as the camera's other messages say it: "fx: ...")
+            named = loc[1:] if len(loc) == 2 and loc[0] == "query" and loc[1] in _camera_query() else loc
+            where = ".".join(str(x) for x in named if x != "body") or "request"
             parts.append(f"{where}: {e.get('msg', 'invalid')}")
     # (the contract: a camera given as strings is 422 bad_camera, in the query as in the JSON field)
     return _json(422, "bad_camera" if camera and parts else "invalid_input", "; ".join(parts) or "invalid request")

@@ -208,6 +208,19 @@ POSE_OPTIONS = ("format", "mesh_unit")  # the pose endpoints' query parameters b
 ROUTE_OPTIONS = {"pose_all": ("objects",)}  # ... and those of one endpoint (by its function's name)
 
 
+def given_twice(params) -> ApiError | None:
+    """The 422 for a query parameter given more than once (``?fx=669.7&…&fx=100``), else None:
+    the last one was used in silence (a different pose, or none); REST and WebSocket alike."""
+    counts: dict[str, int] = {}
+    for key, _ in params.multi_items():
+        counts[key] = counts.get(key, 0) + 1
+    for key, n in counts.items():
+        if n > 1:
+            shown = repr(key if len(key) <= 40 else key[:37] + "...")
+            return ApiError(422, "invalid_input", f"query parameter {shown} is given {n} times: give it once")
+    return None
+
+
 def unknown_query(request: Request) -> ApiError | None:
     """The 422 for a query parameter the pose endpoints do not read, else None. Why: they were
     ignored, so ``?dist_coeffs=…`` (the camera JSON's name; the query's is ``dist``) gave a pose
@@ -222,6 +235,8 @@ def unknown_query(request: Request) -> ApiError | None:
     route = request.scope.get("route")
     known = camera + list(POSE_OPTIONS) + list(ROUTE_OPTIONS.get(getattr(route, "name", ""), ()))
     to_query = {"dist_coeffs": "dist"}  # the camera JSON's field names that the query spells otherwise
+    if (twice := given_twice(request.query_params)) is not None:
+        return twice
     for key in request.query_params.keys():
         if key in known:
             continue
@@ -253,6 +268,8 @@ def unknown_track_query(params) -> ApiError | None:
     from quatrack.viewsets.camera import CAMERA_FIELDS, FIELD_ALIASES
 
     takes = f"the track endpoint takes {', '.join(TRACK_QUERY)}"
+    if (twice := given_twice(params)) is not None:
+        return twice
     for key in params.keys():
         if key in TRACK_QUERY:
             continue
@@ -276,7 +293,8 @@ def camera_query(
     cy: Annotated[float | None, Query(description="principal point y, px")] = None,
     width: Annotated[int | None, Query(gt=0, description="image width the camera is for (default: the image's)")] = None,
     height: Annotated[int | None, Query(gt=0, description="image height the camera is for")] = None,
-    dist: Annotated[str | None, Query(description="distortion k1,k2,p1,p2[,k3], comma-separated")] = None,
+    dist: Annotated[str | None, Query(description="distortion: 4, 5 or 8 comma-separated numbers, OpenCV order "
+                                                  "k1,k2,p1,p2[,k3[,k4,k5,k6]]")] = None,
 ) -> CameraIn | None:
     """The camera given in the query (a dependency of both pose endpoints), or None when the
     request gives none there (it may come as the multipart field ``camera``). A query parameter
@@ -296,15 +314,23 @@ def camera_query(
                                           "(both, or neither for the image's size)")
     coeffs = None
     if dist:
+        # (named as the query names it: the camera's own check said "field 'dist_coeffs'", the
+        # very name this endpoint refuses, and the order k1,k2,p1,p2[,k3] left out the 8)
+        form = f"4, 5 or 8 comma-separated numbers (OpenCV order {DIST_ORDER})"
         try:
             coeffs = [float(x) for x in dist.split(",")]
         except ValueError:
-            raise ApiError(422, "bad_camera", "dist: comma-separated numbers (OpenCV order k1,k2,p1,p2[,k3])") from None
+            raise ApiError(422, "bad_camera", f"dist: {form}") from None
+        if len(coeffs) not in (4, 5, 8):
+            raise ApiError(422, "bad_camera", f"dist: {form}, got {len(coeffs)}") from None
     try:
         return CameraIn(fx=fx, fy=fy, cx=cx, cy=cy, width=width, height=height, dist_coeffs=coeffs)
     except ValidationError as exc:
         e = exc.errors()[0]
         raise ApiError(422, "bad_camera", f"{'.'.join(map(str, e['loc']))}: {e['msg']}") from None
+
+
+DIST_ORDER = "k1,k2,p1,p2[,k3[,k4,k5,k6]]"
 
 
 CameraQuery = Annotated[CameraIn | None, Depends(camera_query)]

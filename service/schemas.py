@@ -63,9 +63,13 @@ class CameraIn(BaseModel):
     @field_validator("fx", "fy", "cx", "cy", "width", "height", mode="before")
     @classmethod
     def _a_number(cls, v):
-        """JSON numbers only: pydantic's lax mode would take ``true`` as 1 and ``"600"`` as 600."""
+        """JSON numbers only: pydantic's lax mode would take ``true`` as 1 and ``"600"`` as 600.
+        And finite ones, said before the bounds are checked: ``fx=nan`` (a query's, or Python's
+        NaN) was told "Input should be greater than 0", where ``fx=inf`` was told it must be finite."""
         if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float))):
             raise ValueError(f"must be a number, got {type(v).__name__}")
+        if isinstance(v, float) and not math.isfinite(v):
+            raise PydanticCustomError("finite_number", "must be finite, got {got}", {"got": repr(v)})
         return v
 
     _a_bool = field_validator("guessed", mode="before")(_strict_bool)
@@ -84,13 +88,6 @@ class CameraIn(BaseModel):
     def _numbers(cls, v):
         if v is not None and (not isinstance(v, list) or any(isinstance(x, bool) or not isinstance(x, (int, float)) for x in v)):
             raise ValueError("must be a list of numbers (OpenCV order k1, k2, p1, p2[, k3[, k4, k5, k6]])")
-        return v
-
-    @field_validator("fx", "fy", "cx", "cy")
-    @classmethod
-    def _finite(cls, v: float) -> float:
-        if not math.isfinite(v):
-            raise ValueError("must be finite")
         return v
 
     def to_camera(self, image_size: tuple[int, int] | None = None) -> PinholeCamera:
@@ -113,7 +110,11 @@ class CameraIn(BaseModel):
     def error_message(exc: ValidationError) -> str:
         """A refused camera's ``bad_camera`` message, REST field and WebSocket message alike:
         ``camera.FIELD: what is wrong`` (the first problem), ``camera: ...`` when it is not an object."""
-        e = exc.errors()[0]
+        errors = exc.errors()
+        e = errors[0]
+        missing = [".".join(map(str, m["loc"])) for m in errors if m["type"] == "missing"]
+        if e["type"] == "missing" and len(missing) > 1:  # (all of them: "camera.fx: Field required" named one of four)
+            return f"camera: fields {', '.join(missing)} are required"
         where = ".".join(map(str, e["loc"]))
         return f"camera{'.' + where if where else ''}: {e['msg']}"
 

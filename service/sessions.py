@@ -410,7 +410,10 @@ class TrackSession:
             await self.send_error("bad_message", "a text message must be a JSON object")
             return
         kind = msg.get("type")
-        if kind is None and any(k in msg for k in CAMERA_FIELDS) or kind == "camera":
+        # an untyped object is a camera when it has a camera's field, and any untyped object is one
+        # before the camera: {} first was "camera_required" (send the camera), while it was the
+        # camera, with every field missing (bad_camera naming them)
+        if kind is None and (self.camera is None or any(k in msg for k in CAMERA_FIELDS)) or kind == "camera":
             await self._on_camera(msg)
         elif kind == "frame":
             await self._on_header(msg)
