@@ -441,8 +441,11 @@ def _run_from(args: argparse.Namespace, term: ExitStack, stop: "_Stop") -> int:
         print(f"quatrack track: warning: --images are read in the order given, so {pair[0]} comes before {pair[1]}: "
               f"number the files with leading zeros (0002 for 2), or give them in order", file=sys.stderr)
     if args.mesh_unit is not None and args.format != "bop":  # (ignored in silence: a CSV read as metres was in mm)
-        print(f"quatrack track: warning: --mesh-unit is for --format bop only; the {args.format} output is in the "
-              f"mesh's own units ({args.mesh_unit}), unconverted", file=sys.stderr)
+        # (it said "in the mesh's own units (mm)", the user's --mesh-unit as if it were the mesh's: the
+        # cookie box's mesh is in cm; the model does not know its unit, --mesh-unit only tells bop's t)
+        print(f"quatrack track: warning: --mesh-unit is for --format bop only (it says what unit the mesh is in, "
+              f"to give BOP's t in mm); the {args.format} output is in the mesh's own units, whatever they are, "
+              f"unconverted", file=sys.stderr)
     if args.obj_id != 1 and args.format != "bop":  # (ignored in silence, as --mesh-unit was)
         print(f"quatrack track: warning: --obj-id is for --format bop only; the {args.format} output has no "
               f"object id", file=sys.stderr)

@@ -32,3 +32,13 @@ def test_train_help_tells_the_rfch_defaults():
     assert helps["--rfch-clusters"].endswith(f"(default {d.n_clusters})")
     assert helps["--rfch-distance"].endswith(f"(default {d.distance})")
     assert helps["--rfch-scales"].endswith(f"(default {','.join(f'{x:g}' for x in d.scales)})")
+
+
+def test_mesh_unit_with_csv_does_not_claim_the_mesh_is_in_that_unit(tmp_path, capsys):
+    # --mesh-unit mm with CSV said "the csv output is in the mesh's own units (mm)": the cookie
+    # box's mesh is in cm; the user's unit was repeated as if it were the mesh's
+    video = ["--video", str(EXAMPLE / "box.mp4"), "--max-frames", "1"]
+    assert _track(tmp_path, *video, "--mesh-unit", "mm", "--out", str(tmp_path / "poses.csv")) == 0
+    assert capsys.readouterr().err.strip() == (
+        "quatrack track: warning: --mesh-unit is for --format bop only (it says what unit the mesh is in, to give "
+        "BOP's t in mm); the csv output is in the mesh's own units, whatever they are, unconverted")
