@@ -339,10 +339,23 @@ CameraQuery = Annotated[CameraIn | None, Depends(camera_query)]
 def _camera_from_json(text: str) -> CameraIn:
     """The multipart field ``camera``; a camera file saved with a UTF-8 byte order mark (Windows
     editors) is read, as ``quatrack`` reads camera files (it was 422 "Invalid JSON")."""
+    text = text.removeprefix("\ufeff")
     try:
-        return CameraIn.model_validate_json(text.removeprefix("\ufeff"))
+        return CameraIn.model_validate_json(text)
     except ValidationError as exc:
+        if exc.errors()[0]["type"] == "json_invalid" and _opencv_yaml(text):  # (was "camera: Invalid JSON: expected value ...")
+            raise ApiError(422, "bad_camera", "camera: the multipart field 'camera' is the contract's camera JSON "
+                                              "(width, height, fx, fy, cx, cy, dist_coeffs), not OpenCV YAML: convert "
+                                              "it (quatrack.client.camera_json('cam.yaml') gives the JSON), or send it "
+                                              "with the Python client, which converts camera files") from None
         raise ApiError(422, "bad_camera", CameraIn.error_message(exc)) from None
+
+
+def _opencv_yaml(text: str) -> bool:
+    """Whether a camera field that is not JSON reads as an OpenCV YAML/XML calibration file
+    (what ``quatrack locate --camera`` and the Python client accept as a file)."""
+    head = text.lstrip()
+    return head.startswith(("%YAML", "<?xml", "<opencv_storage")) or "camera_matrix" in text
 
 
 def _client_left() -> ApiError:
