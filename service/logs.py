@@ -13,6 +13,8 @@ Two things every line passes through (a filter on the one handler, so uvicorn's 
   completing handshake", which it writes after every denial response, is dropped for those
   connections only (:func:`mark_refused` sets a context variable in the connection's task, which
   is where uvicorn logs it). Any other connection that ends so is still an error.
+- uvicorn's "Cancel N running task(s), timeout graceful shutdown exceeded" is a warning, not an
+  error: a stop cutting a slow upload short is routine, and the request is answered 503.
 """
 
 from __future__ import annotations
@@ -37,6 +39,10 @@ _QUOTED_HEADER = re.compile(rf"(?i)(\b(?:{_HEADER_NAMES})(['\"])\s*[:,]\s*b?)(['
 _HEADER_LINE = re.compile(rf"(?im)(\b(?:{_HEADER_NAMES})[ \t]*:[ \t]*)\S[^\r\n]*")
 _REFUSED: contextvars.ContextVar[bool] = contextvars.ContextVar("quatrack_ws_refused", default=False)
 _UVICORN_AFTER_DENIAL = "ASGI callable returned without completing handshake"
+# uvicorn's ERROR when a stop's grace period ends with requests still running: the stop is
+# routine (every rollout), and those requests are answered 503 shutting_down and logged as a
+# warning (``app.StopAnswer``); as an error it woke log-based alerting at every slow upload
+_UVICORN_STOP_CANCEL = "timeout graceful shutdown exceeded"
 
 
 def _secret_key(key: str) -> bool:
@@ -69,6 +75,9 @@ class ServiceLogFilter(logging.Filter):
     def filter(self, record: logging.LogRecord) -> bool:
         if record.name.startswith("uvicorn") and _UVICORN_AFTER_DENIAL in str(record.msg) and _REFUSED.get():
             return False
+        if record.name.startswith("uvicorn") and record.levelno == logging.ERROR \
+                and str(record.msg).startswith("Cancel ") and _UVICORN_STOP_CANCEL in str(record.msg):
+            record.levelno, record.levelname = logging.WARNING, logging.getLevelName(logging.WARNING)
         try:
             message = record.getMessage()
         except Exception:  # a malformed call: let the formatter report it, as logging does
