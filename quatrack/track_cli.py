@@ -84,7 +84,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quiet", action="store_true", help="no summary on stdout, no progress line")
 
 
-def _noise(text: str) -> dict:
+def _noise(text: str, motion_model: str = "ude") -> dict:
+    """``--motion-noise``'s ``K=V,...``: finite values from 0 to
+    :data:`~quatrack.recognition.tracker.params.MAX_MOTION_NOISE` (``a=1e300`` passed, and numpy's
+    "overflow encountered in multiply" came out twice)."""
+    from quatrack.recognition.tracker.params import MAX_MOTION_NOISE, noise_defaults
+
     out = {}
     for item in filter(None, (s.strip() for s in text.split(","))):
         key, sep, value = item.partition("=")
@@ -94,6 +99,9 @@ def _noise(text: str) -> dict:
             sep = ""
         if not sep or not np.isfinite(out.get(key.strip(), np.nan)) or out[key.strip()] < 0:
             raise UserError(f"--motion-noise: expected KEY=VALUE with a finite value >= 0, got {item!r}")
+        if out[key.strip()] > MAX_MOTION_NOISE:
+            raise UserError(f"--motion-noise: {item!r} is too large: give a value from 0 to {MAX_MOTION_NOISE:g} "
+                            f"(in the mesh's units; {noise_defaults(motion_model)})")
     return out
 
 
@@ -163,7 +171,7 @@ def _setup(args: argparse.Namespace) -> _Setup:
     relocate = getattr(args, "relocate_every", None)
     if relocate is not None and not (np.isfinite(relocate) and relocate > 0):
         raise UserError(f"--relocate-every {relocate:g}: give a number of seconds above 0")
-    params = TrackerParams(motion_model=args.motion_model, motion_noise=_noise(args.motion_noise),
+    params = TrackerParams(motion_model=args.motion_model, motion_noise=_noise(args.motion_noise, args.motion_model),
                            learn=bool(getattr(args, "learn", False)), relocate_interval_s=relocate)
     camera = load_camera(args.camera)
     init = _load_init_pose(args.init_pose) if args.init_pose else None

@@ -23,7 +23,7 @@ from ..locate import LocateParams
 from ..pose import PoseParams, value_key
 from ..visibility import VisibilityParams
 
-__all__ = ["TrackerParams", "TrackStep", "motion_noise", "DEFAULT_MOTION_NOISE", "STATUSES",
+__all__ = ["TrackerParams", "TrackStep", "motion_noise", "DEFAULT_MOTION_NOISE", "MAX_MOTION_NOISE", "STATUSES",
            "INITIAL_VELOCITY_SIGMA"]
 
 # Plant noise per motion model, free of units: translation terms are per diameter² of the object,
@@ -38,6 +38,12 @@ DEFAULT_MOTION_NOISE: dict[str, dict[str, float]] = {
     "m2": {"sigma_p2": 0.093, "sigma_phi2": 0.3},
 }
 _TRANSLATION_NOISE = {"a", "sigma_p2"}  # the terms in length², scaled by the diameter²
+# The largest noise value taken (mesh units² or rad², per s or s³): the filter's covariances are
+# multiplied together, and from about 1e154 (the square root of the largest float) numpy's
+# "overflow encountered in multiply" came out on every frame. 1e100 leaves a margin of 1e54 for
+# the time steps (dt³) and the products, and is beyond any noise in any unit (the defaults are
+# ~2 diameters²/s³ and 20 rad²/s³: 2000 cm²/s³ for a 33 cm box).
+MAX_MOTION_NOISE = 1e100
 # Velocities start unknown: standard deviation 100 diameters/s and 100 rad/s (Ude's 1e8 variance
 # was in his units; in diameters it is the same "unknown" for every mesh unit).
 INITIAL_VELOCITY_SIGMA = 100.0
@@ -59,6 +65,14 @@ def motion_noise(motion_model: str, diameter: float, overrides: dict | None = No
     return out
 
 
+
+
+def noise_defaults(motion_model: str) -> str:
+    """The motion model's default noise in words, for messages: ``ude's defaults: a = 1.85 ×
+    the object's diameter², alpha = 20``."""
+    rel = DEFAULT_MOTION_NOISE[motion_model]
+    return f"{motion_model}'s defaults: " + ", ".join(
+        f"{k} = {v:g}" + (" × the object's diameter²" if k in _TRANSLATION_NOISE else "") for k, v in rel.items())
 
 
 class _defaults_on_class:
@@ -395,6 +409,9 @@ class TrackerParams:
         for key, value in self.motion_noise.items():
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not (np.isfinite(value) and value >= 0):
                 raise ValueError(f"motion_noise[{key!r}] must be a finite number >= 0, not {value!r}")
+            if value > MAX_MOTION_NOISE:
+                raise ValueError(f"motion_noise[{key!r}] = {value:g} is too large: at most {MAX_MOTION_NOISE:g} "
+                                 f"({noise_defaults(self.motion_model)})")
         if not (is_number(self.sigma_px) and np.isfinite(self.sigma_px) and self.sigma_px > 0):
             raise ValueError(f"sigma_px must be a number of pixels above 0, not {self.sigma_px!r}")
         for name in ("max_points", "min_points", "min_inliers"):
