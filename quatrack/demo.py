@@ -145,7 +145,9 @@ def _stream_video(plan: _Plan, args: argparse.Namespace):
     """Run the session; returns (the stream result, time of every frame read, by index, the
     frames that could not be decoded: ``FrameSource.skipped``, not sent, and whether Ctrl-C or
     SIGTERM stopped it). Stopped after a frame was sent, the answers so far are returned (they
-    were lost: an interrupted demo wrote nothing); before, the interrupt is raised."""
+    were lost: an interrupted demo wrote nothing), with the frames sent so far only (a frame
+    read as the signal came, never sent, was written ``lost`` and counted as stopped "after"
+    it); before, the interrupt is raised."""
     import asyncio
     import contextlib
 
@@ -156,11 +158,13 @@ def _stream_video(plan: _Plan, args: argparse.Namespace):
     from quatrack.service.server import BackgroundServer
 
     times: dict[int, float] = {}  # every frame read, answered or not, for the CSV
+    order: list[int] = []  # the frames read, in the order they are handed to the stream (and sent)
     source = open_frames(video=plan.video, max_frames=args.max_frames)
 
     def frames():
         for i, t, data in jpeg_frames(source):
             times[i] = t
+            order.append(i)
             yield i, t, data
 
     with contextlib.ExitStack() as stack:
@@ -178,7 +182,7 @@ def _stream_video(plan: _Plan, args: argparse.Namespace):
         except QuatrackError as exc:
             raise ValueError(_explain(exc, args, _server_names(plan) if exc.code == "unknown_object" else None)) from None
         except KeyboardInterrupt:
-            if not times:  # (nothing sent: nothing to write)
+            if not res.sent:  # (nothing sent: nothing to write)
                 raise
             from quatrack.track_cli import _defer_interrupts
 
@@ -189,7 +193,12 @@ def _stream_video(plan: _Plan, args: argparse.Namespace):
             source.close()
         if plan.mesh is None and args.overlay.lower() != "none":
             plan.mesh = _server_edges(plan, args)
-    return res, times, list(source.skipped), interrupted
+    skipped = list(source.skipped)
+    if interrupted:  # the frames sent so far, as the docs say: one read as the signal came was not sent
+        sent = order[:res.sent]  # (sent in the order read; res.sent counts those whose image went out)
+        times = {i: times[i] for i in sent}
+        skipped = [item for item in skipped if item[0] < max(sent)]
+    return res, times, skipped, interrupted
 
 
 def _server_names(plan: _Plan) -> list[str] | None:
@@ -325,8 +334,9 @@ def _finish(plan: _Plan, args: argparse.Namespace, res, times: dict, skipped: li
     """Write the outputs of what was answered and say so; ``stopped``: the cause of an interrupt
     ("Ctrl-C", "SIGTERM"), whose frames sent but not answered are written ``lost``, "no answer"."""
     if stopped is not None:
-        print(f"demo: stopped ({stopped}) after {len(times)} frames; writing the {len(res.poses)} answered "
-              f"(the others as lost)", file=sys.stderr)
+        others = " (the others as lost)" if len(res.poses) < len(times) else ""
+        print(f"demo: stopped ({stopped}) after {len(times)} frames; writing the {len(res.poses)} answered{others}",
+              file=sys.stderr)
     if res.errors:  # (a camera of another size than the video's frames: every frame refused, exit 0, no word why)
         first = res.errors[0].get("error") or {}
         why = f"{first.get('message') or first.get('code') or res.errors[0]}"
