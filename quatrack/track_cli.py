@@ -268,9 +268,15 @@ def _camera_resized(s: _Setup, image) -> _Setup | None:
     shape = getattr(image, "shape", None)
     if shape is None or len(shape) < 2:
         return None
-    camera, note = resized_for(s.camera, int(shape[1]), int(shape[0]))
+    w, h = int(shape[1]), int(shape[0])
+    camera, note = resized_for(s.camera, w, h)
     if note is None:
         return None
+    sx, sy = w / s.camera.width, h / s.camera.height
+    if f"{0.5 * (sx + sy):.3g}" == "1":  # (641×481 frames said "its intrinsics scaled by 1 (a resized video)")
+        note = (f"the camera is for {s.camera.width}×{s.camera.height} px images and these are {w}×{h} px, a few "
+                f"pixels apart: its intrinsics scaled by {sx:.5g} wide and {sy:.5g} tall; if the frames are padded "
+                f"or cropped rather than resized, give a camera file for {w}×{h}")
     print(f"quatrack track: warning: {note}", file=sys.stderr)
     s.tracker.camera = camera  # (before its first step: nothing was computed for the old one)
     return replace(s, camera=camera)

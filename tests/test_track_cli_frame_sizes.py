@@ -1,0 +1,19 @@
+"""What ``quatrack track`` says of frames whose size is not the camera's (user report, F8): frames
+a pixel larger than the camera's said "its intrinsics scaled by 1 (a resized video)", and a stray
+frame of another size was answered with a Python call, ``camera.scaled(...)``, on the command line."""
+
+from __future__ import annotations
+
+import cv2
+
+from test_track_cli import _box_frames, _track
+
+
+def test_frames_a_pixel_larger_say_the_real_factors(tmp_path, capsys):
+    for k, frame in enumerate(_box_frames(2)):  # 640×480 padded to 641×481
+        assert cv2.imwrite(str(tmp_path / f"{k:04d}.png"), cv2.copyMakeBorder(frame, 0, 1, 0, 1, cv2.BORDER_REPLICATE))
+    assert _track(tmp_path, "--images", str(tmp_path / "*.png"), "--out", str(tmp_path / "poses.csv")) == 0
+    assert capsys.readouterr().err.strip() == (
+        "quatrack track: warning: the camera is for 640×480 px images and these are 641×481 px, a few pixels apart: "
+        "its intrinsics scaled by 1.0016 wide and 1.0021 tall; if the frames are padded or cropped rather than "
+        "resized, give a camera file for 641×481")
