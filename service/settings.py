@@ -278,6 +278,14 @@ def env_name(field: str) -> str:
     return ENV_PREFIX + field.upper()
 
 
+# variables an operator may look for that are options of ``quatrack serve``, not settings: the
+# nearest setting's name was no help (QUATRACK_LOG_LEVEL -> "did you mean QUATRACK_STORE?")
+COMMAND_OPTIONS = {
+    **dict.fromkeys((ENV_PREFIX + "LOG_LEVEL", ENV_PREFIX + "LOGLEVEL", ENV_PREFIX + "LOG"),
+                    "the log level is the option --log-level of quatrack serve: debug, info, warning or error"),
+}
+
+
 def env_warnings(environ=None) -> list[str]:
     """One line per ``QUATRACK_*`` variable the settings will not use as the operator may think:
     a name no setting has (``QUATRACK_API_TOKNE``: the server would start without a token), with
@@ -296,6 +304,8 @@ def env_warnings(environ=None) -> list[str]:
         if name not in known:
             near = difflib.get_close_matches(name, sorted(known), n=1, cutoff=0.6)
             hint = f" (did you mean {near[0]}?)" if near else " (the settings are listed by `python -m quatrack.service.settings`)"
+            if name in COMMAND_OPTIONS:  # (QUATRACK_LOG_LEVEL: "did you mean QUATRACK_STORE?")
+                hint = f" ({COMMAND_OPTIONS[name]})"
             out.append(f"{key} is not a setting: ignored{hint}")
         elif environ[key] == "":
             what = "no token is required" if name == env_name("api_token") else "the default is used"
