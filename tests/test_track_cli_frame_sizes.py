@@ -17,3 +17,16 @@ def test_frames_a_pixel_larger_say_the_real_factors(tmp_path, capsys):
         "quatrack track: warning: the camera is for 640×480 px images and these are 641×481 px, a few pixels apart: "
         "its intrinsics scaled by 1.0016 wide and 1.0021 tall; if the frames are padded or cropped rather than "
         "resized, give a camera file for 641×481")
+
+
+def test_a_stray_frame_of_another_size_is_given_the_command_line_s_remedy(tmp_path, capsys):
+    frames = _box_frames(3)
+    for k, frame in enumerate(frames):
+        assert cv2.imwrite(str(tmp_path / f"{k:04d}.png"), cv2.resize(frame, (320, 240)) if k == 1 else frame)
+    assert _track(tmp_path, "--images", str(tmp_path / "*.png"), "--out", str(tmp_path / "poses.csv")) == 0
+    err = capsys.readouterr().err.strip()
+    assert err == (f"quatrack track: frame 1 cannot be read, written as lost: {tmp_path / '0001.png'}: the camera is "
+                   f"for 640×480 px images but the frame is 320×240 px (resized by 0.5? the frames of one run must "
+                   f"all be 640×480 px: resize it, or track the 320×240 px frames in a run of their own, with a "
+                   f"camera file for that size)"), err
+    assert "scaled(" not in err
