@@ -414,8 +414,12 @@ async def read_pose_request(request: Request, camera: CameraIn | None) -> tuple[
         except ClientDisconnect:
             raise _client_left() from None
     else:
+        # (it said "with an image/* content type", while application/octet-stream is taken too: the
+        # image's format is read from its bytes, whatever type the header names)
+        shown = repr(ctype[:60]) if ctype else "none"
         raise ApiError(415, "unsupported_media_type",
-                       "send multipart/form-data (fields image, camera) or the raw image with an image/* content type")
+                       f"content type {shown}: send multipart/form-data (fields image, camera), or the raw image "
+                       f"bytes as image/* (e.g. image/jpeg) or application/octet-stream")
     if camera is None:
         raise ApiError(422, "bad_camera", "a camera is required: multipart field 'camera' or query parameters fx, fy, cx, cy")
     if (camera.width is None) != (camera.height is None):  # (the image's size filled the other one in silence)
