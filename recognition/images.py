@@ -35,6 +35,10 @@ LOW_DEPTH_MIN_PIXELS = 64 * 64
 # warned of once (FloatRangeWarning); above, neither (ImageError)
 FLOAT_SLACK = 0.1
 FLOAT_255_MIN = 2.0
+# The share of a float image's values that may be NaN or ±inf (read as 0, or 1 for +inf: a few
+# dead or masked pixels); beyond it the image is refused (ImageError): a frame full of NaN was
+# read as black and answered "not found"
+FLOAT_MAX_NONFINITE = 0.5
 
 __all__ = ["DEFAULT_MAX_PIXELS", "MAX_DECODE_PIXELS", "MIN_SIDE", "BitDepthWarning", "FloatRangeWarning", "ImageError",
            "PreparedImage",
@@ -243,12 +247,19 @@ def _uint16_to_8(img: np.ndarray, bits: int | None) -> np.ndarray:
 
 def _float_to_8(img: np.ndarray) -> np.ndarray:
     """Float pixels as 8-bit, their range told by the largest value (NaN and -inf as 0, +inf as
-    1): up to 1.1, 0..1 (scaled by 255; above 1, a resampled image's overshoot, clipped); from
+    1; more than :data:`FLOAT_MAX_NONFINITE` of them non-finite: :class:`ImageError`): up to 1.1,
+    0..1 (scaled by 255; above 1, a resampled image's overshoot, clipped); from
     2 to 280.5, 0..255 (clipped). Between 1.1 and 2 the image is 0..1 with values above it (HDR
     data, an exposure gain): read as 0..255 it came out black, so it is read as 0..1, clipped,
     and warned of once (:class:`FloatRangeWarning`). Above 280.5 it is neither (16-bit data as
     floats?): :class:`ImageError` naming the value. Values below 0 are clipped to 0."""
     global _float_warned
+    bad = img.size - int(np.count_nonzero(np.isfinite(img)))
+    if bad > FLOAT_MAX_NONFINITE * img.size:
+        # (a frame full of NaN was read as black and answered "not found: no object-like window")
+        raise ImageError(f"a float image whose values are {100 * bad / img.size:.0f} % NaN or infinite (at most "
+                         f"{100 * FLOAT_MAX_NONFINITE:.0f} % are taken, read as 0, +inf as 1); if they are meant as "
+                         f"black, replace them by 0 (np.nan_to_num)")
     finite = np.nan_to_num(img, nan=0.0, posinf=1.0, neginf=0.0)
     top = float(finite.max())
     if top > 255 * (1 + FLOAT_SLACK):

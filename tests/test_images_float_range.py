@@ -67,3 +67,16 @@ def test_nan_and_infinities_keep_their_reading(fresh):
     img[1, 1], img[2, 2], img[3, 3] = np.nan, np.inf, -np.inf
     out = _quiet(lambda: to_bgr8(img))
     assert out[1, 1].tolist() == [0, 0, 0] and out[2, 2].tolist() == [255, 255, 255] and out[3, 3].tolist() == [0, 0, 0]
+
+
+@pytest.mark.parametrize("fill", [np.nan, np.inf, -np.inf])
+def test_a_frame_mostly_not_finite_is_refused(fresh, fill):
+    # a float32 frame full of NaN was read as black and answered lost, "no object-like window"
+    img = _frame(0.5)
+    img[:40] = fill  # (2/3 of the rows)
+    with pytest.raises(ImageError, match=r"^a float image whose values are 67 % NaN or infinite \(at most 50 % are "
+                                         r"taken, read as 0, \+inf as 1\); if they are meant as black, replace them "
+                                         r"by 0 \(np\.nan_to_num\)$"):
+        to_bgr8(img)
+    with pytest.raises(ImageError, match="100 % NaN or infinite"):
+        to_bgr8(np.full((48, 64, 3), np.nan, np.float32))
