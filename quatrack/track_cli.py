@@ -119,7 +119,10 @@ def _load_init_pose(path: str):
         raise UserError(f"--init-pose {path}: not valid JSON (nested too deeply)") from None
     if isinstance(data, dict) and isinstance(data.get("pose"), dict):
         data = data["pose"]
-    return parse_pose(data, f"--init-pose {path}")
+    # (as a spec's poses are read: a quaternion not of length 1 is normalised and said so, an R that is
+    # no rotation refused; the quaternion was normalised in silence while a scaled R was refused)
+    return parse_pose(data, f"--init-pose {path}",
+                      warn=lambda message: print(f"quatrack track: warning: {message}", file=sys.stderr))
 
 
 #: ``--out -``: the rows on stdout (it wrote a file named "-")

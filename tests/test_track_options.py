@@ -42,3 +42,16 @@ def test_mesh_unit_with_csv_does_not_claim_the_mesh_is_in_that_unit(tmp_path, ca
     assert capsys.readouterr().err.strip() == (
         "quatrack track: warning: --mesh-unit is for --format bop only (it says what unit the mesh is in, to give "
         "BOP's t in mm); the csv output is in the mesh's own units, whatever they are, unconverted")
+
+
+def test_an_init_pose_quaternion_not_of_length_1_is_said_as_in_a_spec(tmp_path, capsys):
+    # q × −2 was normalised in silence while an R scaled by 2 was refused; a spec's pose warns of it
+    import json
+
+    pose = tmp_path / "pose.json"
+    pose.write_text(json.dumps({"q_wxyz": [-2.0, 0.0, 0.0, 0.0], "t": [0.0, 0.0, 60.0]}))
+    video = ["--video", str(EXAMPLE / "box.mp4"), "--max-frames", "1"]
+    assert _track(tmp_path, *video, "--init-pose", str(pose), "--out", str(tmp_path / "poses.csv")) == 0
+    err = capsys.readouterr().err.splitlines()
+    assert err[0] == (f"quatrack track: warning: --init-pose {pose}: field 'q_wxyz' is 2 long, not 1: read as the "
+                      f"unit quaternion [-1, 0, 0, 0] (a unit quaternion [w, x, y, z] is expected)"), err
