@@ -59,7 +59,9 @@ class FrameError(TrackMessage):
     arrival (``unsupported_image``, ``too_large``, ``rate_limited``). Its ``status`` is ``lost``,
     without pose; ``code`` and ``message`` are the server's, ``reason`` is ``"CODE: message"``;
     ``frame`` is the server's number of the frame (None for a frame refused on arrival, which
-    gets none), ``time_s`` the time the frame was sent with (None: untimed).
+    gets none), ``index`` the frame's place in the ``frames`` given to ``track`` (from 0: known
+    to the client for every frame, a refused one included, while the server's numbers move up
+    one after a refusal), ``time_s`` the time the frame was sent with (None: untimed).
 
     Why: the session stays open after such an error, but ``track`` raised it and closed the
     socket, so one damaged JPEG from a camera ended the whole stream. Errors about the session
@@ -67,6 +69,7 @@ class FrameError(TrackMessage):
     :class:`QuatrackError`."""
 
     frame: int | None = None
+    index: int | None = None
     time_s: float | None = None
     status: Literal["lost"] = "lost"
     pose: None = None
@@ -285,7 +288,7 @@ class _Endpoint:
         return None, image_bytes(item)
 
     @classmethod
-    def _answer_of(cls, msg: dict, time_s: float | None) -> TrackMessage:
+    def _answer_of(cls, msg: dict, time_s: float | None, index: int | None = None) -> TrackMessage:
         """A lock-step frame's answer: its :class:`TrackMessage`, or a :class:`FrameError` for an
         error about that frame alone (one naming its ``frame``, or a refusal on arrival: the only
         frame in flight); any other error raised as :class:`QuatrackError`."""
@@ -294,7 +297,8 @@ class _Endpoint:
             code, text = str(error.get("code", "error")), str(error.get("message", ""))
             frame = msg.get("frame")
             return FrameError(frame=frame if isinstance(frame, int) and not isinstance(frame, bool) else None,
-                              time_s=time_s, code=code, message=text, reason=f"{code}: {text}", id=msg.get("id"))
+                              index=index, time_s=time_s, code=code, message=text, reason=f"{code}: {text}",
+                              id=msg.get("id"))
         return TrackMessage.model_validate(cls._expect(msg, "pose"))
 
     @staticmethod
@@ -381,12 +385,12 @@ class Client(_Endpoint):
         with ws, _typed_stream_errors(self.ws_url, self.timeout):  # (the server gone, or silent)
             ws.send(self._hello(camera))
             self._expect(_message(ws.recv(self.timeout)), "ready")
-            for item in frames:
+            for index, item in enumerate(frames):
                 header, data = self._frame_parts(item)
                 if header is not None:
                     ws.send(header)
                 ws.send(data)
-                yield self._answer_of(_message(ws.recv(self.timeout)), self._sent_time(item))
+                yield self._answer_of(_message(ws.recv(self.timeout)), self._sent_time(item), index)
 
     def close(self) -> None:
         self._http.close()
@@ -452,13 +456,15 @@ class AsyncClient(_Endpoint):
             with _typed_stream_errors(self.ws_url, self.timeout):  # (the server gone, or silent)
                 await ws.send(self._hello(camera))
                 self._expect(_message(await asyncio.wait_for(ws.recv(), self.timeout)), "ready")
+                index = 0
                 async for item in items():
                     header, data = self._frame_parts(item)
                     if header is not None:
                         await ws.send(header)
                     await ws.send(data)
                     msg = _message(await asyncio.wait_for(ws.recv(), self.timeout))
-                    yield self._answer_of(msg, self._sent_time(item))
+                    yield self._answer_of(msg, self._sent_time(item), index)
+                    index += 1
 
     async def aclose(self) -> None:
         await self._http.aclose()

@@ -44,6 +44,8 @@ def _check(msgs: list, frames: list) -> None:
     assert sorted(bad) == [DAMAGED, NOT_AN_IMAGE]
     assert bad[DAMAGED].code == "bad_image" and bad[DAMAGED].frame == DAMAGED
     assert bad[NOT_AN_IMAGE].code == "unsupported_image" and bad[NOT_AN_IMAGE].frame is None
+    # the input's place, also for the frame refused on arrival (the server gives it no number)
+    assert [m.index for m in bad.values()] == [DAMAGED, NOT_AN_IMAGE]
     for i, m in bad.items():
         assert m.status == "lost" and m.pose is None and m.time_s == pytest.approx(frames[i][0])
         assert m.reason.startswith(m.code + ": ") and m.message
