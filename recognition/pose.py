@@ -756,6 +756,23 @@ def plausible(camera: PinholeCamera, mesh: Mesh, pose: Pose, params: PoseParams 
     return None
 
 
+def _edge_on(est: PnPSolution, prior, points3d: np.ndarray, normals: np.ndarray) -> str:
+    """Which view sees more than half of the points edge-on or from behind (the infinite
+    transition tilts of :func:`transition_tilts`), as a message's subject and verb: ``"the
+    camera at this pose sees"``, ``"its matched viewset's view sees"``, both, or either."""
+    n = normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+
+    def away(R, t) -> float:
+        d = -(np.asarray(R, float).T @ np.asarray(t, float)) - points3d
+        return float(np.mean(np.einsum("ij,ij->i", n, d) <= 1e-9))
+
+    views = [v for v, share in (("the camera at this pose", away(est.R, est.t)),
+                                ("its matched viewset's view", away(*prior[:2]))) if share > 0.5]
+    if len(views) == 1:
+        return f"{views[0]} sees"
+    return " and ".join(views) + " see" if views else "the camera at this pose or its matched viewset's view sees"
+
+
 def _basic_checks(est: PnPSolution, n_matches: int, params: PoseParams, points3d, normals, prior) -> str | None:
     if len(est.inliers) < params.min_inliers:
         return f"too few inliers ({len(est.inliers)} < {params.min_inliers})"
@@ -770,6 +787,10 @@ def _basic_checks(est: PnPSolution, n_matches: int, params: PoseParams, points3d
     if prior is not None and points3d is not None and normals is not None:
         idx = est.inliers
         tau = float(np.median(transition_tilts(est.R, est.t, prior[0], prior[1], points3d[idx], normals[idx])))
+        if not np.isfinite(tau):  # (it said "a transition tilt of inf", which told the user nothing)
+            return (f"most of its inliers would lie on faces {_edge_on(est, prior, points3d[idx], normals[idx])} "
+                    f"edge-on or from behind: no match across that (transition tilt at most "
+                    f"{params.max_transition_tilt:g})")
         if tau > params.max_transition_tilt:
             return (f"its inliers would be seen at a transition tilt of {tau:.1f} from its matched viewset's view "
                     f"(at most {params.max_transition_tilt:g})")
