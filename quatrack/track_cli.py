@@ -224,7 +224,6 @@ def _track_frames(s: _Setup, rows, video, progress, steps: list | None = None) -
             emit(s.tracker.skip(t, f"the frame cannot be read: {why}"), last)
 
     from quatrack.recognition.images import ImageError
-    from quatrack.recognition.tracker.machine import GIVEN_REFUSED
 
     stepped = False  # a frame of the sequence fitted the camera
     try:
@@ -246,9 +245,9 @@ def _track_frames(s: _Setup, rows, video, progress, steps: list | None = None) -
                 continue
             except ValueError as exc:
                 raise UserError(f"{s.source.where(i)}: {exc}") from None
-            if not stepped and s.init_pose is not None and (step.reason or "").startswith(GIVEN_REFUSED):
+            if not stepped and s.init_pose is not None and step.status == "lost":
                 progress.close()  # (its line cleared: the warning gets a line of its own)
-                _refused_pose(s.init_pose, step.frame, step.reason, step.status != "lost")
+                _refused_pose(s.init_pose, step.frame, step.reason)
             stepped = True
             last = to_bgr8(image) if video is not None else None
             emit(step, last)
@@ -305,22 +304,17 @@ def _camera_resized(s: _Setup, image) -> _Setup | None:
     return replace(s, camera=camera)
 
 
-def _refused_pose(path: str, frame: int, reason: str, found: bool) -> None:
+def _refused_pose(path: str, frame: int, reason: str | None) -> None:
     """Say once on stderr that the tracker refused ``--init-pose``'s pose at its first frame, and
     why: only ``--format jsonl`` rows carried the reason; the CSV said ``lost`` and recognition
-    took over, so a pose given camera → object went unnoticed. Recognition searches that same
-    frame; ``found``: it found the object there (the row's reason is ``given pose refused: WHY;
-    then ...``, :data:`~quatrack.recognition.tracker.machine.GIVEN_REFUSED`)."""
-    from quatrack.recognition.tracker.machine import GIVEN_REFUSED, THEN
-
-    why = reason.removeprefix(GIVEN_REFUSED).partition(THEN)[0]
-    there = "found it in that same frame" if found else "did not find it in that frame"
+    took over, so a pose given camera → object went unnoticed."""
+    why = (reason or "no reason given").removeprefix("given pose refused: ").removeprefix("given pose: ")
     # (both causes named: a pose merely 10° off was asked whether it was given camera → object)
     print(f"quatrack track: warning: --init-pose {path}: the pose was refused at frame {frame} ({why}); "
           f"the object is searched for by recognition instead (either the pose is too far from where the frame "
           f"shows the object (it must be within about {INIT_POSE_DEG:g}° and a few % of the object's size, on a "
           f"side no photo shows), or it is in another convention (camera → object instead of object → camera, "
-          f"or not in the mesh's units)); recognition {there}", file=sys.stderr)
+          f"or not in the mesh's units))", file=sys.stderr)
 
 
 #: how close an ``--init-pose`` must be to the object's pose in its first frame, as a trial measured it

@@ -49,8 +49,8 @@ def test_a_refused_init_pose_is_said_once_on_stderr_with_its_reason(base_store, 
     pose_file.write_text(json.dumps({"R": R.T.tolist(), "t": (-R.T @ t).tolist()}))
     assert _track(base_store, root, pose_file, tmp_path / "poses.jsonl", "jsonl") == 0
     first = json.loads((tmp_path / "poses.jsonl").read_text().splitlines()[0])
-    assert first["reason"].startswith("given pose refused: ")  # (then recognition, in the same frame)
-    why = first["reason"].removeprefix("given pose refused: ").partition("; then ")[0]
+    assert first["status"] == "lost" and first["reason"].startswith("given pose")
+    why = first["reason"].removeprefix("given pose refused: ").removeprefix("given pose: ")
     capsys.readouterr()
     assert _track(base_store, root, pose_file, tmp_path / "poses.csv") == 0
     err = [x for x in capsys.readouterr().err.splitlines() if "--init-pose" in x]

@@ -85,12 +85,7 @@ from .mesh_points import MeshPoints, birth_mask, confident
 from .reacquire import LastSeen, hull_mask, object_shift, shifted_pose
 from .sources import FrameContext, MeasurementSource, TrainedPoints, follow_together
 
-__all__ = ["Tracker", "GIVEN_REFUSED", "THEN"]
-
-#: how the reason of a frame whose given pose (:meth:`Tracker.init_pose`) was refused starts; the
-#: refusal's cause follows, then :data:`THEN` and what recognition made of the same frame
-GIVEN_REFUSED = "given pose refused: "
-THEN = "; then "
+__all__ = ["Tracker"]
 
 
 def _ms(t0: float) -> float:
@@ -575,22 +570,7 @@ class Tracker:
         return step
 
     def _initialise(self, img: np.ndarray, frame: Frame, time_s: float, timings: dict) -> TrackStep:
-        """*init* (:meth:`_initialise_from`); a given pose that is refused (behind the camera, no
-        model point matched near it) leaves the same frame to recognition, whose step says both:
-        ``given pose refused: WHY; then REASON`` (:data:`GIVEN_REFUSED`, :data:`THEN`). Why: the
-        frame was answered ``lost`` and recognition started only at the next one, though it
-        finds the object in that frame on its own (a pose given camera → object cost frame 0)."""
-        given = self._pending is not None
-        step = self._initialise_from(img, frame, time_s, timings)
-        if not given or step.status != "lost":
-            return step
-        why = step.reason.removeprefix(GIVEN_REFUSED).removeprefix("given pose: ")
-        after = self._initialise_from(img, frame, time_s, timings)  # (_pending used up: recognition)
-        after.reason = f"{GIVEN_REFUSED}{why}{THEN}{after.reason}"
-        return after
-
-    def _initialise_from(self, img: np.ndarray, frame: Frame, time_s: float, timings: dict) -> TrackStep:
-        """The user's pose, re-acquisition near the last pose (:meth:`_reacquire`) or
+        """*init*: the user's pose, re-acquisition near the last pose (:meth:`_reacquire`) or
         recognition; then anchor model points and refine."""
         if self._pending is None:
             step = self._reacquire(img, frame, time_s, timings)
@@ -602,8 +582,8 @@ class Tracker:
             z = pose.apply(self.model.mesh.vertices)[:, 2]
             if np.any(z <= 1e-9):
                 # (t = 0, a pose behind the camera: "only 0 model points matched near the pose"
-                # said nothing of why; this frame is searched by recognition: _initialise)
-                return self._lost(time_s, f"{GIVEN_REFUSED}the object would be (partly) behind the camera "
+                # said nothing of why; the next frame is searched by recognition, as before)
+                return self._lost(time_s, f"given pose refused: the object would be (partly) behind the camera "
                                           f"(its nearest vertex at z = {z.min():.3g} mesh units)")
             cov, how = self._initial_covariance(), "given pose"
             self._second_hand, self._birth = False, None
