@@ -153,6 +153,10 @@ class TrackSession:
         self.answered = asyncio.Event()  # set when dropped frames were answered (_answer_dropped)
         self.next_frame = 0
         self.last_answered = -1  # the number of the latest frame whose answer was sent (pose or error)
+        # messages answering what the client sent after frame N (a refusal on arrival, an error about
+        # a header or a control, "ready"), held as (N, message) until frame N's answer is sent
+        # (:meth:`reply`, :meth:`_flush_replies`): answers stay in the order of what they answer
+        self.replies: list[tuple[int, dict]] = []
         self.last_time: float | None = None
         self.last_clock = 0.0  # the session clock at the latest frame's arrival
         self.header_time: float | None = None
@@ -201,15 +205,40 @@ class TrackSession:
         self.closed = self.stalled = True
         self.answered.set()  # (wakes a receive loop waiting for the answers to be read)
 
+    async def reply(self, payload: dict) -> None:
+        """Send the answer to a message the client sent after the frames received so far: now, or,
+        while an earlier frame's answer is still owed, right after it. Why: the README's "each
+        frame is answered by one message, in frame order" — a refusal on arrival (``rate_limited``,
+        ``unsupported_image``) or a header's ``out_of_order`` was sent at once and overtook the
+        pose answers of earlier frames still being tracked, so a client counting answers filed
+        them under the wrong frames."""
+        if self.replies or self.last_answered < self.next_frame - 1:
+            self.replies.append((self.next_frame - 1, payload))
+            return
+        await self.send(payload)
+
+    async def _flush_replies(self) -> None:
+        """Send the held replies whose frame is answered (:meth:`reply`), in the order received."""
+        sent = False
+        while self.replies and self.replies[0][0] <= self.last_answered:
+            _, payload = self.replies.pop(0)
+            await self.send(payload)
+            sent = True
+        if sent:
+            self.answered.set()
+
     async def send_error(self, code: str, message: str, frame: int | None = None,
-                         frame_id: int | str | None = None) -> None:
+                         frame_id: int | str | None = None, now: bool = False) -> None:
+        """An error message. One about a numbered frame (``frame``: the processor's, in that frame's
+        turn) is sent at once; any other answers what the client sent last, after the answers of
+        the frames before it (:meth:`reply`), unless ``now`` (the session's own end)."""
         body = {"type": "error", **error_body(code, message)}
         if frame is not None:
             body["frame"] = frame
         if frame_id is not None:  # (the client's id of the frame the error is about: absent without one)
             body["id"] = frame_id
         self._log(logging.INFO, "session %s: %s: %s", self.sid, code, message, code=code)
-        await self.send(body)
+        await (self.send(body) if frame is not None or now else self.reply(body))
 
     # --- receiving --------------------------------------------------------------------------------
     async def run(self) -> str:
@@ -226,7 +255,8 @@ class TrackSession:
                 try:
                     msg = await asyncio.wait_for(self.ws.receive(), self.settings.idle_timeout_s)
                 except asyncio.TimeoutError:
-                    await self.send_error("idle_timeout", f"no message for {self.settings.idle_timeout_s:g} s; closing")
+                    await self.send_error("idle_timeout", f"no message for {self.settings.idle_timeout_s:g} s; closing",
+                                          now=True)
                     outcome = "idle"
                     break
                 if msg["type"] == "websocket.disconnect":
@@ -288,7 +318,7 @@ class TrackSession:
         frames wait for their ``dropped`` answer, now or within ``idle_timeout_s`` (False: the
         client reads nothing). Without it, a client sending frames and reading no answers grew
         ``dropped`` by one frame — its image bytes included — per frame, for as long as it sent."""
-        while len(self.dropped) >= MAX_UNANSWERED and not self.closed:
+        while len(self.dropped) + len(self.replies) >= MAX_UNANSWERED and not self.closed:
             self.answered.clear()
             try:
                 await asyncio.wait_for(self.answered.wait(), self.settings.idle_timeout_s)
@@ -490,7 +520,7 @@ class TrackSession:
         self.camera = cam
         self._control(("camera", cam))
         if cam.ack:
-            await self.send({"type": "ready", "session": self.sid, "object": self.name, "tracker": TRACKER_KIND,
+            await self.reply({"type": "ready", "session": self.sid, "object": self.name, "tracker": TRACKER_KIND,
                              "camera_replaced": not first, "learns": self._learns(cam)})
 
     def _learns(self, camera: CameraIn) -> bool:
@@ -519,6 +549,7 @@ class TrackSession:
                 self.metrics.frames.labels("error").inc()
                 await self.send_error(out.code, out.message, item.number, item.id)
                 self.last_answered = item.number
+                await self._flush_replies()
                 continue
             out["skipped"] = skipped
             out["latency_ms"] = round((time.perf_counter() - item.arrival) * 1e3, 2)
@@ -527,6 +558,7 @@ class TrackSession:
             self.metrics.frame_latency.observe(out["latency_ms"] / 1e3)
             await self.send(out)
             self.last_answered = item.number
+            await self._flush_replies()
 
     async def _answer_dropped(self, before: int) -> None:
         """Answer, in order, the frames numbered below ``before`` that newer ones replaced: the
@@ -548,6 +580,7 @@ class TrackSession:
                    "latency_ms": round((time.perf_counter() - d.arrival) * 1e3, 2)}
             await self.send(add_to_track_message(msg, self.ros_unit))
             self.last_answered = max(self.last_answered, d.number)
+            await self._flush_replies()
         if early:
             self.answered.set()
 
