@@ -42,7 +42,7 @@ class ViewSpec:
     mask_path: Path | None = None
     points: PointPairs | None = field(default=None, compare=False)
     pose_from_points: bool = False
-    # the pose were the spec's q_wxyz written [x, y, z, w] (:func:`xyzw_reading`), to hint at it
+    # the pose were the spec's q_wxyz written [x, y, z, w] (:func:`_xyzw_reading`), to hint at it
     xyzw_pose: Pose | None = field(default=None, compare=False)
 
 
@@ -137,7 +137,7 @@ def _shown_q(q: np.ndarray) -> str:
     return "[" + ", ".join(f"{v:.4g}" for v in q) + "]"
 
 
-def xyzw_reading(data: Any) -> Pose | None:
+def _xyzw_reading(data: Any) -> Pose | None:
     """The pose ``{"q_wxyz", "t"}`` would give were its quaternion written ``[x, y, z, w]`` (scipy's
     and ROS's order), to tell the user when that reading fits the photo and the given one does
     not; None for another pose form, or a quaternion whose two readings are one rotation."""
@@ -317,7 +317,7 @@ def load_spec(path: str | Path, warn=None, pose_required: bool = True, misfits: 
                      f"photos) and draws it to check")
         mask = _path(base, v["mask"], where, "mask") if v.get("mask") is not None else None
         views.append(ViewSpec(i, image, camera, pose, mask, points, "pose" not in v and points is not None,
-                              xyzw_reading(v.get("pose"))))
+                              _xyzw_reading(v.get("pose"))))
     if warn:
         for msg in _repeated_photos(views, path):
             warn(msg)
