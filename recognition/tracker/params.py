@@ -23,7 +23,7 @@ from ..locate import LocateParams
 from ..pose import PoseParams, value_key
 from ..visibility import VisibilityParams
 
-__all__ = ["TrackerParams", "TrackStep", "motion_noise", "DEFAULT_MOTION_NOISE", "MAX_MOTION_NOISE", "STATUSES",
+__all__ = ["TrackerParams", "TrackStep", "motion_noise", "noise_defaults", "DEFAULT_MOTION_NOISE", "MAX_MOTION_NOISE", "STATUSES",
            "INITIAL_VELOCITY_SIGMA"]
 
 # Plant noise per motion model, free of units: translation terms are per diameter² of the object,
@@ -63,8 +63,6 @@ def motion_noise(motion_model: str, diameter: float, overrides: dict | None = No
     out = {k: v * (diameter**2 if k in _TRANSLATION_NOISE else 1.0) for k, v in rel.items()}
     out.update({k: float(v) for k, v in (overrides or {}).items()})
     return out
-
-
 
 
 def noise_defaults(motion_model: str) -> str:
