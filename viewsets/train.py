@@ -306,12 +306,12 @@ def train_object(
     t0 = time.perf_counter()
     mesh = load_mesh(spec.mesh_path, warn=warn)
     views = [_prepare_view(mesh, v, warn) for v in spec.views]
-    if check is not None and warn:  # (the poses' doubts before the texture's: a wrong pose makes weak texture too)
-        for msg in check(spec, mesh):
-            warn(msg)
+    doubts = check(spec, mesh) if check is not None and warn else []
     asked = params.viewsets.contrast_threshold
     viewsets, params, weak = _viewsets_for_texture(mesh, _tasks(mesh, views, params.novel), params, progress, on_total)
     viewsets = _checked(viewsets, params, warn)  # (raises: nothing to learn even at the lowest threshold)
+    for msg in doubts:  # the poses' doubts before the texture's (a wrong pose makes weak texture too), but
+        warn(msg)  # after the refusal of a view with nothing to learn: bad input is one line
     if warn and params.viewsets.contrast_threshold != asked:  # (one warning, once the model is sure)
         warn(f"weak texture: {weak:.1f} keypoints per 10 000 px of the object in its registered views "
              f"(fewer than {params.min_keypoint_density:g}); trained with SIFT's contrast threshold lowered to "
