@@ -88,8 +88,14 @@ def test_bench_locate_reports_cpu_time_next_to_wall_clock(monkeypatch):
     monkeypatch.setattr(B, "locate", lambda *a, **k: answer)
     r, cpu = B._located(None, None, None, None, None)
     assert r is answer and cpu >= 0.0
-    block = {"time_ms": {k: {"p50": 1.0, "p95": 2.0} for k in B.STAGES}, "cpu_ms": {"p50": 12.5, "p95": 34.5}}
-    summary = {
+    text = B.format_report(_found_summary(B, cpu=(12.5, 34.5)))
+    assert text.count("CPU p50 12.5 / p95 34.5 ms") == 2 and "(CPU 2 ms)" in text
+
+
+def _found_summary(B, cpu=(1.0, 2.0), **more) -> dict:
+    """A ``bench locate`` summary of one rendered scene and one video frame, both found."""
+    block = {"time_ms": {k: {"p50": 1.0, "p95": 2.0} for k in B.STAGES}, "cpu_ms": {"p50": cpu[0], "p95": cpu[1]}}
+    return {
         "rendered": {"scenes": 1, "success": 1.0, "success_within_30deg": 1.0, "found": 1.0, "wrong_when_found": 0.0,
                      "median_translation_error_pct_diameter": 0.1, "median_rotation_error_deg": 0.1,
                      "window_iou_ge_0.5": 1.0, "window_iou_median": 0.9, "fallback_to_whole_image": 0.0,
@@ -98,9 +104,8 @@ def test_bench_locate_reports_cpu_time_next_to_wall_clock(monkeypatch):
                       "cpu_ms": {"p50": 2.5, "p95": 3.5}},
         "video": {"frames": 1, "every": 1, "found": 1.0, "found_whole_image": 1.0, "window_centre_on_box": 1.0,
                   "sheet": None, **block},
+        **more,
     }
-    text = B.format_report(summary)
-    assert text.count("CPU p50 12.5 / p95 34.5 ms") == 2 and "(CPU 2 ms)" in text
 
 
 def test_bench_locate_report_with_nothing_to_report_for_some_figures():
@@ -222,18 +227,6 @@ def test_bench_locate_sees_the_video_as_a_grey_and_a_sharper_camera_would():
         # (no ground truth: the colour frame's own pose is 0.5–2° uncertain here, and 0.1–6 % apart from
         # its whole-image search's; near it, not on it)
         assert b["agree"] >= 0.5 and b["diff_p50_pct"] < 5.0 and b["diff_p50_deg"] < 5.0, (name, b)
-    block = {"time_ms": {k: {"p50": 1.0, "p95": 2.0} for k in B.STAGES}, "cpu_ms": {"p50": 1.0, "p95": 2.0}}
-    summary = {
-        "rendered": {"scenes": 1, "success": 1.0, "success_within_30deg": 1.0, "found": 1.0, "wrong_when_found": 0.0,
-                     "median_translation_error_pct_diameter": 0.1, "median_rotation_error_deg": 0.1,
-                     "window_iou_ge_0.5": 1.0, "window_iou_median": 0.9, "fallback_to_whole_image": 0.0,
-                     "curve": [], **block},
-        "negatives": {"images": 2, "false_positives": 0, "time_ms": {"p50": 3.0, "p95": 4.0},
-                      "cpu_ms": {"p50": 2.5, "p95": 3.5}},
-        "video": {"frames": 1, "every": 1, "found": 1.0, "found_whole_image": 1.0, "window_centre_on_box": 1.0,
-                  "sheet": None, **block},
-        "cameras": c,
-    }
-    text = B.format_report(summary)
+    text = B.format_report(_found_summary(B, cameras=c))
     assert "grey ×1: verified pose in 100.0 %" in text and "colour ×3: verified pose in 100.0 %" in text
     assert "colour ×0.5: verified pose in 100.0 %" in text
