@@ -42,8 +42,7 @@ import numpy as np
 
 from quatrack.tracking.camera import PinholeCamera
 from quatrack.tracking.jit import lazily_compiled
-from quatrack.viewsets.rfch import (CHROMA_STD_FLOOR, RFCHModel, descriptor_planes, nearest_centres, neighbour_planes,
-                                    texture_zoom)
+from quatrack.viewsets.rfch import RFCHModel, descriptor_planes, nearest_centres, neighbour_planes, texture_zoom
 from quatrack.viewsets.store import ObjectModel
 
 from .fields import check_field_kinds
@@ -100,30 +99,6 @@ class LabelMap:
 
     labels: np.ndarray
     scale: float
-
-
-def colour_blind(image: np.ndarray, rfch: RFCHModel) -> bool:
-    """Whether ``image`` (8-bit BGR, or grey) has no colour — its three channels equal, as a grey
-    camera's frames have — while ``rfch`` knows the object by its colours (trained on colour
-    photos: its chromaticities spread beyond the floor grey photos get, ``CHROMA_STD_FLOOR``).
-    Such a window search compares chromaticities the image cannot show, so its verdict "nothing
-    like the object" is no evidence of absence (a colour-trained cookie box missed in 10 of 31
-    grey frames of its video).
-
-    >>> from types import SimpleNamespace
-    >>> colour = SimpleNamespace(desc_std=np.array([0.12, 0.07, 0.05]))
-    >>> grey = np.full((4, 4, 3), 90, np.uint8)
-    >>> colour_blind(grey, colour), colour_blind(grey[..., 0], colour), colour_blind(grey + np.uint8([0, 0, 1]), colour)
-    (True, True, False)
-    >>> colour_blind(grey, SimpleNamespace(desc_std=np.array([0.03, 0.03, 0.05])))  # a grey-trained model
-    False
-    """
-    if not (np.asarray(rfch.desc_std[:2], float) > CHROMA_STD_FLOOR * 1.01).any():
-        return False
-    if image.ndim == 2 or image.shape[2] == 1:
-        return True
-    b, g, r = image[..., 0], image[..., 1], image[..., 2]
-    return bool(np.array_equal(b, g) and np.array_equal(g, r))
 
 
 def label_map(image: np.ndarray, rfch: RFCHModel, params: WindowSearchParams = WindowSearchParams(),

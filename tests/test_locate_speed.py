@@ -213,7 +213,7 @@ def test_bench_locate_zoo_says_how_honest_the_found_poses_covariances_are():
 def test_bench_locate_sees_the_video_as_a_grey_and_a_sharper_camera_would():
     """``bench locate``'s other cameras (session 72): box.mp4 grey, at 3× and at ½ its pixels. Each
     finds the box wherever the colour 640 × 480 camera does, near its pose — frame 75 in grey was
-    'no object-like window' before a grey image's window stopped ending the search."""
+    'no object-like window' before a window beyond the χ² gate stopped ending the search."""
     import quatrack.bench.locate as B
     from quatrack.testing import scenes as S
     from quatrack.viewsets.camera import load_camera
