@@ -286,6 +286,28 @@ def view_angle_deg(R: np.ndarray, t: np.ndarray, reference_R: np.ndarray, refere
     return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
 
 
+def view_tilts(R: np.ndarray, t: np.ndarray, points3d: np.ndarray, normals: np.ndarray):
+    """Each surface point's tilt in the view of the object→camera pose ``R, t`` — ``1/(n·d)``,
+    d the unit direction from the point to the camera centre ``−Rᵀt`` (object frame), n the
+    unit normal; ∞ where the view sees the point's plane edge-on or from behind (n·d ≤ 1e-9) —
+    and the unit tilt direction in the plane (:func:`transition_tilts` compares two views').
+
+    >>> tilt, _ = view_tilts(np.eye(3), np.array([0.0, 0.0, 5.0]), np.zeros((2, 3)),
+    ...                      np.array([[0.0, 0.0, -1.0], [0.0, 0.0, 1.0]]))
+    >>> tilt.tolist()  # facing the camera; facing away
+    [1.0, inf]
+    """
+    X = np.asarray(points3d, float).reshape(-1, 3)
+    n = np.asarray(normals, float).reshape(-1, 3)
+    n = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    d = -(np.asarray(R, float).T @ np.asarray(t, float)) - X
+    d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+    c = np.einsum("ij,ij->i", n, d)
+    u = d - c[:, None] * n
+    u /= np.maximum(np.linalg.norm(u, axis=1, keepdims=True), 1e-12)
+    return np.where(c > 1e-9, 1.0 / np.maximum(c, 1e-9), np.inf), u
+
+
 def transition_tilts(R: np.ndarray, t: np.ndarray, reference_R: np.ndarray, reference_t: np.ndarray,
                      points3d: np.ndarray, normals: np.ndarray) -> np.ndarray:
     """The transition tilt τ ≥ 1 of each surface point between two views of it (object→camera
@@ -316,20 +338,8 @@ def transition_tilts(R: np.ndarray, t: np.ndarray, reference_R: np.ndarray, refe
     >>> [round(float(transition_tilts(Ry, five, T, five, X, n)[0]), 6) for T in (Rx, Ry.T)]
     [4.0, 1.0]
     """
-    X = np.asarray(points3d, float).reshape(-1, 3)
-    n = np.asarray(normals, float).reshape(-1, 3)
-    n = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
-
-    def tilt(R, t):  # (tilt, unit tilt direction in the plane) of each point's view
-        d = -(np.asarray(R, float).T @ np.asarray(t, float)) - X
-        d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
-        c = np.einsum("ij,ij->i", n, d)
-        u = d - c[:, None] * n
-        u /= np.maximum(np.linalg.norm(u, axis=1, keepdims=True), 1e-12)
-        return np.where(c > 1e-9, 1.0 / np.maximum(c, 1e-9), np.inf), u
-
-    tq, uq = tilt(R, t)
-    tr, ur = tilt(reference_R, reference_t)
+    tq, uq = view_tilts(R, t, points3d, normals)
+    tr, ur = view_tilts(reference_R, reference_t, points3d, normals)
     cos = np.clip(np.einsum("ij,ij->i", uq, ur), -1.0, 1.0)
     sin = np.sqrt(1.0 - cos * cos)
     # A = diag(tq, 1)·[[cos, −sin], [sin, cos]]·diag(1/tr, 1); its singular values σ1 ≥ σ2:
@@ -760,11 +770,9 @@ def _edge_on(est: PnPSolution, prior, points3d: np.ndarray, normals: np.ndarray)
     """Which view sees more than half of the points edge-on or from behind (the infinite
     transition tilts of :func:`transition_tilts`), as a message's subject and verb: ``"the
     camera at this pose sees"``, ``"its matched viewset's view sees"``, both, or either."""
-    n = normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
 
     def away(R, t) -> float:
-        d = -(np.asarray(R, float).T @ np.asarray(t, float)) - points3d
-        return float(np.mean(np.einsum("ij,ij->i", n, d) <= 1e-9))
+        return float(np.mean(np.isinf(view_tilts(R, t, points3d, normals)[0])))
 
     views = [v for v, share in (("the camera at this pose", away(est.R, est.t)),
                                 ("its matched viewset's view", away(*prior[:2]))) if share > 0.5]
