@@ -177,11 +177,12 @@ def _plan(spec_paths: list[str], store: Path, no_overwrite: bool, warn=None,
         names[spec.name] = p
         kept = no_overwrite and model_path(store, spec.name).exists()  # (not "training it again", then refused)
         said: list[str] = []
-        done = params is not None and up_to_date(spec, store, inputs_checksum(spec, params), said.append)
+        checksum = inputs_checksum(spec, params) if params is not None else None  # (hashes every photo: once)
+        done = checksum is not None and up_to_date(spec, store, checksum, said.append)
         if kept and not done:
             existing.append(spec.name)
-            if params is not None:
-                stale.append((spec.name, retrain_reason(store, spec.name, inputs_checksum(spec, params))))
+            if checksum is not None:
+                stale.append((spec.name, retrain_reason(store, spec.name, checksum)))
         elif warn:
             for msg in said:
                 warn(f"{p}: {msg}")
