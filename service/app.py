@@ -40,7 +40,7 @@ from .metrics import Metrics, worker_exit
 from .placement import placement_of_running_loop, read_board
 from .registry import ModelRegistry
 from .routes import ServiceState, api, deny_websocket, health, ops, origin_allowed, sockets
-from .settings import Settings, _cores
+from .settings import Settings, usable_cores
 from .workers import ReadyBoard, count_open, ready_board, session_limiter
 
 log = logging.getLogger("quatrack.service")
@@ -443,10 +443,10 @@ def create_app(settings: Settings | None = None, whole_process: bool = False) ->
     tests build many apps in one process and leave it alone."""
     settings = (settings or Settings.from_env()).checked()
     # worker processes × threads × OpenCV threads ≈ cores: the CPUs this process may use, its
-    # container's quota included (settings._cores, as the default of workers and threads count
+    # container's quota included (settings.usable_cores, as the default of workers and threads count
     # them); os.cpu_count() counts the host's, and on a 64-core host a 2-CPU container's two
     # workers got 32 OpenCV threads each
-    cores = _cores()
+    cores = usable_cores()
     cv2.setNumThreads(max(1, cores // (settings.workers * settings.threads)))
     tune_allocator()  # no page faults from re-allocated frame-sized arrays
     limit_blas_threads()  # small BLAS products: one thread each, the cores go to OpenCV and the workers

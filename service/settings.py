@@ -30,7 +30,7 @@ SECRET_FIELDS = frozenset({"api_token"})  # never echoed in an error line
 MAX_SESSIONS = 10_000  # the slots are files: /metrics probes each of them at every scrape (70 ms for 10 000)
 
 
-def _cores() -> int:
+def usable_cores() -> int:
     """CPUs this process may use: its affinity mask, capped by a cgroup v2 CPU quota (a container's
     ``--cpus`` or Kubernetes limit), which ``os.cpu_count()`` ignores. Quota q µs per period p µs
     gives ceil(q / p) CPUs."""
@@ -67,7 +67,7 @@ class Settings(BaseSettings):
                         "e.g. `localhost,127.0.0.1,::1`; `*.example.org`: its subdomains. Another `Host` is refused, "
                         "400 `invalid_host`, except on `/healthz` and `/readyz` (DNS rebinding; see Security). "
                         "Default: any")
-    workers: int = Field(default_factory=_cores, ge=1, le=256,
+    workers: int = Field(default_factory=usable_cores, ge=1, le=256,
                          description="worker processes, each with its own models and sessions (default: the number of cores)")
     threads: int | None = Field(None, ge=1, le=64, description="CPU threads per worker process doing recognition and "
                                 "tracking (default: the number of cores ÷ workers, at least 1)")
@@ -132,7 +132,7 @@ class Settings(BaseSettings):
         every core."""
         if v is not None:
             return v
-        return max(1, _cores() // max(1, int(info.data.get("workers") or 1)))
+        return max(1, usable_cores() // max(1, int(info.data.get("workers") or 1)))
 
     @field_validator("max_connections", mode="after")
     @classmethod
