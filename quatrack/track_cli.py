@@ -234,7 +234,7 @@ def _track_frames(s: _Setup, rows, video, progress, steps: list | None = None) -
             try:
                 step = s.tracker.step(image, t)
             except ImageError as exc:
-                why = _cli_hint(str(exc), s.tracker.camera, image)
+                why = _cli_hint(exc)
                 if not stepped:  # (the camera wrong for the first frame already)
                     raise UserError(f"{s.source.where(i)}: {why}") from None
                 # one image of another size among thousands (a stray thumbnail), or a video frame (a stream
@@ -260,23 +260,19 @@ def _track_frames(s: _Setup, rows, video, progress, steps: list | None = None) -
     return steps, False
 
 
-def _cli_hint(message: str, camera, image) -> str:
-    """``message`` (an :class:`~quatrack.recognition.images.ImageError`'s) with the library's
-    remedy for a frame of another size, a Python call (``pass camera.scaled(0.5, 320, 240)``,
-    :func:`~quatrack.recognition.images.resize_hint`), replaced by the command line's: the run's
-    camera fits its first frame, so every frame must have that size."""
-    from quatrack.recognition.images import resize_hint
+def _cli_hint(exc) -> str:
+    """``exc`` (an :class:`~quatrack.recognition.images.ImageError`) in the command line's words:
+    a frame of another size that is the camera's images resized gets, in place of the library's
+    remedy for a Python call (``pass camera.scaled(0.5, 320, 240)``,
+    :class:`~quatrack.recognition.images.ImageSizeError`'s ``hint``), the command line's: the
+    run's camera fits its first frame, so every frame must have that size."""
+    from quatrack.recognition.images import ImageSizeError
 
-    shape = getattr(image, "shape", None)
-    if shape is None or len(shape) < 2 or camera.width is None or camera.height is None:
-        return message
-    w, h = int(shape[1]), int(shape[0])
-    hint = resize_hint(camera, w, h)
-    if not hint or not message.endswith(hint):
-        return message
-    return (message[: -len(hint)] + f" (resized by {w / camera.width:.3g}? the frames of one run must all be "
-            f"{camera.width}×{camera.height} px: resize it, or track the {w}×{h} px frames in a run of their own, "
-            f"with a camera file for that size)")
+    if not isinstance(exc, ImageSizeError) or not exc.hint or None in (exc.camera_size or (None,)):
+        return str(exc)
+    (cw, ch), (w, h) = exc.camera_size, exc.image_size
+    return (exc.base + f" (resized by {w / cw:.3g}? the frames of one run must all be {cw}×{ch} px: resize it, "
+            f"or track the {w}×{h} px frames in a run of their own, with a camera file for that size)")
 
 
 def _camera_resized(s: _Setup, image) -> _Setup | None:

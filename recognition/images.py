@@ -41,12 +41,35 @@ FLOAT_255_MIN = 2.0
 FLOAT_MAX_NONFINITE = 0.5
 
 __all__ = ["DEFAULT_MAX_PIXELS", "MAX_DECODE_PIXELS", "MIN_SIDE", "BitDepthWarning", "FloatRangeWarning", "ImageError",
-           "PreparedImage",
-           "decode_image", "header_size", "prepare_image", "read_image", "sniff", "to_bgr8", "too_small", "truncated"]
+           "ImageSizeError", "PreparedImage",
+           "decode_image", "header_size", "prepare_image", "read_image", "size_mismatch", "sniff", "to_bgr8", "too_small",
+           "truncated"]
 
 
 class ImageError(ValueError):
     """The image cannot be used: unreadable, empty, too small, or not matching its camera."""
+
+
+class ImageSizeError(ImageError):
+    """An image of another size than its camera states. Why a type of its own: a caller that
+    knows a better remedy than the library's (the command line cannot ``pass camera.scaled``)
+    replaces :attr:`hint` without parsing the message.
+
+    ``str(err) == err.base + err.hint``; ``camera_size`` and ``image_size`` are ``(w, h)``;
+    ``hint`` is :func:`resize_hint`'s ("" when the image is not the camera's resized).
+
+    >>> from quatrack.tracking.camera import PinholeCamera
+    >>> err = size_mismatch(PinholeCamera(500, 500, 320, 240, width=640, height=480), 320, 240)
+    >>> err.image_size, err.hint
+    ((320, 240), ' (its images resized by 0.5? pass camera.scaled(0.5, 320, 240))')
+    """
+
+    def __init__(self, base: str, hint: str = "", camera_size=None, image_size=None):
+        super().__init__(base + hint)
+        self.base, self.hint, self.camera_size, self.image_size = base, hint, camera_size, image_size
+
+    def __reduce__(self):  # (pickled whole: a worker process's error keeps its parts)
+        return type(self), (self.base, self.hint, self.camera_size, self.image_size)
 
 
 class BitDepthWarning(UserWarning):
@@ -192,6 +215,12 @@ def resize_hint(camera, w: int, h: int) -> str:
     return f" (its images resized by {w / camera.width:.3g}? pass camera.scaled({w / camera.width:.3g}, {w}, {h}))"
 
 
+def size_mismatch(camera, w: int, h: int, what: str = "image") -> ImageSizeError:
+    """The error refusing a ``w``×``h`` ``what`` (an image, a frame) for a camera sized otherwise."""
+    return ImageSizeError(f"the camera is for {camera.width}×{camera.height} px images but the {what} is {w}×{h} px",
+                          resize_hint(camera, w, h), (camera.width, camera.height), (w, h))
+
+
 def too_small(w: int, h: int) -> str:
     """The message refusing a ``w``×``h`` image below :data:`MIN_SIDE` (an empty one too)."""
     return f"the image is too small ({w}×{h} px; at least {MIN_SIDE} px a side)"
@@ -331,8 +360,7 @@ def prepare_image(image: np.ndarray, camera: PinholeCamera, max_pixels: int = DE
     if w * h > MAX_DECODE_PIXELS:
         raise ImageError(f"the image is too large ({w}×{h} px; at most {MAX_DECODE_PIXELS} pixels)")
     if camera.width is not None and camera.height is not None and (camera.width, camera.height) != (w, h):
-        raise ImageError(f"the camera is for {camera.width}×{camera.height} px images but the image is {w}×{h} px"
-                         + resize_hint(camera, w, h))
+        raise size_mismatch(camera, w, h)
     if camera.width is None or camera.height is None:  # (a camera sized by its images: its lens checked at
         camera = replace(camera, width=w, height=h)  # their size, as a sized camera's is when it is read)
         try:

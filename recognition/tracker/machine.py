@@ -67,7 +67,7 @@ from quatrack.viewsets.rfch import texture_zoom
 from quatrack.viewsets.store import ObjectModel
 from quatrack.viewsets.viewset import Viewset, params_from_manifest
 
-from ..images import MIN_SIDE, ImageError, resize_hint, to_bgr8, too_small
+from ..images import MIN_SIDE, ImageError, size_mismatch, to_bgr8, too_small
 from ..klt import Frame, make_frame
 from ..locate import check_inputs, locate
 from ..match import ModelIndex, index_for
@@ -314,8 +314,7 @@ class Tracker:
         h, w = img.shape[:2]
         cam = self.camera
         if cam.width is not None and cam.height is not None and (cam.width, cam.height) != (w, h):
-            raise ImageError(f"the camera is for {cam.width}×{cam.height} px images but the frame is {w}×{h} px"
-                             + resize_hint(cam, w, h))
+            raise size_mismatch(cam, w, h, "frame")
         if min(h, w) < MIN_SIDE:
             # (as locate's: the frame was refused only when recognition ran — a frame after
             # init_pose, or while tracking, went through KLT and the sources on 1 × N pixels)
