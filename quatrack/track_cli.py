@@ -278,10 +278,12 @@ def _cli_hint(exc) -> str:
 def _camera_resized(s: _Setup, image) -> _Setup | None:
     """The setup with its camera scaled to the first frame when the frames are the camera's
     images resized (:func:`~quatrack.viewsets.camera.resized_for`), said once on stderr; None
-    when the camera fits as it is (or not at all: the tracker refuses it, as before)."""
+    when the camera fits as it is (or not at all: the tracker refuses it, as before). Refused
+    (:class:`UserError`) when the camera's own numbers show its stated size is the wrong one
+    (:func:`~quatrack.viewsets.camera.stated_size_doubt`), as ``locate`` refuses it."""
     from dataclasses import replace
 
-    from quatrack.viewsets.camera import resized_for
+    from quatrack.viewsets.camera import resized_for, stated_size_doubt
 
     shape = getattr(image, "shape", None)
     if shape is None or len(shape) < 2:
@@ -290,6 +292,8 @@ def _camera_resized(s: _Setup, image) -> _Setup | None:
     camera, note = resized_for(s.camera, w, h)
     if note is None:
         return None
+    if (doubt := stated_size_doubt(s.camera, w, h)) is not None:  # (as locate's: scaled, the object "not found")
+        raise UserError(f"--camera: {doubt} (it was not scaled to the frames)")
     sx, sy = w / s.camera.width, h / s.camera.height
     if f"{0.5 * (sx + sy):.3g}" == "1":  # (641×481 frames said "its intrinsics scaled by 1 (a resized video)")
         note = (f"the camera is for {s.camera.width}×{s.camera.height} px images and these are {w}×{h} px, a few "

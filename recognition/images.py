@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 
 from quatrack.tracking.camera import PinholeCamera
-from quatrack.viewsets.camera import check_lens, resized_for, within_pixels
+from quatrack.viewsets.camera import check_lens, resized_for, stated_size_doubt, within_pixels
 from quatrack.viewsets.errors import SpecError
 from quatrack.viewsets.imagefile import FORMAT_NAMES, sniff, truncated
 
@@ -216,9 +216,16 @@ def resize_hint(camera, w: int, h: int) -> str:
 
 
 def size_mismatch(camera, w: int, h: int, what: str = "image") -> ImageSizeError:
-    """The error refusing a ``w``×``h`` ``what`` (an image, a frame) for a camera sized otherwise."""
-    return ImageSizeError(f"the camera is for {camera.width}×{camera.height} px images but the {what} is {w}×{h} px",
-                          resize_hint(camera, w, h), (camera.width, camera.height), (w, h))
+    """The error refusing a ``w``×``h`` ``what`` (an image, a frame) for a camera sized otherwise.
+    When the camera's own numbers say its stated size is the wrong one
+    (:func:`~quatrack.viewsets.camera.stated_size_doubt`), that is said and no resizing is
+    hinted: scaled, such a camera halves or doubles the focal length, and the object is found
+    at the wrong depth (a REST client that followed the hint: 47 % off, reported found)."""
+    base = f"the camera is for {camera.width}×{camera.height} px images but the {what} is {w}×{h} px"
+    doubt = stated_size_doubt(camera, w, h)
+    if doubt is not None:
+        return ImageSizeError(f"{base} ({doubt})", "", (camera.width, camera.height), (w, h))
+    return ImageSizeError(base, resize_hint(camera, w, h), (camera.width, camera.height), (w, h))
 
 
 def too_small(w: int, h: int) -> str:

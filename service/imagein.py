@@ -47,13 +47,19 @@ def decode_upload(data: bytes, max_pixels: int) -> np.ndarray:
 
 def size_mismatch(cam, w: int, h: int) -> str | None:
     """The message refusing a ``w``×``h`` image for a camera sized otherwise, in a client's terms
-    (REST and WebSocket alike), else None: for the camera's own images resized, the intrinsics to
-    send for this size (:func:`~quatrack.viewsets.camera.resized_for`). The library's message advised
-    ``pass camera.scaled(0.5, 640, 480)``, Python that a REST client has no use for."""
+    (REST and WebSocket alike), else None: the library's
+    (:func:`~quatrack.recognition.images.size_mismatch`, which also says when the camera's own
+    numbers show its stated size is the wrong one), with its hint for the camera's own images
+    resized — ``pass camera.scaled(0.5, 640, 480)``, Python a REST client has no use for —
+    replaced by the intrinsics to send for this size
+    (:func:`~quatrack.viewsets.camera.resized_for`)."""
+    from quatrack.recognition.images import size_mismatch as refusal
+
     if cam.width is None or cam.height is None or (cam.width, cam.height) == (w, h):
         return None
-    scaled, note = resized_for(cam, w, h)
-    hint = "" if note is None else (
-        f" (its images resized by {w / cam.width:.3g}? send the camera for this size: fx={scaled.fx:.6g}, "
-        f"fy={scaled.fy:.6g}, cx={scaled.cx:.6g}, cy={scaled.cy:.6g}, width={w}, height={h})")
-    return f"the camera is for {cam.width}×{cam.height} px images but the image is {w}×{h} px{hint}"
+    err = refusal(cam, w, h)
+    if not err.hint:
+        return str(err)
+    scaled, _ = resized_for(cam, w, h)
+    return (f"{err.base} (its images resized by {w / cam.width:.3g}? send the camera for this size: "
+            f"fx={scaled.fx:.6g}, fy={scaled.fy:.6g}, cx={scaled.cx:.6g}, cy={scaled.cy:.6g}, width={w}, height={h})")

@@ -31,3 +31,9 @@ def test_prepare_image_raises_the_typed_error():
     with pytest.raises(ImageSizeError) as info:
         prepare_image(np.zeros((240, 320, 3), np.uint8), CAM)
     assert info.value.image_size == (320, 240)
+
+
+def test_a_camera_whose_numbers_doubt_its_stated_size_is_told_so_not_to_scale():
+    wrong = PinholeCamera(500.0, 500.0, 319.5, 239.5, width=1280, height=960)  # (640×480 numbers)
+    err = size_mismatch(wrong, 640, 480)
+    assert err.hint == "" and "are its width and height wrong?" in str(err) and "scaled(" not in str(err)

@@ -63,3 +63,14 @@ def test_a_duplicated_multipart_field_is_named(client, frame):
         assert f"multipart field '{field}' is given 2 times" in assert_error(r, 400, "bad_request")["error"]["message"]
     r = client.post(POSE, files=[("image", img)] * 5)
     assert "a pose request has one field 'image'" in assert_error(r, 400, "bad_request")["error"]["message"]
+
+
+def test_a_camera_stating_the_wrong_size_is_not_told_to_scale(client, frame):
+    """User report (session 73): the intrinsics of this image under another size's width and
+    height were answered "send fx=…/2": followed, the object was found 47 % off in depth."""
+    h, w = frame.shape[:2]
+    wrong = CAMERA | {"width": 2 * w, "height": 2 * h}
+    for path in (POSE, "/v1/pose"):
+        r = client.post(path, files={"image": ("f.jpg", jpeg(frame), "image/jpeg")}, data={"camera": json.dumps(wrong)})
+        msg = assert_error(r, 422, "bad_image")["error"]["message"]
+        assert "are its width and height wrong?" in msg and "send the camera" not in msg, msg

@@ -30,3 +30,21 @@ def test_a_stray_frame_of_another_size_is_given_the_command_line_s_remedy(tmp_pa
                    f"all be 640×480 px: resize it, or track the 320×240 px frames in a run of their own, with a "
                    f"camera file for that size)"), err
     assert "scaled(" not in err
+
+
+def test_a_camera_stating_the_wrong_size_is_refused_not_scaled(tmp_path, capsys):
+    """As ``locate`` refuses it: the 640×480 intrinsics under 1280×960 were scaled by 0.5 (the
+    object found nowhere, or at twice its depth) with a warning about a resized video."""
+    import json
+
+    from test_track_cli import EXAMPLE, example_store, main
+
+    cam = json.loads((EXAMPLE / "camera.json").read_text()) | {"width": 1280, "height": 960}
+    (tmp_path / "cam.json").write_text(json.dumps(cam))
+    for k, frame in enumerate(_box_frames(2)):
+        assert cv2.imwrite(str(tmp_path / f"{k:04d}.png"), frame)
+    code = main(["track", "--object", "cookie-box", "--camera", str(tmp_path / "cam.json"), "--store",
+                 str(example_store()), "--quiet", "--images", str(tmp_path / "*.png"), "--out", str(tmp_path / "p.csv")])
+    err = capsys.readouterr().err
+    assert code == 2 and "are its width and height wrong?" in err and "scaled by" not in err, err
+    assert not (tmp_path / "p.csv").exists()
