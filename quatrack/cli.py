@@ -810,13 +810,15 @@ def _position_text(t, extent: float) -> str:
 def _locate_all(args: argparse.Namespace, camera, params) -> int:
     """``--object all``: every trained object searched in each image; one line per image,
     ``{"image", "found", "objects": [the locate object of each one found], "searched": [names],
-    "failed": {name: why}, "time_ms": {"total"}}`` (``searched``/``failed`` as ``POST /v1/pose``
-    answers: a broken model is skipped, and each line says so, not only stderr once)."""
+    "not_found": {name: why}, "failed": {name: why}, "time_ms": {"total"}}`` (as ``POST /v1/pose``
+    answers: a broken model is skipped, and each line says so, not only stderr once; each object
+    searched and not found says why, as ``--object NAME`` would — a product hidden by its
+    look-alike's window was invisible in the answer)."""
     import json
     import time
 
     from quatrack.recognition.images import ImageError, read_image
-    from quatrack.recognition.locate import locate_all
+    from quatrack.recognition.locate import locate_all, not_found
     from quatrack.viewsets.store import list_models, load_model, resolve_store, store_note
 
     store = resolve_store(args.store)
@@ -853,7 +855,8 @@ def _locate_all(args: argparse.Namespace, camera, params) -> int:
         total = (time.perf_counter() - t0) * 1e3
         if args.json:
             print(json.dumps({"image": path, "found": bool(found), "objects": [r.to_json() for r in found],
-                              "searched": [m.name for m in models], "failed": skipped,
+                              "searched": [m.name for m in models], "not_found": not_found(results),
+                              "failed": skipped,
                               "time_ms": {"total": round(total, 3)}}), flush=True)
         elif not found:
             print(f"{path}: none of {len(models)} objects found  {total:.0f} ms")

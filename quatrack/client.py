@@ -349,8 +349,9 @@ class Client(_Endpoint):
     def pose_all(self, image: Any, camera: Any, ros_mesh_unit: str | dict[str, str] | None = None) -> LocateAllOut:
         """Search every trained object in one image (``POST /v1/pose``): the objects found, each
         with its pose and its ``rivals`` (look-alikes found at the same place with less
-        confidence), the objects ``searched`` and the models that ``failed`` to load. The server
-        searches every object of its store (~30–40 ms each on a 640×480 image); :meth:`pose`
+        confidence), the objects ``searched``, those ``not_found`` (each with its reason) and the
+        models that ``failed`` to load. The server searches every object of its store (~40–60 ms
+        each on a 640×480 image where it is found, 1.5–2.5× that where it is not); :meth:`pose`
         searches one. ``ros_mesh_unit``: ``format=ros``, each object found then carries ``ros``
         in metres — one unit for all meshes (``"cm"``) or one per object (``{"cookie-box": "cm",
         "cube": "m"}``; an object found without one carries ``ros_note`` instead)."""

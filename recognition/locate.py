@@ -633,3 +633,9 @@ def locate_all(
         if box is not None:
             kept.append((box, r))
     return results
+
+
+def not_found(results: list[Located]) -> dict[str, str]:
+    """``{object: reason}`` of :func:`locate_all`'s results that were not found (an object found
+    but reported in a more confident rival's place among them: its reason names the rival)."""
+    return {r.object: r.reason or "not found" for r in results if not r.found}

@@ -16,7 +16,7 @@ from typing import Annotated
 from fastapi import APIRouter, Depends, Query, Request
 
 from quatrack.recognition.images import ImageError
-from quatrack.recognition.locate import LocateParams, locate_all
+from quatrack.recognition.locate import LocateParams, locate_all, not_found
 
 from .errors import ApiError
 from . import ros
@@ -50,13 +50,21 @@ async def pose_all(
     an object found whose unit was not given carries ``"ros_note"`` instead (metres from a
     guessed unit would be silently wrong). Naming an object the store does not hold is a 422.
 
-    ``objects``: only these are searched (each costs ~30–40 ms on a 640×480 image; a store of many
-    objects, of which a camera sees a few, had to be searched whole or object by object)."""
+    ``objects``: only these are searched (each costs ~40–60 ms on a 640×480 image where it is found,
+    ~1.5–2.5× that where it is not, since its whole image is searched too; a store of many objects,
+    of which a camera sees a few, had to be searched whole or object by object).
+
+    Each object searched and not found is in ``not_found`` with its reason. A store with no
+    object, or none that can be loaded, is a 503 (``no_objects``, ``model_unavailable``): a 200
+    "nothing found" from a server that searched nothing reads as an empty scene."""
     units = ros.ros_units({"format": format, "mesh_unit": mesh_unit})
     if unknown := ros.unknown_unit_names(units, state.registry.names()):
         raise ApiError(422, "bad_format", f"mesh_unit names {', '.join(map(repr, unknown[:5]))}: no such object in the "
                                           f"store (GET /v1/objects lists them)")
     names = _chosen(objects, state.registry.names())
+    if not names:  # (a 200 "nothing found" read as an empty shelf from a server with no model: the CLI refuses it)
+        raise ApiError(503, "no_objects", "the server's store holds no trained object: train one into it "
+                                          "(quatrack train SPEC --store DIR), then POST /v1/objects/NAME/reload")
     image_name, out = await serve_pose(state, request, query_camera, functools.partial(_locate_all, state, names=names))
     out["objects"] = [ros.add_to_found_object({"image": image_name, **o}, units) for o in out["objects"]]
     return out
@@ -89,6 +97,9 @@ def _locate_all(state: ServiceState, data: bytes, camera: CameraIn, names: list[
             failed[name] = exc.message
         except Exception as exc:  # noqa: BLE001 - a model that cannot be loaded is reported, not fatal
             failed[name] = state.registry.public(str(exc))
+    if not models:  # (every model broken: nothing was searched, which is no "not found")
+        raise ApiError(503, "model_unavailable", "no object can be searched: " + "; ".join(
+            f"{n}: {why}" for n, why in failed.items()))
     try:
         results = locate_all(image, cam, models, LocateParams(max_pixels=state.settings.locate_max_pixels))
     except ImageError as exc:
@@ -96,5 +107,6 @@ def _locate_all(state: ServiceState, data: bytes, camera: CameraIn, names: list[
     for r in results:
         state.metrics.observe_stages(state.metrics.locate_stages, r.time_ms)
     found = [r.to_json() for r in results if r.found]
-    return {"found": bool(found), "objects": found, "searched": [m.name for m in models], "failed": failed,
+    return {"found": bool(found), "objects": found, "searched": [m.name for m in models],
+            "not_found": not_found(results), "failed": failed,
             "time_ms": {"total": round((time.perf_counter() - t0) * 1e3, 3)}}

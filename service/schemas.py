@@ -198,11 +198,14 @@ class FoundObjectOut(LocateOut):
 class LocateAllOut(BaseModel):
     """``POST /v1/pose``: the objects found in one image (each as ``POST /v1/objects/{name}/pose``
     answers, with its ``object`` name and ``rivals``); ``searched``: the objects searched;
-    ``failed``: models that cannot be loaded."""
+    ``not_found``: each object searched and not found, with its reason; ``failed``: models that
+    cannot be loaded."""
 
     found: bool
     objects: list[FoundObjectOut]
     searched: list[str]
+    not_found: dict[str, str] = Field(default_factory=dict, description=(
+        "each object searched and not found: why (as POST /v1/objects/{name}/pose's `reason`)"))
     failed: dict[str, str] = Field(default_factory=dict)
     time_ms: dict[str, float]
 

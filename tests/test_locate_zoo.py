@@ -415,8 +415,11 @@ def test_cli_locate_object_all(tmp_path, cube, flat_grey, bgs, capsys):
         mesh = (cube if o["object"] == "cube-m" else flat_grey)[0].mesh
         dt, dr = S.pose_errors(np.array(o["pose"]["t"]), np.array(o["pose"]["q_wxyz"]), truths[o["object"]], mesh)
         assert dt <= 0.05 * mesh.extent and dr <= 5.0
+    assert two["not_found"] == {}
     assert none == {"image": str(tmp_path / "none.png"), "found": False, "objects": [],
-                    "searched": ["cube-m", "flat-box-mm"], "failed": {}, "time_ms": none["time_ms"]}
+                    "searched": ["cube-m", "flat-box-mm"], "not_found": none["not_found"], "failed": {},
+                    "time_ms": none["time_ms"]}
+    assert sorted(none["not_found"]) == ["cube-m", "flat-box-mm"] and all(none["not_found"].values())
 
 
 def test_cli_locate_prints_positions_to_a_thousandth_of_the_diameter(tmp_path, cube, flat_grey, bgs, capsys):
