@@ -51,13 +51,14 @@ def test_a_plausible_pose_on_clutter_is_not_asked_about_conventions(monkeypatch,
 
 
 def test_a_plausible_pose_with_few_edges_agreeing_is_asked_if_it_is_off(monkeypatch, spec_and_mesh):
-    said = _said(monkeypatch, spec_and_mesh, 0.45, 0.2)
+    said = _said(monkeypatch, spec_and_mesh, 0.45, 0.1)
     assert len(said) == 1 and CONVENTION not in said[0] and "a little off" in said[0], said
 
 
-@pytest.mark.parametrize("agreement, chance", [(0.39, 0.54), (0.5, 0.48), (0.16, 0.21)])
+@pytest.mark.parametrize("agreement, chance", [(0.39, 0.54), (0.5, 0.48), (0.16, 0.21), (0.51, 0.36)])
 def test_edges_near_or_below_chance_still_ask_about_conventions(monkeypatch, spec_and_mesh, agreement, chance):
-    """(the bar's pose given camera → object, turned 45°; the cookie box's transposed)"""
+    """(the bar's pose given camera → object, turned 45°; the cookie box's transposed; a box turned
+    40°: 15 % above chance, but a quarter of what chance leaves)"""
     said = _said(monkeypatch, spec_and_mesh, agreement, chance)
     assert len(said) == 1 and said[0].endswith("is the pose object → camera, in the mesh's units?"), said
 
