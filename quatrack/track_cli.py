@@ -141,6 +141,7 @@ class _Setup:
     source: object
     store: object = None
     init_pose: str | None = None  # --init-pose's file, when its pose waits for the first frame
+    init: object = None  # and its pose (the edges are measured there if the tracker refuses it)
 
 
 def _check_outputs(args: argparse.Namespace) -> None:
@@ -189,7 +190,7 @@ def _setup(args: argparse.Namespace) -> _Setup:
         from quatrack.tracking import quaternion as quat
 
         tracker.init_pose(init.t, quat.from_matrix(init.R), 0.0)
-    return _Setup(model, camera, tracker, source, store, args.init_pose if init is not None else None)
+    return _Setup(model, camera, tracker, source, store, args.init_pose if init is not None else None, init)
 
 
 def _track_frames(s: _Setup, rows, video, progress, steps: list | None = None) -> tuple[list, bool]:
@@ -247,7 +248,7 @@ def _track_frames(s: _Setup, rows, video, progress, steps: list | None = None) -
                 raise UserError(f"{s.source.where(i)}: {exc}") from None
             if not stepped and s.init_pose is not None and step.status == "lost":
                 progress.close()  # (its line cleared: the warning gets a line of its own)
-                _refused_pose(s.init_pose, step.frame, step.reason)
+                _refused_pose(s.init_pose, step.frame, step.reason, _edges_at(s, image))
             stepped = True
             last = to_bgr8(image) if video is not None else None
             emit(step, last)
@@ -304,17 +305,70 @@ def _camera_resized(s: _Setup, image) -> _Setup | None:
     return replace(s, camera=camera)
 
 
-def _refused_pose(path: str, frame: int, reason: str | None) -> None:
+def _edges_at(s: _Setup, image):
+    """The model's edges' agreement with ``image`` (the first frame) at ``--init-pose``'s pose
+    (:func:`~quatrack.recognition.evidence.edge_agreement`, recognition's edge parameters), or
+    None when it cannot be measured (no pose, the object behind the camera)."""
+    import cv2
+
+    from quatrack.recognition.evidence import edge_agreement
+    from quatrack.recognition.images import to_bgr8
+    from quatrack.recognition.pose import PoseParams
+
+    mesh = s.model.mesh
+    if s.init is None or np.any(s.init.apply(mesh.vertices)[:, 2] <= 1e-9):
+        return None
+    try:  # (the grey frame and the camera the tracker judged: Tracker.step's)
+        grey = cv2.cvtColor(to_bgr8(image), cv2.COLOR_BGR2GRAY)
+        return edge_agreement(grey, mesh, s.tracker.camera, s.init, PoseParams().edges)
+    except Exception:  # (a warning's evidence only: never the run's end)
+        return None
+
+
+def _refused_pose(path: str, frame: int, reason: str | None, edges=None) -> None:
     """Say once on stderr that the tracker refused ``--init-pose``'s pose at its first frame, and
     why: only ``--format jsonl`` rows carried the reason; the CSV said ``lost`` and recognition
-    took over, so a pose given camera → object went unnoticed."""
+    took over, so a pose given camera → object went unnoticed.
+
+    The causes are named in the order the evidence gives them. ``edges`` (:func:`_edges_at`) is
+    how the model's edges at the pose agree with the frame: well above chance
+    (:func:`~quatrack.cli.plausible_edges`) the pose is where the frame
+    shows the object, and the refusal (typically "only 0 model points matched near the pose") is
+    the texture not found there — a cluttered or differently lit background, blur, a weakly
+    textured side — so no convention is suspected: the exact pose of a thin bar on grass (edges
+    67 %, 45 % by chance) was asked whether it was camera → object or in other units (user
+    report, finding 5). Otherwise, or unmeasured, both geometric causes are named: a pose merely
+    10° off was once asked only whether it was given camera → object, and a box turned 40° still
+    agrees 51 % vs 36 % by chance (too little to be called plausible)."""
+    from quatrack.cli import plausible_edges
+    from quatrack.recognition.pose import PoseParams, edges_agree
+
     why = (reason or "no reason given").removeprefix("given pose refused: ").removeprefix("given pose: ")
-    # (both causes named: a pose merely 10° off was asked whether it was given camera → object)
-    print(f"quatrack track: warning: --init-pose {path}: the pose was refused at frame {frame} ({why}); "
-          f"the object is searched for by recognition instead (either the pose is too far from where the frame "
-          f"shows the object (it must be within about {INIT_POSE_DEG:g}° and a few % of the object's size, on a "
-          f"side no photo shows), or it is in another convention (camera → object instead of object → camera, "
-          f"or not in the mesh's units))", file=sys.stderr)
+    head = f"quatrack track: warning: --init-pose {path}: the pose was refused at frame {frame}"
+    near = (f"within about {INIT_POSE_DEG:g}° and a few % of the object's size, on a side no photo shows")
+    p = PoseParams()
+    if edges is not None and edges.samples >= p.min_edge_samples and plausible_edges(edges):
+        seen = f"the model's edges at the pose lie on the frame's for {edges.agreement:.0%} ({edges.chance:.0%} by chance)"
+        if "model points matched" not in why:  # (the points found disagree: the texture, not the pose, is suspect)
+            causes = f"{seen}, well above chance, so the pose is plausible: most likely the points matched near it misled"
+        elif edges_agree(edges, p):
+            causes = (f"{seen}: they confirm the pose, but too little of the object's texture was found near it (the "
+                      f"sides it shows weakly textured, the frame blurred or lit otherwise than the photos)")
+        else:
+            causes = (f"{seen}, well above chance, so the pose is plausible: most likely the frame's texture was not "
+                      f"matched near it (a cluttered or differently lit background, blur, a weakly textured side), and "
+                      f"the background's clutter leaves the edges too close to chance to start on them alone "
+                      f"({p.min_edge_lead:.0%} above chance needed)")
+        print(f"{head} ({why}); the object is searched for by recognition instead. {causes[0].upper()}{causes[1:]}; "
+              f"less likely, the pose is a little off (it must be {near})", file=sys.stderr)
+        return
+    seen = ""
+    if edges is not None and edges.samples >= p.min_edge_samples:
+        seen = (f"; the model's edges at the pose lie on the frame's for {edges.agreement:.0%} ({edges.chance:.0%} "
+                f"by chance), too close to chance to confirm it")
+    print(f"{head} ({why}); the object is searched for by recognition instead (either the pose is too far from "
+          f"where the frame shows the object (it must be {near}), or it is in another convention (camera → object "
+          f"instead of object → camera, or not in the mesh's units)){seen}", file=sys.stderr)
 
 
 #: how close an ``--init-pose`` must be to the object's pose in its first frame, as a trial measured it
