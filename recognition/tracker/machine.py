@@ -62,7 +62,7 @@ from quatrack.tracking.state import FilterState
 from quatrack.tracking.systematic import carried_covariance, image_floor, systematic_floor
 from quatrack.viewsets.camera import check_lens
 from quatrack.viewsets.errors import SpecError
-from quatrack.viewsets.learn import is_new_direction, learned_viewset, with_learned
+from quatrack.viewsets.learn import is_new_direction, learned_viewset, view_angles_deg, with_learned
 from quatrack.viewsets.rfch import texture_zoom
 from quatrack.viewsets.store import ObjectModel
 from quatrack.viewsets.viewset import Viewset, params_from_manifest
@@ -639,7 +639,7 @@ class Tracker:
         if not ok:
             if self._start_on_mesh(img, frame, prior, tracks):
                 self._probation = self.params.probation_frames
-                reason = f"{how}: no trained view shows this side; points born on the mesh, confirmed by its edges"
+                reason = f"{how}: {self._why_on_mesh(prior.pose, why)}; points born on the mesh, confirmed by its edges"
                 if how == "given pose":
                     return self._pose_step(time_s, "init", len(self.mesh_points), reason=reason)
                 # Found (recognition, keyframes), not given: only the edges vouch for it (the
@@ -665,6 +665,21 @@ class Tracker:
         if self.mesh_points in self.sources:  # the first corners on the mesh, at the refined pose
             self.mesh_points.spawn(FrameContext(img, frame, None, self.camera, prior), self.filter.state)
         return self._pose_step(time_s, "init", int(inl.sum()), reason=how)
+
+    def _why_on_mesh(self, pose: Pose, why: str) -> str:
+        """Why a start (at ``pose``) is on points born on the mesh rather than on trained points,
+        ``why`` being what the trained points' attempt said: "no trained view shows this side"
+        only when every view of the model sees the object from at least recognition's
+        ``max_view_angle_deg`` away; otherwise that attempt's reason, with the nearest view. Why:
+        a 300 × 30 × 15 mm bar found at the exact pose of its training photo 0 (on another
+        background, 0° from that view) was told no trained view showed its side (user report,
+        finding 5)."""
+        views = self.model.viewsets
+        angles = view_angles_deg(pose, self.model.mesh.centre, views)
+        if not len(angles) or angles.min() >= self.params.locate.pose.max_view_angle_deg:
+            return "no trained view shows this side"
+        k = int(np.argmin(angles))
+        return f"{why}, though the model's view {views[k].label} sees this side from {angles[k]:.0f}° away"
 
     def _unlike_keyframes(self, grey: np.ndarray, pose: Pose, timings: dict) -> str | None:
         """Why a pose found after a loss does not look as the object looked in this run's
