@@ -6,7 +6,8 @@ the WebSocket session (through :func:`quatrack.client.stream`, a plain ``websock
 anyone can copy), :func:`_write_outputs` writes the CSV, the overlay video and the plot
 atomically under one folder (default ``./quatrack-demo/``). With no ``--url`` a server is
 started on loopback for the run. The defaults use the bundled example wherever the command is
-run from.
+run from; they go together: another ``--video`` needs its ``--camera``, another ``--object`` its
+``--video`` (:func:`_check_example_pairing`).
 """
 
 from __future__ import annotations
@@ -33,9 +34,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                                       "(default: start one on loopback)")
     parser.add_argument("--store", metavar="DIR", help="model store for the local service (default: $QUATRACK_STORE or the user data directory)")
     parser.add_argument("--object", default="cookie-box", metavar="NAME", help="trained object (default cookie-box)")
-    parser.add_argument("--video", default=None, help="video file to stream (default: the bundled box.mp4); "
-                                                       "for a camera or stream URL use `quatrack track --video`")
-    parser.add_argument("--camera", default=None, help="the video's camera file (default: the bundled example's)")
+    parser.add_argument("--video", default=None, help="video file to stream (default: the bundled box.mp4, which shows "
+                                                       "the bundled cookie-box); for a camera or stream URL use "
+                                                       "`quatrack track --video`")
+    parser.add_argument("--camera", default=None, help="the video's camera file (required with any --video but the "
+                                                        "bundled box.mp4, whose camera is the default)")
     parser.add_argument("--mesh", default=None, help="mesh for the overlay (default: the object's, from the store or the server)")
     parser.add_argument("--out-dir", default=OUT_DIR, metavar="DIR",
                         help=f"folder for the outputs (default ./{OUT_DIR}/, created if missing)")
@@ -72,6 +75,30 @@ def _output(out_dir: Path, name: str, ext: str, option: str) -> str | None:
     return str(out_dir / name)
 
 
+def _is_bundled_video(path: str, example: Path) -> bool:
+    """Whether ``path`` is the bundled example's own video file (the one its camera is for)."""
+    try:
+        return os.path.samefile(path, example / "box.mp4")
+    except OSError:
+        return False
+
+
+def _check_example_pairing(args: argparse.Namespace, example: Path) -> None:
+    """Refuse an object other than the bundled example's without ``--video``: the default video
+    shows the bundled example only, so the run could only answer ``lost`` (or, on a look-alike,
+    a wrong pose) and still write outputs that look like a result. Why: ``demo --object my-box``
+    streamed the cookie-box video, said "20 lost", exit 0, with no word that the video shows
+    another object. The bundled object trained under another name still runs: give its video
+    as ``--video``. (The opposite case, ``--video`` of another camera without ``--camera``, is
+    refused in :func:`_check`: every pose came out 28 % of the object's size off, exit 0.)"""
+    from quatrack.examples import DEFAULT_EXAMPLE
+
+    if args.video is None and args.object != DEFAULT_EXAMPLE:
+        raise ValueError(f"--object {args.object}: the default video (the bundled {example / 'box.mp4'}) shows "
+                         f"the bundled {DEFAULT_EXAMPLE} only; give --video and --camera of {args.object} (or that --video "
+                         f"if {args.object} is the {DEFAULT_EXAMPLE} trained under another name)")
+
+
 def _check(args: argparse.Namespace) -> _Plan:
     from quatrack.client import api_token, base_urls
     from quatrack.viewsets.camera import load_camera
@@ -88,6 +115,7 @@ def _check(args: argparse.Namespace) -> _Plan:
     example = bundled_example()
     video = args.video or str(example / "box.mp4")
     camera_file = args.camera or str(example / "camera.json")
+    _check_example_pairing(args, example)
     text = video.strip()
     if text.isdigit() or "://" in text:  # (was "--video 0: no such file", as if a camera were a missing file)
         from quatrack.recognition.trackio import masked
@@ -100,6 +128,10 @@ def _check(args: argparse.Namespace) -> _Plan:
         if not Path(path).is_file():
             hint = "" if getattr(args, opt[2:]) else " (the bundled example is not installed here; give the option)"
             raise ValueError(f"{opt} {path}: no such file{hint}")
+        if opt == "--video" and args.camera is None and not _is_bundled_video(path, example):
+            raise ValueError(f"--video {path}: give --camera, this video's camera file (the default camera is the "
+                             f"bundled example's, for its box.mp4 only: another camera's poses come out wrong, "
+                             f"e.g. off in depth by the ratio of the focal lengths)")
     if args.fps is not None and not 0 < args.fps <= 240:
         raise ValueError("--fps must be above 0 and at most 240")
     if args.max_frames is not None and args.max_frames < 1:

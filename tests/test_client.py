@@ -177,8 +177,8 @@ def test_demo_errors_are_one_line(server, tmp_path, monkeypatch, capsys, case, m
     monkeypatch.chdir(tmp_path)
     monkeypatch.delenv("QUATRACK_API_TOKEN", raising=False)
     args = ["demo", "--url", server.url, "--token", TOKEN, "--store", str(tmp_path / "s"), "--max-frames", "2"]
-    if case == "unknown-object":
-        args += ["--object", "no-such-box"]
+    if case == "unknown-object":  # (the bundled video by its path: without --video another object is refused)
+        args += ["--object", "no-such-box", "--video", str(EXAMPLE / "box.mp4")]
     elif case == "http-url-with-path":
         args[2] = server.url + "/v1/objects/cookie-box/track"
     elif case == "no-token":
