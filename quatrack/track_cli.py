@@ -719,7 +719,7 @@ def _written(args: argparse.Namespace, video) -> str:
 def _store_learned(s: _Setup, name: str) -> None:
     """Merge the views learned in this run into the stored model (atomic, under the store's
     lock: a concurrent writer's views are kept) and say so in one line on stderr."""
-    from quatrack.viewsets.learn import merge_learned
+    from quatrack.viewsets.learn import merge_learned_views
     from quatrack.viewsets.store import model_path
 
     learned = s.tracker.learned_viewsets()
@@ -730,19 +730,46 @@ def _store_learned(s: _Setup, name: str) -> None:
               f"{folder} unchanged", file=sys.stderr)
         return
     try:
-        folder, added, total = merge_learned(s.store, name, learned, s.model.mesh, s.tracker.params.learn_max_views,
-                                             s.tracker.params.learn_min_angle_deg, learned_on=s.tracker.model)
+        folder, views, total = merge_learned_views(s.store, name, learned, s.model.mesh,
+                                                   s.tracker.params.learn_max_views,
+                                                   s.tracker.params.learn_min_angle_deg, learned_on=s.tracker.model)
     except OSError as exc:  # (a full disk, a read-only store: the poses are written, the views are not)
         raise UserError(f"--learn: the {len(learned)} learned view(s) were not saved to {folder}: "
                         f"{exc.strerror or exc}") from None
-    if added:
+    if added := len(views):
         from quatrack.viewsets.store import learned_count
 
         relayed = learned_count(s.store, name, relayed=True)
         of_them = f", {relayed} relayed: they find the object but anchor no frame" if relayed else ""
-        print(f"quatrack track: learned {added} new view(s) -> {folder} ({total} learned in all{of_them})", file=sys.stderr)
+        held, warning = _views_points(s, views)
+        print(f"quatrack track: learned {added} new view(s) -> {folder} ({total} learned in all{of_them}){held}",
+              file=sys.stderr)
+        if warning:
+            print(f"quatrack track: warning: {warning}", file=sys.stderr)
     else:
         print(f"quatrack track: learned no new views (none new to the stored model); {folder} unchanged", file=sys.stderr)
+
+
+def _views_points(s: _Setup, views) -> tuple[str, str | None]:
+    """What the views just learned hold, for the line that counts them: each view's points and how
+    many of those are new (:func:`~quatrack.viewsets.learn.new_points`: where the model's views had
+    none); and a warning (None: no need) when some add fewer new points than a view needs to be
+    learned at all (``learn_min_keypoints``). Why: a box with four plain sides, walked round,
+    "learned 7 new view(s)" of 296–472 points, only 10–18 of them new each — its two textured
+    faces again — and re-finding it from its other sides gained nothing, with no hint in the
+    run's output (user report, finding 7). (The warning does not say "learned": one line does.)"""
+    from quatrack.viewsets.learn import new_points
+
+    fresh = new_points(views, s.model.viewsets, s.model.mesh.extent)
+    need = s.tracker.params.learn_min_keypoints
+    held = (f"; their points: {', '.join(str(len(vs)) for vs in views)} ({sum(fresh)} of them where the model "
+            f"had none: {', '.join(map(str, fresh))})")
+    weak = [n for n in fresh if n < need]
+    if not weak:
+        return held, None
+    return held, (f"{len(weak)} of the {len(views)} new view(s) hold fewer than {need} points where the model had "
+                  f"none ({', '.join(map(str, weak))}): they show texture it already knew (the sides they face plain "
+                  f"or weakly textured?), so they will help little to re-find the object from new sides")
 
 
 def _summary(steps, out: str, stream=None) -> None:
