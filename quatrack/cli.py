@@ -548,35 +548,73 @@ def _registration_doubts(spec, mesh) -> list[str]:
     (``PoseParams.min_edge_agreement``, ``min_edge_lead``). A pose given camera → object, a
     rotation transposed, ``q`` as x, y, z, w or a mesh in other units than ``t`` trained a model
     of the background without a word (the cookie box: 0.77 of its edges on the photo's, 0.22 by
-    chance; transposed: 0.16, 0.21)."""
+    chance; transposed: 0.16, 0.21).
+
+    A view whose ``q_wxyz`` read ``[x, y, z, w]`` fits the photo (:func:`xyzw_fits`) while the
+    reading given is near chance (not :func:`plausible_edges`) is refused, a :class:`SpecError`:
+    that evidence is unambiguous, and the model trained from it could not find the object even
+    in that photo (user report: 30 % of the edges, 23 % by chance; read so, 95 %), with exit 0
+    for a script to take. A merely doubtful pose (a thin bar on gravel: 76 %, 53 % by chance)
+    is still only warned of."""
     import cv2
 
     from quatrack.recognition.evidence import edge_agreement
     from quatrack.recognition.pose import PoseParams
-    from quatrack.viewsets.train import XYZW_HINT
+    from quatrack.viewsets.errors import SpecError
 
     p = PoseParams()
-
-    def bad(e) -> bool:
-        return e.samples >= p.min_edge_samples and (e.agreement < p.min_edge_agreement or e.lead < p.min_edge_lead)
-
     out = []
     for v in spec.views:
         grey = cv2.imread(str(v.image_path), cv2.IMREAD_GRAYSCALE)  # (read and checked by the training already)
         if grey is None or (grey.shape[1], grey.shape[0]) != (v.camera.width, v.camera.height):
             continue
         e = edge_agreement(grey, mesh, v.camera, v.pose)
-        if not bad(e):
+        if not _edges_fail(e, p):
             continue
-        hint = _edges_hint(e, p)
-        if v.xyzw_pose is not None and np.all(v.xyzw_pose.apply(mesh.vertices)[:, 2] > 0):
-            x = edge_agreement(grey, mesh, v.camera, v.xyzw_pose)
-            if x.samples >= p.min_edge_samples and not bad(x):  # (the q_wxyz given in scipy's and ROS's order)
-                hint = f"{XYZW_HINT} (read so, {x.agreement:.0%} of its edges agree)"
-        out.append(f"view {v.index}: the mesh's edges at its pose lie on the photo's edges for {e.agreement:.0%} of "
-                   f"their length ({e.chance:.0%} by chance; a pose locate finds needs {p.min_edge_agreement:.0%}, "
-                   f"{p.min_edge_lead:.0%} above chance): {hint}")
+        said = (f"view {v.index}: the mesh's edges at its pose lie on the photo's edges for {e.agreement:.0%} of "
+                f"their length ({e.chance:.0%} by chance; a pose locate finds needs {p.min_edge_agreement:.0%}, "
+                f"{p.min_edge_lead:.0%} above chance)")
+        hint = xyzw_hint(grey, mesh, v)
+        if hint and not plausible_edges(e):
+            raise SpecError(f"{said}: {hint}; not trained (the model could not find the object even in this photo)")
+        out.append(f"{said}: {hint or _edges_hint(e, p)}")
     return out
+
+
+def _edges_fail(e, p) -> bool:
+    """Whether an :class:`~quatrack.recognition.evidence.EdgeEvidence` (measured on enough
+    samples) misses ``p``'s (``PoseParams``) bars for a pose ``locate`` finds."""
+    return e.samples >= p.min_edge_samples and (e.agreement < p.min_edge_agreement or e.lead < p.min_edge_lead)
+
+
+def xyzw_fits(grey, mesh, view):
+    """The edge evidence (:func:`~quatrack.recognition.evidence.edge_agreement`) of the view's
+    ``q_wxyz`` read ``[x, y, z, w]`` (``view.xyzw_pose``: scipy's and ROS's order) in its photo
+    ``grey``, when that reading puts the object in front of the camera and its edges on the
+    photo's as a pose ``locate`` finds must (``PoseParams``' bars); else None (another pose
+    form, or the other reading fits no better). ``train`` and ``register`` both ask it of a
+    pose whose edges miss the photo's."""
+    from quatrack.recognition.evidence import edge_agreement
+    from quatrack.recognition.pose import PoseParams
+
+    alt = getattr(view, "xyzw_pose", None)
+    if alt is None or not np.all(alt.apply(mesh.vertices)[:, 2] > 0):
+        return None
+    p = PoseParams()
+    x = edge_agreement(grey, mesh, view.camera, alt)
+    return x if x.samples >= p.min_edge_samples and not _edges_fail(x, p) else None
+
+
+def xyzw_hint(grey, mesh, view) -> str:
+    """``is the quaternion in [x, y, z, w] order? …`` with the edges of that reading and the
+    quaternion to write, when it fits the photo (:func:`xyzw_fits`); else ""."""
+    from quatrack.viewsets.train import XYZW_HINT
+
+    x = xyzw_fits(grey, mesh, view)
+    if x is None:
+        return ""
+    q = ", ".join(f"{c:.6g}" for c in view.xyzw_pose.q_wxyz)
+    return f"{XYZW_HINT} (read so, {x.agreement:.0%} of its edges agree: \"q_wxyz\": [{q}])"
 
 
 #: a pose whose edges agree with at least this share of what chance leaves unexplained —

@@ -298,6 +298,7 @@ def _register_view(view, grey: np.ndarray, mesh, args: argparse.Namespace, origi
     """One view's final pose, its line for stdout, and what is wrong with it (None: nothing):
     its clicks off the mesh, or the mesh's edges at the pose not on the photo's as a pose
     ``locate`` finds must be (:class:`~quatrack.recognition.pose.PoseParams`' bars)."""
+    from quatrack.cli import xyzw_hint
     from quatrack.recognition.evidence import edge_agreement
     from quatrack.recognition.pose import PoseParams
     from quatrack.recognition.registration import AGREEMENT_SLACK, clicks_sigma, refine_with_edges
@@ -347,11 +348,14 @@ def _register_view(view, grey: np.ndarray, mesh, args: argparse.Namespace, origi
                  f"background is busy; kept on its clicks (check the overlay)")
     if e.samples >= p.min_edge_samples and (e.agreement < p.min_edge_agreement or e.lead < lead_needed):
         span = " × ".join(f"{x:.3g}" for x in np.ptp(mesh.vertices, axis=0))
+        # (a q_wxyz written [x, y, z, w] that fits read so: train's hint, asked alike — it asked of units)
+        hint = xyzw_hint(grey, mesh, view) or (
+            f"are the points' model coordinates in the mesh's units (it spans {span}), the pose object → camera, "
+            f"the photo this view's?")
         return reg.pose, line, (
             f"view {view.index}: the mesh's edges at its pose lie on the photo's for {e.agreement:.0%} of their length "
             f"({e.chance:.0%} by chance; a pose locate finds needs {p.min_edge_agreement:.0%}, {p.min_edge_lead:.0%} "
-            f"above chance): are the points' model coordinates in the mesh's units (it spans {span}), the pose "
-            f"object → camera, the photo this view's?")
+            f"above chance): {hint}")
     return reg.pose, line, None
 
 

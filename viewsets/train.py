@@ -291,7 +291,9 @@ def train_object(
 
     ``on_total(n)`` is told the number of viewsets to build and ``progress(1)`` is called after
     each one (for a progress bar); ``warn`` receives non-fatal problems (a view with few keypoints),
-    first those ``check(spec, mesh)`` (optional) returns once the views are read.
+    first those ``check(spec, mesh)`` (optional) returns once the views are read — or raises, a
+    :class:`SpecError` refusing a view before any viewset is built (the CLI's: a ``q_wxyz``
+    that fits its photo only read ``[x, y, z, w]``).
     Three steps: the views are read and checked against the mesh, the viewsets (registered and
     synthetic) are built — again, with SIFT's contrast threshold halved, while the registered
     views show too little texture (:func:`keypoint_density` under ``params.min_keypoint_density``,
@@ -306,12 +308,12 @@ def train_object(
     t0 = time.perf_counter()
     mesh = load_mesh(spec.mesh_path, warn=warn)
     views = [_prepare_view(mesh, v, warn) for v in spec.views]
-    doubts = check(spec, mesh) if check is not None and warn else []
+    doubts = check(spec, mesh) if check is not None else []  # (run without warn too: it may refuse)
     asked = params.viewsets.contrast_threshold
     viewsets, params, weak = _viewsets_for_texture(mesh, _tasks(mesh, views, params.novel), params, progress, on_total)
     viewsets = _checked(viewsets, params, warn)  # (raises: nothing to learn even at the lowest threshold)
-    for msg in doubts:  # the poses' doubts before the texture's (a wrong pose makes weak texture too), but
-        warn(msg)  # after the refusal of a view with nothing to learn: bad input is one line
+    for msg in doubts if warn else ():  # the poses' doubts before the texture's (a wrong pose makes weak
+        warn(msg)  # texture too), but after the refusal of a view with nothing to learn: bad input is one line
     if warn and params.viewsets.contrast_threshold != asked:  # (one warning, once the model is sure)
         warn(f"weak texture: {weak:.1f} keypoints per 10 000 px of the object in its registered views "
              f"(fewer than {params.min_keypoint_density:g}); trained with SIFT's contrast threshold lowered to "
