@@ -11,7 +11,10 @@ Results are the service's own pydantic schemas (:mod:`service.schemas`): :class:
 a pose, :class:`LocateAllOut` for every object searched in one image (``client.pose_all(image,
 camera)``), :class:`TrackMessage` per tracked frame. Every error the server answers becomes a
 :class:`QuatrackError` carrying its ``code`` (``unknown_object``, ``bad_camera``,
-``unauthorized``, ...) and HTTP ``status``; an unreachable server is ``code="unreachable"``.
+``unauthorized``, ...) and HTTP ``status``; an unreachable server is ``code="unreachable"``. An
+error the client finds in its own arguments before sending (a camera file missing, an object
+name no store can hold) is an :class:`InputError`, a QuatrackError with the server's code for
+it (``bad_camera``, ``invalid_object_name``, ...) and ``status`` None.
 
 :class:`AsyncClient` is the same for asyncio (``await client.pose(...)``, ``async for msg in
 client.track(...)``). ``track`` is *lock-step*: it sends a frame, waits for its answer, yields it, then sends the
@@ -38,6 +41,7 @@ import numpy as np
 
 from quatrack.service.codes import REFUSED_FRAME
 from quatrack.service.schemas import LocateAllOut, LocateOut, ObjectList, TrackMessage
+from quatrack.viewsets.errors import SpecError, StoreError  # (standard library only, as codes: no server stack)
 
 
 class QuatrackError(Exception):
@@ -50,6 +54,38 @@ class QuatrackError(Exception):
     def __init__(self, code: str, message: str, status: int | None = None) -> None:
         super().__init__(f"{code}: {message}" if status is None else f"{status} {code}: {message}")
         self.code, self.message, self.status = code, message, status
+
+
+class InputError(QuatrackError, ValueError):
+    """An error the client finds in its own arguments, before anything is sent (``status``
+    None), with the server's code for the same problem: ``bad_camera`` (a camera file missing or
+    unreadable, a camera of another type), ``invalid_object_name`` (a name the store cannot hold:
+    ``"../etc"``, or none given), ``bad_image`` (an image file that cannot be read, an image of
+    another type), ``bad_message`` (a frame's time that is not a number), ``invalid_input`` (an
+    ``fps`` ≤ 0), or ``bad_url`` (not a server's address).
+
+    Why: these raised the object-model layer's ``SpecError`` and ``StoreError`` (or
+    ``FileNotFoundError``, ``TypeError``), so code catching :class:`QuatrackError`, as the
+    README's example does, missed them. Each is still the exception it was (a ``ValueError``;
+    for a camera file also a ``SpecError``, for a name a ``StoreError``, for an image file an
+    ``OSError``, for an argument of another type a ``TypeError``), so code catching those goes
+    on working."""
+
+
+class _CameraError(InputError, SpecError):
+    """A camera file the client cannot read (was :class:`SpecError`)."""
+
+
+class _ObjectNameError(InputError, StoreError):
+    """An object name the store cannot hold (was :class:`StoreError`)."""
+
+
+class _FileError(InputError, OSError):
+    """An image file the client cannot read (was the ``OSError`` of reading it)."""
+
+
+class _KindError(InputError, TypeError):
+    """An argument of a type the client does not take (was a ``TypeError``)."""
 
 
 class FrameError(TrackMessage):
@@ -125,8 +161,14 @@ def camera_json(camera: Any) -> dict:
     if isinstance(camera, PinholeCamera):
         return camera_to_dict(camera)
     if isinstance(camera, (str, os.PathLike)):
-        return camera_to_dict(load_camera(camera))
-    raise TypeError("camera: a dict, a PinholeCamera or the path of a camera file")
+        if not Path(camera).exists():  # (load_camera's "cannot read camera file (FileNotFoundError: [Errno 2] ...)")
+            raise _CameraError("bad_camera", f"camera file {os.fspath(camera)}: no such file")
+        try:
+            return camera_to_dict(load_camera(camera))
+        except SpecError as exc:  # (its message starts with the file's name)
+            raise _CameraError("bad_camera", f"camera file {exc}") from None
+    raise _KindError("bad_camera", f"camera: a dict, a PinholeCamera or the path of a camera file, not "
+                                   f"{type(camera).__name__}")
 
 
 def image_bytes(image: Any, quality: int = 95) -> bytes:
@@ -135,7 +177,10 @@ def image_bytes(image: Any, quality: int = 95) -> bytes:
     if isinstance(image, (bytes, bytearray, memoryview)):
         return bytes(image)
     if isinstance(image, (str, os.PathLike)):
-        return Path(image).read_bytes()
+        try:
+            return Path(image).read_bytes()
+        except OSError as exc:
+            raise _FileError("bad_image", f"image {os.fspath(image)}: cannot read it ({exc.strerror or exc})") from None
     if isinstance(image, np.ndarray):
         import cv2
 
@@ -143,9 +188,9 @@ def image_bytes(image: Any, quality: int = 95) -> bytes:
 
         ok, buf = cv2.imencode(".jpg", to_bgr8(image), [cv2.IMWRITE_JPEG_QUALITY, quality])
         if not ok:
-            raise ValueError("image: cannot be encoded as JPEG")
+            raise InputError("bad_image", "image: cannot be encoded as JPEG")
         return buf.tobytes()
-    raise TypeError("image: bytes, a file path or a numpy array")
+    raise _KindError("bad_image", f"image: bytes, a file path or a numpy array, not {type(image).__name__}")
 
 
 def _error_of(status: int, body: bytes | str) -> QuatrackError:
@@ -216,7 +261,10 @@ class _Endpoint:
     Only the transport (blocking or asyncio) differs between the two."""
 
     def __init__(self, url: str, object: str | None, token: str | None, timeout: float) -> None:
-        self.http_url, self.ws_url = base_urls(url)
+        try:
+            self.http_url, self.ws_url = base_urls(url)
+        except ValueError as exc:
+            raise InputError("bad_url", str(exc)) from None
         self.object = object
         self.token = api_token(token)
         self.timeout = timeout
@@ -232,8 +280,11 @@ class _Endpoint:
 
         name = self.object if object is None else object
         if not name:
-            raise ValueError(f"which object? give object=NAME here or to {type(self).__name__}(...)")
-        return check_object_name(name)
+            raise _ObjectNameError("invalid_object_name", f"which object? give object=NAME here or to {type(self).__name__}(...)")
+        try:
+            return check_object_name(name)
+        except StoreError as exc:
+            raise _ObjectNameError("invalid_object_name", str(exc)) from None
 
     def _unreachable(self, exc: Exception) -> QuatrackError:
         import httpx
@@ -284,7 +335,13 @@ class _Endpoint:
     def _frame_parts(item: Any) -> tuple[str | None, bytes]:
         """A frame as sent: an optional ``{"type": "frame", "time_s"}`` text, then the image bytes."""
         if isinstance(item, tuple) and len(item) == 2:
-            return json.dumps({"type": "frame", "time_s": float(item[0])}), image_bytes(item[1])
+            try:
+                time_s = float(item[0])
+            except (TypeError, ValueError):
+                kind = _KindError if not isinstance(item[0], str) else InputError
+                raise kind("bad_message", f"a frame's time_s (the first of its pair) must be a number of seconds, not "
+                                          f"{str(item[0])[:40]!r}") from None
+            return json.dumps({"type": "frame", "time_s": time_s}), image_bytes(item[1])
         return None, image_bytes(item)
 
     @classmethod
@@ -379,12 +436,13 @@ class Client(_Endpoint):
         from websockets.sync.client import connect
 
         url = self._track_url(object, ros_mesh_unit)
+        hello = self._hello(camera)  # (a camera file that cannot be read: refused before connecting)
         try:
             ws = connect(url, additional_headers=self._headers or None, max_size=None, open_timeout=self.timeout)
         except Exception as exc:  # refused handshake or no server: typed, with the server's code
             raise _ws_error(exc) from None
         with ws, _typed_stream_errors(self.ws_url, self.timeout):  # (the server gone, or silent)
-            ws.send(self._hello(camera))
+            ws.send(hello)
             self._expect(_message(ws.recv(self.timeout)), "ready")
             for index, item in enumerate(frames):
                 header, data = self._frame_parts(item)
@@ -439,6 +497,7 @@ class AsyncClient(_Endpoint):
         import websockets
 
         url = self._track_url(object, ros_mesh_unit)
+        hello = self._hello(camera)  # (a camera file that cannot be read: refused before connecting)
         try:
             ws = await websockets.connect(url, additional_headers=self._headers or None, max_size=None,
                                           open_timeout=self.timeout)
@@ -455,7 +514,7 @@ class AsyncClient(_Endpoint):
 
         async with ws:
             with _typed_stream_errors(self.ws_url, self.timeout):  # (the server gone, or silent)
-                await ws.send(self._hello(camera))
+                await ws.send(hello)
                 self._expect(_message(await asyncio.wait_for(ws.recv(), self.timeout)), "ready")
                 index = 0
                 async for item in items():
@@ -616,7 +675,7 @@ async def stream(url: str, camera: Any, frames: Iterable[tuple[int, float, bytes
     import websockets
 
     if fps is not None and not (isinstance(fps, (int, float)) and math.isfinite(fps) and fps > 0):
-        raise ValueError(f"fps: frames per second above 0, or None for lock-step; got {fps!r}")
+        raise InputError("invalid_input", f"fps: frames per second above 0, or None for lock-step; got {fps!r}")
     hello = json.loads(Client._hello(camera))
 
     headers = auth_headers(api_token(token)) or None
