@@ -161,12 +161,10 @@ def camera_json(camera: Any) -> dict:
     if isinstance(camera, PinholeCamera):
         return camera_to_dict(camera)
     if isinstance(camera, (str, os.PathLike)):
-        if not Path(camera).exists():  # (load_camera's "cannot read camera file (FileNotFoundError: [Errno 2] ...)")
-            raise _CameraError("bad_camera", f"camera file {os.fspath(camera)}: no such file")
         try:
             return camera_to_dict(load_camera(camera))
-        except SpecError as exc:  # (its message starts with the file's name)
-            raise _CameraError("bad_camera", f"camera file {exc}") from None
+        except SpecError as exc:  # (its message names the file: "cannot read camera file PATH: no such file")
+            raise _CameraError("bad_camera", str(exc)) from None
     raise _KindError("bad_camera", f"camera: a dict, a PinholeCamera or the path of a camera file, not "
                                    f"{type(camera).__name__}")
 

@@ -38,13 +38,13 @@ def test_a_camera_file_that_cannot_be_read_is_bad_camera_before_any_request(url,
     with Client(url, object="cookie-box") as c:
         with pytest.raises(QuatrackError) as e:
             c.pose(IMAGE, "nofile.json")
-        _check(e.value, "bad_camera", SpecError, "camera file nofile.json: no such file")
+        _check(e.value, "bad_camera", SpecError, "cannot read camera file nofile.json: no such file")
         with pytest.raises(QuatrackError) as e:  # (was "unreachable": it connected before reading the camera)
             next(c.track([IMAGE], "nofile.json"))
-        _check(e.value, "bad_camera", SpecError, "camera file nofile.json: no such file")
+        _check(e.value, "bad_camera", SpecError, "cannot read camera file nofile.json: no such file")
         with pytest.raises(SpecError) as e:
             c.pose_all(IMAGE, broken)
-        _check(e.value, "bad_camera", SpecError, f"camera file {broken}: not valid JSON")
+        _check(e.value, "bad_camera", SpecError, f"{broken}: not valid JSON")
         with pytest.raises(TypeError) as e:
             c.pose(IMAGE, 42)
         _check(e.value, "bad_camera", TypeError, "camera: a dict, a PinholeCamera or the path of a camera file, not int")
@@ -88,10 +88,10 @@ def test_the_async_client_raises_the_same(url):
         async with AsyncClient(url, object="cookie-box") as c:
             with pytest.raises(QuatrackError) as e:
                 await c.pose(IMAGE, "nofile.json")
-            _check(e.value, "bad_camera", SpecError, "camera file nofile.json: no such file")
+            _check(e.value, "bad_camera", SpecError, "cannot read camera file nofile.json: no such file")
             with pytest.raises(QuatrackError) as e:
                 await anext(c.track([IMAGE], "nofile.json"))
-            _check(e.value, "bad_camera", SpecError, "camera file nofile.json: no such file")
+            _check(e.value, "bad_camera", SpecError, "cannot read camera file nofile.json: no such file")
             with pytest.raises(QuatrackError) as e:
                 await c.pose(IMAGE, CAMERA, object="../etc")
             _check(e.value, "invalid_object_name", StoreError, "invalid object name '../etc'")
