@@ -10,6 +10,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import shlex
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -237,6 +238,11 @@ def _points_disagree(points: PointPairs, camera: PinholeCamera, pose: Pose) -> s
             f"the pose is used — drop it to solve the pose from the points")
 
 
+# what a view missing its pose can do besides (the README's step 4 gives its photos neither)
+_LOCATE_HINT = ("or let `quatrack register {spec} --locate` find its pose by recognition, from the views that "
+                "have one, and train the spec it writes")
+
+
 def missing_pose(where: str, hint: str = "") -> str:
     """The one message for a view given neither ``pose`` nor ``points`` (``where``: the spec's
     path and the view; ``hint``: what else the caller can do, e.g. register's ``--locate``)."""
@@ -277,7 +283,8 @@ def load_spec(path: str | Path, warn=None, pose_required: bool = True, misfits: 
     views_data = data["views"]
     if not isinstance(views_data, list) or not views_data:
         raise SpecError(f"{path}: field 'views' must be a non-empty list")
-    views = []
+    # every view's fields first: a view missing its pose was refused after the warnings of the views
+    # before it ("view 0: pose solved from its 6 points …"), which said nothing of the refusal
     for i, v in enumerate(views_data):
         where = f"{path}: view {i}"
         if not isinstance(v, dict):
@@ -285,8 +292,14 @@ def load_spec(path: str | Path, warn=None, pose_required: bool = True, misfits: 
         for key in ("image", "camera"):
             if key not in v:
                 raise SpecError(f"{where}: missing field {key!r}")
+    posed = any("pose" in v or "points" in v for v in views_data)  # (--locate starts from those)
+    for i, v in enumerate(views_data):
         if "pose" not in v and "points" not in v and pose_required:
-            raise SpecError(missing_pose(where))
+            raise SpecError(missing_pose(f"{path}: view {i}",
+                                         _LOCATE_HINT.format(spec=shlex.quote(str(path))) if posed else ""))
+    views = []
+    for i, v in enumerate(views_data):
+        where = f"{path}: view {i}"
         _unknown(v, ("image", "camera", "pose", "mask", "points"), where, warn)
         image = _path(base, v["image"], where, "image")
         cam = v["camera"]
