@@ -793,7 +793,7 @@ def _image_arguments(images: list[str]) -> list[str]:
     said "cannot read image frames/*.png: No such file"), a list file (``.txt``, ``.lst``) the
     images it names (it was read as an image: "cannot be decoded"), a file that exists is taken
     as named (``[1].png`` is no pattern then). An argument naming no file (a missing one, a glob
-    matching none, a folder) stays, to be reported on its line."""
+    matching none, a folder) stays, to be reported on its line (:func:`_read_argument`)."""
     from quatrack.recognition.trackio import SourceError, image_paths
 
     out = []
@@ -805,12 +805,29 @@ def _image_arguments(images: list[str]) -> list[str]:
     return out
 
 
+def _read_argument(path: str):
+    """The image an IMAGE argument (:func:`_image_arguments`) names, or an
+    :class:`~quatrack.recognition.images.ImageError` for its line: a glob that matches no file
+    says so, in ``track --images``' words (it said "cannot read image empty/*.png: No such file
+    or directory", as if a file had that name), and a folder asks for a glob of its images, as
+    ``track`` does."""
+    import glob
+
+    from quatrack.recognition.images import ImageError, read_image
+
+    if os.path.isdir(path):
+        raise ImageError(f"{path}: is a folder; give a glob of its images, e.g. {os.path.join(path, '*.png')!r}")
+    if not os.path.exists(path) and glob.has_magic(path):
+        raise ImageError(f"{path}: no file matches")
+    return read_image(path)
+
+
 def _run_locate(args: argparse.Namespace) -> int:
     """Recognition + initial pose per image. A bad image is reported on its own line (``error``
     in JSON) and the others still run; the exit status is 1 if any image failed."""
     import json
 
-    from quatrack.recognition.images import ImageError, read_image
+    from quatrack.recognition.images import ImageError
     from quatrack.recognition.locate import LocateParams, locate
     from quatrack.recognition.match import index_for
     from quatrack.viewsets.camera import load_camera
@@ -829,7 +846,7 @@ def _run_locate(args: argparse.Namespace) -> int:
     said: set = set()
     for path in args.images:
         try:
-            image = read_image(path)
+            image = _read_argument(path)
             result = locate(image, _resized(camera, image, said, args.camera), model, params, index=index)
         except ImageError as exc:
             failed = True
@@ -890,7 +907,7 @@ def _locate_all(args: argparse.Namespace, camera, params) -> int:
     import json
     import time
 
-    from quatrack.recognition.images import ImageError, read_image
+    from quatrack.recognition.images import ImageError
     from quatrack.recognition.locate import locate_all, not_found
     from quatrack.viewsets.store import list_models, load_model, resolve_store, store_note
 
@@ -915,7 +932,7 @@ def _locate_all(args: argparse.Namespace, camera, params) -> int:
     for path in args.images:
         t0 = time.perf_counter()
         try:
-            image = read_image(path)
+            image = _read_argument(path)
             results = locate_all(image, _resized(camera, image, said, args.camera), models, params)
         except ImageError as exc:
             failed = True
