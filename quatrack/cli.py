@@ -558,8 +558,9 @@ def _registration_doubts(spec, mesh) -> list[str]:
     is still only warned of."""
     import cv2
 
-    from quatrack.recognition.evidence import edge_agreement
-    from quatrack.recognition.pose import PoseParams
+    from quatrack.recognition.evidence import edge_agreement, plausible_edges
+    from quatrack.recognition.pose import PoseParams, edges_agree
+    from quatrack.recognition.registration import xyzw_hint
     from quatrack.viewsets.errors import SpecError
 
     p = PoseParams()
@@ -569,7 +570,7 @@ def _registration_doubts(spec, mesh) -> list[str]:
         if grey is None or (grey.shape[1], grey.shape[0]) != (v.camera.width, v.camera.height):
             continue
         e = edge_agreement(grey, mesh, v.camera, v.pose)
-        if not _edges_fail(e, p):
+        if e.samples < p.min_edge_samples or edges_agree(e, p):
             continue
         said = (f"view {v.index}: the mesh's edges at its pose lie on the photo's edges for {e.agreement:.0%} of "
                 f"their length ({e.chance:.0%} by chance; a pose locate finds needs {p.min_edge_agreement:.0%}, "
@@ -581,59 +582,6 @@ def _registration_doubts(spec, mesh) -> list[str]:
     return out
 
 
-def _edges_fail(e, p) -> bool:
-    """Whether an :class:`~quatrack.recognition.evidence.EdgeEvidence` (measured on enough
-    samples) misses ``p``'s (``PoseParams``) bars for a pose ``locate`` finds."""
-    return e.samples >= p.min_edge_samples and (e.agreement < p.min_edge_agreement or e.lead < p.min_edge_lead)
-
-
-def xyzw_fits(grey, mesh, view):
-    """The edge evidence (:func:`~quatrack.recognition.evidence.edge_agreement`) of the view's
-    ``q_wxyz`` read ``[x, y, z, w]`` (``view.xyzw_pose``: scipy's and ROS's order) in its photo
-    ``grey``, when that reading puts the object in front of the camera and its edges on the
-    photo's as a pose ``locate`` finds must (``PoseParams``' bars); else None (another pose
-    form, or the other reading fits no better). ``train`` and ``register`` both ask it of a
-    pose whose edges miss the photo's."""
-    from quatrack.recognition.evidence import edge_agreement
-    from quatrack.recognition.pose import PoseParams
-
-    alt = getattr(view, "xyzw_pose", None)
-    if alt is None or not np.all(alt.apply(mesh.vertices)[:, 2] > 0):
-        return None
-    p = PoseParams()
-    x = edge_agreement(grey, mesh, view.camera, alt)
-    return x if x.samples >= p.min_edge_samples and not _edges_fail(x, p) else None
-
-
-def xyzw_hint(grey, mesh, view) -> str:
-    """``is the quaternion in [x, y, z, w] order? …`` with the edges of that reading and the
-    quaternion to write, when it fits the photo (:func:`xyzw_fits`); else ""."""
-    from quatrack.viewsets.train import XYZW_HINT
-
-    x = xyzw_fits(grey, mesh, view)
-    if x is None:
-        return ""
-    q = ", ".join(f"{c:.6g}" for c in view.xyzw_pose.q_wxyz)
-    return f"{XYZW_HINT} (read so, {x.agreement:.0%} of its edges agree: \"q_wxyz\": [{q}])"
-
-
-#: a pose whose edges agree with at least this share of what chance leaves unexplained —
-#: ``lead ≥ PLAUSIBLE_SHARE · (1 − chance)`` — is plausible: the warnings do not ask about
-#: conventions. Words only: whether a pose is found is still decided by ``min_edge_lead``. Judged
-#: relative to chance because clutter raises chance and so caps the lead: a thin bar's true poses
-#: took 0.41–0.54 of that room (76 % vs 53 % on gravel, 67 % vs 45 % on grass); the same photos at
-#: the pose camera → object, read [x, y, z, w] or turned 5–90° took at most 0.14, and a box turned
-#: 40° off its frame's pose 0.23 (51 % vs 36 %; user report, finding 5).
-PLAUSIBLE_SHARE = 1 / 3
-
-
-def plausible_edges(e) -> bool:
-    """Whether an :class:`~quatrack.recognition.evidence.EdgeEvidence` agrees well above chance
-    (:data:`PLAUSIBLE_SHARE`): a pose near where the image shows the object, whatever convention
-    doubts its refusal may raise."""
-    return e.lead >= PLAUSIBLE_SHARE * (1.0 - e.chance)
-
-
 def _edges_hint(e, p) -> str:
     """What an edge agreement ``e`` below ``p``'s (``PoseParams``) thresholds supports. Near or
     below chance: the pose is not where the photo shows the object, so a convention or unit error
@@ -641,6 +589,8 @@ def _edges_hint(e, p) -> str:
     and a lead short of ``min_edge_lead`` with most edges agreeing is the background's clutter
     agreeing by chance too (the thin bar on gravel: 76 %, 53 % by chance, asked "is the pose
     object → camera, in the mesh's units?" of its true pose)."""
+    from quatrack.recognition.evidence import plausible_edges
+
     if not plausible_edges(e):
         return "is the pose object → camera, in the mesh's units?"
     if e.agreement >= p.min_edge_agreement:

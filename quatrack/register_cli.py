@@ -298,7 +298,7 @@ def _register_view(view, grey: np.ndarray, mesh, args: argparse.Namespace, origi
     """One view's final pose, its line for stdout, and what is wrong with it (None: nothing):
     its clicks off the mesh, or the mesh's edges at the pose not on the photo's as a pose
     ``locate`` finds must be (:class:`~quatrack.recognition.pose.PoseParams`' bars)."""
-    from quatrack.cli import xyzw_hint
+    from quatrack.recognition.registration import xyzw_hint
     from quatrack.recognition.evidence import edge_agreement
     from quatrack.recognition.pose import PoseParams
     from quatrack.recognition.registration import AGREEMENT_SLACK, clicks_sigma, refine_with_edges

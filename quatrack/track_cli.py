@@ -332,7 +332,7 @@ def _refused_pose(path: str, frame: int, reason: str | None, edges=None) -> None
 
     The causes are named in the order the evidence gives them. ``edges`` (:func:`_edges_at`) is
     how the model's edges at the pose agree with the frame: well above chance
-    (:func:`~quatrack.cli.plausible_edges`) the pose is where the frame
+    (:func:`~quatrack.recognition.evidence.plausible_edges`) the pose is where the frame
     shows the object, and the refusal (typically "only 0 model points matched near the pose") is
     the texture not found there — a cluttered or differently lit background, blur, a weakly
     textured side — so no convention is suspected: the exact pose of a thin bar on grass (edges
@@ -340,7 +340,7 @@ def _refused_pose(path: str, frame: int, reason: str | None, edges=None) -> None
     report, finding 5). Otherwise, or unmeasured, both geometric causes are named: a pose merely
     10° off was once asked only whether it was given camera → object, and a box turned 40° still
     agrees 51 % vs 36 % by chance (too little to be called plausible)."""
-    from quatrack.cli import plausible_edges
+    from quatrack.recognition.evidence import plausible_edges
     from quatrack.recognition.pose import PoseParams, edges_agree
 
     why = (reason or "no reason given").removeprefix("given pose refused: ").removeprefix("given pose: ")

@@ -15,7 +15,8 @@ from quatrack.viewsets.register import PointPairs, Registration, click_limit_px,
 
 from .evidence import edge_fit, measure_edges
 
-__all__ = ["AGREEMENT_SLACK", "CLICK_SIGMA_FLOOR", "DEFAULT_CLICK_SIGMA", "clicks_sigma", "refine_with_edges"]
+__all__ = ["AGREEMENT_SLACK", "CLICK_SIGMA_FLOOR", "DEFAULT_CLICK_SIGMA", "clicks_sigma", "refine_with_edges", "xyzw_fits",
+           "xyzw_hint"]
 
 AGREEMENT_SLACK = 0.02  # a refit may lose this much edge agreement (one sample in 50: a pose already on its edges)
 
@@ -93,3 +94,33 @@ def refine_with_edges(grey: np.ndarray, mesh, camera: PinholeCamera, reg: Regist
     dc = float(np.linalg.norm((pose.R @ c + pose.t) - (reg.pose.R @ c + reg.pose.t)))
     angle = float(np.degrees(quat.angle_between(pose.q_wxyz, reg.pose.q_wxyz)))
     return replace(refit, moved=(dc / float(mesh.extent), angle))
+
+
+def xyzw_fits(grey, mesh, view):
+    """The edge evidence (:func:`~quatrack.recognition.evidence.edge_agreement`) of the view's
+    ``q_wxyz`` read ``[x, y, z, w]`` (``view.xyzw_pose``: scipy's and ROS's order) in its photo
+    ``grey``, when that reading puts the object in front of the camera and its edges on the
+    photo's as a pose ``locate`` finds must (``PoseParams``' bars); else None (another pose
+    form, or the other reading fits no better). ``train`` and ``register`` both ask it of a
+    pose whose edges miss the photo's."""
+    from .evidence import edge_agreement
+    from .pose import PoseParams, edges_agree
+
+    alt = getattr(view, "xyzw_pose", None)
+    if alt is None or not np.all(alt.apply(mesh.vertices)[:, 2] > 0):
+        return None
+    p = PoseParams()
+    x = edge_agreement(grey, mesh, view.camera, alt)
+    return x if edges_agree(x, p) else None
+
+
+def xyzw_hint(grey, mesh, view) -> str:
+    """``is the quaternion in [x, y, z, w] order? …`` with the edges of that reading and the
+    quaternion to write, when it fits the photo (:func:`xyzw_fits`); else ""."""
+    from quatrack.viewsets.train import XYZW_HINT
+
+    x = xyzw_fits(grey, mesh, view)
+    if x is None:
+        return ""
+    q = ", ".join(f"{c:.6g}" for c in view.xyzw_pose.q_wxyz)
+    return f"{XYZW_HINT} (read so, {x.agreement:.0%} of its edges agree: \"q_wxyz\": [{q}])"
