@@ -782,6 +782,9 @@ def _summary(steps, out: str, stream=None) -> None:
     track_ms = [s.timings_ms.get("total", 0.0) for s in steps if s.status == "tracking"]
     p50 = f"{np.percentile(track_ms, 50):.1f}" if track_ms else "-"
     print(f"tracked {len(steps)} frames -> {out}", file=stream)
-    print(f"  init {counts['init']}, tracking {counts['tracking']}, lost {counts['lost']}; "
-          f"pose in {share:.1f} % of frames after the first init; step p50 {p50} ms", file=stream)
+    if first is None:  # (it said "pose in 0.0 % of frames after the first init; step p50 - ms": there was none)
+        print(f"  init 0, tracking 0, lost {counts['lost']}; the object was found in no frame", file=stream)
+    else:
+        print(f"  init {counts['init']}, tracking {counts['tracking']}, lost {counts['lost']}; "
+              f"pose in {share:.1f} % of frames after the first init; step p50 {p50} ms", file=stream)
     stream.flush()

@@ -222,4 +222,10 @@ class Pose:
         return hash((*self.q_wxyz.tolist(), *self.t.tolist()))
 
     def __repr__(self) -> str:
-        return f"Pose(q_wxyz={np.round(self.q_wxyz, 6).tolist()}, t={np.round(self.t, 6).tolist()})"
+        """To 6 decimals, a negative zero shown as 0.0 (``+ 0.0``: a rotation about y printed
+        ``q_wxyz=[0.988771, -0.0, 0.149438, -0.0]``).
+
+        >>> Pose.from_rvec([0.0, 0.3, 0.0], [40.0, -0.0, 600.0])
+        Pose(q_wxyz=[0.988771, 0.0, 0.149438, 0.0], t=[40.0, 0.0, 600.0])
+        """
+        return f"Pose(q_wxyz={(np.round(self.q_wxyz, 6) + 0.0).tolist()}, t={(np.round(self.t, 6) + 0.0).tolist()})"
