@@ -288,7 +288,7 @@ def within_pixels(image: np.ndarray, camera: PinholeCamera, max_pixels: int,
     return cv2.resize(image, (nw, nh), interpolation=cv2.INTER_AREA), camera.scaled(nw / w, nw, nh), nw / w
 
 
-def unreadable(exc: OSError) -> str:
+def _unreadable(exc: OSError) -> str:
     """Why a file could not be read, in plain words: "no such file", "it is a directory",
     "permission denied", else the system's words (``strerror``). A missing camera file said
     "cannot read camera file (FileNotFoundError: [Errno 2] No such file or directory: …)"."""
@@ -309,7 +309,7 @@ def load_camera(path: str | Path) -> PinholeCamera:
     except UnicodeDecodeError:  # (a mesh or an image given as --camera: Python's codec error was shown)
         raise SpecError(f"{path}: not a camera file (JSON or OpenCV YAML): it is not text") from None
     except OSError as exc:
-        raise SpecError(f"cannot read camera file {path}: {unreadable(exc)}") from None
+        raise SpecError(f"cannot read camera file {path}: {_unreadable(exc)}") from None
     if path.suffix.lower() in (".yml", ".yaml", ".xml") or text.lstrip().startswith("%YAML"):
         return _camera_from_yaml(path)
     try:
